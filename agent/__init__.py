@@ -1,0 +1,1 @@
+"""Onboard agent of one vessel: estimation, control and (later) the Zenoh runtime."""

@@ -1,0 +1,217 @@
+"""Typed parameters of the agent, with the paper's Table I as defaults.
+
+Every model forbids unknown keys, so a misspelt key in a YAML file is an error rather than a silently
+ignored setting. `load_yaml` turns a file into a model and reports the first bad field together with the
+file it came from, in one line a user can act on.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Annotated, Literal, TypeVar
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+PositiveFloat = Annotated[float, Field(gt=0, allow_inf_nan=False)]
+NonNegativeFloat = Annotated[float, Field(ge=0, allow_inf_nan=False)]
+
+EstimatorName = Literal["mckf", "kf", "akf", "rls", "huber_rls"]
+ESTIMATOR_NAMES: tuple[str, ...] = ("rls", "huber_rls", "kf", "akf", "mckf")
+
+
+class StrictModel(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True, validate_default=True)
+
+
+class MckfParams(StrictModel):
+    """Maximum-correntropy update, Sec. III-A steps 3-5."""
+
+    bandwidths: tuple[PositiveFloat, PositiveFloat, PositiveFloat] = Field(
+        (9999.0, 9999.0, 0.8), description="Gaussian kernel bandwidths [sigma1, sigma2, sigma3] (Table I)"
+    )
+    tolerance: PositiveFloat = Field(1e-6, description="stopping threshold iota of (20) (Table I)")
+    max_iterations: int = Field(10, ge=1, le=1000, description="L_max (Table I)")
+
+
+class AkfParams(StrictModel):
+    """Sage-Husa noise estimation with a fading memory (see agent/estimators/akf.py)."""
+
+    fading_factor: float = Field(0.98, gt=0, lt=1, description="b: weight of the past in the noise estimate")
+    min_scale: PositiveFloat = Field(0.05, description="lower bound of the estimated noise scale")
+    max_scale: PositiveFloat = Field(1e3, description="upper bound of the estimated noise scale")
+
+    @model_validator(mode="after")
+    def _ordered(self) -> AkfParams:
+        if self.min_scale >= self.max_scale:
+            raise ValueError("min_scale must be below max_scale")
+        return self
+
+
+class RlsParams(StrictModel):
+    forgetting_factor: float = Field(0.99, gt=0, le=1, description="lambda of exponentially weighted RLS")
+
+
+class HuberParams(StrictModel):
+    threshold: PositiveFloat = Field(1.345, description="Huber constant c, in robust standard deviations")
+    scale_window: int = Field(50, ge=5, le=10_000, description="residuals kept for the MAD scale estimate")
+
+
+class RelativeEstimationParams(StrictModel):
+    """Inter-vessel relative position estimation, Sec. III-A."""
+
+    estimator: EstimatorName = "mckf"
+    initial_covariance: PositiveFloat = Field(25.0, description="P_ij,0 = value * I (Table I)")
+    displacement_variance: PositiveFloat = Field(
+        1e-6, description="R_delta_i per axis over one sampling period dt (Table I)"
+    )
+    range_variance: PositiveFloat = Field(
+        2.32,
+        description=(
+            "variance of one range error, used to build R_z from (14); default: the Table II mixture "
+            "0.8 N(0, 0.4) + 0.2 N(0, 10)"
+        ),
+    )
+    noise_ranges: Literal["predicted", "measured"] = Field(
+        "predicted",
+        description=(
+            "ranges at which R_z of (14) is evaluated: predicted from the estimate (the paper's choice) "
+            "or the measured pair, which does not move with the estimate's error (docs/estimation.md)"
+        ),
+    )
+    max_range: PositiveFloat = Field(1000.0, description="ranges beyond this are rejected as invalid")
+    mckf: MckfParams = MckfParams()
+    akf: AkfParams = AkfParams()
+    rls: RlsParams = RlsParams()
+    huber_rls: HuberParams = HuberParams()
+
+
+class TargetEstimationParams(StrictModel):
+    """Pseudo-linear Kalman filter of the target, Sec. III-B."""
+
+    process_noise: PositiveFloat = Field(0.01, description="Q_o = value * I_4 (Table I)")
+    bearing_variance: PositiveFloat = Field(1e-4, description="R_b = value * I_2 (Table I)")
+    initial_covariance: PositiveFloat = Field(1.0, description="P_io,0 = value * I_4 (Table I)")
+    min_range: PositiveFloat = Field(
+        0.1, description="floor on the predicted range used to scale R_z, so R_z never vanishes"
+    )
+
+
+class ControlParams(StrictModel):
+    """Formation control and obstacle avoidance, Sec. IV (Table I)."""
+
+    radius: PositiveFloat = Field(5.0, description="r*_io, circumnavigation radius (m)")
+    yaw_rate: PositiveFloat = Field(math.pi / 30, description="omega*_i, desired yaw rate (rad/s)")
+    safety_distance: PositiveFloat = Field(3.0, description="d_s (m)")
+    max_correction_yaw_rate: PositiveFloat = Field(math.pi / 3, description="U_omega_c (rad/s)")
+    max_speed: PositiveFloat = Field(5.0, description="U_v (m/s)")
+    max_target_speed: PositiveFloat = Field(0.5, description="U_vo (m/s)")
+    max_formation_speed: PositiveFloat = Field(1.5, description="U_vf (m/s)")
+    max_avoidance_speed: PositiveFloat = Field(0.7, description="U_vs (m/s)")
+    gain_neighbour: PositiveFloat = Field(1.5, description="kappa_ij")
+    gain_target: PositiveFloat = Field(0.9, description="kappa_io")
+    avoidance_gain: PositiveFloat = Field(1.7, description="k_1")
+    avoidance_spread: PositiveFloat = Field(0.5, description="k_2")
+
+
+class AgentParams(StrictModel):
+    """Everything one vessel's agent needs; Table I of the paper by default."""
+
+    dt: PositiveFloat = Field(0.1, description="sampling period (s) (Table I)")
+    relative: RelativeEstimationParams = RelativeEstimationParams()
+    target: TargetEstimationParams = TargetEstimationParams()
+    control: ControlParams = ControlParams()
+
+
+class ConfigError(ValueError):
+    """A configuration file could not be turned into parameters; the message says where and why."""
+
+
+M = TypeVar("M", bound=BaseModel)
+
+
+def updated(model: M, **changes: object) -> M:
+    """A copy of `model` with `changes`, validated like a fresh one (pydantic's model_copy is not)."""
+    data = model.model_dump()
+    data.update({key: value.model_dump() if isinstance(value, BaseModel) else value
+                 for key, value in changes.items()})
+    return type(model).model_validate(data)
+
+
+def describe_validation_error(error: ValidationError, source: str) -> str:
+    """One line naming the source, the dotted field path and what is wrong with it."""
+    first = error.errors()[0]
+    field = ".".join(str(part) for part in first["loc"]) or "<top level>"
+    if first["type"] == "extra_forbidden":
+        problem = "unknown key"
+    else:
+        problem = first["msg"]
+    more = len(error.errors()) - 1
+    suffix = f" (and {more} more problem{'s' if more > 1 else ''})" if more else ""
+    shown = first.get("input")
+    value = f" (got {shown!r})" if first["type"] != "extra_forbidden" and not isinstance(shown, dict) else ""
+    return f"{source}: field '{field}': {problem}{value}{suffix}"
+
+
+def parse_mapping(model: type[M], data: object, source: str) -> M:
+    """Validate an already-loaded mapping; `source` names where it came from in error messages."""
+    if data is None:
+        data = {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"{source}: expected a mapping of keys to values, got {type(data).__name__}")
+    try:
+        return model.model_validate(data)
+    except ValidationError as error:
+        raise ConfigError(describe_validation_error(error, source)) from None
+
+
+def load_yaml(model: type[M], path: str | Path) -> M:
+    """Read a YAML file into `model`, raising ConfigError with the file and field on any problem."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as error:
+        raise ConfigError(f"{path}: cannot read: {error.strerror or error}") from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as error:
+        mark = getattr(error, "problem_mark", None)
+        where = f" line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+        raise ConfigError(f"{path}:{where} not valid YAML: {getattr(error, 'problem', error)}") from None
+    return parse_mapping(model, data, str(path))
+
+
+def _yaml_scalar(value: object) -> str:
+    if isinstance(value, float):
+        text = repr(value)
+        # YAML 1.1 (PyYAML) reads 1e-06 as a string: a float needs a dot before its exponent.
+        if "e" in text and "." not in text:
+            mantissa, exponent = text.split("e")
+            text = f"{mantissa}.0e{exponent}"
+        return text
+    if isinstance(value, tuple):
+        return "[" + ", ".join(_yaml_scalar(v) for v in value) + "]"
+    return str(value)
+
+
+def commented_yaml(model: BaseModel, indent: int = 0) -> str:
+    """The model as YAML, each field followed by its description as a comment (for showing a config)."""
+    lines = []
+    for name, info in type(model).model_fields.items():
+        value = getattr(model, name)
+        pad = "  " * indent
+        if isinstance(value, BaseModel):
+            lines.append(f"{pad}{name}:")
+            lines.append(commented_yaml(value, indent + 1))
+        else:
+            comment = f"  # {info.description}" if info.description else ""
+            lines.append(f"{pad}{name}: {_yaml_scalar(value)}{comment}")
+    return "\n".join(lines)
+
+
+if __name__ == "__main__":
+    print("# Parameters of one vessel's agent: the paper's Table I (Liu et al., Sec. VI).")
+    print("# Every key is optional; a file need only name what it changes. Unknown keys are errors.")
+    print("# Regenerate with: python -m agent.params > configs/agent.yaml")
+    print(commented_yaml(AgentParams()))

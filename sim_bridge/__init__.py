@@ -1,0 +1,1 @@
+"""Stand-in for the hardware: world model, sensor noise, and offline experiments."""

@@ -1,0 +1,1 @@
+"""Offline experiments: estimator comparison, real-data replay, benchmarks (needs the lab extra)."""

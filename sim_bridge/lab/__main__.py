@@ -1,0 +1,3 @@
+from sim_bridge.lab.cli import main
+
+raise SystemExit(main())

@@ -1,0 +1,40 @@
+"""Figures of the lab commands. Matplotlib is imported here only, never by the agent."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+COLOURS = {"rls": "#d62728", "huber_rls": "#ff7f0e", "kf": "#1f77b4", "akf": "#9467bd", "mckf": "#2ca02c"}
+LABELS = {"rls": "RLS", "huber_rls": "Huber-RLS", "kf": "KF", "akf": "AKF", "mckf": "MCKF"}
+
+
+def rmse_figure(time: np.ndarray, curves: dict[str, tuple[np.ndarray, np.ndarray]], title: str,
+                path: Path) -> Path:
+    """RMSE over time on a log axis, one line per estimator with a +-1 std band across runs.
+
+    `curves` maps an estimator name to (rmse, std), each shaped like `time`.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7.5, 4.2), dpi=130)
+    for name, (rmse, std) in curves.items():
+        colour = COLOURS.get(name)
+        ax.plot(time, rmse, color=colour, lw=1.4, label=LABELS.get(name, name))
+        lower = np.maximum(rmse - std, rmse * 1e-2)  # a log axis cannot show <= 0
+        ax.fill_between(time, lower, rmse + std, color=colour, alpha=0.15, lw=0)
+    ax.set_yscale("log")
+    ax.set_xlabel("time (s)")
+    ax.set_ylabel("relative position RMSE (m)")
+    ax.set_title(title)
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(ncol=5, fontsize=8, loc="upper right")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    plt.close(fig)
+    return path

@@ -1,0 +1,29 @@
+"""Small helpers to write result tables and the command that produced them."""
+
+from __future__ import annotations
+
+import argparse
+import shlex
+import sys
+from collections.abc import Sequence
+
+
+def markdown_table(header: Sequence[str], rows: Sequence[Sequence[object]]) -> str:
+    def cell(value: object) -> str:
+        return f"{value:.3f}" if isinstance(value, float) else str(value)
+
+    lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
+    lines += ["| " + " | ".join(cell(v) for v in row) + " |" for row in rows]
+    return "\n".join(lines)
+
+
+def invocation(args: argparse.Namespace) -> str:
+    """The command line that produced `args`, as a user would type it again.
+
+    `cli.main` stores the arguments it parsed in `args.argv`, so this is right also when the CLI is
+    called in-process (from a test), where sys.argv belongs to someone else.
+    """
+    argv = getattr(args, "argv", None)
+    if argv is None:
+        argv = sys.argv[1:]
+    return " ".join(["usv-lab", *map(shlex.quote, argv)])

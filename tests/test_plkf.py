@@ -1,0 +1,146 @@
+"""The target tracker (PLKF, Sec. III-B) against independent derivations and its expected behaviour."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from agent.estimators.plkf import PLKF, plkf_predict, plkf_update, transition
+from agent.params import TargetEstimationParams
+
+DT = 0.1
+
+
+def scalar_form_update(x, P, b, s, min_range):
+    """The same update derived by hand in scalar form: with q the unit normal of b, G = q q^T, so (22)
+    is the scalar equation q^T p = 0 with variance r^2 s (R_b = s I), and the optimal gain and the
+    simple-form covariance follow (25) with an ordinary division in place of the pseudo-inverse."""
+    q = np.array([-b[1], b[0]])
+    h = np.concatenate([q, [0.0, 0.0]])
+    r = max(np.linalg.norm(x[:2]), min_range)
+    innovation_variance = h @ P @ h + r * r * s
+    K = P @ h / innovation_variance
+    return x - K * (h @ x), (np.eye(4) - np.outer(K, h)) @ P
+
+
+def test_one_step_matches_the_scalar_derivation():
+    rng = np.random.default_rng(3)
+    A = rng.normal(size=(4, 4))
+    P = A @ A.T + 0.5 * np.eye(4)
+    x = np.array([4.0, -2.0, 0.3, 0.1])
+    b = np.array([0.8, -0.6])
+    x_post, P_post, _, _ = plkf_update(x, P, b, 1e-3, 0.1)
+    x_ref, P_ref = scalar_form_update(x, P, b, 1e-3, 0.1)
+    np.testing.assert_allclose(x_post, x_ref, atol=1e-10)
+    np.testing.assert_allclose(P_post, P_ref, atol=1e-10)
+
+
+def test_prediction_step_hand_value():
+    x = np.array([1.0, 2.0, 3.0, 4.0])
+    x_prior, P_prior = plkf_predict(x, np.eye(4), transition(0.5), 0.01 * np.eye(4), np.array([1.0, -1.0]))
+    np.testing.assert_allclose(x_prior, [2.5, 4.0, 4.0, 3.0])
+    # A I A^T: position variance 1 + dt^2 = 1.25, cross term dt = 0.5, plus Q.
+    np.testing.assert_allclose(P_prior[0], [1.26, 0.0, 0.5, 0.0])
+    np.testing.assert_allclose(P_prior[2], [0.5, 0.0, 1.01, 0.0])
+
+
+def circling_scenario(seconds: float, target_velocity=(0.5, 0.0), radius=8.0, omega=math.pi / 30):
+    """A vessel circling a constant-velocity target: relative state over time and own velocity changes."""
+    steps = int(round(seconds / DT))
+    t = DT * np.arange(steps + 1)
+    target = np.array([1.0, 1.0]) + np.outer(t, target_velocity)
+    own_velocity = radius * omega * np.column_stack([-np.sin(omega * t), np.cos(omega * t)]) + target_velocity
+    own = target + radius * np.column_stack([np.cos(omega * t), np.sin(omega * t)])
+    relative = np.column_stack([own - target, own_velocity - np.asarray(target_velocity)])
+    return relative, own_velocity
+
+
+def run_tracker(relative, own_velocity, initial_error, bearing_of=None):
+    """Feed a PLKF the exact relative motion; propagate with v_io (the vessel's velocity relative to target)."""
+    tracker = PLKF(TargetEstimationParams(), relative[0] + initial_error, dt=DT)
+    errors = []
+    for k in range(1, len(relative)):
+        # Integrate the exact motion consistent with (4): p_{k} = p_{k-1} + dt v_{k-1}.
+        tracker.predict(own_velocity[k] - own_velocity[k - 1])
+        p_true = relative[k, :2]
+        bearing = p_true / np.linalg.norm(p_true) if bearing_of is None else bearing_of(k, p_true)
+        tracker.update(bearing)
+        errors.append(np.linalg.norm(tracker.state[:2] - p_true))
+    return tracker, np.array(errors)
+
+
+def discretised(relative):
+    """Make the relative trajectory obey (4) exactly: positions integrate the sampled velocities."""
+    out = relative.copy()
+    for k in range(1, len(out)):
+        out[k, :2] = out[k - 1, :2] + DT * out[k - 1, 2:]
+    return out
+
+
+def test_noise_free_bearings_with_persistent_excitation_converge_below_a_millimetre():
+    relative, own_velocity = circling_scenario(300.0)
+    relative = discretised(relative)
+    _, errors = run_tracker(relative, own_velocity, np.array([1.5, -1.0, 0.4, -0.3]))
+    assert errors[0] > 0.1  # it starts visibly wrong
+    assert errors[-1] < 1e-3
+    assert np.all(errors[-100:] < 1e-3)
+
+
+def test_covariance_grows_during_prediction_only_steps():
+    tracker = PLKF(TargetEstimationParams(), np.array([5.0, 0.0, 0.0, 0.5]))
+    for _ in range(20):  # converge somewhat first
+        tracker.predict()
+        tracker.update(np.array([1.0, 0.0]))
+    previous = np.trace(tracker.covariance)
+    for _ in range(30):
+        tracker.predict()
+        assert not tracker.update(None).accepted
+        now = np.trace(tracker.covariance)
+        assert now > previous
+        previous = now
+    assert tracker.skipped == 30
+
+
+@pytest.mark.parametrize("bad", [np.array([math.nan, 1.0]), np.array([math.inf, 0.0]), np.array([0.0, 0.0]),
+                                 np.array([3.0, 4.0]), np.array([1.0, 0.0, 0.0]), "north"])
+def test_invalid_bearings_give_a_prediction_only_step(bad):
+    tracker = PLKF(TargetEstimationParams(), np.array([5.0, 0.0, 0.0, 0.5]))
+    tracker.predict()
+    before = tracker.state, tracker.covariance
+    if isinstance(bad, str):
+        with pytest.raises(ValueError):
+            np.asarray(bad, dtype=float)
+        bad = np.array([math.nan, math.nan])
+    assert not tracker.update(bad).accepted
+    np.testing.assert_array_equal(tracker.state, before[0])
+    np.testing.assert_array_equal(tracker.covariance, before[1])
+    assert tracker.rejected == 1
+
+
+def test_non_finite_velocity_change_is_refused_and_counted():
+    tracker = PLKF(TargetEstimationParams(), np.array([5.0, 0.0, 0.0, 0.5]))
+    assert tracker.predict(np.array([math.nan, 0.0])) is False
+    assert np.all(np.isfinite(tracker.state)) and tracker.rejected == 1
+    np.testing.assert_allclose(tracker.state, [5.0, 0.05, 0.0, 0.5])
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), occlusion=st.floats(0.0, 0.8))
+def test_covariance_stays_symmetric_positive_definite(seed, occlusion):
+    rng = np.random.default_rng(seed)
+    tracker = PLKF(TargetEstimationParams(), rng.normal(0, 10, 4))
+    for _ in range(300):
+        tracker.predict(rng.normal(0, 0.1, 2))
+        if rng.random() < occlusion:
+            tracker.update(None)
+        else:
+            angle = rng.uniform(-math.pi, math.pi)
+            tracker.update(np.array([math.cos(angle), math.sin(angle)]) + rng.normal(0, 0.01, 2))
+        P = tracker.covariance
+        assert np.allclose(P, P.T, atol=0, rtol=0)
+        assert np.all(np.linalg.eigvalsh(P) > 0)
+        assert np.all(np.isfinite(tracker.state))
