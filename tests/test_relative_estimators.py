@@ -315,3 +315,38 @@ def test_reset_rejects_a_bad_covariance():
         est.reset((1.0, 2.0), np.array([[1.0, 2.0], [2.0, 1.0]]))
     est.reset((1.0, 2.0))
     np.testing.assert_array_equal(est.covariance, 25.0 * np.eye(2))
+
+
+# ---------- consistency: the fact behind docs/estimation.md's analysis of Experiment 1 ----------
+
+def average_nees(noise_kind: str, runs: int = 200, steps: int = 300) -> float:
+    """Mean NEES at the last step of a KF on z_k = delta_k^T p_k + n_k with R = 2 r^2 s2 (the white-noise
+    R_z of (14) at constant range r), when n_k is white with that variance, or the MA(1) noise
+    n_k = a_k - a_{k-1}, a_k = r mu_k, that consecutive range pairs really produce."""
+    truth, displacement = circling_pair(steps)
+    r, s2 = 10.0, 1e-4
+    total = 0.0
+    for run in range(runs):
+        rng = np.random.default_rng(run)
+        a = r * rng.normal(0.0, math.sqrt(s2), steps + 1)
+        px, py = truth[0] + rng.normal(0.0, 5.0, 2)
+        p11, p12, p22 = 25.0, 0.0, 25.0
+        for k in range(1, steps + 1):
+            dx, dy = displacement[k - 1]
+            px, py = px + dx, py + dy
+            n = rng.normal(0.0, math.sqrt(2 * r * r * s2)) if noise_kind == "white" else a[k] - a[k - 1]
+            z = dx * truth[k, 0] + dy * truth[k, 1] + n
+            px, py, p11, p12, p22, _, _ = kf_correct(px, py, p11, p12, p22, dx, dy, z, 2 * r * r * s2)
+        e = np.array([px, py]) - truth[-1]
+        total += e @ np.linalg.solve(np.array([[p11, p12], [p12, p22]]), e)
+    return total / runs
+
+
+def test_kf_is_consistent_on_white_noise():
+    # NEES ~ chi^2 with 2 dof: mean 2, sd 2; the mean of 200 has sd 0.14, so 4 sd is 0.57.
+    assert average_nees("white") == pytest.approx(2.0, abs=0.57)
+
+
+def test_kf_is_far_too_cautious_on_the_correlated_noise_of_consecutive_range_pairs():
+    # The shared range telescopes: the true error is a small fraction of what P claims.
+    assert average_nees("ma1") < 0.1

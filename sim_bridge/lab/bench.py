@@ -44,6 +44,7 @@ import numpy as np
 from agent.estimators import PLKF, make_relative_estimator
 from agent.estimators.pseudolinear import equivalent_noise_variance, pseudo_measurement
 from agent.params import ESTIMATOR_NAMES, AgentParams, RelativeEstimationParams, updated
+from sim_bridge.lab import arguments
 from sim_bridge.lab.comparison import ComparisonConfig, relative_trajectory
 from sim_bridge.lab.report import invocation, markdown_table
 from sim_bridge.noise import GaussianMixtureNoise, IsotropicGaussianNoise
@@ -60,24 +61,10 @@ PLKF_LABEL = "plkf (target tracker, 4 states)"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--seed", type=_non_negative_int, default=7, help="seed of every random number")
-    parser.add_argument("--updates", type=_positive_int, default=3000, help="updates per repeat")
-    parser.add_argument("--repeats", type=_positive_int, default=5, help="repeats of every measurement")
+    parser.add_argument("--seed", type=arguments.seed, default=7, help="seed of every random number")
+    parser.add_argument("--updates", type=arguments.positive_int, default=3000, help="updates per repeat")
+    parser.add_argument("--repeats", type=arguments.positive_int, default=5, help="repeats of every measurement")
     parser.add_argument("--out", type=Path, default=Path("docs/results"), help="where benchmark.md goes")
-
-
-def _positive_int(text: str) -> int:
-    value = int(text)
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
-    return value
-
-
-def _non_negative_int(text: str) -> int:
-    value = int(text)
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be 0 or more, got {value}")
-    return value
 
 
 # ----------------------------------------------------------------------------------------------------------

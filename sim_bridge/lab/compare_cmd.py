@@ -8,6 +8,7 @@ import time
 from pathlib import Path
 
 from agent.params import load_yaml, updated
+from sim_bridge.lab import arguments
 from sim_bridge.lab.comparison import LS_TIMES, ComparisonConfig, ComparisonResult, run_comparison
 from sim_bridge.lab.plots import LABELS, rmse_figure
 from sim_bridge.lab.report import invocation, markdown_table
@@ -30,9 +31,10 @@ def diagnostic_variants(config: ComparisonConfig) -> dict[str, ComparisonConfig]
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", type=Path, default=None,
                         help=f"experiment YAML (default: {DEFAULT_CONFIG} if present, else built-in defaults)")
-    parser.add_argument("--runs", type=int, default=None, help="Monte Carlo runs per noise model")
-    parser.add_argument("--seed", type=int, default=None, help="root seed of every random number")
-    parser.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="processes to use")
+    parser.add_argument("--runs", type=arguments.positive_int, default=None, help="Monte Carlo runs per noise model")
+    parser.add_argument("--seed", type=arguments.seed, default=None, help="root seed of every random number")
+    parser.add_argument("--workers", type=arguments.positive_int, default=os.cpu_count() or 1,
+                        help="processes to use")
     parser.add_argument("--out", type=Path, default=Path("docs/results"), help="where tables and plots go")
     parser.add_argument("--no-diagnosis", action="store_true", help="skip the R_z level sweep")
 

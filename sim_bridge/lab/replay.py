@@ -37,6 +37,7 @@ from agent.estimators import make_relative_estimator
 from agent.params import (
     ESTIMATOR_NAMES, AgentParams, ConfigError, RelativeEstimationParams, load_yaml, updated,
 )
+from sim_bridge.lab import arguments
 from sim_bridge.noise import IsotropicGaussianNoise
 
 COLUMNS: tuple[str, ...] = ("t", "range", "ax", "ay", "bx", "by")
@@ -320,51 +321,20 @@ def replay(
 
 
 # ----------------------------------------------------------------------------------------------- command
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
-    return value
-
-
-def _seed(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be non-negative, got {value}")
-    return value
-
-
-def _finite(text: str, positive: bool) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not math.isfinite(value) or value < 0 or (positive and value == 0):
-        raise argparse.ArgumentTypeError(f"must be a {'positive' if positive else 'non-negative'} finite "
-                                         f"number, got {text}")
-    return value
-
-
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("csv", type=Path,
                         help="ranges with ground truth; header exactly " + ",".join(COLUMNS))
     parser.add_argument("--config", type=Path, default=None,
                         help="agent parameters (YAML, AgentParams); default: the paper's Table I")
-    parser.add_argument("--seed", type=_seed, default=DEFAULT_SEED,
+    parser.add_argument("--seed", type=arguments.seed, default=DEFAULT_SEED,
                         help="root seed of the odometry noise and initial estimates "
                              f"(default {DEFAULT_SEED})")
-    parser.add_argument("--runs", type=_positive_int, default=DEFAULT_RUNS,
+    parser.add_argument("--runs", type=arguments.positive_int, default=DEFAULT_RUNS,
                         help=f"Monte Carlo runs (default {DEFAULT_RUNS})")
-    parser.add_argument("--settle", type=lambda text: _finite(text, positive=False), default=DEFAULT_SETTLE,
+    parser.add_argument("--settle", type=arguments.non_negative_float, default=DEFAULT_SETTLE,
                         help="the 'after' column averages from this many seconds on "
                              f"(default {DEFAULT_SETTLE:g})")
-    parser.add_argument("--range-variance", type=lambda text: _finite(text, positive=True), default=None,
+    parser.add_argument("--range-variance", type=arguments.positive_float, default=None,
                         help="range variance given to the filters (m^2); default: the sample variance of the "
                              "data's range residuals against the ground truth")
     parser.add_argument("--out", type=Path, default=Path(DEFAULT_OUT),
