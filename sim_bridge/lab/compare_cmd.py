@@ -104,7 +104,7 @@ def _ranking_table(config: ComparisonConfig, result: ComparisonResult) -> str:
     rows = []
     for name in sorted(config.estimators, key=lambda n: result.time_averaged_rmse(n)):
         rows.append([LABELS.get(name, name), result.time_averaged_rmse(name),
-                     result.time_averaged_rmse(name, config.settle_time), float(result.rmse(name)[-1])])
+                     result.time_averaged_rmse(name, config.settle_time), result.final_rmse(name)])
     return markdown_table(
         ["estimator", "time-averaged RMSE, whole run (m)", f"time-averaged RMSE after {config.settle_time:g} s (m)",
          "final RMSE (m)"], rows)

@@ -17,6 +17,7 @@ from pydantic import Field
 
 from agent.estimators import make_relative_estimator
 from agent.params import ESTIMATOR_NAMES, AgentParams, PositiveFloat, StrictModel, updated
+from sim_bridge.lab.errors import ErrorHistory
 from sim_bridge.noise import GaussianMixtureNoise, IsotropicGaussianNoise, LogNormalNoise, RangeNoise
 
 
@@ -50,28 +51,14 @@ class ComparisonConfig(StrictModel):
 
 
 @dataclass
-class ComparisonResult:
+class ComparisonResult(ErrorHistory):
     """Per-time errors of every estimator over every run, for one noise model."""
 
     noise_name: str
-    time: np.ndarray                  # (K+1,)
-    errors: dict[str, np.ndarray]     # estimator -> (runs, K+1) position error norms (m)
     iterations: np.ndarray            # (runs, K) MCKF iterations per update (0 if MCKF not run)
     range_bias: float                 # mean of the range noise model
     filter_range_variance: float
     least_squares: np.ndarray         # (runs, len(LS_TIMES)) batch least-squares error at LS_TIMES
-
-    def rmse(self, name: str) -> np.ndarray:
-        """RMSE over runs at each time step."""
-        return np.sqrt(np.mean(self.errors[name] ** 2, axis=0))
-
-    def spread(self, name: str) -> np.ndarray:
-        """Standard deviation over runs of the error norm at each time step."""
-        return np.std(self.errors[name], axis=0)
-
-    def time_averaged_rmse(self, name: str, start: float = 0.0) -> float:
-        keep = self.time >= start - 1e-9
-        return float(np.mean(self.rmse(name)[keep]))
 
 
 def relative_trajectory(config: ComparisonConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

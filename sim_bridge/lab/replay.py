@@ -38,6 +38,7 @@ from agent.params import (
     ESTIMATOR_NAMES, AgentParams, ConfigError, RelativeEstimationParams, load_yaml, updated,
 )
 from sim_bridge.lab import arguments
+from sim_bridge.lab.errors import ErrorHistory
 from sim_bridge.noise import IsotropicGaussianNoise
 
 COLUMNS: tuple[str, ...] = ("t", "range", "ax", "ay", "bx", "by")
@@ -188,42 +189,14 @@ def synthesise_displacements(
 
 # ----------------------------------------------------------------------------------------------- replay
 @dataclass
-class ReplayResult:
-    """Per-epoch errors of every estimator over every run."""
+class ReplayResult(ErrorHistory):
+    """Per-epoch errors of every estimator over every run, and what the filters were given."""
 
-    time: np.ndarray                  # (N,) time since the first epoch (s)
-    errors: dict[str, np.ndarray]     # estimator -> (runs, N) position error norms |p^ - p| (m); [:, 0] = p0
     rejected: dict[str, np.ndarray]   # estimator -> (runs,) updates the estimator refused
     range_variance: float             # what the filters were given (m^2)
     range_variance_estimated: bool    # True when it came from the data's residuals
     range_bias: float                 # mean range residual of the data (m)
     residual_variance: float          # sample variance of the range residuals (m^2)
-
-    @property
-    def runs(self) -> int:
-        return next(iter(self.errors.values())).shape[0]
-
-    def rmse(self, name: str) -> np.ndarray:
-        """RMSE over runs at each epoch, (N,)."""
-        return np.sqrt(np.mean(self.errors[name] ** 2, axis=0))
-
-    def spread(self, name: str) -> np.ndarray:
-        """Standard deviation over runs of the error norm at each epoch, (N,)."""
-        return np.std(self.errors[name], axis=0)
-
-    def time_averaged_rmse(self, name: str, start: float = 0.0) -> float:
-        """Time average of the RMSE curve over [start, end], weighting epochs by time (trapezoid rule), so
-        that irregular sampling does not bias it. A single epoch in the window is its own average."""
-        keep = self.time >= start - 1e-9
-        time, rmse = self.time[keep], self.rmse(name)[keep]
-        if len(time) == 0:
-            return math.nan
-        if len(time) == 1:
-            return float(rmse[0])
-        return float(np.trapezoid(rmse, time) / (time[-1] - time[0]))
-
-    def final_rmse(self, name: str) -> float:
-        return float(self.rmse(name)[-1])
 
 
 def filter_params(params: AgentParams, range_variance: float) -> RelativeEstimationParams:
