@@ -297,6 +297,14 @@ def test_bad_displacements_are_rejected(name, bad):
     assert est.diagnostics.rejected == 1 and est.diagnostics.predictions == 0
 
 
+@pytest.mark.parametrize("intervals", [math.nan, -1.0, None, "2"])
+def test_bad_interval_lengths_are_rejected(intervals):
+    est = make_relative_estimator(RelativeEstimationParams(), (4.0, 3.0), name="mckf")
+    assert est.predict((0.1, 0.0), intervals=intervals) is False
+    np.testing.assert_array_equal(est.position, [4.0, 3.0])
+    assert est.diagnostics.rejected == 1
+
+
 def test_missed_range_epoch_keeps_the_displacement_of_the_whole_interval():
     """Two predicts between range epochs: the pair uses their sum, so exact data still fits exactly."""
     truth, displacement = circling_pair(3)

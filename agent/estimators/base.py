@@ -47,11 +47,16 @@ REJECTED_RANGE = "range is not finite, is negative or exceeds max_range"
 REJECTED_NUMERICS = "update produced a non-finite or indefinite state"
 
 
-def _as_range(value: object, limit: float) -> float:
-    """The value as a valid range in [0, limit], or NaN when it is not one."""
+def _real(value: object) -> float:
+    """The value as a float if it is a real number (not a string or a bool), else NaN."""
     if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
         return math.nan
-    r = float(value)
+    return float(value)
+
+
+def _as_range(value: object, limit: float) -> float:
+    """The value as a valid range in [0, limit], or NaN when it is not one."""
+    r = _real(value)
     return r if 0.0 <= r <= limit else math.nan
 
 
@@ -127,6 +132,7 @@ class RelativePositionEstimator(ABC):
             dx, dy = (float(v) for v in np.asarray(displacement, dtype=float).reshape(2))
         except (TypeError, ValueError):
             dx = dy = math.nan
+        intervals = _real(intervals)
         if not (math.isfinite(dx) and math.isfinite(dy) and math.isfinite(intervals) and intervals >= 0):
             self._diag.rejected += 1
             return False
