@@ -90,11 +90,27 @@ class RelativeEstimationParams(StrictModel):
 class TargetEstimationParams(StrictModel):
     """Pseudo-linear Kalman filter of the target, Sec. III-B."""
 
-    process_noise: PositiveFloat = Field(0.01, description="Q_o = value * I_4 (Table I)")
+    process_noise: PositiveFloat = Field(
+        1e-5,
+        description=(
+            "Q_o = value * I_4 per step. Table I's 0.01 must also absorb the vessel's own turns, which this "
+            "filter takes as a known input, and with it the range collapses (docs/estimation.md, PLKF)"
+        ),
+    )
+    gain_bearing: Literal["predicted", "measured"] = Field(
+        "predicted",
+        description=(
+            "bearing the PLKF gain is built from: 'measured' is (25) as printed (biased towards the target), "
+            "'predicted' the instrumental-variable form of Nguyen and Dogancay 2018"
+        ),
+    )
     bearing_variance: PositiveFloat = Field(1e-4, description="R_b = value * I_2 (Table I)")
     initial_covariance: PositiveFloat = Field(1.0, description="P_io,0 = value * I_4 (Table I)")
     min_range: PositiveFloat = Field(
         0.1, description="floor on the predicted range used to scale R_z, so R_z never vanishes"
+    )
+    initial_range_guess: PositiveFloat = Field(
+        10.0, description="range assumed along the first bearing when no initial target estimate is given (m)"
     )
 
 
@@ -111,14 +127,34 @@ class ControlParams(StrictModel):
     max_avoidance_speed: PositiveFloat = Field(0.7, description="U_vs (m/s)")
     gain_neighbour: PositiveFloat = Field(1.5, description="kappa_ij")
     gain_target: PositiveFloat = Field(0.9, description="kappa_io")
+    neighbour_gain_cap: PositiveFloat | None = Field(
+        4.5,
+        description=(
+            "cap on the sum of kappa_ij over the neighbours (Table I's value for n = 4); keeps the sampled "
+            "loop damped for large fleets; null for (33) as written (agent/control/formation.py)"
+        ),
+    )
     avoidance_gain: PositiveFloat = Field(1.7, description="k_1")
     avoidance_spread: PositiveFloat = Field(0.5, description="k_2")
+    oscillator_gain: PositiveFloat = Field(
+        1.0, description="K of (28): K_m = K for m <= n/2, 0 above (the paper leaves K_m open)"
+    )
+
+
+class FleetParams(StrictModel):
+    """How a vessel keeps track of its neighbours."""
+
+    neighbour_timeout: PositiveFloat = Field(
+        1.0, description="a neighbour silent for longer than this (s) leaves the formation"
+    )
+    history_ticks: int = Field(50, ge=2, le=100_000, description="odometry and ranges kept per neighbour")
 
 
 class AgentParams(StrictModel):
     """Everything one vessel's agent needs; Table I of the paper by default."""
 
     dt: PositiveFloat = Field(0.1, description="sampling period (s) (Table I)")
+    fleet: FleetParams = FleetParams()
     relative: RelativeEstimationParams = RelativeEstimationParams()
     target: TargetEstimationParams = TargetEstimationParams()
     control: ControlParams = ControlParams()
@@ -166,23 +202,29 @@ def parse_mapping(model: type[M], data: object, source: str) -> M:
         raise ConfigError(describe_validation_error(error, source)) from None
 
 
-def load_yaml(model: type[M], path: str | Path) -> M:
-    """Read a YAML file into `model`, raising ConfigError with the file and field on any problem."""
+def read_yaml(path: str | Path) -> object:
+    """The parsed content of a YAML file, or ConfigError naming the file (and line) on any problem."""
     path = Path(path)
     try:
         text = path.read_text(encoding="utf-8")
     except OSError as error:
         raise ConfigError(f"{path}: cannot read: {error.strerror or error}") from None
     try:
-        data = yaml.safe_load(text)
+        return yaml.safe_load(text)
     except yaml.YAMLError as error:
         mark = getattr(error, "problem_mark", None)
         where = f" line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
         raise ConfigError(f"{path}:{where} not valid YAML: {getattr(error, 'problem', error)}") from None
-    return parse_mapping(model, data, str(path))
+
+
+def load_yaml(model: type[M], path: str | Path) -> M:
+    """Read a YAML file into `model`, raising ConfigError with the file and field on any problem."""
+    return parse_mapping(model, read_yaml(path), str(path))
 
 
 def _yaml_scalar(value: object) -> str:
+    if value is None:
+        return "null"
     if isinstance(value, float):
         text = repr(value)
         # YAML 1.1 (PyYAML) reads 1e-06 as a string: a float needs a dot before its exponent.

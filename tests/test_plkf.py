@@ -39,10 +39,54 @@ def test_one_step_matches_the_scalar_derivation():
     np.testing.assert_allclose(P_post, P_ref, atol=1e-10)
 
 
+def test_instrumental_variable_step_matches_the_scalar_derivation():
+    """Gain at the predicted bearing b^ = p^/|p^|: with q^ its unit normal, the correction is
+    P[:, :2] q^ (q^T G(b~) p^) / (q^T P_pp q^ + r^2 s)."""
+    rng = np.random.default_rng(4)
+    A = rng.normal(size=(4, 4))
+    P = A @ A.T + 0.5 * np.eye(4)
+    x = np.array([4.0, -2.0, 0.3, 0.1])
+    b = np.array([0.8, -0.6])  # measured, 0.3 rad or so off the prediction
+    x_post, P_post, _, _ = plkf_update(x, P, b, 1e-3, 0.1, gain_bearing="predicted")
+    r = np.linalg.norm(x[:2])
+    q_hat = np.array([x[1], -x[0]]) / r
+    h = np.concatenate([q_hat, [0.0, 0.0]])
+    variance = h @ P @ h + r * r * 1e-3
+    innovation = q_hat @ (np.eye(2) - np.outer(b, b)) @ x[:2]
+    K = P @ h / variance
+    np.testing.assert_allclose(x_post, x - K * innovation, atol=1e-10)
+    np.testing.assert_allclose(P_post, (np.eye(4) - np.outer(K, h)) @ P, atol=1e-10)
+
+
+def range_after_circling(gain_bearing: str, seed: int, seconds: float = 60.0, radius: float = 5.0):
+    """A vessel circling a 0.5 m/s target with Table I bearing noise; returns (estimated, true) range."""
+    rng = np.random.default_rng(seed)
+    relative, own_velocity = circling_scenario(seconds, radius=radius)
+    relative = discretised(relative)
+    params = TargetEstimationParams(gain_bearing=gain_bearing)
+    tracker = PLKF(params, relative[0] + np.array([1.0, 0.5, 0.0, -0.3]), dt=DT)
+    for k in range(1, len(relative)):
+        tracker.predict(own_velocity[k] - own_velocity[k - 1])
+        p = relative[k, :2]
+        tracker.update(p / np.linalg.norm(p) + rng.normal(0.0, 0.01, 2))
+    return np.linalg.norm(tracker.state[:2]), np.linalg.norm(relative[-1, :2]), tracker.state[:2] - relative[-1, :2]
+
+
+def test_printed_gain_is_biased_towards_the_target_and_the_instrumental_variable_is_not():
+    """Why `gain_bearing` defaults to "predicted": with Table I's bearing noise (R_b = 1e-4 I) the gain
+    of (25) as printed drags the range estimate far towards zero, the instrumental-variable gain does not."""
+    for seed in range(3):
+        estimated, true, _ = range_after_circling("measured", seed)
+        assert estimated < 0.5 * true
+        _, _, error = range_after_circling("predicted", seed)
+        assert np.linalg.norm(error) < 0.3
+
+
 def test_prediction_step_hand_value():
     x = np.array([1.0, 2.0, 3.0, 4.0])
     x_prior, P_prior = plkf_predict(x, np.eye(4), transition(0.5), 0.01 * np.eye(4), np.array([1.0, -1.0]))
-    np.testing.assert_allclose(x_prior, [2.5, 4.0, 4.0, 3.0])
+    # The velocity change acts over the whole interval: v = (4, 3), p = (1, 2) + 0.5 (4, 3).
+    np.testing.assert_allclose(x_prior, [3.0, 3.5, 4.0, 3.0])
     # A I A^T: position variance 1 + dt^2 = 1.25, cross term dt = 0.5, plus Q.
     np.testing.assert_allclose(P_prior[0], [1.26, 0.0, 0.5, 0.0])
     np.testing.assert_allclose(P_prior[2], [0.5, 0.0, 1.01, 0.0])
@@ -64,7 +108,7 @@ def run_tracker(relative, own_velocity, initial_error, bearing_of=None):
     tracker = PLKF(TargetEstimationParams(), relative[0] + initial_error, dt=DT)
     errors = []
     for k in range(1, len(relative)):
-        # Integrate the exact motion consistent with (4): p_{k} = p_{k-1} + dt v_{k-1}.
+        # The vessel's velocity changes at the start of each interval, and it knows by how much.
         tracker.predict(own_velocity[k] - own_velocity[k - 1])
         p_true = relative[k, :2]
         bearing = p_true / np.linalg.norm(p_true) if bearing_of is None else bearing_of(k, p_true)
@@ -74,10 +118,11 @@ def run_tracker(relative, own_velocity, initial_error, bearing_of=None):
 
 
 def discretised(relative):
-    """Make the relative trajectory obey (4) exactly: positions integrate the sampled velocities."""
+    """Make the relative trajectory obey (4) exactly: v_k is the velocity over the interval that ends at
+    step k, so p_k = p_{k-1} + dt v_k."""
     out = relative.copy()
     for k in range(1, len(out)):
-        out[k, :2] = out[k - 1, :2] + DT * out[k - 1, 2:]
+        out[k, :2] = out[k - 1, :2] + DT * out[k, 2:]
     return out
 
 

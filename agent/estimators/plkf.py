@@ -39,40 +39,54 @@ def transition(dt: float) -> np.ndarray:
 
 def plkf_predict(x: np.ndarray, P: np.ndarray, A: np.ndarray, Q: np.ndarray,
                  own_velocity_change: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """(24): x^- = A x^+ (+ [0; dv_i]), P^- = A P^+ A^T + Q_o.
+    """(24): x^- = A x^+, P^- = A P^+ A^T + Q_o, with the vessel's own manoeuvre as a known input.
 
-    `own_velocity_change` is the vessel's own velocity change over the step, known from its odometry. The
-    paper's (24) leaves it out and lets Q_o absorb the vessel's manoeuvres; with it the relative model is
-    exact for a constant-velocity target. Zero (or None) gives (24) as printed.
+    `own_velocity_change` is dv_i, the change of the vessel's own velocity at the start of this interval
+    (known from its odometry): the relative velocity over the interval is v_io + dv_i, so
+    x^- = A (x^+ + [0; dv_i]). The paper's (24) leaves it out and lets Q_o absorb the vessel's manoeuvres;
+    with it the relative model is exact for a constant-velocity target. None or zero gives (24) as printed.
     """
-    x_prior = A @ x
     if own_velocity_change is not None:
-        x_prior[2:] += own_velocity_change
+        x = x.copy()
+        x[2:] += own_velocity_change
     P_prior = A @ P @ A.T + Q
-    return x_prior, 0.5 * (P_prior + P_prior.T)  # keep it exactly symmetric despite round-off
+    return A @ x, 0.5 * (P_prior + P_prior.T)  # keep it exactly symmetric despite round-off
 
 
 def plkf_update(x: np.ndarray, P: np.ndarray, bearing: np.ndarray, bearing_variance: float,
-                min_range: float) -> tuple[np.ndarray, np.ndarray, float, float]:
-    """(22)-(25) with a unit bearing b: G = I - b b^T, H = [G 0], z = 0,
+                min_range: float, gain_bearing: str = "measured") -> tuple[np.ndarray, np.ndarray, float, float]:
+    """(22)-(25) with a unit measured bearing b~: z = 0, innovation -G(b~) p^-,
     R_z = r^2 G R_b G^T with r = |p^-| (floored at min_range), K = P H^T (H P H^T + R_z)^+ (pseudo-inverse),
-    x^+ = x^- - K H x^-. The covariance uses the Joseph form (I - K H) P (I - K H)^T + K R_z K^T, equal to
+    x^+ = x^- - K G(b~) p^-. The covariance uses the Joseph form (I - K H) P (I - K H)^T + K R_z K^T, equal to
     (25)'s (I - K H) P for this gain and symmetric positive semi-definite by construction.
 
-    Returns (x+, P+, innovation, innovation variance) with the innovation along q, the unit normal of b.
+    `gain_bearing` picks the bearing G and H are built from for the gain and the covariance:
+    - "measured": H = [G(b~) 0], (25) as printed. The noise of b~ then sits in both the gain and the
+      innovation, and their product biases the range towards zero (the known pseudo-linear bias), strongly
+      while the range is uncertain.
+    - "predicted": H = [G(b^-) 0] with b^- = p^- / |p^-|, the instrumental-variable Kalman filter of
+      N. H. Nguyen and K. Dogancay (IEEE Signal Processing Letters 25(9), 2018), which removes that
+      correlation; the innovation still uses the measured bearing.
+
+    Returns (x+, P+, innovation, innovation variance) with the innovation along q, the unit normal of the
+    bearing the gain uses.
     """
-    G = np.eye(2) - np.outer(bearing, bearing)
+    r = max(math.hypot(x[0], x[1]), min_range)
+    gain_direction = bearing
+    if gain_bearing == "predicted" and math.hypot(x[0], x[1]) >= min_range:
+        gain_direction = x[:2] / r
+    G_measured = np.eye(2) - np.outer(bearing, bearing)
+    G = np.eye(2) - np.outer(gain_direction, gain_direction)
     H = np.zeros((2, 4))
     H[:, :2] = G
-    r = max(math.hypot(x[0], x[1]), min_range)
     Rz = (r * r * bearing_variance) * (G @ G.T)
     S = H @ P @ H.T + Rz
     K = P @ H.T @ np.linalg.pinv(S, rcond=PINV_RCOND, hermitian=True)
     I_KH = np.eye(4) - K @ H
-    x_post = x - K @ (H @ x)
+    x_post = x - K @ (G_measured @ x[:2])
     P_post = I_KH @ P @ I_KH.T + K @ Rz @ K.T
-    q = np.array([-bearing[1], bearing[0]])
-    return x_post, 0.5 * (P_post + P_post.T), float(q @ x[:2]), float(q @ S @ q)
+    q = np.array([-gain_direction[1], gain_direction[0]])
+    return x_post, 0.5 * (P_post + P_post.T), float(q @ G_measured @ x[:2]), float(q @ S @ q)
 
 
 class PLKF:
@@ -135,7 +149,8 @@ class PLKF:
             self.rejected += 1
             return BearingOutcome(accepted=False, reason="bearing is not a finite unit vector")
         x, P, innovation, variance = plkf_update(
-            self._x, self._P, b / norm, self.params.bearing_variance, self.params.min_range
+            self._x, self._P, b / norm, self.params.bearing_variance, self.params.min_range,
+            self.params.gain_bearing,
         )
         if not (np.all(np.isfinite(x)) and np.all(np.isfinite(P))):
             self.rejected += 1

@@ -1,0 +1,1 @@
+"""Circumnavigation control, Sec. IV: coupled oscillator, formation controller, obstacle avoidance."""

@@ -1,0 +1,331 @@
+"""One vessel's tick: estimation, oscillator and formation control as one pure object.
+
+`VesselAgent.tick(inputs) -> TickOutput` takes this tick's sensors and the neighbours' latest shares and
+returns the command, what to share, and a record of everything it estimated and decided. No clock, thread
+or I/O: the in-process fleet runner and the Zenoh agent process call exactly this, so for the same inputs
+they get the same numbers.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from agent.control.avoidance import avoidance_velocity
+from agent.control.formation import (
+    desired_offset, desired_velocity, formation_velocity, neighbour_gain, saturate, surge_and_yaw_rate,
+    tracking_velocity,
+)
+from agent.control.oscillator import oscillator_step
+from agent.estimators import PLKF
+from agent.neighbours import History, NeighbourPrior, NeighbourTrack, stamp_key
+from agent.params import AgentParams
+from agent.tick_io import STOP, Command, Share, TickInputs
+
+
+@dataclass(frozen=True)
+class NeighbourRecord:
+    position: np.ndarray          # p^_ij at the tick's time (m)
+    covariance: np.ndarray        # of the filter state at its epoch
+    epoch: float                  # time the filter state refers to (s)
+    updates: int
+    rejected: int
+    iterations: int               # MCKF iterations of the last update
+
+
+@dataclass(frozen=True)
+class TickRecord:
+    """Everything one tick estimated and decided, for logs and metrics."""
+
+    time: float
+    phase: float
+    neighbours: dict[str, NeighbourRecord]
+    target_state: np.ndarray      # x^_io = [p_io; v_io]
+    target_covariance: np.ndarray
+    bearing_used: bool
+    formation_velocity: np.ndarray
+    tracking_velocity: np.ndarray
+    avoidance_velocity: np.ndarray
+    velocity_command: np.ndarray
+    command: Command
+    saturated: dict[str, bool]
+    health: dict[str, int]
+
+
+@dataclass(frozen=True)
+class TickOutput:
+    command: Command
+    share: Share | None
+    record: TickRecord | None
+
+
+@dataclass
+class Health:
+    bad_odometry: int = 0
+    bad_bearing: int = 0
+    bad_ranges: int = 0
+    bad_shares: int = 0
+    bad_obstacles: int = 0
+    stops: int = 0
+    neighbours_dropped: int = 0
+    neighbours_joined: int = 0
+    non_finite_commands: int = 0
+
+    def as_dict(self) -> dict[str, int]:
+        return dict(self.__dict__)
+
+
+@dataclass
+class _Motion:
+    """The vessel's own velocity over the last odometry interval, for (33) and the PLKF input."""
+
+    velocity: np.ndarray = field(default_factory=lambda: np.zeros(2))
+    stamp: float | None = None
+    position: np.ndarray | None = None
+
+
+class VesselAgent:
+    """The per-vessel core: call `tick` once per sampling period."""
+
+    def __init__(
+        self,
+        vessel_id: str,
+        params: AgentParams,
+        initial_target: np.ndarray | None = None,
+        target_covariance: np.ndarray | None = None,
+        initial_phase: float | None = None,
+        priors: dict[str, NeighbourPrior] | None = None,
+    ) -> None:
+        self.id = vessel_id
+        self.params = params
+        self.dt = params.dt
+        self.history = params.fleet.history_ticks
+        self.own = History(self.history)
+        self.tracks: dict[str, NeighbourTrack] = {}
+        self.priors = dict(priors or {})
+        self.tracker: PLKF | None = None
+        if initial_target is not None:
+            self.tracker = PLKF(params.target, initial_target, target_covariance, dt=self.dt)
+        self.phase = initial_phase
+        self.motion = _Motion()
+        self.health = Health()
+
+    # ----- the tick -----
+    def tick(self, inputs: TickInputs) -> TickOutput:
+        now = inputs.time
+        odometry = inputs.odometry
+        if odometry is None or not _finite_vector(odometry.position, 2) or not math.isfinite(odometry.heading):
+            # Without own odometry nothing can be propagated: stop, as a driver's watchdog would.
+            if odometry is not None:
+                self.health.bad_odometry += 1
+            self.health.stops += 1
+            return TickOutput(STOP, None, None)
+        position = np.asarray(odometry.position, dtype=float).reshape(2)
+        self.own.put(now, position)
+        velocity_change = self._own_motion(now, position)
+
+        self._receive_shares(inputs, now)
+        self._store_ranges(inputs, now)
+        self._forget_silent(now)
+        for track in self.tracks.values():
+            self._start_if_needed(track)
+            track.advance(self.own)
+
+        bearing = self._valid_bearing(inputs.bearing)
+        target_state, target_cov, bearing_used = self._track_target(bearing, velocity_change)
+        if self.phase is None:
+            self.phase = math.atan2(target_state[1], target_state[0]) if target_state is not None else 0.0
+
+        neighbour_phases = {j: self._phase_of(t, now) for j, t in self.tracks.items() if t.share is not None}
+        next_phase = oscillator_step(self.phase, list(neighbour_phases.values()), self.params.control.yaw_rate,
+                                     self.dt, self.params.control.oscillator_gain)
+        estimates = {j: t.estimate_at(self.own, now) for j, t in self.tracks.items()}
+        command, parts, saturated = self._control(odometry.heading, target_state, estimates, neighbour_phases,
+                                                  next_phase, inputs.obstacle_points)
+        if not (math.isfinite(command.surge) and math.isfinite(command.yaw_rate)):
+            # Never publish a non-finite command, whatever went wrong upstream.
+            self.health.non_finite_commands += 1
+            command = STOP
+        heading_vector = np.array([math.cos(odometry.heading), math.sin(odometry.heading)])
+        share = Share(
+            sender=self.id, odometry=odometry, velocity=command.surge * heading_vector, phase=self.phase,
+            target=None if target_state is None else target_state[:2].copy(),
+            target_covariance=None if target_cov is None else target_cov[:2, :2].copy(),
+        )
+        record = TickRecord(
+            time=now, phase=self.phase,
+            neighbours={j: self._neighbour_record(t, estimates[j]) for j, t in self.tracks.items()
+                        if estimates[j] is not None},
+            target_state=target_state, target_covariance=target_cov, bearing_used=bearing_used,
+            formation_velocity=parts[0], tracking_velocity=parts[1], avoidance_velocity=parts[2],
+            velocity_command=parts[3], command=command, saturated=saturated, health=self.health.as_dict(),
+        )
+        self.phase = next_phase
+        return TickOutput(command, share, record)
+
+    # ----- inputs -----
+    def _own_motion(self, now: float, position: np.ndarray) -> np.ndarray | None:
+        """The change of own velocity at the start of the interval just ended (the PLKF input); None on the
+        first tick, when there is no interval yet and the initial target estimate already refers to now."""
+        change = None
+        if self.motion.stamp is not None and now > self.motion.stamp:
+            velocity = (position - self.motion.position) / (now - self.motion.stamp)
+            change = velocity - self.motion.velocity
+            self.motion.velocity = velocity
+        self.motion.stamp, self.motion.position = now, position
+        return change
+
+    def _receive_shares(self, inputs: TickInputs, now: float) -> None:
+        for sender, share in inputs.shares.items():
+            if sender == self.id or not _valid_share(share):
+                self.health.bad_shares += 1
+                continue
+            track = self.tracks.get(sender)
+            if track is None:
+                if now - share.odometry.stamp > self.params.fleet.neighbour_timeout:
+                    continue  # a stale share from a vessel we have already forgotten
+                track = NeighbourTrack(sender, self.params.relative, self.dt, self.history)
+                self.tracks[sender] = track
+                self.health.neighbours_joined += 1
+            track.receive(share, now)
+
+    def _store_ranges(self, inputs: TickInputs, now: float) -> None:
+        for neighbour, value in inputs.ranges.items():
+            track = self.tracks.get(neighbour)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not (
+                    math.isfinite(value) and 0.0 <= value <= self.params.relative.max_range):
+                self.health.bad_ranges += 1
+                continue
+            if track is not None:
+                track.ranges.put(now, float(value))
+
+    def _forget_silent(self, now: float) -> None:
+        for neighbour in [j for j, t in self.tracks.items()
+                          if now - t.last_heard > self.params.fleet.neighbour_timeout]:
+            del self.tracks[neighbour]
+            self.priors.pop(neighbour, None)
+            self.health.neighbours_dropped += 1
+
+    def _start_if_needed(self, track: NeighbourTrack) -> None:
+        if track.estimator is not None or track.share is None:
+            return
+        prior = self.priors.pop(track.neighbour, None)
+        if prior is None:
+            prior = self._prior_from_target(track)
+        if prior is not None and not track.start(prior, self.own):
+            self.priors[track.neighbour] = prior
+
+    def _prior_from_target(self, track: NeighbourTrack) -> NeighbourPrior | None:
+        """A newcomer with no prior: p_ij = p_io - p_jo from both vessels' target estimates at j's share
+        stamp, with the sum of their covariances; without them, the range along x with an r^2 spread."""
+        share = track.share
+        stamp = share.odometry.stamp
+        if self.tracker is not None and share.target is not None:
+            own_then, own_now = self.own.get(stamp_key(stamp)), self.own.get(stamp_key(self.motion.stamp))
+            shift = own_now - own_then if own_then is not None and own_now is not None else np.zeros(2)
+            mine = self.tracker.state[:2] - shift
+            covariance = self.tracker.covariance[:2, :2] + np.asarray(share.target_covariance, dtype=float)
+            return NeighbourPrior(mine - share.target, covariance, stamp)
+        spread = self.params.relative.initial_covariance
+        range_then = track.ranges.get(stamp_key(stamp))
+        if range_then is None:
+            return None
+        return NeighbourPrior(np.array([range_then, 0.0]), np.eye(2) * max(range_then**2, spread), stamp)
+
+    def _valid_bearing(self, bearing) -> np.ndarray | None:
+        if bearing is None:
+            return None
+        if not _finite_vector(bearing, 2):
+            self.health.bad_bearing += 1
+            return None
+        return np.asarray(bearing, dtype=float).reshape(2)
+
+    def _track_target(self, bearing: np.ndarray | None, velocity_change: np.ndarray):
+        if self.tracker is None:
+            if bearing is None or not np.linalg.norm(bearing) > 0:
+                return None, None, False
+            p = self.params.target
+            guess = bearing / np.linalg.norm(bearing) * p.initial_range_guess
+            covariance = np.diag([p.initial_range_guess**2] * 2 + [p.initial_covariance] * 2)
+            self.tracker = PLKF(p, np.concatenate([guess, -self.motion.velocity]), covariance, dt=self.dt)
+        if velocity_change is not None:
+            self.tracker.predict(velocity_change)
+        outcome = self.tracker.update(bearing)
+        if bearing is not None and not outcome.accepted:
+            self.health.bad_bearing += 1
+        return self.tracker.state, self.tracker.covariance, outcome.accepted
+
+    def _phase_of(self, track: NeighbourTrack, now: float) -> float:
+        """j's phase carried from its share's stamp to now at the nominal rate omega*."""
+        share = track.share
+        return share.phase + self.params.control.yaw_rate * (now - share.odometry.stamp)
+
+    # ----- control -----
+    def _control(self, heading, target_state, estimates, neighbour_phases, next_phase, obstacles):
+        c = self.params.control
+        offset = desired_offset(c.radius, self.phase)
+        usable = [j for j, estimate in estimates.items() if estimate is not None and j in neighbour_phases]
+        gain = neighbour_gain(len(usable), c.gain_neighbour, c.neighbour_gain_cap)
+        errors = [(gain, offset - desired_offset(c.radius, neighbour_phases[j]) - estimates[j])   # (30), (33)
+                  for j in usable]
+        tracking = np.zeros(2)
+        if target_state is not None:
+            errors.append((c.gain_target, offset - target_state[:2]))
+            target_velocity = self.motion.velocity - target_state[2:]               # v^_o = v_i - v^_io
+            tracking = tracking_velocity(target_velocity, desired_velocity(c.radius, self.phase, next_phase,
+                                                                           self.dt), c.max_target_speed)
+        formation = formation_velocity(errors)
+        avoidance = avoidance_velocity(self._valid_obstacles(obstacles), c.safety_distance, c.avoidance_gain,
+                                       c.avoidance_spread)
+        formation_bounded = saturate(c.max_formation_speed, formation)
+        avoidance_bounded = saturate(c.max_avoidance_speed, avoidance)
+        command_velocity = formation_bounded + tracking + avoidance_bounded        # (35)
+        surge, yaw_rate, yaw_saturated = surge_and_yaw_rate(
+            command_velocity, heading, c.yaw_rate, self.dt, c.max_correction_yaw_rate, c.max_speed)
+        saturated = {
+            "formation": formation_bounded is not formation,
+            "avoidance": avoidance_bounded is not avoidance,
+            "yaw_rate": yaw_saturated,
+            "speed": abs(surge) >= c.max_speed,
+        }
+        return Command(surge, yaw_rate), (formation, tracking, avoidance, command_velocity), saturated
+
+    def _valid_obstacles(self, points) -> np.ndarray | None:
+        if points is None:
+            return None
+        array = np.asarray(points, dtype=float) if not isinstance(points, np.ndarray) else points
+        if array.size == 0:
+            return None
+        if array.ndim != 2 or array.shape[1] != 2 or not np.all(np.isfinite(array)):
+            self.health.bad_obstacles += 1
+            return None
+        return array
+
+    @staticmethod
+    def _neighbour_record(track: NeighbourTrack, estimate: np.ndarray) -> NeighbourRecord:
+        return NeighbourRecord(
+            position=estimate, covariance=track.estimator.covariance, epoch=track.epoch * 1e-6,
+            updates=track.updates, rejected=track.rejected, iterations=track.last_iterations,
+        )
+
+
+def _finite_vector(value, size: int) -> bool:
+    try:
+        array = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        return False
+    return array.shape == (size,) and bool(np.all(np.isfinite(array)))
+
+
+def _valid_share(share: object) -> bool:
+    if not isinstance(share, Share):
+        return False
+    odometry = share.odometry
+    return (_finite_vector(odometry.position, 2) and isinstance(odometry.stamp, (int, float))
+            and math.isfinite(odometry.stamp) and math.isfinite(share.phase)
+            and _finite_vector(share.velocity, 2)
+            and (share.target is None or (_finite_vector(share.target, 2)
+                                          and share.target_covariance is not None
+                                          and np.all(np.isfinite(share.target_covariance)))))

@@ -1,0 +1,277 @@
+"""The simulated world: vessels, target, islands and every sensor, advanced one sampling period at a time.
+
+Pure code: no clock, no I/O. All randomness comes from the generator given to `World`, drawn in the same
+order every tick whatever the caller does, so a run is reproducible bit for bit from its seed:
+
+1. in `step`: for each live vessel in config order its displacement and heading noise, then the target;
+2. whenever a tick begins (at construction and at the end of every `step`): each joining vessel's heading
+   noise, then the readings of the tick (for each live vessel in config order: its ranges to the others,
+   then its bearing noise).
+
+Readings are drawn eagerly when a tick begins and cached, so `sense()` is free of side effects: calling it
+twice, or not at all, changes nothing.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Annotated
+
+import numpy as np
+from pydantic import Field, field_validator, model_validator
+
+from agent.params import NonNegativeFloat, PositiveFloat, StrictModel
+from agent.tick_io import Command, Odometry
+from sim_bridge.geometry import (
+    is_simple_polygon,
+    sample_boundary,
+    segment_intersects_polygon,
+    wrap_angle,
+)
+from sim_bridge.noise import GaussianMixtureNoise, IsotropicGaussianNoise, RangeNoise
+from sim_bridge.targets import FiniteFloat, Point, TargetSpec, make_target
+
+TIME_TOLERANCE = 1e-9   # s; join and leave times this close to a tick count as reached
+
+
+class VesselSpec(StrictModel):
+    id: str = Field(min_length=1)
+    position: Point = Field(description="true start position (m)")
+    heading: FiniteFloat = Field(0.0, description="true start heading (rad)")
+    join_time: NonNegativeFloat = Field(0.0, description="when the vessel appears (s); 0: from the start")
+    leave_time: NonNegativeFloat | None = Field(None, description="when it leaves for good (s); None: never")
+
+    @model_validator(mode="after")
+    def _leaves_after_joining(self) -> VesselSpec:
+        if self.leave_time is not None and self.leave_time <= self.join_time:
+            raise ValueError("leave_time must be after join_time")
+        return self
+
+
+class WorldConfig(StrictModel):
+    dt: PositiveFloat = Field(0.1, description="sampling period (s)")
+    vessels: list[VesselSpec] = Field(min_length=1)
+    target: TargetSpec
+    range_noise: RangeNoise = Field(
+        GaussianMixtureNoise(outlier_fraction=0.2, variance=0.4, outlier_variance=10.0),
+        description="noise of one range measurement (Table II mixture by default)",
+    )
+    bearing_variance: NonNegativeFloat = Field(1e-4, description="R_b of (9), per axis")
+    displacement_variance: NonNegativeFloat = Field(1e-6, description="R_delta of (5), per axis per step")
+    heading_variance: NonNegativeFloat = Field(0.0, description="compass noise of each heading reading (rad^2)")
+    islands: list[Annotated[list[Point], Field(min_length=3)]] = Field(
+        default_factory=list, description="obstacles as simple polygons (m)"
+    )
+    sonar_range: PositiveFloat = Field(6.0, description="island points closer than this are seen (m)")
+    sonar_spacing: PositiveFloat = Field(0.25, description="distance between sampled island points (m)")
+    packet_loss: float = Field(0.0, ge=0, lt=1, description="probability that one inter-vessel message is lost")
+    max_speed: PositiveFloat = Field(5.0, description="U_v, bound on the commanded surge speed (m/s)")
+    max_yaw_rate: PositiveFloat = Field(
+        math.pi / 3 + math.pi / 30, description="bound on the commanded yaw rate (rad/s)"
+    )
+
+    @field_validator("islands")
+    @classmethod
+    def _simple_polygons(cls, islands: list[list[tuple[float, float]]]) -> list[list[tuple[float, float]]]:
+        for index, polygon in enumerate(islands):
+            if not is_simple_polygon(polygon):
+                raise ValueError(f"island {index} is not a simple polygon (edges cross, overlap or vanish)")
+        return islands
+
+    @model_validator(mode="after")
+    def _unique_ids(self) -> WorldConfig:
+        ids = [vessel.id for vessel in self.vessels]
+        repeated = sorted({i for i in ids if ids.count(i) > 1})
+        if repeated:
+            raise ValueError(f"vessel ids must be unique, repeated: {repeated}")
+        return self
+
+
+@dataclass(frozen=True)
+class Reading:
+    """What one vessel's sensors report at one tick (arrays are read-only)."""
+
+    odometry: Odometry
+    ranges: dict[str, float]          # neighbour id -> measured range (m), (6)
+    bearing: np.ndarray | None        # (2,) noisy target -> vessel direction (9); None when not visible
+    obstacle_points: np.ndarray       # (M, 2) island points within sonar range, relative to the vessel
+    occluded: bool                    # an island blocks the line of sight to the target
+
+
+@dataclass(frozen=True)
+class Truth:
+    """The true state at `time`, for metrics; vessel entries cover the live vessels only."""
+
+    time: float
+    positions: dict[str, np.ndarray]
+    headings: dict[str, float]
+    velocities: dict[str, np.ndarray]     # velocity (2) used over the last step; zero before the first
+    target_position: np.ndarray
+    target_velocity: np.ndarray
+
+
+def _frozen(array: np.ndarray) -> np.ndarray:
+    array = np.array(array, dtype=float)
+    array.setflags(write=False)
+    return array
+
+
+class _Vessel:
+    """Mutable true and dead-reckoned state of one vessel while it is live."""
+
+    def __init__(self, spec: VesselSpec) -> None:
+        self.position = np.array(spec.position, dtype=float)
+        self.heading = float(wrap_angle(spec.heading))
+        self.velocity = np.zeros(2)
+        self.odometry_position = np.zeros(2)
+        self.odometry_heading = self.heading
+
+
+class World:
+    """Vessels following (1), a target, islands and sensors (5)-(9), stepped by `step(commands)`."""
+
+    def __init__(self, config: WorldConfig, rng: np.random.Generator) -> None:
+        self.config = config
+        self.time = 0.0
+        self.tick = 0
+        self.bad_commands = 0
+        self._rng = rng
+        self._vessels: dict[str, _Vessel] = {}
+        self._departed: set[str] = set()
+        self._target = make_target(config.target)
+        self._islands = [np.array(polygon, dtype=float) for polygon in config.islands]
+        boundary = [sample_boundary(polygon, config.sonar_spacing) for polygon in self._islands]
+        self._boundary = np.concatenate(boundary, axis=0) if boundary else np.zeros((0, 2))
+        self._displacement_noise = IsotropicGaussianNoise(variance=config.displacement_variance)
+        self._bearing_noise = IsotropicGaussianNoise(variance=config.bearing_variance)
+        self._heading_std = math.sqrt(config.heading_variance)
+        self._begin_tick()
+
+    def live(self) -> list[str]:
+        """Ids of the vessels present now, in config order."""
+        return [spec.id for spec in self.config.vessels if spec.id in self._vessels]
+
+    def sense(self) -> dict[str, Reading]:
+        """Every live vessel's readings at the current time (drawn once per tick; repeat calls agree)."""
+        return dict(self._readings)
+
+    def step(self, commands: Mapping[str, Command]) -> None:
+        """Apply each live vessel's command for one period dt, move the target, and start the next tick.
+
+        A missing or non-finite command stops that vessel for the period and is counted in `bad_commands`.
+        """
+        config = self.config
+        dt = config.dt
+        for vessel_id in self.live():
+            vessel = self._vessels[vessel_id]
+            surge, yaw_rate = self._checked(commands.get(vessel_id))
+            surge = min(max(surge, -config.max_speed), config.max_speed)
+            yaw_rate = min(max(yaw_rate, -config.max_yaw_rate), config.max_yaw_rate)
+            # (1)-(2): move along the heading held over the period, then turn.
+            vessel.velocity = surge * np.array([math.cos(vessel.heading), math.sin(vessel.heading)])
+            displacement = vessel.velocity * dt
+            vessel.position = vessel.position + displacement
+            vessel.heading = float(wrap_angle(vessel.heading + yaw_rate * dt))
+            # (5): odometry accumulates the true displacement plus its per-step noise.
+            vessel.odometry_position = vessel.odometry_position + displacement + self._displacement_noise.sample(
+                self._rng
+            )
+            vessel.odometry_heading = self._noisy_heading(vessel.heading)
+        self._target.step(dt, self._rng)
+        self.tick += 1
+        self.time = self.tick * dt      # a product, not a running sum, so time does not drift
+        self._begin_tick()
+
+    def truth(self) -> Truth:
+        live = self.live()
+        return Truth(
+            time=self.time,
+            positions={i: _frozen(self._vessels[i].position) for i in live},
+            headings={i: self._vessels[i].heading for i in live},
+            velocities={i: _frozen(self._vessels[i].velocity) for i in live},
+            target_position=_frozen(self._target.position),
+            target_velocity=_frozen(self._target.velocity),
+        )
+
+    # --- inside a tick -----------------------------------------------------------------------------------
+
+    def _checked(self, command: Command | None) -> tuple[float, float]:
+        try:
+            surge, yaw_rate = float(command.surge), float(command.yaw_rate)  # type: ignore[union-attr]
+        except (AttributeError, TypeError, ValueError):
+            surge = yaw_rate = math.nan
+        if math.isfinite(surge) and math.isfinite(yaw_rate):
+            return surge, yaw_rate
+        self.bad_commands += 1
+        return 0.0, 0.0
+
+    def _noisy_heading(self, heading: float) -> float:
+        return float(wrap_angle(heading + self._rng.normal(0.0, self._heading_std)))
+
+    def _begin_tick(self) -> None:
+        """Let vessels leave and join at the new time, then draw this tick's readings."""
+        now = self.time + TIME_TOLERANCE
+        for spec in self.config.vessels:
+            if spec.id in self._vessels and spec.leave_time is not None and spec.leave_time <= now:
+                del self._vessels[spec.id]
+                self._departed.add(spec.id)
+            elif spec.id not in self._vessels and spec.id not in self._departed and spec.join_time <= now:
+                if spec.leave_time is not None and spec.leave_time <= now:
+                    self._departed.add(spec.id)      # its whole stay fell between two ticks
+                    continue
+                vessel = _Vessel(spec)
+                vessel.odometry_heading = self._noisy_heading(vessel.heading)
+                self._vessels[spec.id] = vessel
+        self._readings = {vessel_id: self._read(vessel_id) for vessel_id in self.live()}
+
+    def _read(self, vessel_id: str) -> Reading:
+        vessel = self._vessels[vessel_id]
+        here = vessel.position
+        others = [j for j in self.live() if j != vessel_id]
+        # (6): each ordered pair gets its own draw, as each vessel ranges on its own.
+        noise = self.config.range_noise.sample(self._rng, len(others))
+        other_positions = np.array([self._vessels[j].position for j in others]).reshape(-1, 2)
+        true_ranges = np.linalg.norm(other_positions - here, axis=1)
+        # A UWB module never reports a negative range.
+        measured = np.maximum(true_ranges + noise, 0.0)
+        ranges = dict(zip(others, measured.tolist()))
+        # (9): drawn even when unused, so the stream does not depend on the geometry.
+        bearing_noise = self._bearing_noise.sample(self._rng)
+        target = self._target.position
+        offset = here - target
+        distance = float(np.linalg.norm(offset))
+        occluded = any(segment_intersects_polygon(here, target, island) for island in self._islands)
+        bearing = None
+        if not occluded and distance > 0.0:
+            bearing = _frozen(offset / distance + bearing_noise)
+        relative = self._boundary - here
+        near = np.einsum("ij,ij->i", relative, relative) <= self.config.sonar_range**2
+        odometry = Odometry(
+            stamp=self.time, position=_frozen(vessel.odometry_position), heading=vessel.odometry_heading
+        )
+        return Reading(
+            odometry=odometry,
+            ranges=ranges,
+            bearing=bearing,
+            obstacle_points=_frozen(relative[near].reshape(-1, 2)),
+            occluded=occluded,
+        )
+
+
+def message_lost(seed: int, sender: str, receiver: str, tick: int, probability: float) -> bool:
+    """Whether the message `sender` sends `receiver` at `tick` is lost, the same in every process.
+
+    A keyed hash of the fields (not Python's salted `hash`) gives a uniform number in [0, 1); the message is
+    lost when it falls below `probability`.
+    """
+    if not 0.0 <= probability <= 1.0:
+        raise ValueError(f"probability must be in [0, 1], got {probability}")
+    # JSON keeps the fields apart unambiguously, whatever characters the ids contain.
+    key = json.dumps([int(seed), str(sender), str(receiver), int(tick)]).encode()
+    digest = hashlib.blake2b(key, digest_size=8, person=b"usv-msg-loss").digest()
+    uniform = (int.from_bytes(digest, "big") >> 11) / 2.0**53   # 53 bits: exact in a float, never 1.0
+    return uniform < probability
