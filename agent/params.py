@@ -148,6 +148,20 @@ class FleetParams(StrictModel):
         1.0, description="a neighbour silent for longer than this (s) leaves the formation"
     )
     history_ticks: int = Field(50, ge=2, le=100_000, description="odometry and ranges kept per neighbour")
+    fuse_shared_estimates: bool = Field(
+        True,
+        description=(
+            "fuse each neighbour's shared estimate of p_ji with our p_ij by covariance intersection, so the "
+            "two vessels of a pair agree (agent/fusion.py); false: each vessel keeps its own, as in the paper"
+        ),
+    )
+    fuse_target_estimates: bool = Field(
+        True,
+        description=(
+            "fuse the neighbours' target estimates, moved to this vessel through p_ij, with our own by "
+            "covariance intersection (bearings from several angles triangulate); false: as in the paper"
+        ),
+    )
 
 
 class AgentParams(StrictModel):

@@ -31,16 +31,19 @@ class Share:
 
     `odometry` is its own cumulative odometry at `odometry.stamp`; `velocity` is the velocity it commanded
     for the interval that starts there (lets a receiver carry the neighbour forward to its own time);
-    `phase` is its oscillator phase at that stamp; `target` and `target_covariance` its estimate of its own
-    position relative to the target, p_jo (None before it has one), used to initialise a newcomer.
+    `phase` is its oscillator phase at that stamp; `target` its estimate [p_jo; v_o] of its own position
+    relative to the target and of the target's velocity (None before it has one), with `target_covariance`
+    (4x4), used to initialise a newcomer and for cooperative target estimation; `neighbours` its estimates
+    of p_jk for each neighbour k, at that stamp, with their covariances.
     """
 
     sender: str
     odometry: Odometry
     velocity: np.ndarray       # (2,)
     phase: float
-    target: np.ndarray | None = None                 # (2,) p_jo estimate
-    target_covariance: np.ndarray | None = None      # (2, 2)
+    target: np.ndarray | None = None                 # (4,) [p_jo; v_o]
+    target_covariance: np.ndarray | None = None      # (4, 4)
+    neighbours: Mapping[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)

@@ -20,6 +20,7 @@ from agent.control.formation import (
 )
 from agent.control.oscillator import oscillator_step
 from agent.estimators import PLKF
+from agent.fusion import covariance_intersection, covariance_intersection_many
 from agent.neighbours import History, NeighbourPrior, NeighbourTrack, stamp_key
 from agent.params import AgentParams
 from agent.tick_io import STOP, Command, Share, TickInputs
@@ -72,6 +73,7 @@ class Health:
     neighbours_dropped: int = 0
     neighbours_joined: int = 0
     non_finite_commands: int = 0
+    target_estimates_gated: int = 0
 
     def as_dict(self) -> dict[str, int]:
         return dict(self.__dict__)
@@ -132,16 +134,20 @@ class VesselAgent:
         for track in self.tracks.values():
             self._start_if_needed(track)
             track.advance(self.own)
+            if self.params.fleet.fuse_shared_estimates:
+                self._fuse_reciprocal(track)
 
+        estimates = {j: t.estimate_at(self.own, now) for j, t in self.tracks.items()}
         bearing = self._valid_bearing(inputs.bearing)
         target_state, target_cov, bearing_used = self._track_target(bearing, velocity_change)
+        if target_state is not None and self.params.fleet.fuse_target_estimates:
+            target_state, target_cov = self._fuse_targets(estimates, now)
         if self.phase is None:
             self.phase = math.atan2(target_state[1], target_state[0]) if target_state is not None else 0.0
 
         neighbour_phases = {j: self._phase_of(t, now) for j, t in self.tracks.items() if t.share is not None}
         next_phase = oscillator_step(self.phase, list(neighbour_phases.values()), self.params.control.yaw_rate,
                                      self.dt, self.params.control.oscillator_gain)
-        estimates = {j: t.estimate_at(self.own, now) for j, t in self.tracks.items()}
         command, parts, saturated = self._control(odometry.heading, target_state, estimates, neighbour_phases,
                                                   next_phase, inputs.obstacle_points)
         if not (math.isfinite(command.surge) and math.isfinite(command.yaw_rate)):
@@ -151,8 +157,10 @@ class VesselAgent:
         heading_vector = np.array([math.cos(odometry.heading), math.sin(odometry.heading)])
         share = Share(
             sender=self.id, odometry=odometry, velocity=command.surge * heading_vector, phase=self.phase,
-            target=None if target_state is None else target_state[:2].copy(),
-            target_covariance=None if target_cov is None else target_cov[:2, :2].copy(),
+            target=None if target_state is None else _to_shared(target_state, self.motion.velocity),
+            target_covariance=None if target_cov is None else _SWAP_VELOCITY @ target_cov @ _SWAP_VELOCITY,
+            neighbours={j: (estimate, self.tracks[j].estimator.covariance)
+                        for j, estimate in estimates.items() if estimate is not None},
         )
         record = TickRecord(
             time=now, phase=self.phase,
@@ -217,6 +225,64 @@ class VesselAgent:
         if prior is not None and not track.start(prior, self.own):
             self.priors[track.neighbour] = prior
 
+    def _fuse_reciprocal(self, track: NeighbourTrack) -> None:
+        """Fuse j's shared estimate of p_ji (as -p_ji) into ours when both refer to the same stamp."""
+        share = track.share
+        if track.estimator is None or share is None or track.epoch != stamp_key(share.odometry.stamp):
+            return
+        theirs = share.neighbours.get(self.id)
+        if theirs is None:
+            return
+        position, covariance = theirs
+        if not (_finite_vector(position, 2) and _finite_matrix(covariance)):
+            self.health.bad_shares += 1
+            return
+        try:
+            fused, fused_covariance = covariance_intersection(
+                track.estimator.position, track.estimator.covariance, -np.asarray(position, dtype=float),
+                np.asarray(covariance, dtype=float))
+        except np.linalg.LinAlgError:
+            self.health.bad_shares += 1
+            return
+        if not track.estimator.assimilate(fused, fused_covariance):
+            self.health.bad_shares += 1
+
+    def _fuse_targets(self, estimates: dict[str, np.ndarray | None], now: float):
+        """Covariance intersection of our target estimate with each neighbour's, moved to us:
+        p_io = p^_ij + p^_jo (carried to now with j's commanded velocity), v_io = v_i - v^_o.
+        A neighbour whose estimate disagrees with ours beyond the chi-square gate is left out (counted)."""
+        own = (self.tracker.state, self.tracker.covariance)
+        candidates = [own]
+        for j, track in self.tracks.items():
+            share, relative = track.share, estimates.get(j)
+            if share is None or share.target is None or relative is None or track.estimator is None:
+                continue
+            age = now - share.odometry.stamp
+            carry = np.eye(4)
+            carry[0:2, 2:4] = -age * np.eye(2)           # p_jo moves with v_j - v_o over the share's age
+            x_shared = carry @ np.asarray(share.target, dtype=float)
+            x_shared[:2] += age * np.asarray(share.velocity, dtype=float)
+            P_shared = carry @ np.asarray(share.target_covariance, dtype=float) @ carry.T
+            x = np.concatenate([relative + x_shared[:2], self.motion.velocity - x_shared[2:]])
+            P = _SWAP_VELOCITY @ P_shared @ _SWAP_VELOCITY
+            P[:2, :2] += track.estimator.covariance
+            difference = x - own[0]
+            try:
+                distance = float(difference @ np.linalg.solve(own[1] + P, difference))
+            except np.linalg.LinAlgError:
+                distance = math.inf
+            if distance > TARGET_GATE:
+                self.health.target_estimates_gated += 1
+                continue
+            candidates.append((x, P))
+        if len(candidates) > 1:
+            try:
+                fused, fused_covariance = covariance_intersection_many(candidates)
+            except np.linalg.LinAlgError:
+                return own
+            self.tracker.assimilate(fused, fused_covariance)
+        return self.tracker.state, self.tracker.covariance
+
     def _prior_from_target(self, track: NeighbourTrack) -> NeighbourPrior | None:
         """A newcomer with no prior: p_ij = p_io - p_jo from both vessels' target estimates at j's share
         stamp, with the sum of their covariances; without them, the range along x with an r^2 spread."""
@@ -226,8 +292,9 @@ class VesselAgent:
             own_then, own_now = self.own.get(stamp_key(stamp)), self.own.get(stamp_key(self.motion.stamp))
             shift = own_now - own_then if own_then is not None and own_now is not None else np.zeros(2)
             mine = self.tracker.state[:2] - shift
-            covariance = self.tracker.covariance[:2, :2] + np.asarray(share.target_covariance, dtype=float)
-            return NeighbourPrior(mine - share.target, covariance, stamp)
+            theirs = np.asarray(share.target, dtype=float)[:2]
+            covariance = self.tracker.covariance[:2, :2] + np.asarray(share.target_covariance, dtype=float)[:2, :2]
+            return NeighbourPrior(mine - theirs, covariance, stamp)
         spread = self.params.relative.initial_covariance
         range_then = track.ranges.get(stamp_key(stamp))
         if range_then is None:
@@ -311,12 +378,31 @@ class VesselAgent:
         )
 
 
+# x = [p_io; v_io] <-> shared [p_io; v_o] with v_o = v_i - v_io: flips the velocity block's sign.
+_SWAP_VELOCITY = np.diag([1.0, 1.0, -1.0, -1.0])
+# Chi-square 99.9 % point for 4 degrees of freedom: a neighbour's target estimate further than this from
+# ours is more likely a fault than noise.
+TARGET_GATE = 18.47
+
+
+def _to_shared(state: np.ndarray, own_velocity: np.ndarray) -> np.ndarray:
+    return np.concatenate([state[:2], own_velocity - state[2:]])
+
+
 def _finite_vector(value, size: int) -> bool:
     try:
         array = np.asarray(value, dtype=float)
     except (TypeError, ValueError):
         return False
     return array.shape == (size,) and bool(np.all(np.isfinite(array)))
+
+
+def _finite_matrix(value) -> bool:
+    try:
+        array = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        return False
+    return array.shape == (2, 2) and bool(np.all(np.isfinite(array)))
 
 
 def _valid_share(share: object) -> bool:
@@ -326,6 +412,9 @@ def _valid_share(share: object) -> bool:
     return (_finite_vector(odometry.position, 2) and isinstance(odometry.stamp, (int, float))
             and math.isfinite(odometry.stamp) and math.isfinite(share.phase)
             and _finite_vector(share.velocity, 2)
-            and (share.target is None or (_finite_vector(share.target, 2)
+            and (share.target is None or (_finite_vector(share.target, 4)
                                           and share.target_covariance is not None
-                                          and np.all(np.isfinite(share.target_covariance)))))
+                                          and np.shape(share.target_covariance) == (4, 4)
+                                          and np.all(np.isfinite(share.target_covariance))))
+            and all(isinstance(k, str) and _finite_vector(v[0], 2) and _finite_matrix(v[1])
+                    for k, v in share.neighbours.items()))

@@ -116,6 +116,18 @@ class RelativePositionEstimator(ABC):
         self._diag = Diagnostics()
         self._reset_extra()
 
+    def assimilate(self, position: np.ndarray, covariance: np.ndarray) -> bool:
+        """Replace the estimate by a fused one (e.g. with a neighbour's, by covariance intersection), keeping
+        the range pairing and any adaptive state. Refused (False, counted) unless finite and SPD."""
+        px, py = (float(v) for v in np.asarray(position, dtype=float).reshape(2))
+        c = np.asarray(covariance, dtype=float).reshape(2, 2)
+        p11, p12, p22 = float(c[0, 0]), 0.5 * float(c[0, 1] + c[1, 0]), float(c[1, 1])
+        if not (math.isfinite(px) and math.isfinite(py) and is_positive_definite(p11, p12, p22)):
+            self._diag.rejected += 1
+            return False
+        self._px, self._py, self._p11, self._p12, self._p22 = px, py, p11, p12, p22
+        return True
+
     def mark_range_epoch(self) -> None:
         """Declare a range epoch without updating (the first range of a pair sequence)."""
         self._pair_dx = self._pair_dy = 0.0

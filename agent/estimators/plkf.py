@@ -120,6 +120,18 @@ class PLKF:
             raise ValueError("reset needs a finite state and covariance")
         self._x, self._P = x, 0.5 * (P + P.T)
 
+    def assimilate(self, state: np.ndarray, covariance: np.ndarray) -> bool:
+        """Replace the estimate by a fused one (cooperative fusion with the neighbours' estimates).
+        Refused (False, counted) unless finite and symmetric positive-definite."""
+        x = np.asarray(state, dtype=float).reshape(4)
+        P = np.asarray(covariance, dtype=float).reshape(4, 4)
+        P = 0.5 * (P + P.T)
+        if not (np.all(np.isfinite(x)) and np.all(np.isfinite(P)) and np.all(np.linalg.eigvalsh(P) > 0)):
+            self.rejected += 1
+            return False
+        self._x, self._P = x.copy(), P
+        return True
+
     def predict(self, own_velocity_change: np.ndarray | None = None) -> bool:
         """Time update (24). A non-finite velocity change is refused (counted) and the step uses none."""
         accepted = True
