@@ -136,6 +136,13 @@ class ControlParams(StrictModel):
     )
     avoidance_gain: PositiveFloat = Field(1.7, description="k_1")
     avoidance_spread: PositiveFloat = Field(0.5, description="k_2")
+    min_clearance: NonNegativeFloat = Field(
+        1.0, description="safety filter: closest a vessel may come to an obstacle point (m); see avoidance.py"
+    )
+    clearance_rate: PositiveFloat = Field(
+        1.0, description="safety filter: closing speed allowed per metre of clearance left (1/s)"
+    )
+    safety_filter: bool = Field(True, description="apply the safety filter after (35); false: (35) alone")
     oscillator_gain: PositiveFloat = Field(
         1.0, description="K of (28): K_m = K for m <= n/2, 0 above (the paper leaves K_m open)"
     )

@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from agent.control.avoidance import avoidance_velocity
+from agent.control.avoidance import avoidance_velocity, safety_filter
 from agent.control.formation import (
     desired_offset, desired_velocity, formation_velocity, neighbour_gain, saturate, surge_and_yaw_rate,
     tracking_velocity,
@@ -49,6 +49,7 @@ class TickRecord:
     formation_velocity: np.ndarray
     tracking_velocity: np.ndarray
     avoidance_velocity: np.ndarray
+    safety_correction: np.ndarray  # what the safety filter added to (35)
     velocity_command: np.ndarray
     command: Command
     saturated: dict[str, bool]
@@ -168,7 +169,8 @@ class VesselAgent:
                         if estimates[j] is not None},
             target_state=target_state, target_covariance=target_cov, bearing_used=bearing_used,
             formation_velocity=parts[0], tracking_velocity=parts[1], avoidance_velocity=parts[2],
-            velocity_command=parts[3], command=command, saturated=saturated, health=self.health.as_dict(),
+            safety_correction=parts[3], velocity_command=parts[4], command=command, saturated=saturated,
+            health=self.health.as_dict(),
         )
         self.phase = next_phase
         return TickOutput(command, share, record)
@@ -344,11 +346,15 @@ class VesselAgent:
             tracking = tracking_velocity(target_velocity, desired_velocity(c.radius, self.phase, next_phase,
                                                                            self.dt), c.max_target_speed)
         formation = formation_velocity(errors)
-        avoidance = avoidance_velocity(self._valid_obstacles(obstacles), c.safety_distance, c.avoidance_gain,
-                                       c.avoidance_spread)
+        points = self._valid_obstacles(obstacles)
+        avoidance = avoidance_velocity(points, c.safety_distance, c.avoidance_gain, c.avoidance_spread)
         formation_bounded = saturate(c.max_formation_speed, formation)
         avoidance_bounded = saturate(c.max_avoidance_speed, avoidance)
         command_velocity = formation_bounded + tracking + avoidance_bounded        # (35)
+        filtered, unfiltered = False, command_velocity
+        if c.safety_filter:
+            command_velocity, filtered = safety_filter(command_velocity, points, c.min_clearance,
+                                                       c.clearance_rate)
         surge, yaw_rate, yaw_saturated = surge_and_yaw_rate(
             command_velocity, heading, c.yaw_rate, self.dt, c.max_correction_yaw_rate, c.max_speed)
         saturated = {
@@ -356,8 +362,10 @@ class VesselAgent:
             "avoidance": avoidance_bounded is not avoidance,
             "yaw_rate": yaw_saturated,
             "speed": abs(surge) >= c.max_speed,
+            "safety_filter": filtered,
         }
-        return Command(surge, yaw_rate), (formation, tracking, avoidance, command_velocity), saturated
+        parts = (formation, tracking, avoidance, command_velocity - unfiltered, command_velocity)
+        return Command(surge, yaw_rate), parts, saturated
 
     def _valid_obstacles(self, points) -> np.ndarray | None:
         if points is None:

@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from agent.control.angles import wrap_angle
-from agent.control.avoidance import avoidance_velocity
+from agent.control.avoidance import avoidance_velocity, safety_filter
 from agent.control.formation import desired_offset, desired_velocity, saturate, surge_and_yaw_rate
 from agent.control.oscillator import coupling_gains, oscillator_step
 from agent.params import AgentParams
@@ -116,6 +116,16 @@ def test_avoidance_hand_value_and_range():
     np.testing.assert_allclose(avoidance_velocity(np.array([[0.0, 5e-324]]), 3.0, 1.7, 0.5), [0.0, -1.7])
 
 
+def test_safety_filter_limits_the_closing_speed_and_leaves_safe_commands_alone():
+    point = np.array([[2.0, 0.0]])  # 2 m east: n = (-1, 0), allowed closing speed 1 * (2 - 1) = 1 m/s
+    v, acted = safety_filter(np.array([3.0, 0.5]), point, 1.0, 1.0)
+    assert acted and v == pytest.approx([1.0, 0.5])        # only the component towards the point is cut
+    v, acted = safety_filter(np.array([0.5, 2.0]), point, 1.0, 1.0)
+    assert not acted and v == pytest.approx([0.5, 2.0])
+    v, acted = safety_filter(np.array([0.0, 0.0]), np.array([[0.5, 0.0]]), 1.0, 1.0)
+    assert acted and v == pytest.approx([-0.5, 0.0])        # inside the clearance: back away
+
+
 # ----- the whole tick: bounds hold whatever it is fed -----
 
 finite = st.floats(-50, 50)
@@ -152,8 +162,8 @@ def test_no_saturation_bound_is_ever_exceeded(heading, bearing_angle, target, ne
         assert record.health["non_finite_commands"] == 0  # finite because it is right, not because of the guard
         assert abs(command.surge) <= c.max_speed + 1e-12
         assert abs(command.yaw_rate - c.yaw_rate) <= c.max_correction_yaw_rate + 1e-12
-        bounded_formation = record.velocity_command - record.tracking_velocity - saturate(
-            c.max_avoidance_speed, record.avoidance_velocity)
+        bounded_formation = (record.velocity_command - record.safety_correction - record.tracking_velocity
+                             - saturate(c.max_avoidance_speed, record.avoidance_velocity))
         assert np.hypot(*bounded_formation) <= c.max_formation_speed + 1e-9
         assert np.hypot(*saturate(c.max_avoidance_speed, record.avoidance_velocity)) <= c.max_avoidance_speed + 1e-12
         # the target-velocity feedforward is bounded by U_vo inside the tracking term

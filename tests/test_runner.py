@@ -99,3 +99,19 @@ def test_occlusion_gives_prediction_only_steps():
             assert out.record.target_covariance.trace() > before
         world.step({})  # the vessel stays where it is
     assert agent.tracker.skipped == 20 and agent.tracker.updates == 0
+
+
+def test_vessels_keep_clear_of_the_islands():
+    """The islands scenario: occlusions happen, no vessel ever enters an island, the fleet settles."""
+    from sim_bridge.geometry import point_in_polygon, sample_boundary
+
+    islands_scenario = scenario("islands.yaml", "islands")
+    trace = run(islands_scenario, 0)
+    islands = [np.array(p) for p in islands_scenario.world.islands]
+    assert trace.occluded.any()
+    assert not any(point_in_polygon(position, island) for position in trace.positions.reshape(-1, 2)
+                   for island in islands)
+    boundary = np.vstack([sample_boundary(island, 0.05) for island in islands])
+    closest = np.min(np.linalg.norm(trace.positions.reshape(-1, 1, 2) - boundary[None], axis=-1))
+    assert closest > 0.9  # min_clearance is 1 m; the boundary is sampled every 5 cm
+    assert trace.metrics.settling_time is not None

@@ -21,3 +21,28 @@ def avoidance_velocity(points: np.ndarray | None, safety_distance: float, gain: 
     unit = away / distance[:, None]  # before weighting: dividing the weight by a tiny distance overflows
     weight = gain * np.exp(-distance**2 / (2.0 * spread * safety_distance**2))
     return (weight[:, None] * unit).sum(axis=0)
+
+
+def safety_filter(velocity: np.ndarray, points: np.ndarray | None, min_clearance: float, rate: float
+                  ) -> tuple[np.ndarray, bool]:
+    """Keep clear of land whatever the formation asks: a control-barrier-style limit on (35)'s command.
+
+    With d the distance to the nearest obstacle point and n the unit vector from it to the vessel, the
+    command may close on the point no faster than rate * (d - d_min): n^T v >= -rate (d - d_min). Inside
+    d_min that asks for an opening speed. A command that breaks the limit loses just enough of its
+    component along -n; one that keeps it is returned unchanged. Returns (velocity, whether it acted).
+    """
+    if points is None or len(points) == 0:
+        return velocity, False
+    away = -np.asarray(points, dtype=float).reshape(-1, 2)
+    distance = np.hypot(away[:, 0], away[:, 1])
+    nearest = int(np.argmin(distance))
+    d = float(distance[nearest])
+    if d <= 0.0:
+        return velocity, False  # on the point itself no direction is known; (34) has already pushed
+    n = away[nearest] / d
+    floor = -rate * (d - min_clearance)
+    closing = float(n @ velocity)
+    if closing >= floor:
+        return velocity, False
+    return velocity + (floor - closing) * n, True

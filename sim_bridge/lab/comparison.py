@@ -18,6 +18,7 @@ from pydantic import Field
 from agent.estimators import make_relative_estimator
 from agent.params import ESTIMATOR_NAMES, AgentParams, PositiveFloat, StrictModel, updated
 from sim_bridge.lab.errors import ErrorHistory
+from sim_bridge.lab.parallel import map_in_order
 from sim_bridge.noise import GaussianMixtureNoise, IsotropicGaussianNoise, LogNormalNoise, RangeNoise
 
 
@@ -148,20 +149,7 @@ def run_comparison(config: ComparisonConfig, noise_name: str, workers: int = 1, 
     # One child seed per (noise model, run): adding runs or models never changes an existing run.
     root = np.random.SeedSequence([config.seed, _stable_id(noise_name)])
     jobs = [(config, noise, child) for child in root.spawn(config.runs)]
-    outputs: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
-    if workers > 1:
-        from concurrent.futures import ProcessPoolExecutor
-
-        with ProcessPoolExecutor(max_workers=workers) as pool:
-            for output in pool.map(_run_job, jobs, chunksize=max(1, len(jobs) // (4 * workers))):
-                outputs.append(output)
-                if progress:
-                    progress(1)
-    else:
-        for job in jobs:
-            outputs.append(_run_job(job))
-            if progress:
-                progress(1)
+    outputs = map_in_order(_run_job, jobs, workers, progress)
     t, _, _ = relative_trajectory(config)
     errors = np.stack([o[0] for o in outputs])  # (runs, estimators, K+1)
     return ComparisonResult(
