@@ -5,7 +5,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed-stamp
 
-.PHONY: demo test bench venv clean
+.PHONY: demo test bench scenarios fleet-bench venv clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -24,6 +24,13 @@ test: $(STAMP)
 
 bench: $(STAMP)
 	$(VENV)/bin/usv-lab bench --seed 7
+
+# Every scenario of the paper's Sec. VI-B (Tables II-IV, Figs. 7-15), about 15 minutes on 2 cores.
+scenarios: $(STAMP)
+	$(VENV)/bin/usv-lab scenario all
+
+fleet-bench: $(STAMP)
+	$(VENV)/bin/usv-lab fleet-bench
 
 clean:
 	rm -rf $(VENV) .pytest_cache .hypothesis

@@ -35,7 +35,8 @@ base:
 variants:
   mckf:
     agent: {relative: {estimator: mckf}}
-    paper: {table: II, mean_e_ij: 0.449, mean_e_io: 0.476, mean_e_c: 0.196, settling_time: 12.3, run_time_ms: 1.5}
+    paper: {table: II, mean_e_ij: 0.449, mean_e_io: 0.476, mean_e_c: 0.196, settling_time: 12.3,
+            run_time_ms: 1.5}
   kf:
     agent: {relative: {estimator: kf}}
 """
@@ -80,7 +81,8 @@ def test_results_do_not_depend_on_the_number_of_workers(tiny):
     summaries = []
     for workers in (1, 2):
         results = scenario_cmd.run_monte_carlo({"tiny": scenarios}, workers)["tiny"]
-        summaries.append({name: {k: v for k, v in result.summary().items() if k not in scenario_cmd.TIMING_KEYS}
+        timing = scenario_cmd.TIMING_KEYS
+        summaries.append({name: {k: v for k, v in result.summary().items() if k not in timing}
                           for name, result in results.items()})
     assert summaries[0] == summaries[1]
     assert all(math.isfinite(s["e_io"]) and s["runs"] == 2 for s in summaries[0].values())

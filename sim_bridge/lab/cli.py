@@ -19,8 +19,8 @@ SUBCOMMANDS = {
     "compare": ("sim_bridge.lab.compare_cmd", "estimator comparison of the paper's Figs. 4 and 5"),
     "replay": ("sim_bridge.lab.replay", "replay a CSV of real ranges with ground truth through every estimator"),
     "bench": ("sim_bridge.lab.bench", "per-update cost of each estimator vs filterpy's KalmanFilter"),
-    "scenario": ("sim_bridge.lab.scenario_cmd", "Monte Carlo runs of scenario files vs the paper's Tables II-IV"),
-    "fleet-bench": ("sim_bridge.lab.fleet_bench", "wall time of the Table II Monte Carlo and tick cost by fleet size"),
+    "scenario": ("sim_bridge.lab.scenario_cmd", "scenario files' Monte Carlo vs the paper's Tables II-IV"),
+    "fleet-bench": ("sim_bridge.lab.fleet_bench", "Table II Monte Carlo wall time, tick cost by fleet size"),
 }
 
 

@@ -1,4 +1,4 @@
-"""`usv-lab fleet-bench`: what the fleet simulation costs. A benchmark, not a test: nothing here asserts a time.
+"""`usv-lab fleet-bench`: what the fleet simulation costs. A benchmark, not a test: it asserts no time.
 
 (a) The wall time of the whole Table II Monte Carlo, through the same process pool as `usv-lab scenario`.
 (b) The compute time of one vessel's tick (`RunTrace.tick_seconds`) for fleets of n vessels, built from the
@@ -36,7 +36,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="Monte Carlo runs per estimator (default: the Table II file's own)")
     parser.add_argument("--workers", type=arguments.positive_int, default=os.cpu_count() or 1,
                         help="processes for the Monte Carlo part")
-    parser.add_argument("--out", type=Path, default=Path("docs/results"), help="where fleet_benchmark.md goes")
+    parser.add_argument("--out", type=Path, default=Path("docs/results"),
+                        help="where fleet_benchmark.md goes")
     parser.add_argument("--sizes", type=arguments.positive_int, nargs="+", default=[4, 12, 50],
                         help="fleet sizes n of the tick-time part")
     parser.add_argument("--duration", type=arguments.positive_float, default=20.0,
@@ -62,7 +63,8 @@ def spread_positions(count: int, seed: int, avoid: tuple[float, float]) -> list[
         if np.hypot(*(p - avoid)) >= TARGET_CLEARANCE and all(np.hypot(*(p - q)) >= SPACING for q in points):
             points.append(p)
     if len(points) < count:
-        raise ConfigError(f"cannot place {count} vessels {SPACING} m apart in [-{HALF_WIDTH:g}, {HALF_WIDTH:g}]^2")
+        raise ConfigError(f"cannot place {count} vessels {SPACING} m apart "
+                          f"in [-{HALF_WIDTH:g}, {HALF_WIDTH:g}]^2")
     return [(round(float(x), 2), round(float(y), 2)) for x, y in points]
 
 
@@ -88,7 +90,8 @@ def fleet_scenarios(base: dict, variants: dict[str, Scenario], sizes: list[int],
 
 def machine() -> list[str]:
     return [f"platform: {platform.platform()}", f"os.cpu_count(): {os.cpu_count()}",
-            f"Python: {platform.python_implementation()} {sys.version.split()[0]}", f"numpy: {np.__version__}"]
+            f"Python: {platform.python_implementation()} {sys.version.split()[0]}",
+            f"numpy: {np.__version__}"]
 
 
 def run(args: argparse.Namespace) -> int:
@@ -121,8 +124,9 @@ def run(args: argparse.Namespace) -> int:
         wall = time.perf_counter() - started
         ticks = trace.tick_seconds
         step_ms = np.nansum(ticks, axis=1) * 1e3   # all vessels of one sampling period, as one computer would
-        rows.append([n, f"{RADIUS:g}", source, int(np.isfinite(ticks).sum()), f"{trace.metrics.mean_tick_ms:.3f}",
-                     f"{trace.metrics.p99_tick_ms:.3f}", f"{step_ms.mean():.2f}",
+        rows.append([n, f"{RADIUS:g}", source, int(np.isfinite(ticks).sum()),
+                     f"{trace.metrics.mean_tick_ms:.3f}", f"{trace.metrics.p99_tick_ms:.3f}",
+                     f"{step_ms.mean():.2f}",
                      "-" if paper is None else f"{paper:g}", f"{wall:.1f}"])
     tick_table = markdown_table(
         ["n", "r* (m)", "start positions", "vessel ticks", "mean tick (ms)", "p99 tick (ms)",

@@ -14,7 +14,7 @@ from sim_bridge.runner import RunTrace
 from sim_bridge.scenario import Scenario
 
 OCCLUSION_STRIDE = 10        # draw every 10th blocked line of sight; all of them would hide the paths
-ERROR_LABELS = ("e_ij^p (m)", "e_io^p (m)", "e_c (m)")
+ERROR_LABELS = (r"$e_{ij}^p$ (m)", r"$e_{io}^p$ (m)", r"$e_c$ (m)")
 LOG_SPAN = 100.0             # a panel gets a log axis when its curves span more than two decades
 
 
@@ -34,9 +34,16 @@ def _save(plt, fig, path: Path) -> Path:
     return path
 
 
-def variant_colour(name: str, index: int) -> str:
-    """The estimator's colour of the other lab figures for an estimator variant, else the default cycle."""
-    return COLOURS.get(name, f"C{index % 10}")
+def variant_style(name: str, index: int) -> tuple[str, str]:
+    """(colour, line style) of a variant's curve. A variant named after an estimator ('mckf') gets that
+    estimator's colour of the other lab figures; one that ends in it ('paper_mckf') gets the same colour
+    dashed, so the two versions of an estimator read as a pair. Anything else takes the default cycle."""
+    if name in COLOURS:
+        return COLOURS[name], "-"
+    endings = [e for e in COLOURS if name.endswith(f"_{e}")]
+    if endings:
+        return COLOURS[max(endings, key=len)], "--"   # 'paper_huber_rls' is Huber-RLS, not RLS
+    return f"C{index % 10}", "-"
 
 
 def _grid(count: int) -> tuple[int, int]:
@@ -48,14 +55,14 @@ def trajectory_figure(panels: dict[str, tuple[RunTrace, Scenario]], title: str, 
     """One panel per variant: vessel paths, target path, desired circle, islands and blocked sight lines."""
     plt = _pyplot()
     rows, columns = _grid(len(panels))
-    fig, axes = plt.subplots(rows, columns, figsize=(4.6 * columns, 4.4 * rows), dpi=110, squeeze=False)
+    fig, axes = plt.subplots(rows, columns, figsize=(4.6 * columns, 4.4 * rows), dpi=110, squeeze=False,
+                             layout="constrained")   # constrained: keeps panel titles clear of the title
     for ax, (name, (trace, scenario)) in zip(axes.flat, panels.items()):
         _trajectory_panel(ax, trace, scenario)
         ax.set_title(LABELS.get(name, name), fontsize=10)
     for ax in list(axes.flat)[len(panels):]:
         ax.set_visible(False)
     fig.suptitle(title)
-    fig.tight_layout()
     return _save(plt, fig, path)
 
 
@@ -126,13 +133,13 @@ def error_figure(curves: dict[str, tuple[np.ndarray, np.ndarray]], events: list[
     """Three stacked panels e_ij, e_io, e_c over time; `curves` maps a variant to (time (K,), errors
     (runs, 3, K)); `events` are (time, text) of vessels joining or leaving, drawn as dashed lines."""
     plt = _pyplot()
-    fig, axes = plt.subplots(3, 1, figsize=(8.0, 8.5), dpi=120, sharex=True)
+    fig, axes = plt.subplots(3, 1, figsize=(8.0, 8.5), dpi=120, sharex=True, layout="constrained")
     for panel, ax in enumerate(axes):
         stats = {name: (time, *_mean_std(errors[:, panel, :])) for name, (time, errors) in curves.items()}
         log = _spans_decades([mean for _, mean, _ in stats.values()])
         for index, (name, (time, mean, std)) in enumerate(stats.items()):
-            colour = variant_colour(name, index)
-            ax.plot(time, mean, color=colour, lw=1.2, label=LABELS.get(name, name))
+            colour, style = variant_style(name, index)
+            ax.plot(time, mean, color=colour, ls=style, lw=1.2, label=LABELS.get(name, name))
             lower = np.maximum(mean - std, mean * 1e-2) if log else mean - std   # log cannot show <= 0
             ax.fill_between(time, lower, mean + std, color=colour, alpha=0.15, lw=0)
         if log:
@@ -149,7 +156,6 @@ def error_figure(curves: dict[str, tuple[np.ndarray, np.ndarray]], events: list[
     axes[-1].set_xlabel("time (s)")
     axes[0].legend(ncol=min(len(curves), 5), fontsize=8, loc="upper right")
     fig.suptitle(title)
-    fig.tight_layout()
     return _save(plt, fig, path)
 
 

@@ -100,7 +100,7 @@ def load(path: Path, runs: int | None = None, seed: int | None = None
 
 @dataclass
 class RunOutcome:
-    """What one run sends back from a worker: its metrics, its error curves and, for run 0, the whole trace."""
+    """What one run sends back from a worker: metrics, error curves and, for run 0, the whole trace."""
 
     metrics: RunMetrics
     errors: np.ndarray                  # (3, K): ERRORS over time
@@ -126,7 +126,7 @@ class VariantResult:
 
     def summary(self) -> dict[str, float]:
         """The aggregated numbers of the variant; TIMING_KEYS are the only machine-dependent ones."""
-        result: dict[str, float] = {"runs": float(len(self.metrics)), "settled": float(len(self.settling_times))}
+        result = {"runs": float(len(self.metrics)), "settled": float(len(self.settling_times))}
         for key in ("e_ij", "e_io", "e_io_velocity", "e_c"):
             result[key], result[f"{key}_std"] = self.mean_std(f"mean_{key}")
         result["settling_time"], result["settling_time_std"] = _nan_mean_std(np.array(self.settling_times))
@@ -242,8 +242,9 @@ def _paper(value: float | None, digits: int = 3) -> str:
 
 
 def comparison_table(variants: dict[str, VariantResult]) -> str:
-    header = ["variant", "e_ij ours (m)", "e_ij paper", "e_io ours (m)", "e_io paper", "e_c ours (m)", "e_c paper",
-              "settling ours (s)", "settling paper", "tick ours (ms)", "run time paper (ms)", "settled runs"]
+    header = ["variant", "e_ij ours (m)", "e_ij paper", "e_io ours (m)", "e_io paper", "e_c ours (m)",
+              "e_c paper", "settling ours (s)", "settling paper", "tick ours (ms)", "run time paper (ms)",
+              "settled runs"]
     rows = []
     for name, result in variants.items():
         s, paper = result.summary(), result.scenario.paper
@@ -271,7 +272,7 @@ def _setting(variants: dict[str, VariantResult], value: Callable[[Scenario], obj
 def render_page(path: Path, spec: ScenarioFile, variants: dict[str, VariantResult], table: str, command: str,
                 elapsed: float, workers: int, figures: tuple[str, str]) -> str:
     tables = sorted({r.scenario.paper.table for r in variants.values() if r.scenario.paper.table})
-    against = f"the paper's Table {', '.join(tables)}" if tables else "the paper (which gives no numbers here)"
+    against = f"the paper's Table {', '.join(tables)}" if tables else "the paper (no numbers given)"
     runs = _setting(variants, lambda s: s.runs)
     return "\n".join([
         f"# Scenario {spec.name}" + (f": {spec.description}" if spec.description else ""),
@@ -286,7 +287,8 @@ def render_page(path: Path, spec: ScenarioFile, variants: dict[str, VariantResul
         "",
         f"- duration (s): {_setting(variants, lambda s: s.duration)}",
         f"- Monte Carlo runs per variant: {runs}",
-        f"- root seed: {_setting(variants, lambda s: s.seed)} (run r uses child r of numpy's SeedSequence(seed))",
+        f"- root seed: {_setting(variants, lambda s: s.seed)} "
+        "(run r uses child r of numpy's SeedSequence(seed))",
         f"- vessels: {_setting(variants, lambda s: len(s.world.vessels))}; "
         f"r* (m): {_setting(variants, lambda s: s.agent.control.radius)}; "
         f"dt (s): {_setting(variants, lambda s: s.world.dt)}",
