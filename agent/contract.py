@@ -1,0 +1,231 @@
+"""The wire contract between an agent and whatever stands in for the hardware (sim bridge or driver bridge).
+
+Every message is a pydantic model encoded as JSON; every payload carries `stamp_ns` (its own time, in the
+clock the fleet runs on), `seq` (per sender and key, increasing by one) and `sender`. The same models give
+the wire format, the validation of bad input and the JSON schema written into logs. Keys:
+
+    usv/<id>/sensor/odom     Odometry      bridge -> agent   cumulative position and heading, own frame
+    usv/<id>/sensor/uwb      Ranges        bridge -> agent   ranges to named peers (m)
+    usv/<id>/sensor/bearing  Bearing       bridge -> agent   unit vector from the target to the vessel, or null
+    usv/<id>/sensor/sonar    Sonar         bridge -> agent   obstacle points relative to the vessel (m)
+    usv/<id>/cmd             Cmd           agent -> bridge   surge speed (m/s), yaw rate (rad/s)
+    usv/<id>/share           ShareMessage  agent -> agents   what neighbours need
+    usv/<id>/status          Status        agent -> anyone   estimates, covariances, health
+    usv/<id>/alive           (liveliness token of the agent)
+    sim/clock                Clock         sim bridge -> all sim time, one message per tick
+
+docs/contract.md is the page a driver-bridge author follows.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Annotated
+
+import numpy as np
+from pydantic import Field, ValidationError, field_validator
+
+from agent.params import StrictModel
+from agent.tick_io import Odometry as OdometryReading
+from agent.tick_io import Share
+
+FLEET_PREFIX = "usv"
+CLOCK_KEY = "sim/clock"
+
+VesselId = Annotated[str, Field(pattern=r"^[A-Za-z0-9_-]{1,32}$")]
+Finite = Annotated[float, Field(allow_inf_nan=False)]
+NonNegative = Annotated[float, Field(ge=0, allow_inf_nan=False)]
+Vec2 = tuple[Finite, Finite]
+MAX_SONAR_POINTS = 4096
+MAX_PEERS = 256
+
+
+# ----- keys -----
+def key(vessel: str, topic: str) -> str:
+    """`usv/<vessel>/<topic>`; topic is one of the names in TOPICS."""
+    if topic not in TOPICS:
+        raise ValueError(f"unknown topic {topic!r}; known: {', '.join(TOPICS)}")
+    return f"{FLEET_PREFIX}/{vessel}/{topic}"
+
+
+def every(topic: str) -> str:
+    """Key expression matching `topic` of every vessel (for subscribers)."""
+    return key("*", topic)
+
+
+def vessel_of(key_expr: str) -> str | None:
+    """The vessel id in a `usv/<id>/...` key, or None."""
+    parts = str(key_expr).split("/")
+    return parts[1] if len(parts) >= 3 and parts[0] == FLEET_PREFIX else None
+
+
+# ----- messages -----
+class Header(StrictModel):
+    stamp_ns: int = Field(ge=0, description="time of the content, ns, in the fleet's clock")
+    seq: int = Field(ge=0, description="per sender and key, +1 per message")
+    sender: VesselId
+
+
+class Odometry(Header):
+    position: Vec2 = Field(description="cumulative dead-reckoned position in the vessel's own frame (m)")
+    heading: Finite = Field(description="yaw in the common heading reference (rad)")
+    covariance: tuple[Finite, ...] = Field(
+        (0.0,) * 9, description="3x3 covariance of (x, y, yaw), row-major")
+
+    @field_validator("covariance")
+    @classmethod
+    def _three_by_three(cls, value: tuple[float, ...]) -> tuple[float, ...]:
+        if len(value) != 9:
+            raise ValueError("covariance needs 9 numbers (3x3, row-major)")
+        if any(value[i] < 0 for i in (0, 4, 8)):
+            raise ValueError("covariance has a negative variance")
+        return value
+
+
+class Ranges(Header):
+    ranges: dict[VesselId, NonNegative] = Field(description="peer id -> measured range (m)")
+
+    @field_validator("ranges")
+    @classmethod
+    def _not_too_many(cls, value: dict) -> dict:
+        if len(value) > MAX_PEERS:
+            raise ValueError(f"more than {MAX_PEERS} peers")
+        return value
+
+
+class Bearing(Header):
+    bearing: Vec2 | None = Field(description="unit vector from the target to the vessel; null: no target")
+
+    @field_validator("bearing")
+    @classmethod
+    def _unit(cls, value: tuple[float, float] | None) -> tuple[float, float] | None:
+        if value is not None and abs(math.hypot(*value) - 1.0) > 0.5:
+            raise ValueError("bearing must be a unit vector")
+        return value
+
+
+class Sonar(Header):
+    points: list[Vec2] = Field(max_length=MAX_SONAR_POINTS,
+                               description="obstacle points relative to the vessel (m)")
+
+
+class Cmd(Header):
+    surge: Finite = Field(description="surge speed (m/s)")
+    yaw_rate: Finite = Field(description="yaw rate (rad/s)")
+
+
+class PairEstimate(StrictModel):
+    position: Vec2
+    covariance: tuple[Finite, Finite, Finite] = Field(description="p11, p12, p22")
+
+
+class ShareMessage(Header):
+    """Share of tick_io, on the wire: odometry at `stamp_ns`, commanded velocity, phase, estimates."""
+
+    position: Vec2
+    heading: Finite
+    velocity: Vec2
+    phase: Finite
+    target: tuple[Finite, Finite, Finite, Finite] | None = None
+    target_covariance: tuple[Finite, ...] | None = Field(None, description="4x4, row-major")
+    neighbours: dict[VesselId, PairEstimate] = Field(default_factory=dict, max_length=MAX_PEERS)
+
+    @field_validator("target_covariance")
+    @classmethod
+    def _four_by_four(cls, value):
+        if value is not None and len(value) != 16:
+            raise ValueError("target_covariance needs 16 numbers (4x4, row-major)")
+        return value
+
+
+class Status(Header):
+    phase: Finite
+    command: tuple[Finite, Finite]
+    target: tuple[Finite, Finite, Finite, Finite] | None = None
+    neighbours: dict[VesselId, PairEstimate] = Field(default_factory=dict)
+    health: dict[str, int] = Field(default_factory=dict)
+
+
+class Clock(StrictModel):
+    stamp_ns: int = Field(ge=0, description="sim time of this tick")
+    seq: int = Field(ge=0, description="tick number")
+    sender: VesselId = "sim"
+
+
+TOPICS: dict[str, type[StrictModel]] = {
+    "sensor/odom": Odometry,
+    "sensor/uwb": Ranges,
+    "sensor/bearing": Bearing,
+    "sensor/sonar": Sonar,
+    "cmd": Cmd,
+    "share": ShareMessage,
+    "status": Status,
+}
+
+
+# ----- decoding: bytes in, a message or a reason out, never an exception -----
+def decode(model: type[StrictModel], payload: bytes | bytearray | memoryview) -> tuple[StrictModel | None, str]:
+    """Parse and validate one payload. Returns (message, "") or (None, one-line reason)."""
+    try:
+        return model.model_validate_json(bytes(payload)), ""
+    except ValidationError as error:
+        first = error.errors()[0]
+        where = ".".join(str(p) for p in first["loc"]) or "payload"
+        return None, f"{model.__name__}: {where}: {first['msg']}"
+    except (ValueError, TypeError) as error:  # undecodable bytes
+        return None, f"{model.__name__}: {error}"
+
+
+def encode(message: StrictModel) -> bytes:
+    return message.model_dump_json().encode("utf-8")
+
+
+# ----- between the wire and the tick's records -----
+def seconds(stamp_ns: int) -> float:
+    return stamp_ns * 1e-9
+
+
+def nanoseconds(time_s: float) -> int:
+    return int(round(time_s * 1e9))
+
+
+def odometry_reading(message: Odometry) -> OdometryReading:
+    return OdometryReading(seconds(message.stamp_ns), np.array(message.position, dtype=float), message.heading)
+
+
+def share_from_message(message: ShareMessage) -> Share:
+    return Share(
+        sender=message.sender,
+        odometry=OdometryReading(seconds(message.stamp_ns), np.array(message.position, dtype=float),
+                                 message.heading),
+        velocity=np.array(message.velocity, dtype=float),
+        phase=message.phase,
+        target=None if message.target is None else np.array(message.target, dtype=float),
+        target_covariance=None if message.target_covariance is None
+        else np.array(message.target_covariance, dtype=float).reshape(4, 4),
+        neighbours={j: (np.array(e.position, dtype=float), _unpack2(e.covariance))
+                    for j, e in message.neighbours.items()},
+    )
+
+
+def message_from_share(share: Share, seq: int) -> ShareMessage:
+    return ShareMessage(
+        stamp_ns=nanoseconds(share.odometry.stamp), seq=seq, sender=share.sender,
+        position=tuple(float(v) for v in share.odometry.position), heading=float(share.odometry.heading),
+        velocity=tuple(float(v) for v in share.velocity), phase=float(share.phase),
+        target=None if share.target is None else tuple(float(v) for v in share.target),
+        target_covariance=None if share.target_covariance is None
+        else tuple(float(v) for v in np.asarray(share.target_covariance).ravel()),
+        neighbours={j: PairEstimate(position=tuple(float(v) for v in p), covariance=_pack2(c))
+                    for j, (p, c) in share.neighbours.items()},
+    )
+
+
+def _pack2(matrix) -> tuple[float, float, float]:
+    m = np.asarray(matrix, dtype=float)
+    return float(m[0, 0]), float(m[0, 1]), float(m[1, 1])
+
+
+def _unpack2(values) -> np.ndarray:
+    p11, p12, p22 = values
+    return np.array([[p11, p12], [p12, p22]])

@@ -1,0 +1,146 @@
+"""Latest-value inputs of one agent, filled from raw payloads and read once per tick.
+
+`InputGate.offer(key, payload, now)` is what a Zenoh callback calls: it decodes, checks and keeps the
+newest value per key, never blocks on I/O and never raises; every refusal is counted by reason (and the
+last few reasons kept for the log). `snapshot(now)` turns what is fresh into the tick's `TickInputs`.
+
+What is refused: undecodable or invalid payloads (wrong types, NaN, inf, negative ranges, non-unit
+bearings, ...), a sender that is not the vessel of the key, a `seq` not newer than the last accepted one
+from that sender on that key (duplicates and reordered messages), stamps further than `max_age` in the
+past or `max_future` ahead of the agent's clock, and ranges to peers the agent does not know.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections import Counter, deque
+from collections.abc import Callable
+
+import numpy as np
+
+from agent.contract import (
+    TOPICS, Bearing, Odometry, Ranges, ShareMessage, Sonar, decode, odometry_reading, seconds,
+    share_from_message, vessel_of,
+)
+from agent.tick_io import Share, TickInputs
+
+OWN_TOPICS = ("sensor/odom", "sensor/uwb", "sensor/bearing", "sensor/sonar")
+
+
+class InputGate:
+    def __init__(self, vessel_id: str, max_age: float = 1.0, max_future: float = 0.5,
+                 known_peers: Callable[[], set[str]] | None = None, keep_reasons: int = 20) -> None:
+        self.id = vessel_id
+        self.max_age = max_age
+        self.max_future = max_future
+        self.known_peers = known_peers
+        self.rejected: Counter[str] = Counter()
+        self.accepted: Counter[str] = Counter()
+        self.recent_reasons: deque[str] = deque(maxlen=keep_reasons)
+        self._lock = threading.Lock()
+        self._latest: dict[str, object] = {}
+        self._shares: dict[str, Share] = {}
+        self._last_seq: dict[tuple[str, str], int] = {}
+        self._consumed: dict[str, int] = {}   # topic -> stamp_ns of the range/bearing message last used
+
+    # ----- the callback side -----
+    def offer(self, key: str, payload: bytes | bytearray | memoryview, now: float) -> bool:
+        """Decode and keep one payload received on `key` at agent time `now`; False if refused."""
+        try:
+            return self._offer(str(key), payload, now)
+        except Exception as error:  # the gate must never take the agent down, whatever arrives
+            return self._refuse("internal", f"{key}: {type(error).__name__}: {error}")
+
+    def _offer(self, key: str, payload, now: float) -> bool:
+        vessel = vessel_of(key)
+        topic = key.split("/", 2)[2] if vessel is not None else ""
+        model = TOPICS.get(topic)
+        if model is None or (topic in OWN_TOPICS and vessel != self.id) or (topic == "share" and vessel == self.id):
+            return self._refuse("unexpected_key", key)
+        message, reason = decode(model, payload)
+        if message is None:
+            return self._refuse("malformed", f"{key}: {reason}")
+        if message.sender != vessel:
+            return self._refuse("sender_mismatch", f"{key}: sender {message.sender!r}")
+        stamp = seconds(message.stamp_ns)
+        if stamp < now - self.max_age:
+            return self._refuse("stale", f"{key}: {now - stamp:.3f} s old")
+        if stamp > now + self.max_future:
+            return self._refuse("future", f"{key}: {stamp - now:.3f} s ahead")
+        with self._lock:
+            last = self._last_seq.get((key, message.sender))
+            if last is not None and message.seq == 0 and last > 0:
+                self.accepted["sender_restarted"] += 1  # a sender that restarts counts from 0 again
+            elif last is not None and message.seq <= last:
+                return self._refuse("duplicate_or_reordered", f"{key}: seq {message.seq} after {last}",
+                                    locked=True)
+            self._last_seq[(key, message.sender)] = message.seq
+            if isinstance(message, Ranges):
+                message = self._known_ranges(message)
+            if isinstance(message, ShareMessage):
+                self._shares[message.sender] = share_from_message(message)
+            else:
+                self._latest[topic] = message
+            self.accepted[topic] += 1
+        return True
+
+    def _known_ranges(self, message: Ranges) -> Ranges:
+        if self.known_peers is None:
+            return message
+        known = self.known_peers()
+        unknown = [peer for peer in message.ranges if peer not in known]
+        if unknown:
+            self.rejected["unknown_peer"] += len(unknown)
+            self.recent_reasons.append(f"ranges to unknown peers {sorted(unknown)[:5]}")
+            message = message.model_copy(update={"ranges": {p: r for p, r in message.ranges.items()
+                                                            if p in known}})
+        return message
+
+    def _refuse(self, reason: str, detail: str, locked: bool = False) -> bool:
+        if locked:
+            self.rejected[reason] += 1
+            self.recent_reasons.append(f"{reason}: {detail}")
+        else:
+            with self._lock:
+                self.rejected[reason] += 1
+                self.recent_reasons.append(f"{reason}: {detail}")
+        return False
+
+    # ----- the tick side -----
+    def forget(self, vessel: str) -> None:
+        """A neighbour left (its liveliness token went away): drop its share."""
+        with self._lock:
+            self._shares.pop(vessel, None)
+            for seq_key in [k for k in self._last_seq if k[1] == vessel]:
+                del self._last_seq[seq_key]
+
+    def snapshot(self, now: float) -> TickInputs:
+        """This tick's inputs: the freshest odometry and sonar, ranges and bearing not used before, and the
+        latest shares."""
+        with self._lock:
+            latest = dict(self._latest)
+            shares = dict(self._shares)
+            # A range pair or a bearing is a measurement at its stamp: each is used by one tick only.
+            for topic in ("sensor/uwb", "sensor/bearing"):
+                message = latest.get(topic)
+                if message is not None and self._consumed.get(topic) == message.stamp_ns:
+                    latest[topic] = None
+                elif message is not None:
+                    self._consumed[topic] = message.stamp_ns
+        odometry = latest.get("sensor/odom")
+        fresh = lambda message: message is not None and now - seconds(message.stamp_ns) <= self.max_age  # noqa: E731
+        reading = odometry_reading(odometry) if isinstance(odometry, Odometry) and fresh(odometry) else None
+        time = reading.stamp if reading is not None else now
+        ranges = latest.get("sensor/uwb")
+        bearing = latest.get("sensor/bearing")
+        sonar = latest.get("sensor/sonar")
+        return TickInputs(
+            time=time,
+            odometry=reading,
+            ranges=dict(ranges.ranges) if isinstance(ranges, Ranges) and fresh(ranges) else {},
+            shares=shares,
+            bearing=np.array(bearing.bearing) if isinstance(bearing, Bearing) and fresh(bearing)
+            and bearing.bearing is not None else None,
+            obstacle_points=np.array(sonar.points, dtype=float).reshape(-1, 2)
+            if isinstance(sonar, Sonar) and fresh(sonar) else None,
+        )
