@@ -31,6 +31,7 @@ from agent.tick_io import Share
 
 FLEET_PREFIX = "usv"
 CLOCK_KEY = "sim/clock"
+LIVELINESS = "alive"
 
 VesselId = Annotated[str, Field(pattern=r"^[A-Za-z0-9_-]{1,32}$")]
 Finite = Annotated[float, Field(allow_inf_nan=False)]
@@ -42,9 +43,9 @@ MAX_PEERS = 256
 
 # ----- keys -----
 def key(vessel: str, topic: str) -> str:
-    """`usv/<vessel>/<topic>`; topic is one of the names in TOPICS."""
-    if topic not in TOPICS:
-        raise ValueError(f"unknown topic {topic!r}; known: {', '.join(TOPICS)}")
+    """`usv/<vessel>/<topic>`; topic is one of the names in TOPICS, or "alive" (the liveliness token)."""
+    if topic not in TOPICS and topic != LIVELINESS:
+        raise ValueError(f"unknown topic {topic!r}; known: {', '.join([*TOPICS, LIVELINESS])}")
     return f"{FLEET_PREFIX}/{vessel}/{topic}"
 
 

@@ -1,0 +1,3 @@
+from agent.node import main
+
+raise SystemExit(main())

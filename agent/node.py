@@ -1,0 +1,216 @@
+"""The agent process of one vessel: a thin Zenoh shell around `VesselAgent`.
+
+One Zenoh session (peer mode, explicit endpoints, multicast scouting off unless configured). Subscriber
+callbacks only hand payloads to the `InputGate` (no Zenoh calls, no blocking). The tick runs on sim time
+(one tick per `sim/clock` message) or on a monotonic 10 Hz timer whose overruns are counted; each tick
+takes the gate's snapshot, calls the pure core, and publishes the command (express, real-time priority),
+the share and the status. Neighbours are discovered and forgotten through their liveliness tokens.
+SIGINT and SIGTERM stop it cleanly.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Literal
+
+from pydantic import Field
+
+from agent.contract import (
+    CLOCK_KEY, LIVELINESS, Clock, Cmd, Status, decode, encode, every, key, message_from_share, nanoseconds,
+    seconds, vessel_of,
+)
+from agent.inputs import OWN_TOPICS, InputGate
+from agent.params import AgentParams, ConfigError, PositiveFloat, StrictModel, load_yaml, parse_mapping
+from agent.vessel import VesselAgent
+
+
+class ZenohSettings(StrictModel):
+    mode: Literal["peer", "client"] = "peer"
+    connect: list[str] = Field(default_factory=list, description="endpoints to connect to, e.g. tcp/10.0.0.2:7447")
+    listen: list[str] = Field(default_factory=list, description="endpoints to listen on, e.g. tcp/0.0.0.0:7447")
+    multicast_scouting: bool = Field(False, description="off by default: explicit endpoints only")
+
+
+class NodeSettings(StrictModel):
+    """How one agent process runs; `agent` holds the algorithm's parameters (Table I by default)."""
+
+    clock: Literal["wall", "sim"] = Field("wall", description="monotonic 10 Hz timer, or sim/clock ticks")
+    zenoh: ZenohSettings = ZenohSettings()
+    max_input_age: PositiveFloat = Field(1.0, description="inputs older than this (s) are ignored")
+    agent: AgentParams = AgentParams()
+
+
+def zenoh_config(settings: ZenohSettings):
+    """A zenoh.Config from our settings; ZENOH_CONFIG (a json5 file) takes precedence when set."""
+    import zenoh
+
+    path = os.environ.get("ZENOH_CONFIG")
+    if path:
+        return zenoh.Config.from_file(path)
+    config = zenoh.Config()
+    config.insert_json5("mode", json.dumps(settings.mode))
+    config.insert_json5("scouting/multicast/enabled", json.dumps(settings.multicast_scouting))
+    if settings.connect:
+        config.insert_json5("connect/endpoints", json.dumps(settings.connect))
+    if settings.listen:
+        config.insert_json5("listen/endpoints", json.dumps(settings.listen))
+    return config
+
+
+class AgentNode:
+    def __init__(self, vessel_id: str, settings: NodeSettings, core: VesselAgent | None = None) -> None:
+        self.id = vessel_id
+        self.settings = settings
+        self.core = core or VesselAgent(vessel_id, settings.agent)
+        self.live_peers: set[str] = set()
+        self.gate = InputGate(vessel_id, max_age=settings.max_input_age, known_peers=lambda: set(self.live_peers))
+        self.ticks = 0
+        self.overruns = 0
+        self.stopping = threading.Event()
+        self._clock_lock = threading.Lock()
+        self._sim_time: float | None = None
+        self._sim_tick = threading.Event()
+        self._seq = {"cmd": 0, "share": 0, "status": 0}
+
+    # ----- clock -----
+    def now(self) -> float:
+        if self.settings.clock == "sim":
+            with self._clock_lock:
+                return self._sim_time if self._sim_time is not None else 0.0
+        return time.time()
+
+    # ----- callbacks: hand over and return -----
+    def _on_input(self, sample) -> None:
+        self.gate.offer(str(sample.key_expr), sample.payload.to_bytes(), self.now())
+
+    def _on_clock(self, sample) -> None:
+        message, _ = decode(Clock, sample.payload.to_bytes())
+        if message is None:
+            self.gate.rejected["malformed_clock"] += 1
+            return
+        with self._clock_lock:
+            if self._sim_time is not None and seconds(message.stamp_ns) <= self._sim_time:
+                return
+            self._sim_time = seconds(message.stamp_ns)
+        self._sim_tick.set()
+
+    def _on_liveliness(self, sample) -> None:
+        import zenoh
+
+        peer = vessel_of(str(sample.key_expr))
+        if peer is None or peer == self.id:
+            return
+        if sample.kind == zenoh.SampleKind.PUT:
+            self.live_peers.add(peer)
+        else:
+            self.live_peers.discard(peer)
+            self.gate.forget(peer)
+
+    # ----- the loop -----
+    def run(self, max_ticks: int | None = None) -> None:
+        import zenoh
+
+        with zenoh.open(zenoh_config(self.settings.zenoh)) as session:
+            subscribers = [session.declare_subscriber(key(self.id, t), self._on_input) for t in OWN_TOPICS]
+            subscribers.append(session.declare_subscriber(every("share"), self._on_input))
+            if self.settings.clock == "sim":
+                subscribers.append(session.declare_subscriber(CLOCK_KEY, self._on_clock))
+            token = session.liveliness().declare_token(key(self.id, LIVELINESS))
+            watcher = session.liveliness().declare_subscriber(every(LIVELINESS), self._on_liveliness, history=True)
+            publishers = {
+                "cmd": session.declare_publisher(key(self.id, "cmd"), express=True,
+                                                 priority=zenoh.Priority.REAL_TIME),
+                "share": session.declare_publisher(key(self.id, "share")),
+                "status": session.declare_publisher(key(self.id, "status")),
+            }
+            period = self.settings.agent.dt
+            deadline = time.monotonic()
+            while not self.stopping.is_set() and (max_ticks is None or self.ticks < max_ticks):
+                if self.settings.clock == "sim":
+                    if not self._sim_tick.wait(timeout=0.1):
+                        continue
+                    self._sim_tick.clear()
+                else:
+                    deadline += period
+                    delay = deadline - time.monotonic()
+                    if delay > 0:
+                        self.stopping.wait(delay)
+                    else:
+                        self.overruns += 1
+                        deadline = time.monotonic()  # do not try to catch up a backlog of ticks
+                self._tick(publishers)
+            token.undeclare()
+            watcher.undeclare()
+            for subscriber in subscribers:
+                subscriber.undeclare()
+
+    def _tick(self, publishers) -> None:
+        now = self.now()
+        output = self.core.tick(self.gate.snapshot(now))
+        stamp = nanoseconds(now)
+        command = Cmd(stamp_ns=stamp, seq=self._next("cmd"), sender=self.id, surge=output.command.surge,
+                      yaw_rate=output.command.yaw_rate)
+        publishers["cmd"].put(encode(command))
+        if output.share is not None:
+            publishers["share"].put(encode(message_from_share(output.share, self._next("share"))))
+        record = output.record
+        health = dict(record.health if record is not None else {})
+        health.update({f"rejected_{k}": v for k, v in self.gate.rejected.items()})
+        health["overruns"] = self.overruns
+        status = Status(
+            stamp_ns=stamp, seq=self._next("status"), sender=self.id,
+            phase=record.phase if record is not None else 0.0,
+            command=(output.command.surge, output.command.yaw_rate),
+            target=None if record is None or record.target_state is None
+            else tuple(float(v) for v in record.target_state),
+            health=health,
+        )
+        publishers["status"].put(encode(status))
+        self.ticks += 1
+
+    def _next(self, stream: str) -> int:
+        value = self._seq[stream]
+        self._seq[stream] += 1
+        return value
+
+
+def load_settings(path: str | Path | None) -> NodeSettings:
+    return load_yaml(NodeSettings, path) if path else parse_mapping(NodeSettings, {}, "<defaults>")
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="usv-agent", description="The onboard agent of one vessel.")
+    parser.add_argument("--vessel", required=True, help="this vessel's id (1-32 of A-Z a-z 0-9 _ -)")
+    parser.add_argument("--config", default=None, help="node settings YAML (NodeSettings); default: defaults")
+    parser.add_argument("--ticks", type=int, default=None, help="stop after this many ticks (tests)")
+    args = parser.parse_args(argv)
+    try:
+        settings = load_settings(args.config)
+        key(args.vessel, "cmd")
+        from agent.contract import Header
+
+        Header(stamp_ns=0, seq=0, sender=args.vessel)  # validates the id
+    except ConfigError as error:
+        print(f"usv-agent: {error}", file=sys.stderr)
+        return 2
+    except Exception as error:  # an invalid id
+        print(f"usv-agent: invalid --vessel {args.vessel!r}: {error}", file=sys.stderr)
+        return 2
+    node = AgentNode(args.vessel, settings)
+
+    def stop(signum, frame):  # noqa: ARG001
+        node.stopping.set()
+
+    signal.signal(signal.SIGINT, stop)
+    signal.signal(signal.SIGTERM, stop)
+    node.run(max_ticks=args.ticks)
+    print(f"usv-agent {args.vessel}: stopped after {node.ticks} ticks, {node.overruns} overruns, "
+          f"refused {dict(node.gate.rejected)}", file=sys.stderr)
+    return 0

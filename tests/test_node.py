@@ -1,0 +1,88 @@
+"""The agent process over Zenoh on loopback: it ticks on sim time, answers, refuses bad input, stops cleanly."""
+
+from __future__ import annotations
+
+import json
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+
+import numpy as np
+import pytest
+
+zenoh = pytest.importorskip("zenoh")
+
+from agent.contract import Bearing, Clock, Cmd, Odometry, Ranges, Status, decode, encode, key  # noqa: E402
+from agent.node import AgentNode, NodeSettings, ZenohSettings  # noqa: E402
+from agent.vessel import VesselAgent  # noqa: E402
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_node_ticks_on_sim_time_and_answers_each_tick():
+    port = free_port()
+    settings = NodeSettings(clock="sim", zenoh=ZenohSettings(listen=[f"tcp/127.0.0.1:{port}"]))
+    node = AgentNode("1", settings, VesselAgent("1", settings.agent, np.array([5.0, 0.0, 0.0, 0.0])))
+    thread = threading.Thread(target=node.run, kwargs={"max_ticks": 20}, daemon=True)
+    thread.start()
+
+    config = zenoh.Config()
+    config.insert_json5("mode", '"peer"')
+    config.insert_json5("scouting/multicast/enabled", "false")
+    config.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
+    commands, statuses = [], []
+    with zenoh.open(config) as session:
+        session.declare_subscriber(key("1", "cmd"), lambda s: commands.append(decode(Cmd, s.payload.to_bytes())[0]))
+        session.declare_subscriber(key("1", "status"),
+                                   lambda s: statuses.append(decode(Status, s.payload.to_bytes())[0]))
+        time.sleep(1.0)  # let the two sessions find each other
+        session.put(key("1", "sensor/odom"), b"this is not json")
+        for k in range(20):
+            stamp = int(k * 0.1 * 1e9)
+            session.put(key("1", "sensor/odom"), encode(Odometry(
+                stamp_ns=stamp, seq=k, sender="1", position=(0.05 * k, 0.0), heading=0.0)))
+            session.put(key("1", "sensor/uwb"), encode(Ranges(stamp_ns=stamp, seq=k, sender="1", ranges={})))
+            session.put(key("1", "sensor/bearing"), encode(Bearing(stamp_ns=stamp, seq=k, sender="1",
+                                                                   bearing=(1.0, 0.0))))
+            time.sleep(0.02)
+            session.put("sim/clock", encode(Clock(stamp_ns=stamp, seq=k)))
+            time.sleep(0.08)
+        thread.join(timeout=10)
+        time.sleep(0.3)
+    assert not thread.is_alive()
+    assert node.ticks == 20
+    assert len(commands) >= 15 and all(c is not None for c in commands)
+    assert all(np.isfinite(c.surge) and np.isfinite(c.yaw_rate) for c in commands)
+    assert [c.seq for c in commands] == sorted(c.seq for c in commands)
+    assert statuses[-1].health.get("rejected_malformed") == 1
+    assert node.gate.accepted["sensor/odom"] >= 15
+
+
+def test_agent_process_stops_cleanly_on_sigterm(tmp_path):
+    config = tmp_path / "node.yaml"
+    config.write_text(f"clock: wall\nzenoh:\n  listen: [tcp/127.0.0.1:{free_port()}]\n")
+    process = subprocess.Popen([sys.executable, "-m", "agent", "--vessel", "7", "--config", str(config)],
+                               stderr=subprocess.PIPE, text=True)
+    time.sleep(2.0)
+    assert process.poll() is None  # running, ticking on its wall timer
+    process.send_signal(signal.SIGTERM)
+    _, err = process.communicate(timeout=10)
+    assert process.returncode == 0, err
+    assert "usv-agent 7: stopped after" in err
+
+
+def test_a_bad_vessel_id_or_config_is_a_clear_error(tmp_path):
+    bad = subprocess.run([sys.executable, "-m", "agent", "--vessel", "no spaces"], capture_output=True, text=True)
+    assert bad.returncode == 2 and "invalid --vessel" in bad.stderr
+    config = tmp_path / "node.yaml"
+    config.write_text("clock: sundial\n")
+    bad = subprocess.run([sys.executable, "-m", "agent", "--vessel", "1", "--config", str(config)],
+                         capture_output=True, text=True)
+    assert bad.returncode == 2 and "field 'clock'" in bad.stderr and "node.yaml" in bad.stderr
