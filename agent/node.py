@@ -44,6 +44,7 @@ class NodeSettings(StrictModel):
     clock: Literal["wall", "sim"] = Field("wall", description="monotonic 10 Hz timer, or sim/clock ticks")
     zenoh: ZenohSettings = ZenohSettings()
     max_input_age: PositiveFloat = Field(1.0, description="inputs older than this (s) are ignored")
+    log: str | None = Field(None, description="MCAP file to write; '{vessel}' is replaced by the vessel id")
     agent: AgentParams = AgentParams()
 
 
@@ -78,6 +79,13 @@ class AgentNode:
         self._sim_time: float | None = None
         self._sim_tick = threading.Event()
         self._seq = {"cmd": 0, "share": 0, "status": 0}
+        self.log = None
+        self.log_errors = 0
+        if settings.log:
+            from agent.mcap_log import McapLog
+
+            self.log = McapLog(settings.log.replace("{vessel}", vessel_id),
+                               metadata={"vessel": vessel_id, "clock": settings.clock})
 
     # ----- clock -----
     def now(self) -> float:
@@ -150,10 +158,13 @@ class AgentNode:
             watcher.undeclare()
             for subscriber in subscribers:
                 subscriber.undeclare()
+        if self.log is not None:
+            self.log.close()
 
     def _tick(self, publishers) -> None:
         now = self.now()
-        output = self.core.tick(self.gate.snapshot(now))
+        inputs = self.gate.snapshot(now)
+        output = self.core.tick(inputs)
         stamp = nanoseconds(now)
         command = Cmd(stamp_ns=stamp, seq=self._next("cmd"), sender=self.id, surge=output.command.surge,
                       yaw_rate=output.command.yaw_rate)
@@ -164,6 +175,7 @@ class AgentNode:
         health = dict(record.health if record is not None else {})
         health.update({f"rejected_{k}": v for k, v in self.gate.rejected.items()})
         health["overruns"] = self.overruns
+        health["log_errors"] = self.log_errors
         status = Status(
             stamp_ns=stamp, seq=self._next("status"), sender=self.id,
             phase=record.phase if record is not None else 0.0,
@@ -173,7 +185,41 @@ class AgentNode:
             health=health,
         )
         publishers["status"].put(encode(status))
+        if self.log is not None:
+            try:
+                self._log_tick(stamp, inputs, command, output, status)
+            except Exception as error:  # a full disk or a bad value must not stop the vessel's control
+                self.log_errors += 1
+                if self.log_errors == 1:
+                    print(f"usv-agent {self.id}: logging failed: {type(error).__name__}: {error}", file=sys.stderr)
         self.ticks += 1
+
+    def _log_tick(self, stamp, inputs, command, output, status) -> None:
+        """What this tick received and decided; log time is the tick's (sim or wall) time."""
+        received = {
+            "odometry": None if inputs.odometry is None else {
+                "stamp": inputs.odometry.stamp, "position": [float(v) for v in inputs.odometry.position],
+                "heading": inputs.odometry.heading},
+            "ranges": dict(inputs.ranges),
+            "bearing": None if inputs.bearing is None else [float(v) for v in inputs.bearing],
+            "shares_from": sorted(inputs.shares),
+            "obstacle_points": 0 if inputs.obstacle_points is None else len(inputs.obstacle_points),
+        }
+        self.log.log(f"/{self.id}/inputs", received, stamp)
+        self.log.log(key(self.id, "cmd"), command, stamp)
+        self.log.log(key(self.id, "status"), status, stamp)
+        record = output.record
+        if record is not None:
+            self.log.log(f"/{self.id}/estimates", {
+                "neighbours": {j: {"position": [float(v) for v in n.position],
+                                   "covariance": [float(v) for v in n.covariance.ravel()],
+                                   "iterations": n.iterations, "updates": n.updates}
+                               for j, n in record.neighbours.items()},
+                "target_state": None if record.target_state is None else [float(v) for v in record.target_state],
+                "target_covariance": None if record.target_covariance is None
+                else [float(v) for v in record.target_covariance.ravel()],
+                "saturated": {name: bool(flag) for name, flag in record.saturated.items()},
+            }, stamp)
 
     def _next(self, stream: str) -> int:
         value = self._seq[stream]

@@ -16,6 +16,7 @@ import pytest
 zenoh = pytest.importorskip("zenoh")
 
 from agent.contract import Bearing, Clock, Cmd, Odometry, Ranges, Status, decode, encode, key  # noqa: E402
+from agent.mcap_log import read_messages  # noqa: E402
 from agent.node import AgentNode, NodeSettings, ZenohSettings  # noqa: E402
 from agent.vessel import VesselAgent  # noqa: E402
 
@@ -26,9 +27,10 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def test_node_ticks_on_sim_time_and_answers_each_tick():
+def test_node_ticks_on_sim_time_and_answers_each_tick(tmp_path):
     port = free_port()
-    settings = NodeSettings(clock="sim", zenoh=ZenohSettings(listen=[f"tcp/127.0.0.1:{port}"]))
+    settings = NodeSettings(clock="sim", zenoh=ZenohSettings(listen=[f"tcp/127.0.0.1:{port}"]),
+                            log=str(tmp_path / "agent-{vessel}.mcap"))
     node = AgentNode("1", settings, VesselAgent("1", settings.agent, np.array([5.0, 0.0, 0.0, 0.0])))
     thread = threading.Thread(target=node.run, kwargs={"max_ticks": 20}, daemon=True)
     thread.start()
@@ -63,6 +65,10 @@ def test_node_ticks_on_sim_time_and_answers_each_tick():
     assert [c.seq for c in commands] == sorted(c.seq for c in commands)
     assert statuses[-1].health.get("rejected_malformed") == 1
     assert node.gate.accepted["sensor/odom"] >= 15
+    logged = list(read_messages(tmp_path / "agent-1.mcap"))   # finished cleanly: no warning
+    topics = [topic for topic, _, _ in logged]
+    assert topics.count("usv/1/cmd") == 20 and topics.count("/1/estimates") == 20
+    assert [t for topic, t, _ in logged if topic == "usv/1/cmd"] == [int(k * 0.1 * 1e9) for k in range(20)]
 
 
 def test_agent_process_stops_cleanly_on_sigterm(tmp_path):
@@ -86,3 +92,26 @@ def test_a_bad_vessel_id_or_config_is_a_clear_error(tmp_path):
     bad = subprocess.run([sys.executable, "-m", "agent", "--vessel", "1", "--config", str(config)],
                          capture_output=True, text=True)
     assert bad.returncode == 2 and "field 'clock'" in bad.stderr and "node.yaml" in bad.stderr
+
+
+def test_a_failing_log_does_not_stop_the_ticks(tmp_path):
+    settings = NodeSettings(clock="sim", log=str(tmp_path / "x.mcap"))
+    node = AgentNode("1", settings, VesselAgent("1", settings.agent, np.array([5.0, 0.0, 0.0, 0.0])))
+
+    class Sink:
+        def __init__(self):
+            self.payloads = []
+
+        def put(self, payload):
+            self.payloads.append(payload)
+
+    def broken(*args, **kwargs):
+        raise OSError("disk full")
+
+    node.log.log = broken
+    publishers = {"cmd": Sink(), "share": Sink(), "status": Sink()}
+    for _ in range(3):
+        node._tick(publishers)
+    assert node.ticks == 3 and node.log_errors == 3 and len(publishers["cmd"].payloads) == 3
+    status = decode(Status, publishers["status"].payloads[-1])[0]
+    assert status.health["log_errors"] == 2  # counted before this tick's own attempt

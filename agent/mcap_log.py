@@ -1,0 +1,102 @@
+"""MCAP logs: what a process received, published and decided, as JSON with JSON schemas.
+
+Each topic gets a channel whose schema is the JSON schema of the pydantic model logged on it (or one given),
+so a file opens in Foxglove and every field can be plotted. The chunk in progress is written out at least
+every `flush_seconds` of wall time: a process killed hard loses at most about that much, and
+`read_messages` reads an unfinished file up to its last complete chunk.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+import warnings
+from collections.abc import Iterator
+from pathlib import Path
+
+from pydantic import BaseModel
+
+PROFILE = ""  # plain JSON messages, no ROS profile
+
+
+class McapLog:
+    def __init__(self, path: str | Path, flush_seconds: float = 1.0, metadata: dict[str, str] | None = None):
+        from mcap.writer import CompressionType, Writer
+
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._file = self.path.open("wb")
+        self._writer = Writer(self._file, compression=CompressionType.ZSTD)
+        self._writer.start(profile=PROFILE, library="usv-circumnav")
+        if metadata:
+            self._writer.add_metadata("run", {k: str(v) for k, v in metadata.items()})
+        self._channels: dict[str, int] = {}
+        self._sequence: dict[str, int] = {}
+        self._flush_seconds = flush_seconds
+        self._last_flush = time.monotonic()
+        self._closed = False
+
+    def channel(self, topic: str, schema_name: str, schema: dict) -> int:
+        """The channel of `topic`, registering it with `schema` the first time."""
+        if topic not in self._channels:
+            schema_id = self._writer.register_schema(name=schema_name, encoding="jsonschema",
+                                                     data=json.dumps(schema).encode())
+            self._channels[topic] = self._writer.register_channel(topic=topic, message_encoding="json",
+                                                                  schema_id=schema_id)
+            self._sequence[topic] = 0
+        return self._channels[topic]
+
+    def log(self, topic: str, message: BaseModel | dict, log_time_ns: int, publish_time_ns: int | None = None,
+            schema_name: str | None = None, schema: dict | None = None) -> None:
+        """Append one message; a pydantic message brings its own schema, a dict needs `schema`."""
+        if self._closed:
+            return
+        if isinstance(message, BaseModel):
+            data = message.model_dump_json().encode()
+            name, body = schema_name or type(message).__name__, schema or type(message).model_json_schema()
+        else:
+            data = json.dumps(message).encode()
+            name, body = schema_name or topic, schema or {"type": "object"}
+        channel = self.channel(topic, name, body)
+        self._writer.add_message(channel_id=channel, log_time=log_time_ns,
+                                 publish_time=publish_time_ns if publish_time_ns is not None else log_time_ns,
+                                 data=data, sequence=self._sequence[topic])
+        self._sequence[topic] += 1
+        now = time.monotonic()
+        if now - self._last_flush >= self._flush_seconds:
+            self._writer.flush()
+            self._last_flush = now
+
+    def close(self) -> None:
+        """Write the summary and footer; safe to call twice."""
+        if self._closed:
+            return
+        self._closed = True
+        self._writer.finish()
+        self._file.close()
+
+    def __enter__(self) -> McapLog:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def read_messages(path: str | Path) -> Iterator[tuple[str, int, dict]]:
+    """(topic, log_time_ns, decoded JSON) of every message, in file order. A file cut short (a process killed
+    hard) is read up to its last complete record, with a warning."""
+    from mcap.exceptions import McapError
+    from mcap.stream_reader import Channel, Message, StreamReader
+
+    channels: dict[int, str] = {}
+    with Path(path).open("rb") as handle:
+        reader = StreamReader(handle, skip_magic=False)
+        try:
+            for record in reader.records:
+                if isinstance(record, Channel):
+                    channels[record.id] = record.topic
+                elif isinstance(record, Message):
+                    yield channels.get(record.channel_id, "?"), record.log_time, json.loads(record.data)
+        except (McapError, EOFError, ValueError) as error:
+            warnings.warn(f"{path}: unfinished MCAP, read up to the last complete record ({error})",
+                          stacklevel=2)
