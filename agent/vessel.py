@@ -9,6 +9,7 @@ they get the same numbers.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -189,7 +190,7 @@ class VesselAgent:
 
     def _receive_shares(self, inputs: TickInputs, now: float) -> None:
         for sender, share in inputs.shares.items():
-            if sender == self.id or not _valid_share(share):
+            if sender == self.id or not _valid_share(share, self.id):
                 self.health.bad_shares += 1
                 continue
             track = self.tracks.get(sender)
@@ -413,7 +414,7 @@ def _finite_matrix(value) -> bool:
     return array.shape == (2, 2) and bool(np.all(np.isfinite(array)))
 
 
-def _valid_share(share: object) -> bool:
+def _valid_share(share: object, receiver: str) -> bool:
     if not isinstance(share, Share):
         return False
     odometry = share.odometry
@@ -424,5 +425,16 @@ def _valid_share(share: object) -> bool:
                                           and share.target_covariance is not None
                                           and np.shape(share.target_covariance) == (4, 4)
                                           and np.all(np.isfinite(share.target_covariance))))
-            and all(isinstance(k, str) and _finite_vector(v[0], 2) and _finite_matrix(v[1])
-                    for k, v in share.neighbours.items()))
+            and isinstance(share.neighbours, Mapping) and _valid_pair_entry(share.neighbours.get(receiver)))
+
+
+def _valid_pair_entry(entry) -> bool:
+    """The only entry of a share's `neighbours` a receiver uses is its own: check that one (O(1) per share,
+    where checking them all would cost O(n^2) per tick in a large fleet)."""
+    if entry is None:
+        return True
+    try:
+        position, covariance = entry
+    except (TypeError, ValueError):
+        return False
+    return _finite_vector(position, 2) and _finite_matrix(covariance)
