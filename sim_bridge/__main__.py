@@ -1,0 +1,3 @@
+from sim_bridge.bridge import main
+
+raise SystemExit(main())
