@@ -38,6 +38,16 @@ class ZenohSettings(StrictModel):
     multicast_scouting: bool = Field(False, description="off by default: explicit endpoints only")
 
 
+class InitialEstimates(StrictModel):
+    """Where the agent starts (a mission's deployment knowledge; the paper's p^_ij,0 and x^_io,0)."""
+
+    target: tuple[float, float, float, float] | None = Field(None, description="x^_io,0 = [p_io; v_io]")
+    target_variance: PositiveFloat = Field(1.0, description="P_io,0 = value * I")
+    neighbours: dict[str, tuple[float, float]] = Field(default_factory=dict, description="p^_ij,0 by id")
+    neighbour_variance: PositiveFloat = Field(0.04, description="P_ij,0 = value * I")
+    stamp: float = Field(0.0, description="time (s) the estimates refer to")
+
+
 class NodeSettings(StrictModel):
     """How one agent process runs; `agent` holds the algorithm's parameters (Table I by default)."""
 
@@ -45,6 +55,7 @@ class NodeSettings(StrictModel):
     zenoh: ZenohSettings = ZenohSettings()
     max_input_age: PositiveFloat = Field(1.0, description="inputs older than this (s) are ignored")
     log: str | None = Field(None, description="MCAP file to write; '{vessel}' is replaced by the vessel id")
+    initial: InitialEstimates = InitialEstimates()
     agent: AgentParams = AgentParams()
 
 
@@ -69,7 +80,7 @@ class AgentNode:
     def __init__(self, vessel_id: str, settings: NodeSettings, core: VesselAgent | None = None) -> None:
         self.id = vessel_id
         self.settings = settings
-        self.core = core or VesselAgent(vessel_id, settings.agent)
+        self.core = core or self._core_from(settings)
         self.live_peers: set[str] = set()
         self.gate = InputGate(vessel_id, max_age=settings.max_input_age, known_peers=lambda: set(self.live_peers))
         self.ticks = 0
@@ -86,6 +97,17 @@ class AgentNode:
 
             self.log = McapLog(settings.log.replace("{vessel}", vessel_id),
                                metadata={"vessel": vessel_id, "clock": settings.clock})
+
+    def _core_from(self, settings: NodeSettings) -> VesselAgent:
+        import numpy as np
+
+        from agent.neighbours import NeighbourPrior
+
+        start = settings.initial
+        priors = {j: NeighbourPrior(np.array(p), start.neighbour_variance * np.eye(2), start.stamp)
+                  for j, p in start.neighbours.items()}
+        target = None if start.target is None else np.array(start.target)
+        return VesselAgent(self.id, settings.agent, target, start.target_variance * np.eye(4), priors=priors)
 
     # ----- clock -----
     def now(self) -> float:

@@ -44,12 +44,12 @@ class RunTrace:
     metrics: RunMetrics | None = None
 
 
-def initial_agents(scenario: Scenario, world: World, rng: np.random.Generator, params, vessels) -> dict:
-    """Agents for `vessels`, with first estimates drawn around the truth as in Sec. VI."""
-    truth = world.truth()
-    agents = {}
+def initial_estimates(scenario: Scenario, truth: Truth, present: list[str], rng: np.random.Generator,
+                      vessels: list[str]) -> dict[str, tuple[np.ndarray, dict[str, NeighbourPrior]]]:
+    """First estimates drawn around the truth as in Sec. VI: x^_io,0 ~ N(x_io,0, P_io,0) for each of
+    `vessels`, and p^_ij,0 ~ N(p_ij,0, P_ij,0) for the vessels there from the start."""
     p_ij, p_io = scenario.initial.neighbour_covariance, scenario.initial.target_covariance
-    present = world.live()
+    estimates = {}
     for i in vessels:
         x_io = np.concatenate([truth.positions[i] - truth.target_position,
                                truth.velocities[i] - truth.target_velocity])
@@ -61,8 +61,16 @@ def initial_agents(scenario: Scenario, world: World, rng: np.random.Generator, p
                     true = truth.positions[i] - truth.positions[j]
                     priors[j] = NeighbourPrior(true + rng.normal(0.0, math.sqrt(p_ij), 2), p_ij * np.eye(2),
                                                truth.time)
-        agents[i] = VesselAgent(i, params, target, p_io * np.eye(4), priors=priors)
-    return agents
+        estimates[i] = (target, priors)
+    return estimates
+
+
+def initial_agents(scenario: Scenario, world: World, rng: np.random.Generator, params, vessels) -> dict:
+    """Agents for `vessels`, started from `initial_estimates`."""
+    estimates = initial_estimates(scenario, world.truth(), world.live(), rng, vessels)
+    p_io = scenario.initial.target_covariance
+    return {i: VesselAgent(i, params, target, p_io * np.eye(4), priors=priors)
+            for i, (target, priors) in estimates.items()}
 
 
 def run(scenario: Scenario, seed: np.random.SeedSequence | int | None = None) -> RunTrace:

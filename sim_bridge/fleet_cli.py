@@ -1,0 +1,3 @@
+from sim_bridge.fleet import main
+
+raise SystemExit(main())
