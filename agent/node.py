@@ -20,11 +20,11 @@ import time
 from pathlib import Path
 from typing import Literal
 
-from pydantic import Field
+from pydantic import Field, TypeAdapter, ValidationError
 
 from agent.contract import (
-    CLOCK_KEY, LIVELINESS, Clock, Cmd, Status, decode, encode, every, key, message_from_share, nanoseconds,
-    seconds, vessel_of,
+    CLOCK_KEY, LIVELINESS, Clock, Cmd, Status, VesselId, decode, encode, every, key, message_from_share,
+    nanoseconds, seconds, vessel_of,
 )
 from agent.inputs import OWN_TOPICS, InputGate
 from agent.params import AgentParams, ConfigError, PositiveFloat, StrictModel, load_yaml, parse_mapping
@@ -260,16 +260,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--ticks", type=int, default=None, help="stop after this many ticks (tests)")
     args = parser.parse_args(argv)
     try:
+        TypeAdapter(VesselId).validate_python(args.vessel)
+    except ValidationError as error:
+        print(f"usv-agent: invalid --vessel {args.vessel!r}: {error.errors()[0]['msg']}", file=sys.stderr)
+        return 2
+    try:
         settings = load_settings(args.config)
-        key(args.vessel, "cmd")
-        from agent.contract import Header
-
-        Header(stamp_ns=0, seq=0, sender=args.vessel)  # validates the id
     except ConfigError as error:
         print(f"usv-agent: {error}", file=sys.stderr)
-        return 2
-    except Exception as error:  # an invalid id
-        print(f"usv-agent: invalid --vessel {args.vessel!r}: {error}", file=sys.stderr)
         return 2
     node = AgentNode(args.vessel, settings)
 

@@ -27,7 +27,7 @@ from agent.contract import (
 from agent.node import ZenohSettings, zenoh_config
 from agent.params import ConfigError, PositiveFloat, StrictModel, load_yaml
 from agent.tick_io import STOP, Command
-from sim_bridge.scenario import Scenario, load_scenarios
+from sim_bridge.scenario import Scenario, select_scenario
 from sim_bridge.world import World
 
 
@@ -199,10 +199,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=None, help="override the scenario's seed")
     args = parser.parse_args(argv)
     try:
-        _, variants = load_scenarios(args.scenario)
-        if args.variant is not None and args.variant not in variants:
-            raise ConfigError(f"{args.scenario}: no variant {args.variant!r}; it has {', '.join(variants)}")
-        scenario = variants[args.variant or next(iter(variants))]
+        _, scenario = select_scenario(args.scenario, args.variant)
         settings = load_yaml(BridgeSettings, args.config) if args.config else BridgeSettings()
     except ConfigError as error:
         print(f"usv-sim: {error}", file=sys.stderr)

@@ -25,7 +25,7 @@ import yaml
 from agent.mcap_log import read_messages
 from agent.params import ConfigError
 from sim_bridge.metrics import summarise
-from sim_bridge.scenario import load_scenarios
+from sim_bridge.scenario import select_scenario
 
 
 def free_port() -> int:
@@ -37,11 +37,7 @@ def free_port() -> int:
 def launch(scenario_path: Path, variant: str | None, out: Path, seed: int | None,
            timeout: float = 600.0) -> Path:
     """Run the fleet; returns the run folder."""
-    _, variants = load_scenarios(scenario_path)
-    if variant is not None and variant not in variants:
-        raise ConfigError(f"{scenario_path}: no variant {variant!r}; it has {', '.join(variants)}")
-    name = variant or next(iter(variants))
-    scenario = variants[name]
+    name, scenario = select_scenario(scenario_path, variant)
     folder = out / f"{scenario_path.stem}-{name}-{datetime.now(timezone.utc):%Y%m%dT%H%M%S}"
     folder.mkdir(parents=True, exist_ok=False)
     bridge_port = free_port()

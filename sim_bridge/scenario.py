@@ -12,7 +12,9 @@ from typing import Literal
 
 from pydantic import Field, model_validator
 
-from agent.params import AgentParams, NonNegativeFloat, PositiveFloat, StrictModel, parse_mapping, read_yaml
+from agent.params import (
+    AgentParams, ConfigError, NonNegativeFloat, PositiveFloat, StrictModel, parse_mapping, read_yaml,
+)
 from sim_bridge.world import WorldConfig
 
 
@@ -95,3 +97,12 @@ def load_scenarios(path: str | Path) -> tuple[ScenarioFile, dict[str, Scenario]]
         where = f"{path} (variant '{name}')" if spec.variants else str(path)
         scenarios[name] = parse_mapping(Scenario, merged, where)
     return spec, scenarios
+
+
+def select_scenario(path: str | Path, variant: str | None = None) -> tuple[str, Scenario]:
+    """(name, scenario) of one variant of a file, the first when `variant` is None; a clear error otherwise."""
+    _, variants = load_scenarios(path)
+    if variant is not None and variant not in variants:
+        raise ConfigError(f"{path}: no variant {variant!r}; it has {', '.join(variants)}")
+    name = variant or next(iter(variants))
+    return name, variants[name]

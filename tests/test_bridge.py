@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import socket
 import threading
 
 import numpy as np
@@ -12,14 +11,10 @@ pytest.importorskip("zenoh")
 
 from agent.mcap_log import read_messages  # noqa: E402
 from agent.node import AgentNode, NodeSettings, ZenohSettings  # noqa: E402
+from sim_bridge.fleet import free_port  # noqa: E402
 from sim_bridge.bridge import BridgeSettings, SimBridge  # noqa: E402
 from sim_bridge.scenario import Scenario  # noqa: E402
 
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def two_vessel_scenario(duration: float = 4.0) -> Scenario:

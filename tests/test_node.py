@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -18,13 +17,9 @@ zenoh = pytest.importorskip("zenoh")
 from agent.contract import Bearing, Clock, Cmd, Odometry, Ranges, Status, decode, encode, key  # noqa: E402
 from agent.mcap_log import read_messages  # noqa: E402
 from agent.node import AgentNode, NodeSettings, ZenohSettings  # noqa: E402
+from sim_bridge.fleet import free_port  # noqa: E402
 from agent.vessel import VesselAgent  # noqa: E402
 
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def test_node_ticks_on_sim_time_and_answers_each_tick(tmp_path):
