@@ -142,15 +142,39 @@ class ShareMessage(Header):
 class Status(Header):
     phase: Finite
     command: tuple[Finite, Finite]
+    shared: bool = Field(False, description="this tick published a share (the sim bridge's radio needs to know)")
+    peers: list[VesselId] = Field(default_factory=list, max_length=MAX_PEERS,
+                                  description="the agents this one sees alive (liveliness)")
     target: tuple[Finite, Finite, Finite, Finite] | None = None
     neighbours: dict[VesselId, PairEstimate] = Field(default_factory=dict)
     health: dict[str, int] = Field(default_factory=dict)
 
 
 class Clock(StrictModel):
+    """One sim tick. It also carries the simulated radio's verdict on the shares of the tick before: which
+    of them each agent gets now. That makes the fleet over Zenoh deliver exactly the shares the in-process
+    runner delivers (packet loss included), whatever order the network brings them in."""
+
     stamp_ns: int = Field(ge=0, description="sim time of this tick")
     seq: int = Field(ge=0, description="tick number")
     sender: VesselId = "sim"
+    previous_ns: int | None = Field(None, ge=0, description="the tick before, whose shares are delivered now")
+    vessels: list[VesselId] | None = Field(None, max_length=MAX_PEERS,
+                                           description="vessels in the world now (their sensors were published)")
+    senders: list[VesselId] | None = Field(
+        None, max_length=MAX_PEERS,
+        description="vessels whose share of the previous tick is delivered now; null: every share that came")
+    lost: list[tuple[VesselId, VesselId]] = Field(
+        default_factory=list, max_length=MAX_PEERS * MAX_PEERS,
+        description="[sender, receiver]: shares of the previous tick the simulated radio loses")
+    lockstep: bool = Field(False, description="receivers wait (bounded) for the delivered shares before ticking")
+
+    def delivered_to(self, receiver: str) -> set[str] | None:
+        """Senders whose share of the previous tick `receiver` gets now; None: whatever has come."""
+        if self.senders is None:
+            return None
+        lost = {sender for sender, to in self.lost if to == receiver}
+        return {j for j in self.senders if j != receiver and j not in lost}
 
 
 TOPICS: dict[str, type[StrictModel]] = {

@@ -8,11 +8,15 @@ What is refused: undecodable or invalid payloads (wrong types, NaN, inf, negativ
 bearings, ...), a sender that is not the vessel of the key, a `seq` not newer than the last accepted one
 from that sender on that key (duplicates and reordered messages), stamps further than `max_age` in the
 past or `max_future` ahead of the agent's clock, and ranges to peers the agent does not know.
+
+On sim time the gate holds each share until the sim clock says whether the simulated radio delivers it
+(`deliver_shares`), so a fleet over Zenoh uses exactly the shares the in-process runner uses.
 """
 
 from __future__ import annotations
 
 import threading
+import time
 from collections import Counter, deque
 from collections.abc import Callable
 
@@ -29,8 +33,10 @@ OWN_TOPICS = ("sensor/odom", "sensor/uwb", "sensor/bearing", "sensor/sonar")
 
 class InputGate:
     def __init__(self, vessel_id: str, max_age: float = 1.0, max_future: float = 0.5,
-                 known_peers: Callable[[], set[str]] | None = None, keep_reasons: int = 20) -> None:
+                 known_peers: Callable[[], set[str]] | None = None, keep_reasons: int = 20,
+                 hold_shares: bool = False) -> None:
         self.id = vessel_id
+        self.hold_shares = hold_shares
         self.max_age = max_age
         self.max_future = max_future
         self.known_peers = known_peers
@@ -38,6 +44,9 @@ class InputGate:
         self.accepted: Counter[str] = Counter()
         self.recent_reasons: deque[str] = deque(maxlen=keep_reasons)
         self._lock = threading.Lock()
+        self._arrival = threading.Condition(self._lock)
+        self._held: dict[tuple[str, int], Share] = {}   # (sender, stamp_ns) -> share awaiting the clock
+        self._delivered_through: int | None = None
         self._latest: dict[str, object] = {}
         self._shares: dict[str, Share] = {}
         self._last_seq: dict[tuple[str, str], int] = {}
@@ -55,7 +64,9 @@ class InputGate:
         vessel = vessel_of(key)
         topic = key.split("/", 2)[2] if vessel is not None else ""
         model = TOPICS.get(topic)
-        if model is None or (topic in OWN_TOPICS and vessel != self.id) or (topic == "share" and vessel == self.id):
+        if topic == "share" and vessel == self.id:
+            return False  # our own share, echoed by a subscription to every vessel's
+        if model is None or topic in OWN_TOPICS and vessel != self.id:
             return self._refuse("unexpected_key", key)
         message, reason = decode(model, payload)
         if message is None:
@@ -75,26 +86,32 @@ class InputGate:
                 return self._refuse("duplicate_or_reordered", f"{key}: seq {message.seq} after {last}",
                                     locked=True)
             self._last_seq[(key, message.sender)] = message.seq
-            if isinstance(message, Ranges):
-                message = self._known_ranges(message)
-            if isinstance(message, ShareMessage):
+            if isinstance(message, ShareMessage) and self.hold_shares:
+                if self._delivered_through is not None and message.stamp_ns <= self._delivered_through:
+                    return self._refuse("late_share", f"{key}: stamp {message.stamp_ns} already delivered",
+                                        locked=True)
+                self._held[(message.sender, message.stamp_ns)] = share_from_message(message)
+                self._arrival.notify_all()
+            elif isinstance(message, ShareMessage):
                 self._shares[message.sender] = share_from_message(message)
             else:
                 self._latest[topic] = message
+                self._arrival.notify_all()
             self.accepted[topic] += 1
         return True
 
-    def _known_ranges(self, message: Ranges) -> Ranges:
+    def _known_ranges(self, ranges: dict[str, float], shares: dict[str, Share]) -> dict[str, float]:
+        """Ranges to peers alive (liveliness) or heard from (a share); a UWB module may still range to a
+        vessel whose agent is gone, and such a range has no odometry to pair with."""
         if self.known_peers is None:
-            return message
-        known = self.known_peers()
-        unknown = [peer for peer in message.ranges if peer not in known]
+            return dict(ranges)
+        known = self.known_peers() | set(shares)
+        unknown = [peer for peer in ranges if peer not in known]
         if unknown:
-            self.rejected["unknown_peer"] += len(unknown)
-            self.recent_reasons.append(f"ranges to unknown peers {sorted(unknown)[:5]}")
-            message = message.model_copy(update={"ranges": {p: r for p, r in message.ranges.items()
-                                                            if p in known}})
-        return message
+            with self._lock:
+                self.rejected["unknown_peer"] += len(unknown)
+                self.recent_reasons.append(f"ranges to unknown peers {sorted(unknown)[:5]}")
+        return {p: r for p, r in ranges.items() if p in known}
 
     def _refuse(self, reason: str, detail: str, locked: bool = False) -> bool:
         if locked:
@@ -114,6 +131,41 @@ class InputGate:
             for seq_key in [k for k in self._last_seq if k[1] == vessel]:
                 del self._last_seq[seq_key]
 
+    def deliver_shares(self, stamp_ns: int | None, senders: set[str] | None, wait: float = 0.0,
+                       sensors_ns: int | None = None) -> set[str]:
+        """Make the held shares stamped `stamp_ns` from `senders` (None: from anyone) this agent's latest, and
+        drop every other held share that old. With `wait` > 0, first wait up to that many seconds for all of
+        `senders`, and for this vessel's sensors stamped `sensors_ns`, to arrive (lockstep: the network may
+        bring a tick's messages in any order). Returns the senders still missing."""
+        deadline = time.monotonic() + wait
+        with self._arrival:
+            def missing_now() -> set[str]:
+                if stamp_ns is None or senders is None:
+                    return set()
+                return {j for j in senders if (j, stamp_ns) not in self._held}
+
+            def sensors_in() -> bool:
+                return sensors_ns is None or all(
+                    topic in self._latest and self._latest[topic].stamp_ns >= sensors_ns for topic in OWN_TOPICS)
+
+            missing = missing_now()
+            while (missing or not sensors_in()) and (remaining := deadline - time.monotonic()) > 0:
+                self._arrival.wait(remaining)
+                missing = missing_now()
+            if wait > 0 and not sensors_in():
+                self.rejected["sensors_missing"] += 1
+            if stamp_ns is None:
+                return missing
+            for (sender, stamp), share in list(self._held.items()):
+                if stamp == stamp_ns and (senders is None or sender in senders):
+                    self._shares[sender] = share
+                if stamp <= stamp_ns:
+                    del self._held[(sender, stamp)]
+            self._delivered_through = max(stamp_ns, self._delivered_through or 0)
+            if missing:
+                self.rejected["shares_missing"] += len(missing)
+        return missing
+
     def snapshot(self, now: float) -> TickInputs:
         """This tick's inputs: the freshest odometry and sonar, ranges and bearing not used before, and the
         latest shares."""
@@ -130,14 +182,15 @@ class InputGate:
         odometry = latest.get("sensor/odom")
         fresh = lambda message: message is not None and now - seconds(message.stamp_ns) <= self.max_age  # noqa: E731
         reading = odometry_reading(odometry) if isinstance(odometry, Odometry) and fresh(odometry) else None
-        time = reading.stamp if reading is not None else now
+        tick_time = reading.stamp if reading is not None else now
         ranges = latest.get("sensor/uwb")
+        ranges = self._known_ranges(ranges.ranges, shares) if isinstance(ranges, Ranges) and fresh(ranges) else {}
         bearing = latest.get("sensor/bearing")
         sonar = latest.get("sensor/sonar")
         return TickInputs(
-            time=time,
+            time=tick_time,
             odometry=reading,
-            ranges=dict(ranges.ranges) if isinstance(ranges, Ranges) and fresh(ranges) else {},
+            ranges=ranges,
             shares=shares,
             bearing=np.array(bearing.bearing) if isinstance(bearing, Bearing) and fresh(bearing)
             and bearing.bearing is not None else None,

@@ -68,6 +68,7 @@ class NeighbourTrack:
         self.last_range: float | None = None
         self.share: Share | None = None    # latest share received
         self.last_heard = -math.inf
+        self.first_heard = math.inf
         self.updates = 0
         self.rejected = 0
         self.last_iterations = 0
@@ -78,6 +79,7 @@ class NeighbourTrack:
         if self.share is None or share.odometry.stamp >= self.share.odometry.stamp:
             self.share = share
         self.last_heard = max(self.last_heard, share.odometry.stamp)
+        self.first_heard = min(self.first_heard, share.odometry.stamp)
 
     def start(self, prior: NeighbourPrior, own: History) -> bool:
         """Start the filter from `prior` once both odometries are known at or after its stamp.

@@ -3,8 +3,9 @@
 One Zenoh session (peer mode, explicit endpoints, multicast scouting off unless configured). Subscriber
 callbacks only hand payloads to the `InputGate` (no Zenoh calls, no blocking). The tick runs on sim time
 (one tick per `sim/clock` message) or on a monotonic 10 Hz timer whose overruns are counted; each tick
-takes the gate's snapshot, calls the pure core, and publishes the command (express, real-time priority),
-the share and the status. Neighbours are discovered and forgotten through their liveliness tokens.
+takes the gate's snapshot, calls the pure core, and publishes the share, the command (express, real-time
+priority) and the status. On sim time the clock message also says which neighbours' shares of the tick
+before the simulated radio delivers; in lockstep the tick waits (bounded) for those to arrive. Neighbours are discovered and forgotten through their liveliness tokens.
 SIGINT and SIGTERM stop it cleanly.
 """
 
@@ -54,6 +55,7 @@ class NodeSettings(StrictModel):
     clock: Literal["wall", "sim"] = Field("wall", description="monotonic 10 Hz timer, or sim/clock ticks")
     zenoh: ZenohSettings = ZenohSettings()
     max_input_age: PositiveFloat = Field(1.0, description="inputs older than this (s) are ignored")
+    share_wait: PositiveFloat = Field(2.0, description="sim lockstep: wall seconds to wait for neighbours' shares")
     log: str | None = Field(None, description="MCAP file to write; '{vessel}' is replaced by the vessel id")
     initial: InitialEstimates = InitialEstimates()
     agent: AgentParams = AgentParams()
@@ -82,12 +84,14 @@ class AgentNode:
         self.settings = settings
         self.core = core or self._core_from(settings)
         self.live_peers: set[str] = set()
-        self.gate = InputGate(vessel_id, max_age=settings.max_input_age, known_peers=lambda: set(self.live_peers))
+        self.gate = InputGate(vessel_id, max_age=settings.max_input_age, known_peers=lambda: set(self.live_peers),
+                              hold_shares=settings.clock == "sim")
         self.ticks = 0
         self.overruns = 0
         self.stopping = threading.Event()
         self._clock_lock = threading.Lock()
         self._sim_time: float | None = None
+        self._clock: Clock | None = None
         self._sim_tick = threading.Event()
         self._seq = {"cmd": 0, "share": 0, "status": 0}
         self.log = None
@@ -129,6 +133,7 @@ class AgentNode:
             if self._sim_time is not None and seconds(message.stamp_ns) <= self._sim_time:
                 return
             self._sim_time = seconds(message.stamp_ns)
+            self._clock = message
         self._sim_tick.set()
 
     def _on_liveliness(self, sample) -> None:
@@ -165,6 +170,8 @@ class AgentNode:
             while not self.stopping.is_set() and (max_ticks is None or self.ticks < max_ticks):
                 if self.settings.clock == "sim":
                     if not self._sim_tick.wait(timeout=0.1):
+                        if self.ticks == 0:
+                            self._heartbeat(publishers)
                         continue
                     self._sim_tick.clear()
                 else:
@@ -183,16 +190,38 @@ class AgentNode:
         if self.log is not None:
             self.log.close()
 
+    def _heartbeat(self, publishers) -> None:
+        """Before the first sim tick: a status that says who this agent sees, so that the sim bridge starts
+        only once the fleet's links are up (and no tick's messages fall into a gap)."""
+        publishers["status"].put(encode(Status(
+            stamp_ns=nanoseconds(self.now()), seq=self._next("status"), sender=self.id, phase=0.0,
+            command=(0.0, 0.0), peers=sorted(self.live_peers))))
+
+    def _deliver_shares(self) -> None:
+        """Sim time: take the shares of the tick before that the sim's radio delivers to this vessel; in
+        lockstep, first wait (bounded) for them and for this tick's own sensors."""
+        with self._clock_lock:
+            clock = self._clock
+        if clock is None:
+            return
+        wait = self.settings.share_wait if clock.lockstep else 0.0
+        sensed = clock.vessels is not None and self.id in clock.vessels
+        self.gate.deliver_shares(clock.previous_ns, clock.delivered_to(self.id), wait,
+                                 clock.stamp_ns if sensed else None)
+
     def _tick(self, publishers) -> None:
+        if self.settings.clock == "sim":
+            self._deliver_shares()
         now = self.now()
         inputs = self.gate.snapshot(now)
         output = self.core.tick(inputs)
         stamp = nanoseconds(now)
+        # The share goes first: once the bridge has this tick's status, the share is on its way.
+        if output.share is not None:
+            publishers["share"].put(encode(message_from_share(output.share, self._next("share"))))
         command = Cmd(stamp_ns=stamp, seq=self._next("cmd"), sender=self.id, surge=output.command.surge,
                       yaw_rate=output.command.yaw_rate)
         publishers["cmd"].put(encode(command))
-        if output.share is not None:
-            publishers["share"].put(encode(message_from_share(output.share, self._next("share"))))
         record = output.record
         health = dict(record.health if record is not None else {})
         health.update({f"rejected_{k}": v for k, v in self.gate.rejected.items()})
@@ -201,7 +230,8 @@ class AgentNode:
         status = Status(
             stamp_ns=stamp, seq=self._next("status"), sender=self.id,
             phase=record.phase if record is not None else 0.0,
-            command=(output.command.surge, output.command.yaw_rate),
+            command=(output.command.surge, output.command.yaw_rate), shared=output.share is not None,
+            peers=sorted(self.live_peers),
             target=None if record is None or record.target_state is None
             else tuple(float(v) for v in record.target_state),
             health=health,

@@ -161,7 +161,7 @@ class VesselAgent:
             sender=self.id, odometry=odometry, velocity=command.surge * heading_vector, phase=self.phase,
             target=None if target_state is None else _to_shared(target_state, self.motion.velocity),
             target_covariance=None if target_cov is None else _SWAP_VELOCITY @ target_cov @ _SWAP_VELOCITY,
-            neighbours={j: (estimate, self.tracks[j].estimator.covariance)
+            neighbours={j: (estimate, _symmetric(self.tracks[j].estimator.covariance))
                         for j, estimate in estimates.items() if estimate is not None},
         )
         record = TickRecord(
@@ -189,7 +189,9 @@ class VesselAgent:
         return change
 
     def _receive_shares(self, inputs: TickInputs, now: float) -> None:
-        for sender, share in inputs.shares.items():
+        # In sender order, not arrival order: new tracks, and so every sum over neighbours, come out in the
+        # same order whichever way the shares travelled.
+        for sender, share in sorted(inputs.shares.items(), key=lambda item: str(item[0])):
             if sender == self.id or not _valid_share(share, self.id):
                 self.health.bad_shares += 1
                 continue
@@ -288,7 +290,11 @@ class VesselAgent:
 
     def _prior_from_target(self, track: NeighbourTrack) -> NeighbourPrior | None:
         """A newcomer with no prior: p_ij = p_io - p_jo from both vessels' target estimates at j's share
-        stamp, with the sum of their covariances; without them, the range along x with an r^2 spread."""
+        stamp, with the sum of their covariances; without them, the range along x with an r^2 spread.
+
+        The target route waits until both target estimates are as good as a deployment estimate (P_io,0
+        each): the inter-vessel filter gains little per update (docs/estimation.md §6), so a poor prior
+        would stay for minutes. After `history_ticks` of waiting it takes the range instead."""
         share = track.share
         stamp = share.odometry.stamp
         if self.tracker is not None and share.target is not None:
@@ -297,7 +303,10 @@ class VesselAgent:
             mine = self.tracker.state[:2] - shift
             theirs = np.asarray(share.target, dtype=float)[:2]
             covariance = self.tracker.covariance[:2, :2] + np.asarray(share.target_covariance, dtype=float)[:2, :2]
-            return NeighbourPrior(mine - theirs, covariance, stamp)
+            if np.trace(covariance) <= 4.0 * self.params.target.initial_covariance:
+                return NeighbourPrior(mine - theirs, covariance, stamp)
+            if stamp - track.first_heard < self.history * self.dt:
+                return None
         spread = self.params.relative.initial_covariance
         range_then = track.ranges.get(stamp_key(stamp))
         if range_then is None:
@@ -396,6 +405,12 @@ TARGET_GATE = 18.47
 
 def _to_shared(state: np.ndarray, own_velocity: np.ndarray) -> np.ndarray:
     return np.concatenate([state[:2], own_velocity - state[2:]])
+
+
+def _symmetric(matrix: np.ndarray) -> np.ndarray:
+    """The symmetric part: what a share can carry (three numbers), so a share means the same in process
+    and on the wire."""
+    return 0.5 * (matrix + matrix.T)
 
 
 def _finite_vector(value, size: int) -> bool:

@@ -1,10 +1,15 @@
 """The sim bridge process: the world model behind the agents' Zenoh contract.
 
 Each tick it publishes every live vessel's sensors (odometry, ranges, bearing, sonar) and then `sim/clock`,
-takes the commands, and steps the world. Lockstep mode waits for a command of this tick from every live
-agent (a liveliness token), up to a timeout that counts as a missed command; real-time mode steps every
-dt of wall time. A command watchdog stops a vessel (zero surge, zero yaw rate) whose latest command is
-older than `watchdog` seconds of sim time, as a real driver bridge must. Ground truth goes to an MCAP log.
+takes the commands, and steps the world. Lockstep mode waits for the command and the status of this tick
+from every live agent (a liveliness token), up to a timeout that counts as a missed command; a vessel that
+joins the world makes the tick wait for its agent as the first tick waits for everyone's. Real-time mode
+steps every dt of wall time. A command watchdog stops a vessel (zero surge, zero yaw rate) whose latest
+command is older than `watchdog` seconds of sim time, as a real driver bridge must.
+
+The bridge also plays the radio between the vessels: each clock message says which shares of the tick
+before each agent gets now (`lost_shares`: the scenario's packet loss, by a hash of the run's seed), so the
+same messages are lost in every run with the same seed. Ground truth goes to an MCAP log.
 """
 
 from __future__ import annotations
@@ -17,18 +22,18 @@ import time
 from pathlib import Path
 from typing import Literal
 
-import numpy as np
 from pydantic import Field
 
 from agent.contract import (
-    CLOCK_KEY, LIVELINESS, Bearing, Clock, Cmd, Odometry, Ranges, Sonar, decode, encode, every, key,
-    nanoseconds, seconds, vessel_of,
+    CLOCK_KEY, LIVELINESS, Bearing, Clock, Cmd, Odometry, Ranges, Sonar, Status, decode, encode, every, key,
+    seconds, vessel_of,
 )
 from agent.node import ZenohSettings, zenoh_config
 from agent.params import ConfigError, PositiveFloat, StrictModel, load_yaml
 from agent.tick_io import STOP, Command
+from sim_bridge.runner import streams
 from sim_bridge.scenario import Scenario, select_scenario
-from sim_bridge.world import World
+from sim_bridge.world import World, lost_shares
 
 
 class BridgeSettings(StrictModel):
@@ -44,10 +49,12 @@ class SimBridge:
     def __init__(self, scenario: Scenario, settings: BridgeSettings, seed: int | None = None) -> None:
         self.scenario = scenario
         self.settings = settings
-        sequence = np.random.SeedSequence(scenario.seed if seed is None else seed)
-        self.world = World(scenario.world, np.random.default_rng(sequence.spawn(1)[0]))
+        random = streams(scenario.seed if seed is None else seed)
+        self.world = World(scenario.world, random.world)
+        self.loss_seed = random.loss_seed
         self.alive: set[str] = set()
         self.commands: dict[str, Cmd] = {}
+        self.statuses: dict[str, Status] = {}
         self.missed_commands = 0
         self.watchdog_stops = 0
         self.rejected = 0
@@ -64,15 +71,21 @@ class SimBridge:
 
     # ----- callbacks -----
     def _on_command(self, sample) -> None:
+        self._keep(sample, Cmd, self.commands)
+
+    def _on_status(self, sample) -> None:
+        self._keep(sample, Status, self.statuses)
+
+    def _keep(self, sample, model, latest: dict) -> None:
         vessel = vessel_of(str(sample.key_expr))
-        message, _ = decode(Cmd, sample.payload.to_bytes())
+        message, _ = decode(model, sample.payload.to_bytes())
         with self._arrived:
             if message is None or message.sender != vessel:
                 self.rejected += 1
                 return
-            previous = self.commands.get(vessel)
+            previous = latest.get(vessel)
             if previous is None or message.stamp_ns >= previous.stamp_ns:
-                self.commands[vessel] = message
+                latest[vessel] = message
             self._arrived.notify_all()
 
     def _on_liveliness(self, sample) -> None:
@@ -94,34 +107,57 @@ class SimBridge:
 
         steps = int(round(self.scenario.duration / self.scenario.world.dt)) + 1
         with zenoh.open(zenoh_config(self.settings.zenoh)) as session:
-            commands = session.declare_subscriber(every("cmd"), self._on_command)
+            subscribers = [session.declare_subscriber(every("cmd"), self._on_command),
+                           session.declare_subscriber(every("status"), self._on_status)]
             watcher = session.liveliness().declare_subscriber(every(LIVELINESS), self._on_liveliness, history=True)
-            self._wait_for_agents()
             start = time.monotonic()
+            previous_live: list[str] = []
+            previous_stamp: int | None = None
             for k in range(steps):
                 if self.stopping.is_set():
                     break
-                now = self.world.time
-                stamp = nanoseconds(now)
+                now, stamp, live = self.world.time, self.world.time_ns, self.world.live()
+                joined = set(live) - set(previous_live)
+                if joined and self.settings.mode == "lockstep":
+                    self._wait_for_agents(joined)
                 self._publish_sensors(session, stamp)
-                session.put(CLOCK_KEY, encode(Clock(stamp_ns=stamp, seq=k)))
+                session.put(CLOCK_KEY, encode(self._clock(k, stamp, previous_stamp, live, joined)))
                 if self.settings.mode == "lockstep":
-                    self._wait_for_commands(stamp)
+                    self._wait_for_answers(stamp)
                 else:
                     self.stopping.wait(max(0.0, start + (k + 1) * self.scenario.world.dt - time.monotonic()))
                 self._log_truth(stamp)
                 self.world.step(self._commands_now(now))
                 self.ticks += 1
-            commands.undeclare()
+                previous_live, previous_stamp = live, stamp
+            for subscriber in subscribers:
+                subscriber.undeclare()
             watcher.undeclare()
         if self.log is not None:
             self.log.close()
 
-    def _wait_for_agents(self) -> None:
-        """Before tick 0, wait until every vessel present at the start has an agent alive."""
+    def _clock(self, k: int, stamp: int, previous_stamp: int | None, live: list[str], joined: set[str]) -> Clock:
+        """Tick k, and which shares of tick k - 1 reach whom now (the runner's rule, `lost_shares`)."""
+        with self._lock:
+            senders = [j for j in live if previous_stamp is not None and j in self.statuses
+                       and self.statuses[j].stamp_ns == previous_stamp and self.statuses[j].shared]
+        lost = lost_shares(self.loss_seed, senders, live, joined, k, self.scenario.world.packet_loss)
+        return Clock(stamp_ns=stamp, seq=k, previous_ns=previous_stamp, vessels=live, senders=senders, lost=lost,
+                     lockstep=self.settings.mode == "lockstep")
+
+    def _wait_for_agents(self, vessels: set[str]) -> None:
+        """Wait until each of `vessels` (the ones there at the start, or a joiner) has an agent alive that
+        sees every other live agent (its status says so): then the links a tick needs are all up."""
         deadline = time.monotonic() + self.settings.startup_timeout
+        live = set(self.world.live())
+
+        def ready(vessel: str) -> bool:
+            status = self.statuses.get(vessel)
+            return (vessel in self.alive and status is not None
+                    and set(status.peers) >= (live & self.alive) - {vessel})
+
         with self._arrived:
-            while not self.stopping.is_set() and not set(self.world.live()) <= self.alive:
+            while not self.stopping.is_set() and not all(ready(v) for v in vessels):
                 remaining = deadline - time.monotonic()
                 if remaining <= 0:
                     return
@@ -136,22 +172,21 @@ class SimBridge:
             session.put(key(vessel, "sensor/uwb"), encode(Ranges(
                 stamp_ns=stamp, seq=self._next(vessel, "uwb"), sender=vessel,
                 ranges={peer: float(r) for peer, r in reading.ranges.items()})))
-            bearing = None
-            if reading.bearing is not None:
-                unit = np.asarray(reading.bearing, dtype=float)
-                bearing = tuple(float(v) for v in unit / np.hypot(*unit))  # the contract carries a unit vector
+            bearing = None if reading.bearing is None else tuple(float(v) for v in reading.bearing)
             session.put(key(vessel, "sensor/bearing"), encode(Bearing(
                 stamp_ns=stamp, seq=self._next(vessel, "bearing"), sender=vessel, bearing=bearing)))
             session.put(key(vessel, "sensor/sonar"), encode(Sonar(
                 stamp_ns=stamp, seq=self._next(vessel, "sonar"), sender=vessel,
                 points=[tuple(float(v) for v in p) for p in reading.obstacle_points])))
 
-    def _wait_for_commands(self, stamp: int) -> None:
+    def _wait_for_answers(self, stamp: int) -> None:
+        """Lockstep: wait for every live agent's command and status of this tick (the status comes after
+        the agent's share, and says whether it shared)."""
         deadline = time.monotonic() + self.settings.command_timeout
         with self._arrived:
             while not self.stopping.is_set():
-                waiting = [v for v in self.world.live() if v in self.alive
-                           and (v not in self.commands or self.commands[v].stamp_ns < stamp)]
+                waiting = [v for v in self.world.live() if v in self.alive and not all(
+                    v in got and got[v].stamp_ns >= stamp for got in (self.commands, self.statuses))]
                 if not waiting:
                     return
                 remaining = deadline - time.monotonic()

@@ -34,67 +34,156 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def launch(scenario_path: Path, variant: str | None, out: Path, seed: int | None,
-           timeout: float = 600.0) -> Path:
-    """Run the fleet; returns the run folder."""
-    name, scenario = select_scenario(scenario_path, variant)
-    folder = out / f"{scenario_path.stem}-{name}-{datetime.now(timezone.utc):%Y%m%dT%H%M%S}"
-    folder.mkdir(parents=True, exist_ok=False)
-    bridge_port = free_port()
-    bridge_config = folder / "bridge.yaml"
-    bridge_config.write_text(yaml.safe_dump({
-        "mode": "lockstep", "zenoh": {"listen": [f"tcp/127.0.0.1:{bridge_port}"]},
-        "log": str(folder / "sim.mcap")}))
-    agent_params = scenario.agent_params().model_dump(mode="json")
-    starts = _initial_estimates(scenario, seed)
-    processes: dict[str, subprocess.Popen] = {}
-    logs = {}
-    bridge_cmd = [sys.executable, "-m", "sim_bridge", "--scenario", str(scenario_path), "--variant", name,
-                  "--config", str(bridge_config)] + (["--seed", str(seed)] if seed is not None else [])
-    logs["bridge"] = (folder / "bridge.log").open("w")
-    bridge = subprocess.Popen(bridge_cmd, stdout=logs["bridge"], stderr=subprocess.STDOUT)
-    for vessel in scenario.world.vessels:
-        config = folder / f"agent-{vessel.id}.yaml"
-        config.write_text(yaml.safe_dump({
-            "clock": "sim",
-            "zenoh": {"listen": [f"tcp/127.0.0.1:{free_port()}"], "connect": [f"tcp/127.0.0.1:{bridge_port}"]},
-            "log": str(folder / f"agent-{vessel.id}.mcap"),
-            "agent": agent_params,
-            "initial": starts.get(vessel.id, {}),
-        }))
-        logs[vessel.id] = (folder / f"agent-{vessel.id}.log").open("w")
-        processes[vessel.id] = subprocess.Popen(
-            [sys.executable, "-m", "agent", "--vessel", vessel.id, "--config", str(config)],
-            stdout=logs[vessel.id], stderr=subprocess.STDOUT)
-    print(f"usv-fleet: {len(processes)} agents and the sim bridge started; run folder {folder}", file=sys.stderr)
-    try:
-        bridge.wait(timeout=timeout)
-    finally:
-        for process in [*processes.values(), bridge]:
+class Fleet:
+    """The processes of one simulated mission on loopback: the sim bridge (lockstep) and one agent per vessel.
+
+    `run()` starts the bridge and the agents of the vessels there at the start, then follows the sim clock:
+    it starts a joining vessel's agent when the sim reaches its `join_time` (the bridge waits for it), and
+    kills a leaving vessel's agent with SIGKILL at its `leave_time`, as a vessel lost at sea. When the
+    bridge has finished, the agents get SIGTERM and finish their logs. `on_time(fleet, sim_seconds)` lets a
+    caller act during the mission (tests kill an agent with it).
+    """
+
+    def __init__(self, scenario_path: Path, variant: str | None, out: Path, seed: int | None = None) -> None:
+        self.name, self.scenario = select_scenario(scenario_path, variant)
+        self.folder = out / f"{scenario_path.stem}-{self.name}-{datetime.now(timezone.utc):%Y%m%dT%H%M%S%f}"
+        self.folder.mkdir(parents=True, exist_ok=False)
+        self.bridge_port = free_port()
+        (self.folder / "bridge.yaml").write_text(yaml.safe_dump({
+            "mode": "lockstep", "zenoh": {"listen": [f"tcp/127.0.0.1:{self.bridge_port}"]},
+            "log": str(self.folder / "sim.mcap")}))
+        self.bridge_cmd = [sys.executable, "-m", "sim_bridge", "--scenario", str(scenario_path), "--variant",
+                           self.name, "--config", str(self.folder / "bridge.yaml")]
+        self.bridge_cmd += ["--seed", str(seed)] if seed is not None else []
+        agent_params = self.scenario.agent_params().model_dump(mode="json")
+        starts = _initial_estimates(self.scenario, seed)
+        for vessel in self.scenario.world.vessels:
+            (self.folder / f"agent-{vessel.id}.yaml").write_text(yaml.safe_dump({
+                "clock": "sim",
+                "zenoh": {"listen": [f"tcp/127.0.0.1:{free_port()}"],
+                          "connect": [f"tcp/127.0.0.1:{self.bridge_port}"]},
+                "log": str(self.folder / f"agent-{vessel.id}.mcap"),
+                "agent": agent_params,
+                "initial": starts.get(vessel.id, {}),
+            }))
+        self.bridge: subprocess.Popen | None = None
+        self.agents: dict[str, subprocess.Popen] = {}
+        self.killed: set[str] = set()
+        self.peak_memory: dict[str, float] = {}   # MB of resident memory at its highest, per process
+        self._logs: list = []
+        self._sim_time = -math.inf
+
+    def _start(self, name: str, command: list[str]) -> subprocess.Popen:
+        handle = (self.folder / f"{name}.log").open("w")
+        self._logs.append(handle)
+        return subprocess.Popen(command, stdout=handle, stderr=subprocess.STDOUT)
+
+    def start_agent(self, vessel: str) -> None:
+        self.agents[vessel] = self._start(f"agent-{vessel}", [
+            sys.executable, "-m", "agent", "--vessel", vessel, "--config", str(self.folder / f"agent-{vessel}.yaml")])
+
+    def kill(self, vessel: str) -> None:
+        """SIGKILL a vessel's agent: no goodbye, its liveliness token vanishes with its session."""
+        self._note_memory()
+        self.agents[vessel].kill()
+        self.killed.add(vessel)
+
+    def run(self, timeout: float = 600.0, on_time=None) -> Path:
+        import zenoh
+
+        from agent.contract import CLOCK_KEY, Clock, decode, seconds
+
+        def on_clock(sample) -> None:
+            message, _ = decode(Clock, sample.payload.to_bytes())
+            if message is not None:
+                self._sim_time = max(self._sim_time, seconds(message.stamp_ns))
+
+        config = zenoh.Config()
+        config.insert_json5("mode", '"peer"')
+        config.insert_json5("scouting/multicast/enabled", "false")
+        config.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{self.bridge_port}"]))
+        self.bridge = self._start("bridge", self.bridge_cmd)
+        deadline = time.monotonic() + timeout
+        try:
+            with zenoh.open(config) as session:
+                session.declare_subscriber(CLOCK_KEY, on_clock)
+                dt = self.scenario.world.dt
+                pending = {v.id: v for v in self.scenario.world.vessels}
+                leaving = {v.id: v.leave_time for v in self.scenario.world.vessels if v.leave_time is not None}
+                print(f"usv-fleet: the sim bridge and {sum(v.join_time == 0 for v in pending.values())} agents "
+                      f"starting; run folder {self.folder}", file=sys.stderr)
+                while self.bridge.poll() is None:
+                    if time.monotonic() > deadline:
+                        raise TimeoutError(f"the mission did not end within {timeout:.0f} s")
+                    now = self._sim_time
+                    for vessel in [v for v, spec in pending.items() if spec.join_time <= max(now, 0.0) + dt + 1e-9]:
+                        self.start_agent(vessel)
+                        del pending[vessel]
+                    for vessel in [v for v, t in leaving.items() if now >= t - 1e-9 and v in self.agents]:
+                        self.kill(vessel)
+                        del leaving[vessel]
+                    if on_time is not None:
+                        on_time(self, now)
+                    self._note_memory()
+                    time.sleep(0.02)
+        finally:
+            self._stop()
+        return self.folder
+
+    def _note_memory(self) -> None:
+        for name, process in [("bridge", self.bridge), *((f"agent-{v}", p) for v, p in self.agents.items())]:
+            if process is not None and process.poll() is None:
+                peak = _peak_resident_mb(process.pid)
+                if peak is not None:
+                    self.peak_memory[name] = max(self.peak_memory.get(name, 0.0), peak)
+
+    def _stop(self) -> None:
+        self._note_memory()
+        processes = [p for p in [*self.agents.values(), self.bridge] if p is not None]
+        for process in processes:
             if process.poll() is None:
                 process.send_signal(signal.SIGTERM)
-        for process in [*processes.values(), bridge]:
+        for process in processes:
             try:
                 process.wait(timeout=15)
             except subprocess.TimeoutExpired:
                 process.kill()
-        for handle in logs.values():
+                process.wait()
+        for handle in self._logs:
             handle.close()
-    analyse(folder, scenario.agent_params().control.radius)
+        (self.folder / "memory.json").write_text(json.dumps(
+            {"peak_resident_mb": dict(sorted(self.peak_memory.items()))}, indent=2))
+
+
+def _peak_resident_mb(pid: int) -> float | None:
+    """Peak resident memory of a live process (Linux /proc VmHWM), in MB; None where unavailable."""
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024.0
+    except (OSError, ValueError, IndexError):
+        return None
+    return None
+
+
+def launch(scenario_path: Path, variant: str | None, out: Path, seed: int | None,
+           timeout: float = 600.0) -> Path:
+    """Run the fleet and analyse its logs; returns the run folder."""
+    fleet = Fleet(scenario_path, variant, out, seed)
+    folder = fleet.run(timeout)
+    analyse(folder, fleet.scenario.agent_params().control.radius)
     return folder
 
 
 def _initial_estimates(scenario, seed: int | None) -> dict[str, dict]:
     """Each agent's starting estimates, drawn as the in-process runner draws them (for the vessels there
-    at the start; a later joiner starts from its first bearing and its neighbours' estimates)."""
-    from sim_bridge.runner import initial_estimates
+    at the start; a later joiner starts from its first bearing and its neighbours' shares)."""
+    from sim_bridge.runner import initial_estimates, streams
     from sim_bridge.world import World
 
-    sequence = np.random.SeedSequence(scenario.seed if seed is None else seed)
-    world_seed, init_seed = sequence.spawn(2)
-    world = World(scenario.world, np.random.default_rng(world_seed))
-    present = world.live()
-    drawn = initial_estimates(scenario, world.truth(), present, np.random.default_rng(init_seed), present)
+    random = streams(scenario.seed if seed is None else seed)
+    world = World(scenario.world, random.world)
+    drawn = initial_estimates(scenario, world.truth(), random.initial)
     return {v: {"target": [float(x) for x in target],
                 "target_variance": scenario.initial.target_covariance,
                 "neighbours": {j: [float(x) for x in prior.position] for j, prior in priors.items()},

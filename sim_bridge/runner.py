@@ -1,9 +1,10 @@
 """In-process fleet runner: the world and one `VesselAgent` per vessel in lockstep.
 
 Each tick: the world senses, every live vessel ticks on its readings and on the shares its neighbours sent
-at the previous tick (minus the ones the packet-loss rule drops), the world applies the commands. Shares
-keep their latest value per sender, as a Zenoh subscriber with a one-slot ring would. Everything random
-comes from one seed, so a run is bit-for-bit repeatable; only the measured compute time differs.
+at the previous tick (minus the ones `lost_shares` drops), the world applies the commands. Shares keep
+their latest value per sender, as the agent process's input gate does. Everything random comes from one
+seed, so a run is bit-for-bit repeatable; only the measured compute time differs. The sim bridge with one
+agent process per vessel gives the same numbers in lockstep (tests/test_lockstep.py).
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ from agent.tick_io import Command, Share, TickInputs
 from agent.vessel import TickRecord, VesselAgent
 from sim_bridge.metrics import RunMetrics, summarise
 from sim_bridge.scenario import Scenario
-from sim_bridge.world import Truth, World, message_lost
+from sim_bridge.world import Truth, World, lost_shares
 
 
 @dataclass
@@ -40,46 +41,63 @@ class RunTrace:
     radii: np.ndarray           # (K, n)
     commands: np.ndarray        # (K, n, 2) surge, yaw rate
     estimates: np.ndarray       # (K, n, 4) each vessel's target estimate x^_io
+    relative: np.ndarray        # (K, n, n, 2) vessel i's estimate p^_ij of each neighbour j
     tick_seconds: np.ndarray    # (K, n) compute time of each tick
     metrics: RunMetrics | None = None
 
 
-def initial_estimates(scenario: Scenario, truth: Truth, present: list[str], rng: np.random.Generator,
-                      vessels: list[str]) -> dict[str, tuple[np.ndarray, dict[str, NeighbourPrior]]]:
-    """First estimates drawn around the truth as in Sec. VI: x^_io,0 ~ N(x_io,0, P_io,0) for each of
-    `vessels`, and p^_ij,0 ~ N(p_ij,0, P_ij,0) for the vessels there from the start."""
+def initial_estimates(scenario: Scenario, truth: Truth, rng: np.random.Generator
+                      ) -> dict[str, tuple[np.ndarray, dict[str, NeighbourPrior]]]:
+    """The deployment knowledge of the vessels there at the start (`truth` at time 0), drawn around the
+    truth as in Sec. VI: x^_io,0 ~ N(x_io,0, P_io,0) for each, and p^_ij,0 ~ N(p_ij,0, P_ij,0) for each pair."""
     p_ij, p_io = scenario.initial.neighbour_covariance, scenario.initial.target_covariance
     estimates = {}
-    for i in vessels:
+    for i in truth.positions:
         x_io = np.concatenate([truth.positions[i] - truth.target_position,
                                truth.velocities[i] - truth.target_velocity])
         target = x_io + rng.normal(0.0, math.sqrt(p_io), 4)
         priors = {}
-        if truth.time == 0.0:  # the paper's initial estimates exist for the vessels there from the start
-            for j in present:
-                if j != i:
-                    true = truth.positions[i] - truth.positions[j]
-                    priors[j] = NeighbourPrior(true + rng.normal(0.0, math.sqrt(p_ij), 2), p_ij * np.eye(2),
-                                               truth.time)
+        for j in truth.positions:
+            if j != i:
+                true = truth.positions[i] - truth.positions[j]
+                priors[j] = NeighbourPrior(true + rng.normal(0.0, math.sqrt(p_ij), 2), p_ij * np.eye(2),
+                                           truth.time)
         estimates[i] = (target, priors)
     return estimates
 
 
-def initial_agents(scenario: Scenario, world: World, rng: np.random.Generator, params, vessels) -> dict:
-    """Agents for `vessels`, started from `initial_estimates`."""
-    estimates = initial_estimates(scenario, world.truth(), world.live(), rng, vessels)
+def initial_agents(scenario: Scenario, world: World, rng: np.random.Generator, params) -> dict:
+    """Agents for the vessels there at the start, started from `initial_estimates`."""
     p_io = scenario.initial.target_covariance
     return {i: VesselAgent(i, params, target, p_io * np.eye(4), priors=priors)
-            for i, (target, priors) in estimates.items()}
+            for i, (target, priors) in initial_estimates(scenario, world.truth(), rng).items()}
+
+
+@dataclass(frozen=True)
+class Streams:
+    """The random streams of one run, all from its seed: the world's, the initial estimates', and the key
+    of the packet-loss hash. The sim bridge and the fleet launcher derive them the same way."""
+
+    world: np.random.Generator
+    initial: np.random.Generator
+    loss_seed: int
+
+
+def streams(seed: np.random.SeedSequence | int) -> Streams:
+    sequence = seed if isinstance(seed, np.random.SeedSequence) else np.random.SeedSequence(seed)
+    world_seed, initial_seed = sequence.spawn(2)
+    return Streams(np.random.default_rng(world_seed), np.random.default_rng(initial_seed),
+                   int(sequence.generate_state(1)[0]))
 
 
 def run(scenario: Scenario, seed: np.random.SeedSequence | int | None = None) -> RunTrace:
-    """One run of `scenario`; `seed` defaults to the scenario's own."""
+    """One run of `scenario`; `seed` defaults to the scenario's own. A vessel that joins later starts with
+    no estimates (its target from its first bearing, its neighbours from the shares), as its agent process
+    would."""
     sequence = seed if isinstance(seed, np.random.SeedSequence) else np.random.SeedSequence(
         scenario.seed if seed is None else seed)
-    world_rng, init_rng = (np.random.default_rng(s) for s in sequence.spawn(2))
-    loss_seed = int(sequence.generate_state(1)[0])
-    world = World(scenario.world, world_rng)
+    random = streams(sequence)
+    world = World(scenario.world, random.world)
     params = scenario.agent_params()
     ids = [v.id for v in scenario.world.vessels]
     index = {v: n for n, v in enumerate(ids)}
@@ -92,21 +110,27 @@ def run(scenario: Scenario, seed: np.random.SeedSequence | int | None = None) ->
     for k in range(steps):
         readings = world.sense()
         live = world.live()
-        new = [v for v in live if v not in agents]
-        if new:
-            agents.update(initial_agents(scenario, world, init_rng, params, new))
+        joined = {v for v in live if v not in agents}
+        if k == 0:
+            agents.update(initial_agents(scenario, world, random.initial, params))
+        else:
+            agents.update({i: VesselAgent(i, params) for i in joined})
         for gone in [v for v in agents if v not in live]:
             del agents[gone]
             inbox.pop(gone, None)
+            for box in inbox.values():
+                box.pop(gone, None)
+        senders = [j for j in sent if j in agents]
+        lost = set(lost_shares(random.loss_seed, senders, live, joined, k, scenario.world.packet_loss))
         truth = world.truth()
         commands: dict[str, Command] = {}
         records: dict[str, TickRecord] = {}
         outgoing: dict[str, Share] = {}
         for i in live:
             box = inbox.setdefault(i, {})
-            for j, share in sent.items():
-                if j != i and j in agents and not message_lost(loss_seed, j, i, k, scenario.world.packet_loss):
-                    box[j] = share
+            for j in senders:
+                if j != i and (j, i) not in lost:
+                    box[j] = sent[j]
             reading = readings[i]
             inputs = TickInputs(time=truth.time, odometry=reading.odometry, ranges=reading.ranges,
                                 shares=dict(box), bearing=reading.bearing,
@@ -138,7 +162,7 @@ def _empty_trace(scenario: Scenario, seed: int, ids: list[str], steps: int) -> R
         occluded=np.zeros((steps, n), dtype=bool),
         e_ij=nan(steps, np.nan), e_io=nan(steps, np.nan), e_io_velocity=nan(steps, np.nan),
         e_c=nan(steps, np.nan), radii=nan((steps, n), np.nan), commands=nan((steps, n, 2), np.nan),
-        estimates=nan((steps, n, 4), np.nan), tick_seconds=nan((steps, n), np.nan),
+        estimates=nan((steps, n, 4), np.nan), relative=nan((steps, n, n, 2), np.nan), tick_seconds=nan((steps, n), np.nan),
     )
 
 
@@ -156,6 +180,7 @@ def _record(trace: RunTrace, k: int, truth: Truth, records: dict[str, TickRecord
         if record is None:
             continue
         for j, neighbour in record.neighbours.items():
+            trace.relative[k, n, index[j]] = neighbour.position
             if j in truth.positions:
                 error = neighbour.position - (position - truth.positions[j])
                 worst_ij = max(worst_ij, float(np.hypot(*error)))

@@ -24,6 +24,7 @@ from typing import Annotated
 import numpy as np
 from pydantic import Field, field_validator, model_validator
 
+from agent.contract import nanoseconds, seconds
 from agent.params import NonNegativeFloat, PositiveFloat, StrictModel
 from agent.tick_io import Command, Odometry
 from sim_bridge.geometry import (
@@ -97,7 +98,7 @@ class Reading:
 
     odometry: Odometry
     ranges: dict[str, float]          # neighbour id -> measured range (m), (6)
-    bearing: np.ndarray | None        # (2,) noisy target -> vessel direction (9); None when not visible
+    bearing: np.ndarray | None        # (2,) noisy target -> vessel unit vector (9); None when not visible
     obstacle_points: np.ndarray       # (M, 2) island points within sonar range, relative to the vessel
     occluded: bool                    # an island blocks the line of sight to the target
 
@@ -137,6 +138,7 @@ class World:
     def __init__(self, config: WorldConfig, rng: np.random.Generator) -> None:
         self.config = config
         self.time = 0.0
+        self.time_ns = 0
         self.tick = 0
         self.bad_commands = 0
         self._rng = rng
@@ -183,7 +185,10 @@ class World:
             vessel.odometry_heading = self._noisy_heading(vessel.heading)
         self._target.step(dt, self._rng)
         self.tick += 1
-        self.time = self.tick * dt      # a product, not a running sum, so time does not drift
+        # The clock counts whole nanoseconds, as every stamp on the wire does, so the in-process runner and
+        # the agents behind the sim bridge see the very same times; a product, so it does not drift.
+        self.time_ns = nanoseconds(self.tick * dt)
+        self.time = seconds(self.time_ns)
         self._begin_tick()
 
     def truth(self) -> Truth:
@@ -247,7 +252,9 @@ class World:
         occluded = any(segment_intersects_polygon(here, target, island) for island in self._islands)
         bearing = None
         if not occluded and distance > 0.0:
-            bearing = _frozen(offset / distance + bearing_noise)
+            # (9) is a direction plus noise; the camera reports it as a unit vector (the contract's form).
+            noisy = offset / distance + bearing_noise
+            bearing = _frozen(noisy / np.linalg.norm(noisy))
         relative = self._boundary - here
         near = np.einsum("ij,ij->i", relative, relative) <= self.config.sonar_range**2
         odometry = Odometry(
@@ -275,3 +282,15 @@ def message_lost(seed: int, sender: str, receiver: str, tick: int, probability: 
     digest = hashlib.blake2b(key, digest_size=8, person=b"usv-msg-loss").digest()
     uniform = (int.from_bytes(digest, "big") >> 11) / 2.0**53   # 53 bits: exact in a float, never 1.0
     return uniform < probability
+
+
+def lost_shares(seed: int, senders: list[str], receivers: list[str], joined: set[str], tick: int,
+                probability: float) -> list[tuple[str, str]]:
+    """The shares sent at `tick` - 1 that do not reach their receivers at `tick`, as (sender, receiver).
+
+    `senders` shared at the tick before and are still here; `receivers` are live now, and those in `joined`
+    were not yet listening when the shares went out. Every other share is lost with `probability`
+    (`message_lost`). The in-process runner and the sim bridge both use this, so they lose the same shares.
+    """
+    return [(j, i) for j in senders for i in receivers
+            if j != i and (i in joined or message_lost(seed, j, i, tick, probability))]

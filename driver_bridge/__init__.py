@@ -1,0 +1,1 @@
+"""Hardware adapters of the driver bridge (UWB, odometry, bearing, thrusters, serial port): pure, no Zenoh."""

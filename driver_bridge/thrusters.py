@@ -1,0 +1,114 @@
+"""Thruster adapter, twin-thruster (differential) hull: Cmd (surge m/s, yaw rate rad/s) -> left/right thrust.
+
+Model (steady state, linear drag; hull axes x forward, y to port, yaw counter-clockwise as in the contract):
+the two thrusters sit at y = +b (left, port) and y = -b (right, starboard) and push along x. In a steady
+run the thrust balances the drag:
+    surge:  T_left + T_right = d_u * u                       (d_u: N per m/s)
+    yaw:    b * (T_right - T_left) = d_r * r                 (d_r: N m per rad/s; a push at y=-b turns CCW)
+so  T_right = (d_u u + d_r r / b) / 2  and  T_left = (d_u u - d_r r / b) / 2. Outputs are normalised by
+max_thrust to [-1, 1] (thrust in N = value * max_thrust); forward and reverse are taken as symmetric.
+
+Saturation keeps yaw authority first. Write the normalised pair as mean m and half-difference h
+(left = m - h, right = m + h). h is clipped to [-1, 1] first; then m is clipped to [-(1 - |h|), 1 - |h|].
+The difference, which turns the boat, is kept whole whenever it is feasible and speed gives way: on the
+formation circle a lost turn drifts the vessel off the circle and towards its neighbours, a lost bit of
+speed only delays it.
+
+Watchdog (docs/contract.md, "Watchdog: your duty"): `output(now)` gives zero thrust when the last valid
+command is older than `timeout` seconds, or when there has been none. A non-finite command is refused,
+counted, and taken as a stop.
+
+`command_line` writes the pair for a motor controller as `$THR,<left>,<right>*hh\\r\\n` (our format, NMEA
+framing, see serial_port), each value signed with three decimals in [-1, 1].
+"""
+
+from __future__ import annotations
+
+import math
+from collections import Counter
+from dataclasses import dataclass
+
+from pydantic import Field
+
+from agent.params import PositiveFloat, StrictModel
+from driver_bridge.serial_port import nmea_sentence
+
+
+class ThrusterSettings(StrictModel):
+    max_thrust: PositiveFloat = Field(description="thrust of one thruster at full command (N)")
+    half_beam: PositiveFloat = Field(description="distance of each thruster from the centreline (m)")
+    surge_drag: PositiveFloat = Field(description="linear surge drag d_u (N per m/s)")
+    yaw_drag: PositiveFloat = Field(description="linear yaw drag d_r (N m per rad/s)")
+    timeout: PositiveFloat = Field(0.5, description="stop when the last valid command is older (s)")
+
+
+@dataclass(frozen=True)
+class Thrust:
+    left: float     # normalised, -1..1 (x max_thrust = N)
+    right: float
+
+
+STOP = Thrust(0.0, 0.0)
+
+
+def _clip(value: float, limit: float) -> float:
+    return max(-limit, min(limit, value))
+
+
+class ThrusterAdapter:
+    """`command(surge, yaw_rate, now)` stores a command; `output(now)` gives the thrust to apply now.
+
+    Counted in `rejected`: `non_finite` (command taken as a stop), `out_of_order` (a command stamped before
+    the last one, ignored). Counted in `events`: `saturated` (a command the thrusters cannot follow
+    exactly), `watchdog_stop` (each time the output goes to zero because commands went stale).
+    """
+
+    def __init__(self, settings: ThrusterSettings):
+        self.settings = settings
+        self.rejected: Counter[str] = Counter()
+        self.events: Counter[str] = Counter()
+        self._thrust = STOP
+        self._stamp: float | None = None
+        self._stale = True
+
+    def mix(self, surge: float, yaw_rate: float) -> Thrust:
+        """The normalised thrust pair for a finite command, saturated with yaw first."""
+        s = self.settings
+        total = s.surge_drag * surge                          # T_left + T_right (N)
+        difference = s.yaw_drag * yaw_rate / s.half_beam      # T_right - T_left (N)
+        mean = total / (2 * s.max_thrust)
+        half = difference / (2 * s.max_thrust)
+        clipped_half = _clip(half, 1.0)
+        clipped_mean = _clip(mean, 1.0 - abs(clipped_half))
+        if (clipped_half, clipped_mean) != (half, mean):
+            self.events["saturated"] += 1
+        return Thrust(clipped_mean - clipped_half, clipped_mean + clipped_half)
+
+    def command(self, surge: float, yaw_rate: float, now: float) -> Thrust:
+        if not math.isfinite(now):
+            self.rejected["non_finite"] += 1
+            self._thrust = STOP  # a stop, and without a usable time it stays one until a good command
+            return STOP
+        if self._stamp is not None and now < self._stamp:
+            self.rejected["out_of_order"] += 1
+            return self._thrust
+        self._stamp = now
+        if not (math.isfinite(surge) and math.isfinite(yaw_rate)):
+            self.rejected["non_finite"] += 1
+            self._thrust = STOP
+        else:
+            self._thrust = self.mix(surge, yaw_rate)
+        return self._thrust
+
+    def output(self, now: float) -> Thrust:
+        stale = self._stamp is None or not math.isfinite(now) or now - self._stamp > self.settings.timeout
+        if stale and not self._stale:
+            self.events["watchdog_stop"] += 1
+        self._stale = stale
+        return STOP if stale else self._thrust
+
+
+def command_line(thrust: Thrust) -> bytes:
+    """`$THR,+0.500,-0.250*hh\\r\\n` for a motor controller."""
+    left, right = thrust.left + 0.0, thrust.right + 0.0  # + 0.0 turns -0.0 into 0.0
+    return nmea_sentence(f"THR,{left:+.3f},{right:+.3f}")
