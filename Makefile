@@ -5,7 +5,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed-stamp
 
-.PHONY: demo compare test bench scenarios fleet-bench venv clean
+.PHONY: demo compare test bench scenarios fleet-bench runtime-bench venv clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -36,6 +36,10 @@ scenarios: $(STAMP)
 
 fleet-bench: $(STAMP)
 	$(VENV)/bin/usv-lab fleet-bench
+
+# The Zenoh runtime: latency, lockstep real-time factor, memory (about 2 minutes).
+runtime-bench: $(STAMP)
+	$(VENV)/bin/usv-lab runtime-bench
 
 clean:
 	rm -rf $(VENV) .pytest_cache .hypothesis

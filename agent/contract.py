@@ -145,6 +145,7 @@ class Status(Header):
     shared: bool = Field(False, description="this tick published a share (the sim bridge's radio needs to know)")
     peers: list[VesselId] = Field(default_factory=list, max_length=MAX_PEERS,
                                   description="the agents this one sees alive (liveliness)")
+    ticked: bool = Field(True, description="false for a heartbeat before the agent's first tick")
     target: tuple[Finite, Finite, Finite, Finite] | None = None
     neighbours: dict[VesselId, PairEstimate] = Field(default_factory=dict)
     health: dict[str, int] = Field(default_factory=dict)

@@ -53,14 +53,15 @@ class InputGate:
         self._consumed: dict[str, int] = {}   # topic -> stamp_ns of the range/bearing message last used
 
     # ----- the callback side -----
-    def offer(self, key: str, payload: bytes | bytearray | memoryview, now: float) -> bool:
-        """Decode and keep one payload received on `key` at agent time `now`; False if refused."""
+    def offer(self, key: str, payload: bytes | bytearray | memoryview, now: float | None) -> bool:
+        """Decode and keep one payload received on `key` at agent time `now` (None: no clock yet, so stamps
+        are not judged); False if refused."""
         try:
             return self._offer(str(key), payload, now)
         except Exception as error:  # the gate must never take the agent down, whatever arrives
             return self._refuse("internal", f"{key}: {type(error).__name__}: {error}")
 
-    def _offer(self, key: str, payload, now: float) -> bool:
+    def _offer(self, key: str, payload, now: float | None) -> bool:
         vessel = vessel_of(key)
         topic = key.split("/", 2)[2] if vessel is not None else ""
         model = TOPICS.get(topic)
@@ -74,9 +75,9 @@ class InputGate:
         if message.sender != vessel:
             return self._refuse("sender_mismatch", f"{key}: sender {message.sender!r}")
         stamp = seconds(message.stamp_ns)
-        if stamp < now - self.max_age:
+        if now is not None and stamp < now - self.max_age:
             return self._refuse("stale", f"{key}: {now - stamp:.3f} s old")
-        if stamp > now + self.max_future:
+        if now is not None and stamp > now + self.max_future:
             return self._refuse("future", f"{key}: {stamp - now:.3f} s ahead")
         with self._lock:
             last = self._last_seq.get((key, message.sender))
@@ -90,7 +91,8 @@ class InputGate:
                 if self._delivered_through is not None and message.stamp_ns <= self._delivered_through:
                     return self._refuse("late_share", f"{key}: stamp {message.stamp_ns} already delivered",
                                         locked=True)
-                self._held[(message.sender, message.stamp_ns)] = share_from_message(message)
+                # One share per sender and stamp: a second one for the same odometry stamp is a repeat.
+                self._held.setdefault((message.sender, message.stamp_ns), share_from_message(message))
                 self._arrival.notify_all()
             elif isinstance(message, ShareMessage):
                 self._shares[message.sender] = share_from_message(message)
@@ -132,15 +134,15 @@ class InputGate:
                 del self._last_seq[seq_key]
 
     def deliver_shares(self, stamp_ns: int | None, senders: set[str] | None, wait: float = 0.0,
-                       sensors_ns: int | None = None) -> set[str]:
+                       sensors_ns: int | None = None, wait_for_shares: bool = True) -> set[str]:
         """Make the held shares stamped `stamp_ns` from `senders` (None: from anyone) this agent's latest, and
-        drop every other held share that old. With `wait` > 0, first wait up to that many seconds for all of
-        `senders`, and for this vessel's sensors stamped `sensors_ns`, to arrive (lockstep: the network may
-        bring a tick's messages in any order). Returns the senders still missing."""
+        drop every other held share that old. With `wait` > 0, first wait up to that many seconds for this
+        vessel's sensors stamped `sensors_ns` and (if `wait_for_shares`) for all of `senders` to arrive: the
+        network may bring a tick's messages in any order. Returns the senders still missing."""
         deadline = time.monotonic() + wait
         with self._arrival:
             def missing_now() -> set[str]:
-                if stamp_ns is None or senders is None:
+                if stamp_ns is None or senders is None or not wait_for_shares:
                     return set()
                 return {j for j in senders if (j, stamp_ns) not in self._held}
 
@@ -156,14 +158,15 @@ class InputGate:
                 self.rejected["sensors_missing"] += 1
             if stamp_ns is None:
                 return missing
+            missing = {j for j in senders or () if (j, stamp_ns) not in self._held}
+            if missing and wait_for_shares:
+                self.rejected["shares_missing"] += len(missing)
             for (sender, stamp), share in list(self._held.items()):
                 if stamp == stamp_ns and (senders is None or sender in senders):
                     self._shares[sender] = share
                 if stamp <= stamp_ns:
                     del self._held[(sender, stamp)]
             self._delivered_through = max(stamp_ns, self._delivered_through or 0)
-            if missing:
-                self.rejected["shares_missing"] += len(missing)
         return missing
 
     def snapshot(self, now: float) -> TickInputs:

@@ -51,13 +51,15 @@ class McapLog:
         """Append one message; a pydantic message brings its own schema, a dict needs `schema`."""
         if self._closed:
             return
-        if isinstance(message, BaseModel):
-            data = message.model_dump_json().encode()
-            name, body = schema_name or type(message).__name__, schema or type(message).model_json_schema()
-        else:
-            data = json.dumps(message).encode()
-            name, body = schema_name or topic, schema or {"type": "object"}
-        channel = self.channel(topic, name, body)
+        model = isinstance(message, BaseModel)
+        data = message.model_dump_json().encode() if model else json.dumps(message).encode()
+        channel = self._channels.get(topic)
+        if channel is None:  # a schema is made once per topic: generating one costs milliseconds
+            if model:
+                name, body = schema_name or type(message).__name__, schema or type(message).model_json_schema()
+            else:
+                name, body = schema_name or topic, schema or {"type": "object"}
+            channel = self.channel(topic, name, body)
         self._writer.add_message(channel_id=channel, log_time=log_time_ns,
                                  publish_time=publish_time_ns if publish_time_ns is not None else log_time_ns,
                                  data=data, sequence=self._sequence[topic])

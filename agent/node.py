@@ -122,7 +122,15 @@ class AgentNode:
 
     # ----- callbacks: hand over and return -----
     def _on_input(self, sample) -> None:
-        self.gate.offer(str(sample.key_expr), sample.payload.to_bytes(), self.now())
+        self.gate.offer(str(sample.key_expr), sample.payload.to_bytes(), self._input_time())
+
+    def _input_time(self) -> float | None:
+        """The time to judge an input's stamp by; None on sim time before the first clock (nothing to judge
+        by yet: an agent started mid-mission gets its first tick's sensors before that tick's clock)."""
+        if self.settings.clock == "sim":
+            with self._clock_lock:
+                return self._sim_time
+        return time.time()
 
     def _on_clock(self, sample) -> None:
         message, _ = decode(Clock, sample.payload.to_bytes())
@@ -174,6 +182,11 @@ class AgentNode:
                             self._heartbeat(publishers)
                         continue
                     self._sim_tick.clear()
+                    if not self._in_world():
+                        # The sim says this vessel is not (or no longer) in the world: no tick, and the shares
+                        # held for that tick are dropped, not hoarded.
+                        self.gate.deliver_shares(self._clock.previous_ns, set())
+                        continue
                 else:
                     deadline += period
                     delay = deadline - time.monotonic()
@@ -190,24 +203,31 @@ class AgentNode:
         if self.log is not None:
             self.log.close()
 
+    def _in_world(self) -> bool:
+        with self._clock_lock:
+            clock = self._clock
+        return clock is None or clock.vessels is None or self.id in clock.vessels
+
     def _heartbeat(self, publishers) -> None:
         """Before the first sim tick: a status that says who this agent sees, so that the sim bridge starts
         only once the fleet's links are up (and no tick's messages fall into a gap)."""
         publishers["status"].put(encode(Status(
             stamp_ns=nanoseconds(self.now()), seq=self._next("status"), sender=self.id, phase=0.0,
-            command=(0.0, 0.0), peers=sorted(self.live_peers))))
+            command=(0.0, 0.0), peers=sorted(self.live_peers), ticked=False)))
 
     def _deliver_shares(self) -> None:
-        """Sim time: take the shares of the tick before that the sim's radio delivers to this vessel; in
-        lockstep, first wait (bounded) for them and for this tick's own sensors."""
+        """Sim time: take the shares of the tick before that the sim's radio delivers to this vessel, once this
+        tick's own sensors are in; in lockstep, first wait (bounded) for those shares too."""
         with self._clock_lock:
             clock = self._clock
         if clock is None:
             return
-        wait = self.settings.share_wait if clock.lockstep else 0.0
+        # In real time only this tick's own sensors are worth a short wait (they were published just before
+        # the clock); a late share is the radio's loss, as it would be at sea.
+        wait = self.settings.share_wait if clock.lockstep else 0.25 * self.settings.agent.dt
         sensed = clock.vessels is not None and self.id in clock.vessels
         self.gate.deliver_shares(clock.previous_ns, clock.delivered_to(self.id), wait,
-                                 clock.stamp_ns if sensed else None)
+                                 clock.stamp_ns if sensed else None, wait_for_shares=clock.lockstep)
 
     def _tick(self, publishers) -> None:
         if self.settings.clock == "sim":

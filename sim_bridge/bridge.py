@@ -59,10 +59,15 @@ class SimBridge:
         self.watchdog_stops = 0
         self.rejected = 0
         self.ticks = 0
+        self.loop_seconds = 0.0       # wall time from tick 0 to the end (after the agents' start-up)
         self.stopping = threading.Event()
         self._lock = threading.Lock()
         self._arrived = threading.Condition(self._lock)
         self._seq: dict[str, int] = {}
+        # Sensor-to-command latency: wall time from publishing a tick's sensors to each agent's command.
+        self._tick_stamp: int | None = None
+        self._tick_sent = 0.0
+        self._latency: dict[str, float] = {}
         self.log = None
         if settings.log:
             from agent.mcap_log import McapLog
@@ -71,22 +76,28 @@ class SimBridge:
 
     # ----- callbacks -----
     def _on_command(self, sample) -> None:
-        self._keep(sample, Cmd, self.commands)
+        arrived = time.monotonic()
+        message = self._keep(sample, Cmd, self.commands)
+        if message is not None:
+            with self._lock:
+                if message.stamp_ns == self._tick_stamp and message.sender not in self._latency:
+                    self._latency[message.sender] = arrived - self._tick_sent
 
     def _on_status(self, sample) -> None:
         self._keep(sample, Status, self.statuses)
 
-    def _keep(self, sample, model, latest: dict) -> None:
+    def _keep(self, sample, model, latest: dict):
         vessel = vessel_of(str(sample.key_expr))
         message, _ = decode(model, sample.payload.to_bytes())
         with self._arrived:
             if message is None or message.sender != vessel:
                 self.rejected += 1
-                return
+                return None
             previous = latest.get(vessel)
             if previous is None or message.stamp_ns >= previous.stamp_ns:
                 latest[vessel] = message
             self._arrived.notify_all()
+        return message
 
     def _on_liveliness(self, sample) -> None:
         import zenoh
@@ -110,7 +121,7 @@ class SimBridge:
             subscribers = [session.declare_subscriber(every("cmd"), self._on_command),
                            session.declare_subscriber(every("status"), self._on_status)]
             watcher = session.liveliness().declare_subscriber(every(LIVELINESS), self._on_liveliness, history=True)
-            start = time.monotonic()
+            start = self.started = time.monotonic()
             previous_live: list[str] = []
             previous_stamp: int | None = None
             for k in range(steps):
@@ -118,18 +129,25 @@ class SimBridge:
                     break
                 now, stamp, live = self.world.time, self.world.time_ns, self.world.live()
                 joined = set(live) - set(previous_live)
-                if joined and self.settings.mode == "lockstep":
+                if joined and (k == 0 or self.settings.mode == "lockstep"):
                     self._wait_for_agents(joined)
+                with self._lock:
+                    self._tick_stamp, self._tick_sent, self._latency = stamp, time.monotonic(), {}
                 self._publish_sensors(session, stamp)
                 session.put(CLOCK_KEY, encode(self._clock(k, stamp, previous_stamp, live, joined)))
                 if self.settings.mode == "lockstep":
                     self._wait_for_answers(stamp)
                 else:
                     self.stopping.wait(max(0.0, start + (k + 1) * self.scenario.world.dt - time.monotonic()))
-                self._log_truth(stamp)
+                self._log_tick(stamp)
                 self.world.step(self._commands_now(now))
                 self.ticks += 1
                 previous_live, previous_stamp = live, stamp
+            self.loop_seconds = time.monotonic() - start
+            if self.log is not None:
+                self.log.log("/bridge/summary", {
+                    "ticks": self.ticks, "loop_seconds": self.loop_seconds, "missed_commands": self.missed_commands,
+                    "watchdog_stops": self.watchdog_stops, "refused": self.rejected}, self.world.time_ns)
             for subscriber in subscribers:
                 subscriber.undeclare()
             watcher.undeclare()
@@ -185,8 +203,9 @@ class SimBridge:
         deadline = time.monotonic() + self.settings.command_timeout
         with self._arrived:
             while not self.stopping.is_set():
-                waiting = [v for v in self.world.live() if v in self.alive and not all(
-                    v in got and got[v].stamp_ns >= stamp for got in (self.commands, self.statuses))]
+                waiting = [v for v in self.world.live() if v in self.alive and not (
+                    all(v in got and got[v].stamp_ns >= stamp for got in (self.commands, self.statuses))
+                    and self.statuses[v].ticked)]
                 if not waiting:
                     return
                 remaining = deadline - time.monotonic()
@@ -207,9 +226,12 @@ class SimBridge:
                     commands[vessel] = Command(message.surge, message.yaw_rate)
         return commands
 
-    def _log_truth(self, stamp: int) -> None:
+    def _log_tick(self, stamp: int) -> None:
         if self.log is None:
             return
+        with self._lock:
+            latency = {v: round(value * 1e3, 4) for v, value in self._latency.items()}
+        self.log.log("/bridge/command_latency", {"milliseconds": latency}, stamp)
         truth = self.world.truth()
         self.log.log("/truth", {
             "time": truth.time,
@@ -247,6 +269,10 @@ def main(argv: list[str] | None = None) -> int:
     signal.signal(signal.SIGINT, stop)
     signal.signal(signal.SIGTERM, stop)
     bridge.run()
+    simulated = bridge.ticks * scenario.world.dt
+    factor = simulated / bridge.loop_seconds if bridge.loop_seconds > 0 else float("nan")
     print(f"usv-sim: {bridge.ticks} ticks, {bridge.missed_commands} missed commands, "
-          f"{bridge.watchdog_stops} watchdog stops, {bridge.rejected} refused", file=sys.stderr)
+          f"{bridge.watchdog_stops} watchdog stops, {bridge.rejected} refused; "
+          f"{simulated:.1f} s simulated in {bridge.loop_seconds:.2f} s of wall time ({factor:.1f}x real time)",
+          file=sys.stderr)
     return 0

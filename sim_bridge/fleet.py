@@ -35,7 +35,8 @@ def free_port() -> int:
 
 
 class Fleet:
-    """The processes of one simulated mission on loopback: the sim bridge (lockstep) and one agent per vessel.
+    """The processes of one simulated mission on loopback: the sim bridge (lockstep by default, or real time)
+    and one agent per vessel.
 
     `run()` starts the bridge and the agents of the vessels there at the start, then follows the sim clock:
     it starts a joining vessel's agent when the sim reaches its `join_time` (the bridge waits for it), and
@@ -44,13 +45,14 @@ class Fleet:
     caller act during the mission (tests kill an agent with it).
     """
 
-    def __init__(self, scenario_path: Path, variant: str | None, out: Path, seed: int | None = None) -> None:
+    def __init__(self, scenario_path: Path, variant: str | None, out: Path, seed: int | None = None,
+                 mode: str = "lockstep") -> None:
         self.name, self.scenario = select_scenario(scenario_path, variant)
         self.folder = out / f"{scenario_path.stem}-{self.name}-{datetime.now(timezone.utc):%Y%m%dT%H%M%S%f}"
         self.folder.mkdir(parents=True, exist_ok=False)
         self.bridge_port = free_port()
         (self.folder / "bridge.yaml").write_text(yaml.safe_dump({
-            "mode": "lockstep", "zenoh": {"listen": [f"tcp/127.0.0.1:{self.bridge_port}"]},
+            "mode": mode, "zenoh": {"listen": [f"tcp/127.0.0.1:{self.bridge_port}"]},
             "log": str(self.folder / "sim.mcap")}))
         self.bridge_cmd = [sys.executable, "-m", "sim_bridge", "--scenario", str(scenario_path), "--variant",
                            self.name, "--config", str(self.folder / "bridge.yaml")]

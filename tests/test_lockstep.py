@@ -59,7 +59,8 @@ def test_table_two_over_zenoh_equals_the_in_process_runner(tmp_path):
         for n, i in enumerate(trace.vessels):
             np.testing.assert_allclose(log["truth"][stamp]["vessels"][i]["position"], trace.positions[k, n],
                                        rtol=0, atol=1e-9)
-            np.testing.assert_allclose(log["cmd"][i][stamp], trace.commands[k, n], rtol=0, atol=1e-9)
+            np.testing.assert_allclose(log["cmd"][i][stamp], trace.commands[k, n], rtol=0, atol=1e-9,
+                                           err_msg=f"vessel {i} at {stamp * 1e-9:.1f} s")
             np.testing.assert_allclose(log["target"][i][stamp], trace.estimates[k, n], rtol=0, atol=1e-9)
             relative = log["relative"][i][stamp]
             expected = {j: trace.relative[k, n, m] for m, j in enumerate(trace.vessels)
@@ -99,7 +100,8 @@ def test_scheduled_leave_and_join_over_zenoh_equal_the_runner_and_respace(tmp_pa
             np.testing.assert_allclose(log["truth"][stamp]["vessels"][i]["position"], trace.positions[k, n],
                                        rtol=0, atol=1e-9)
             if stamp in log["cmd"][i]:
-                np.testing.assert_allclose(log["cmd"][i][stamp], trace.commands[k, n], rtol=0, atol=1e-9)
+                np.testing.assert_allclose(log["cmd"][i][stamp], trace.commands[k, n], rtol=0, atol=1e-9,
+                                           err_msg=f"vessel {i} at {stamp * 1e-9:.1f} s")
     last = log["truth"][stamps[-1]]
     assert sorted(last["vessels"]) == final
     positions = np.array([last["vessels"][i]["position"] for i in final])

@@ -21,6 +21,8 @@ SUBCOMMANDS = {
     "bench": ("sim_bridge.lab.bench", "per-update cost of each estimator vs filterpy's KalmanFilter"),
     "scenario": ("sim_bridge.lab.scenario_cmd", "scenario files' Monte Carlo vs the paper's Tables II-IV"),
     "fleet-bench": ("sim_bridge.lab.fleet_bench", "Table II Monte Carlo wall time, tick cost by fleet size"),
+    "runtime-bench": ("sim_bridge.lab.runtime_bench",
+                      "Zenoh runtime: sensor-to-command latency, lockstep real-time factor, memory"),
 }
 
 
