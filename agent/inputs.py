@@ -141,8 +141,8 @@ class InputGate:
         network may bring a tick's messages in any order. Returns the senders still missing."""
         deadline = time.monotonic() + wait
         with self._arrival:
-            def missing_now() -> set[str]:
-                if stamp_ns is None or senders is None or not wait_for_shares:
+            def absent() -> set[str]:
+                if stamp_ns is None or senders is None:
                     return set()
                 return {j for j in senders if (j, stamp_ns) not in self._held}
 
@@ -150,15 +150,16 @@ class InputGate:
                 return sensors_ns is None or all(
                     topic in self._latest and self._latest[topic].stamp_ns >= sensors_ns for topic in OWN_TOPICS)
 
-            missing = missing_now()
-            while (missing or not sensors_in()) and (remaining := deadline - time.monotonic()) > 0:
+            def ready() -> bool:
+                return sensors_in() and not (wait_for_shares and absent())
+
+            while not ready() and (remaining := deadline - time.monotonic()) > 0:
                 self._arrival.wait(remaining)
-                missing = missing_now()
             if wait > 0 and not sensors_in():
                 self.rejected["sensors_missing"] += 1
+            missing = absent()
             if stamp_ns is None:
                 return missing
-            missing = {j for j in senders or () if (j, stamp_ns) not in self._held}
             if missing and wait_for_shares:
                 self.rejected["shares_missing"] += len(missing)
             for (sender, stamp), share in list(self._held.items()):

@@ -5,7 +5,8 @@ callbacks only hand payloads to the `InputGate` (no Zenoh calls, no blocking). T
 (one tick per `sim/clock` message) or on a monotonic 10 Hz timer whose overruns are counted; each tick
 takes the gate's snapshot, calls the pure core, and publishes the share, the command (express, real-time
 priority) and the status. On sim time the clock message also says which neighbours' shares of the tick
-before the simulated radio delivers; in lockstep the tick waits (bounded) for those to arrive. Neighbours are discovered and forgotten through their liveliness tokens.
+before the simulated radio delivers; in lockstep the tick waits (bounded) for those to arrive. Neighbours
+are discovered and forgotten through their liveliness tokens.
 SIGINT and SIGTERM stop it cleanly.
 """
 
@@ -90,8 +91,7 @@ class AgentNode:
         self.overruns = 0
         self.stopping = threading.Event()
         self._clock_lock = threading.Lock()
-        self._sim_time: float | None = None
-        self._clock: Clock | None = None
+        self._clock: Clock | None = None   # the newest sim/clock message
         self._sim_tick = threading.Event()
         self._seq = {"cmd": 0, "share": 0, "status": 0}
         self.log = None
@@ -115,22 +115,24 @@ class AgentNode:
 
     # ----- clock -----
     def now(self) -> float:
-        if self.settings.clock == "sim":
-            with self._clock_lock:
-                return self._sim_time if self._sim_time is not None else 0.0
-        return time.time()
-
-    # ----- callbacks: hand over and return -----
-    def _on_input(self, sample) -> None:
-        self.gate.offer(str(sample.key_expr), sample.payload.to_bytes(), self._input_time())
+        current = self._input_time()
+        return 0.0 if current is None else current
 
     def _input_time(self) -> float | None:
         """The time to judge an input's stamp by; None on sim time before the first clock (nothing to judge
         by yet: an agent started mid-mission gets its first tick's sensors before that tick's clock)."""
         if self.settings.clock == "sim":
-            with self._clock_lock:
-                return self._sim_time
+            clock = self._latest_clock()
+            return None if clock is None else seconds(clock.stamp_ns)
         return time.time()
+
+    def _latest_clock(self) -> Clock | None:
+        with self._clock_lock:
+            return self._clock
+
+    # ----- callbacks: hand over and return -----
+    def _on_input(self, sample) -> None:
+        self.gate.offer(str(sample.key_expr), sample.payload.to_bytes(), self._input_time())
 
     def _on_clock(self, sample) -> None:
         message, _ = decode(Clock, sample.payload.to_bytes())
@@ -138,9 +140,8 @@ class AgentNode:
             self.gate.rejected["malformed_clock"] += 1
             return
         with self._clock_lock:
-            if self._sim_time is not None and seconds(message.stamp_ns) <= self._sim_time:
+            if self._clock is not None and message.stamp_ns <= self._clock.stamp_ns:
                 return
-            self._sim_time = seconds(message.stamp_ns)
             self._clock = message
         self._sim_tick.set()
 
@@ -176,16 +177,18 @@ class AgentNode:
             period = self.settings.agent.dt
             deadline = time.monotonic()
             while not self.stopping.is_set() and (max_ticks is None or self.ticks < max_ticks):
+                clock = None
                 if self.settings.clock == "sim":
                     if not self._sim_tick.wait(timeout=0.1):
                         if self.ticks == 0:
                             self._heartbeat(publishers)
                         continue
                     self._sim_tick.clear()
-                    if not self._in_world():
+                    clock = self._latest_clock()
+                    if clock.vessels is not None and self.id not in clock.vessels:
                         # The sim says this vessel is not (or no longer) in the world: no tick, and the shares
                         # held for that tick are dropped, not hoarded.
-                        self.gate.deliver_shares(self._clock.previous_ns, set())
+                        self.gate.deliver_shares(clock.previous_ns, set())
                         continue
                 else:
                     deadline += period
@@ -195,18 +198,13 @@ class AgentNode:
                     else:
                         self.overruns += 1
                         deadline = time.monotonic()  # do not try to catch up a backlog of ticks
-                self._tick(publishers)
+                self._tick(publishers, clock)
             token.undeclare()
             watcher.undeclare()
             for subscriber in subscribers:
                 subscriber.undeclare()
         if self.log is not None:
             self.log.close()
-
-    def _in_world(self) -> bool:
-        with self._clock_lock:
-            clock = self._clock
-        return clock is None or clock.vessels is None or self.id in clock.vessels
 
     def _heartbeat(self, publishers) -> None:
         """Before the first sim tick: a status that says who this agent sees, so that the sim bridge starts
@@ -215,13 +213,9 @@ class AgentNode:
             stamp_ns=nanoseconds(self.now()), seq=self._next("status"), sender=self.id, phase=0.0,
             command=(0.0, 0.0), peers=sorted(self.live_peers), ticked=False)))
 
-    def _deliver_shares(self) -> None:
+    def _deliver_shares(self, clock: Clock) -> None:
         """Sim time: take the shares of the tick before that the sim's radio delivers to this vessel, once this
         tick's own sensors are in; in lockstep, first wait (bounded) for those shares too."""
-        with self._clock_lock:
-            clock = self._clock
-        if clock is None:
-            return
         # In real time only this tick's own sensors are worth a short wait (they were published just before
         # the clock); a late share is the radio's loss, as it would be at sea.
         wait = self.settings.share_wait if clock.lockstep else 0.25 * self.settings.agent.dt
@@ -229,10 +223,11 @@ class AgentNode:
         self.gate.deliver_shares(clock.previous_ns, clock.delivered_to(self.id), wait,
                                  clock.stamp_ns if sensed else None, wait_for_shares=clock.lockstep)
 
-    def _tick(self, publishers) -> None:
-        if self.settings.clock == "sim":
-            self._deliver_shares()
-        now = self.now()
+    def _tick(self, publishers, clock: Clock | None = None) -> None:
+        """One tick: on sim time `clock` is the sim/clock message it answers, on wall time None."""
+        if clock is not None:
+            self._deliver_shares(clock)
+        now = self.now() if clock is None else seconds(clock.stamp_ns)
         inputs = self.gate.snapshot(now)
         output = self.core.tick(inputs)
         stamp = nanoseconds(now)

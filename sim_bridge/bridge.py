@@ -121,7 +121,7 @@ class SimBridge:
             subscribers = [session.declare_subscriber(every("cmd"), self._on_command),
                            session.declare_subscriber(every("status"), self._on_status)]
             watcher = session.liveliness().declare_subscriber(every(LIVELINESS), self._on_liveliness, history=True)
-            start = self.started = time.monotonic()
+            start = time.monotonic()
             previous_live: list[str] = []
             previous_stamp: int | None = None
             for k in range(steps):

@@ -70,7 +70,7 @@ class Fleet:
             }))
         self.bridge: subprocess.Popen | None = None
         self.agents: dict[str, subprocess.Popen] = {}
-        self.killed: set[str] = set()
+        self.killed: dict[str, float] = {}        # vessel -> sim time (s) when its agent was killed
         self.peak_memory: dict[str, float] = {}   # MB of resident memory at its highest, per process
         self._logs: list = []
         self._sim_time = -math.inf
@@ -88,22 +88,20 @@ class Fleet:
         """SIGKILL a vessel's agent: no goodbye, its liveliness token vanishes with its session."""
         self._note_memory()
         self.agents[vessel].kill()
-        self.killed.add(vessel)
+        self.killed[vessel] = self._sim_time
 
     def run(self, timeout: float = 600.0, on_time=None) -> Path:
         import zenoh
 
         from agent.contract import CLOCK_KEY, Clock, decode, seconds
+        from agent.node import ZenohSettings, zenoh_config
 
         def on_clock(sample) -> None:
             message, _ = decode(Clock, sample.payload.to_bytes())
             if message is not None:
                 self._sim_time = max(self._sim_time, seconds(message.stamp_ns))
 
-        config = zenoh.Config()
-        config.insert_json5("mode", '"peer"')
-        config.insert_json5("scouting/multicast/enabled", "false")
-        config.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{self.bridge_port}"]))
+        config = zenoh_config(ZenohSettings(connect=[f"tcp/127.0.0.1:{self.bridge_port}"]))
         self.bridge = self._start("bridge", self.bridge_cmd)
         deadline = time.monotonic() + timeout
         try:

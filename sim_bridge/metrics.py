@@ -40,6 +40,14 @@ def settling_time(time: np.ndarray, radii: np.ndarray, radius: float, band: floa
     return float(time[0] if len(outside) == 0 else time[outside[-1] + 1])
 
 
+def spacing_error(positions: np.ndarray, centre: np.ndarray) -> float:
+    """Largest departure (rad) of the angular gaps between the vessels around `centre` from the uniform
+    2 pi / n: zero when they are evenly spaced on the circle."""
+    angles = np.sort(np.arctan2(*(np.asarray(positions) - centre).T[::-1]))
+    gaps = np.diff(np.append(angles, angles[0] + 2 * math.pi))
+    return float(np.max(np.abs(gaps - 2 * math.pi / len(angles))))
+
+
 def nan_mean(values: np.ndarray) -> float:
     finite = values[np.isfinite(values)]
     return float(finite.mean()) if len(finite) else math.nan

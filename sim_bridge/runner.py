@@ -162,7 +162,8 @@ def _empty_trace(scenario: Scenario, seed: int, ids: list[str], steps: int) -> R
         occluded=np.zeros((steps, n), dtype=bool),
         e_ij=nan(steps, np.nan), e_io=nan(steps, np.nan), e_io_velocity=nan(steps, np.nan),
         e_c=nan(steps, np.nan), radii=nan((steps, n), np.nan), commands=nan((steps, n, 2), np.nan),
-        estimates=nan((steps, n, 4), np.nan), relative=nan((steps, n, n, 2), np.nan), tick_seconds=nan((steps, n), np.nan),
+        estimates=nan((steps, n, 4), np.nan), relative=nan((steps, n, n, 2), np.nan),
+        tick_seconds=nan((steps, n), np.nan),
     )
 
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Literal
 
+import yaml
 from pydantic import Field, model_validator
 
 from agent.params import (
@@ -97,6 +98,16 @@ def load_scenarios(path: str | Path) -> tuple[ScenarioFile, dict[str, Scenario]]
         where = f"{path} (variant '{name}')" if spec.variants else str(path)
         scenarios[name] = parse_mapping(Scenario, merged, where)
     return spec, scenarios
+
+
+def with_duration(path: str | Path, folder: str | Path, duration: float) -> Path:
+    """A copy of scenario file `path` in `folder` whose base lasts `duration` seconds (shorter test and
+    benchmark runs of a shipped scenario)."""
+    data = read_yaml(path)
+    data["base"]["duration"] = duration
+    copy = Path(folder) / Path(path).name
+    copy.write_text(yaml.safe_dump(data))
+    return copy
 
 
 def select_scenario(path: str | Path, variant: str | None = None) -> tuple[str, Scenario]:

@@ -8,24 +8,16 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import yaml
 
 pytest.importorskip("zenoh")
 
 from agent.mcap_log import read_messages  # noqa: E402
 from sim_bridge.fleet import launch  # noqa: E402
 from sim_bridge.runner import run  # noqa: E402
-from sim_bridge.scenario import select_scenario  # noqa: E402
+from sim_bridge.metrics import spacing_error  # noqa: E402
+from sim_bridge.scenario import select_scenario, with_duration  # noqa: E402
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs" / "scenarios"
-
-
-def short_copy(tmp_path: Path, name: str, duration: float) -> Path:
-    data = yaml.safe_load((CONFIGS / name).read_text())
-    data["base"]["duration"] = duration
-    path = tmp_path / name
-    path.write_text(yaml.safe_dump(data))
-    return path
 
 
 def logged(folder: Path, vessels: list[str]) -> dict:
@@ -45,7 +37,7 @@ def logged(folder: Path, vessels: list[str]) -> dict:
 
 
 def test_table_two_over_zenoh_equals_the_in_process_runner(tmp_path):
-    path = short_copy(tmp_path, "table2_estimators.yaml", 20.0)
+    path = with_duration(CONFIGS / "table2_estimators.yaml", tmp_path, 20.0)
     _, scenario = select_scenario(path, "mckf")
     trace = run(scenario)
     folder = launch(path, "mckf", tmp_path / "runs", seed=None)
@@ -70,13 +62,6 @@ def test_table_two_over_zenoh_equals_the_in_process_runner(tmp_path):
                 np.testing.assert_allclose(position, expected[j], rtol=0, atol=1e-9)
                 compared += 1
     assert compared > 0.9 * len(stamps) * 4 * 3   # every vessel estimated its three neighbours nearly all along
-
-
-def spacing_error(positions: np.ndarray, centre: np.ndarray) -> float:
-    """Largest departure (rad) of the angular gaps around `centre` from uniform spacing."""
-    angles = np.sort(np.arctan2(*(positions - centre).T[::-1]))
-    gaps = np.diff(np.append(angles, angles[0] + 2 * np.pi))
-    return float(np.max(np.abs(gaps - 2 * np.pi / len(angles))))
 
 
 # Vessel 4's agent dies by SIGKILL in the dropout run, so its log is unfinished; reading it warns, as it should.
@@ -110,7 +95,7 @@ def test_scheduled_leave_and_join_over_zenoh_equal_the_runner_and_respace(tmp_pa
 
 
 def test_an_agent_killed_mid_run_is_dropped_and_the_others_respace(tmp_path):
-    path = short_copy(tmp_path, "table2_estimators.yaml", 50.0)
+    path = with_duration(CONFIGS / "table2_estimators.yaml", tmp_path, 50.0)
     from sim_bridge.fleet import Fleet
 
     def kill_four(fleet, now):
@@ -124,9 +109,12 @@ def test_an_agent_killed_mid_run_is_dropped_and_the_others_respace(tmp_path):
     assert len(stamps) == 501                      # the bridge went on without vessel 4's agent
     bridge_log = (folder / "bridge.log").read_text()
     assert "watchdog stops" in bridge_log and " 0 watchdog stops" not in bridge_log   # vessel 4 was stopped
-    # Every other agent dropped vessel 4 from its estimates soon after the kill and kept the others.
+    # Every other agent dropped vessel 4 from its estimates within 5 s of the kill and kept the others. The
+    # kill lands when the launcher's poll sees 15 s, which in lockstep may be a few sim seconds later.
+    after = fleet.killed["4"] + 5.0
+    assert after < 25.0
     for i in ("1", "2", "3"):
-        late = [log["relative"][i][t] for t in stamps if t >= 20e9]
+        late = [log["relative"][i][t] for t in stamps if t >= after * 1e9]
         assert late and all("4" not in estimates for estimates in late)
         assert all(sorted(estimates) == sorted({"1", "2", "3"} - {i}) for estimates in late)
     last = log["truth"][stamps[-1]]

@@ -11,6 +11,7 @@ import pytest
 
 from agent.tick_io import TickInputs
 from agent.vessel import VesselAgent
+from sim_bridge.metrics import spacing_error
 from sim_bridge.runner import run
 from sim_bridge.scenario import Scenario, deep_merge, load_scenarios
 from sim_bridge.world import World, WorldConfig
@@ -55,12 +56,6 @@ def test_short_table_two_run_converges():
     assert np.nanmax(trace.e_io[last]) < 1.0
     assert np.nanmax(trace.e_ij[last]) < 1.0
     assert np.all(np.isfinite(trace.commands))
-
-
-def spacing_error(positions: np.ndarray, centre: np.ndarray) -> float:
-    angles = np.sort(np.arctan2(*(positions - centre).T[::-1]))
-    gaps = np.diff(np.append(angles, angles[0] + 2 * math.pi))
-    return float(np.max(np.abs(gaps - 2 * math.pi / len(angles))))
 
 
 @pytest.mark.parametrize("variant, before, after", [("dropout", 4, 3), ("join", 4, 5)])

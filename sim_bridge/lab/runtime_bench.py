@@ -27,10 +27,12 @@ from pathlib import Path
 import numpy as np
 
 from agent.mcap_log import read_messages
+from agent.node import ZenohSettings, zenoh_config
 from sim_bridge.fleet import Fleet, free_port
 from sim_bridge.lab import arguments
 from sim_bridge.lab.report import invocation, markdown_table
 from sim_bridge.lab.scenario_cmd import DEFAULT_DIR
+from sim_bridge.scenario import with_duration
 
 PAYLOAD_BYTES = 300     # about one Odometry or Cmd message
 
@@ -46,16 +48,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _session_config(listen: int | None = None, connect: int | None = None):
-    import zenoh
-
-    config = zenoh.Config()
-    config.insert_json5("mode", '"peer"')
-    config.insert_json5("scouting/multicast/enabled", "false")
-    if listen is not None:
-        config.insert_json5("listen/endpoints", json.dumps([f"tcp/127.0.0.1:{listen}"]))
-    if connect is not None:
-        config.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{connect}"]))
-    return config
+    """The agents' session settings (`zenoh_config`) on loopback."""
+    return zenoh_config(ZenohSettings(listen=[f"tcp/127.0.0.1:{listen}"] if listen is not None else [],
+                                      connect=[f"tcp/127.0.0.1:{connect}"] if connect is not None else []))
 
 
 def echo(port: int, seconds: float) -> None:
@@ -109,16 +104,6 @@ def bare_zenoh(pings: int) -> dict[str, float]:
             "round_trip_p99": float(np.percentile(round_trip, 99)), "samples": len(round_trip)}
 
 
-def _short_copy(path: Path, folder: Path, duration: float) -> Path:
-    import yaml
-
-    data = yaml.safe_load(path.read_text())
-    data["base"]["duration"] = duration
-    copy = folder / path.name
-    copy.write_text(yaml.safe_dump(data))
-    return copy
-
-
 def _bridge_records(folder: Path) -> tuple[list[float], dict]:
     latencies, summary = [], {}
     for topic, _, message in read_messages(folder / "sim.mcap"):
@@ -143,7 +128,7 @@ def run(args: argparse.Namespace) -> int:
             print(f"runtime-bench: bare Zenoh baseline, then {size} vessels in real time for {args.seconds:.0f} s",
                   file=sys.stderr)
             baseline = bare_zenoh(args.pings)
-            fleet = Fleet(_short_copy(scale, scratch, args.seconds), f"n{size}_r5", scratch / "runs", mode="realtime")
+            fleet = Fleet(with_duration(scale, scratch, args.seconds), f"n{size}_r5", scratch / "runs", mode="realtime")
             folder = fleet.run()
             latencies, summary = _bridge_records(folder)
             expected = size * summary.get("ticks", 0)
