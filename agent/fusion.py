@@ -14,17 +14,15 @@ each other.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 
 def covariance_intersection(a: np.ndarray, A: np.ndarray, b: np.ndarray, B: np.ndarray, weight: float = 0.5
                             ) -> tuple[np.ndarray, np.ndarray]:
     """Fuse (a, A) and (b, B) with weight w on the first; both covariances must be positive definite."""
-    A_inv, B_inv = np.linalg.inv(A), np.linalg.inv(B)
-    information = weight * A_inv + (1.0 - weight) * B_inv
-    P = np.linalg.inv(information)
-    x = P @ (weight * A_inv @ a + (1.0 - weight) * B_inv @ b)
-    return x, 0.5 * (P + P.T)
+    return covariance_intersection_weighted([(a, A), (b, B)], (weight, 1.0 - weight))
 
 
 def covariance_intersection_many(estimates: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
@@ -32,8 +30,25 @@ def covariance_intersection_many(estimates: list[tuple[np.ndarray, np.ndarray]])
 
     Equal weights make the result the same whichever vessel computes it from the same set, and the fused
     covariance is never smaller than the information average allows, whatever the correlations."""
-    weight = 1.0 / len(estimates)
-    information = sum(weight * np.linalg.inv(P) for _, P in estimates)
-    P = np.linalg.inv(information)
-    x = P @ sum(weight * np.linalg.inv(C) @ c for c, C in estimates)
+    return covariance_intersection_weighted(estimates, [1.0 / len(estimates)] * len(estimates))
+
+
+def covariance_intersection_weighted(estimates: list[tuple[np.ndarray, np.ndarray]], weights
+                                     ) -> tuple[np.ndarray, np.ndarray]:
+    """P^-1 = sum w_k P_k^-1, x = P sum w_k P_k^-1 x_k (weights summing to one)."""
+    information = [w * inverse(np.asarray(C, dtype=float)) for w, (_, C) in zip(weights, estimates)]
+    P = inverse(sum(information))
+    x = P @ sum(Y @ np.asarray(c, dtype=float) for Y, (c, _) in zip(information, estimates))
     return x, 0.5 * (P + P.T)
+
+
+def inverse(matrix: np.ndarray) -> np.ndarray:
+    """The inverse of a square matrix; 2x2 in closed form (at this size numpy's call overhead is most of
+    the cost). Raises numpy.linalg.LinAlgError for a singular or non-finite matrix."""
+    if matrix.shape != (2, 2):
+        return np.linalg.inv(matrix)
+    (a, b), (c, d) = matrix.tolist()
+    determinant = a * d - b * c
+    if determinant == 0.0 or not math.isfinite(determinant):
+        raise np.linalg.LinAlgError("singular or non-finite 2x2 matrix")
+    return np.array([[d, -b], [-c, a]]) / determinant

@@ -47,12 +47,14 @@ class McapLog:
         return self._channels[topic]
 
     def log(self, topic: str, message: BaseModel | dict, log_time_ns: int, publish_time_ns: int | None = None,
-            schema_name: str | None = None, schema: dict | None = None) -> None:
-        """Append one message; a pydantic message brings its own schema, a dict needs `schema`."""
+            schema_name: str | None = None, schema: dict | None = None, data: bytes | None = None) -> None:
+        """Append one message; a pydantic message brings its own schema, a dict needs `schema`. `data` is the
+        message already encoded as JSON (what went on the wire), to save encoding it twice."""
         if self._closed:
             return
         model = isinstance(message, BaseModel)
-        data = message.model_dump_json().encode() if model else json.dumps(message).encode()
+        if data is None:
+            data = message.model_dump_json().encode() if model else json.dumps(message).encode()
         channel = self._channels.get(topic)
         if channel is None:  # a schema is made once per topic: generating one costs milliseconds
             if model:

@@ -168,14 +168,21 @@ class AgentNode:
                 subscribers.append(session.declare_subscriber(CLOCK_KEY, self._on_clock))
             token = session.liveliness().declare_token(key(self.id, LIVELINESS))
             watcher = session.liveliness().declare_subscriber(every(LIVELINESS), self._on_liveliness, history=True)
+            # On sim time nothing may be dropped by Zenoh (the simulated radio decides what is lost, and
+            # lockstep waits for every message); at sea a late command or share is worth less than a new one.
+            congestion = (zenoh.CongestionControl.BLOCK if self.settings.clock == "sim"
+                          else zenoh.CongestionControl.DROP)
             publishers = {
-                "cmd": session.declare_publisher(key(self.id, "cmd"), express=True,
-                                                 priority=zenoh.Priority.REAL_TIME),
-                "share": session.declare_publisher(key(self.id, "share")),
-                "status": session.declare_publisher(key(self.id, "status")),
+                "cmd": session.declare_publisher(key(self.id, "cmd"), express=True, priority=zenoh.Priority.REAL_TIME,
+                                                 congestion_control=congestion),
+                # Our own subscription to every vessel's share would hand ours straight back to us.
+                "share": session.declare_publisher(key(self.id, "share"), congestion_control=congestion,
+                                                   allowed_destination=zenoh.Locality.REMOTE),
+                "status": session.declare_publisher(key(self.id, "status"), congestion_control=congestion),
             }
             period = self.settings.agent.dt
-            deadline = time.monotonic()
+            deadline = started = time.monotonic()
+            cpu_started = time.process_time()
             while not self.stopping.is_set() and (max_ticks is None or self.ticks < max_ticks):
                 clock = None
                 if self.settings.clock == "sim":
@@ -198,13 +205,27 @@ class AgentNode:
                     else:
                         self.overruns += 1
                         deadline = time.monotonic()  # do not try to catch up a backlog of ticks
+                if self.ticks == 0:  # what the run costs from its first tick, not the wait before it
+                    started, cpu_started = time.monotonic(), time.process_time()
                 self._tick(publishers, clock)
+            self._log_summary(time.monotonic() - started, time.process_time() - cpu_started)
             token.undeclare()
             watcher.undeclare()
             for subscriber in subscribers:
                 subscriber.undeclare()
         if self.log is not None:
             self.log.close()
+
+    def _log_summary(self, wall_seconds: float, cpu_seconds: float) -> None:
+        """The run as a whole: what the process cost (all its threads, Zenoh's included) and what it refused."""
+        if self.log is None:
+            return
+        try:
+            self.log.log(f"/{self.id}/summary", {
+                "ticks": self.ticks, "overruns": self.overruns, "refused": dict(self.gate.rejected),
+                "loop_seconds": wall_seconds, "cpu_seconds": cpu_seconds}, nanoseconds(self.now()))
+        except Exception:  # noqa: BLE001  (the summary must not stop a clean shutdown)
+            self.log_errors += 1
 
     def _heartbeat(self, publishers) -> None:
         """Before the first sim tick: a status that says who this agent sees, so that the sim bridge starts
@@ -236,7 +257,8 @@ class AgentNode:
             publishers["share"].put(encode(message_from_share(output.share, self._next("share"))))
         command = Cmd(stamp_ns=stamp, seq=self._next("cmd"), sender=self.id, surge=output.command.surge,
                       yaw_rate=output.command.yaw_rate)
-        publishers["cmd"].put(encode(command))
+        wire = {"cmd": encode(command)}
+        publishers["cmd"].put(wire["cmd"])
         record = output.record
         health = dict(record.health if record is not None else {})
         health.update({f"rejected_{k}": v for k, v in self.gate.rejected.items()})
@@ -251,17 +273,18 @@ class AgentNode:
             else tuple(float(v) for v in record.target_state),
             health=health,
         )
-        publishers["status"].put(encode(status))
+        wire["status"] = encode(status)
+        publishers["status"].put(wire["status"])
         if self.log is not None:
             try:
-                self._log_tick(stamp, inputs, command, output, status)
+                self._log_tick(stamp, inputs, command, output, status, wire)
             except Exception as error:  # a full disk or a bad value must not stop the vessel's control
                 self.log_errors += 1
                 if self.log_errors == 1:
                     print(f"usv-agent {self.id}: logging failed: {type(error).__name__}: {error}", file=sys.stderr)
         self.ticks += 1
 
-    def _log_tick(self, stamp, inputs, command, output, status) -> None:
+    def _log_tick(self, stamp, inputs, command, output, status, wire: dict[str, bytes]) -> None:
         """What this tick received and decided; log time is the tick's (sim or wall) time."""
         received = {
             "odometry": None if inputs.odometry is None else {
@@ -273,8 +296,8 @@ class AgentNode:
             "obstacle_points": 0 if inputs.obstacle_points is None else len(inputs.obstacle_points),
         }
         self.log.log(f"/{self.id}/inputs", received, stamp)
-        self.log.log(key(self.id, "cmd"), command, stamp)
-        self.log.log(key(self.id, "status"), status, stamp)
+        self.log.log(key(self.id, "cmd"), command, stamp, data=wire["cmd"])
+        self.log.log(key(self.id, "status"), status, stamp, data=wire["status"])
         record = output.record
         if record is not None:
             self.log.log(f"/{self.id}/estimates", {

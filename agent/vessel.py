@@ -418,7 +418,7 @@ def _finite_vector(value, size: int) -> bool:
         array = np.asarray(value, dtype=float)
     except (TypeError, ValueError):
         return False
-    return array.shape == (size,) and bool(np.all(np.isfinite(array)))
+    return array.shape == (size,) and bool(np.isfinite(array).all())
 
 
 def _finite_matrix(value) -> bool:
@@ -426,7 +426,7 @@ def _finite_matrix(value) -> bool:
         array = np.asarray(value, dtype=float)
     except (TypeError, ValueError):
         return False
-    return array.shape == (2, 2) and bool(np.all(np.isfinite(array)))
+    return array.shape == (2, 2) and bool(np.isfinite(array).all())
 
 
 def _valid_share(share: object, receiver: str) -> bool:
@@ -439,7 +439,7 @@ def _valid_share(share: object, receiver: str) -> bool:
             and (share.target is None or (_finite_vector(share.target, 4)
                                           and share.target_covariance is not None
                                           and np.shape(share.target_covariance) == (4, 4)
-                                          and np.all(np.isfinite(share.target_covariance))))
+                                          and np.isfinite(share.target_covariance).all()))
             and isinstance(share.neighbours, Mapping) and _valid_pair_entry(share.neighbours.get(receiver)))
 
 

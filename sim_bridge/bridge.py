@@ -64,10 +64,12 @@ class SimBridge:
         self._lock = threading.Lock()
         self._arrived = threading.Condition(self._lock)
         self._seq: dict[str, int] = {}
+        self._publishers: dict[str, object] = {}
         # Sensor-to-command latency: wall time from publishing a tick's sensors to each agent's command.
         self._tick_stamp: int | None = None
         self._tick_sent = 0.0
         self._latency: dict[str, float] = {}
+        self._waiting: set[str] | None = None   # vessels the tick in progress still waits for
         self.log = None
         if settings.log:
             from agent.mcap_log import McapLog
@@ -96,7 +98,14 @@ class SimBridge:
             previous = latest.get(vessel)
             if previous is None or message.stamp_ns >= previous.stamp_ns:
                 latest[vessel] = message
-            self._arrived.notify_all()
+            # While a tick waits for its answers, wake it once, when the last one is in (fewer context
+            # switches per tick); otherwise on every message (start-up waits on heartbeats).
+            if self._waiting is None:
+                self._arrived.notify_all()
+            elif vessel in self._waiting and self._answered(vessel, self._tick_stamp):
+                self._waiting.discard(vessel)
+                if not self._waiting:
+                    self._arrived.notify_all()
         return message
 
     def _on_liveliness(self, sample) -> None:
@@ -121,7 +130,7 @@ class SimBridge:
             subscribers = [session.declare_subscriber(every("cmd"), self._on_command),
                            session.declare_subscriber(every("status"), self._on_status)]
             watcher = session.liveliness().declare_subscriber(every(LIVELINESS), self._on_liveliness, history=True)
-            start = time.monotonic()
+            start, cpu_start = time.monotonic(), time.process_time()
             previous_live: list[str] = []
             previous_stamp: int | None = None
             for k in range(steps):
@@ -131,10 +140,12 @@ class SimBridge:
                 joined = set(live) - set(previous_live)
                 if joined and (k == 0 or self.settings.mode == "lockstep"):
                     self._wait_for_agents(joined)
+                if k == 0:  # the clock of the loop starts once the agents are up
+                    start, cpu_start = time.monotonic(), time.process_time()
                 with self._lock:
                     self._tick_stamp, self._tick_sent, self._latency = stamp, time.monotonic(), {}
                 self._publish_sensors(session, stamp)
-                session.put(CLOCK_KEY, encode(self._clock(k, stamp, previous_stamp, live, joined)))
+                self._publisher(session, CLOCK_KEY).put(encode(self._clock(k, stamp, previous_stamp, live, joined)))
                 if self.settings.mode == "lockstep":
                     self._wait_for_answers(stamp)
                 else:
@@ -146,11 +157,12 @@ class SimBridge:
             self.loop_seconds = time.monotonic() - start
             if self.log is not None:
                 self.log.log("/bridge/summary", {
-                    "ticks": self.ticks, "loop_seconds": self.loop_seconds, "missed_commands": self.missed_commands,
+                    "ticks": self.ticks, "loop_seconds": self.loop_seconds,
+                    "cpu_seconds": time.process_time() - cpu_start, "missed_commands": self.missed_commands,
                     "watchdog_stops": self.watchdog_stops, "refused": self.rejected}, self.world.time_ns)
-            for subscriber in subscribers:
-                subscriber.undeclare()
-            watcher.undeclare()
+            for entity in [*subscribers, watcher, *self._publishers.values()]:
+                entity.undeclare()
+            self._publishers.clear()
         if self.log is not None:
             self.log.close()
 
@@ -184,35 +196,54 @@ class SimBridge:
     def _publish_sensors(self, session, stamp: int) -> None:
         for vessel, reading in self.world.sense().items():
             odometry = reading.odometry
-            session.put(key(vessel, "sensor/odom"), encode(Odometry(
-                stamp_ns=stamp, seq=self._next(vessel, "odom"), sender=vessel,
-                position=tuple(float(v) for v in odometry.position), heading=float(odometry.heading))))
-            session.put(key(vessel, "sensor/uwb"), encode(Ranges(
-                stamp_ns=stamp, seq=self._next(vessel, "uwb"), sender=vessel,
-                ranges={peer: float(r) for peer, r in reading.ranges.items()})))
             bearing = None if reading.bearing is None else tuple(float(v) for v in reading.bearing)
-            session.put(key(vessel, "sensor/bearing"), encode(Bearing(
-                stamp_ns=stamp, seq=self._next(vessel, "bearing"), sender=vessel, bearing=bearing)))
-            session.put(key(vessel, "sensor/sonar"), encode(Sonar(
-                stamp_ns=stamp, seq=self._next(vessel, "sonar"), sender=vessel,
-                points=[tuple(float(v) for v in p) for p in reading.obstacle_points])))
+            for topic, message in (
+                    ("sensor/odom", Odometry(stamp_ns=stamp, seq=self._next(vessel, "odom"), sender=vessel,
+                                             position=tuple(float(v) for v in odometry.position),
+                                             heading=float(odometry.heading))),
+                    ("sensor/uwb", Ranges(stamp_ns=stamp, seq=self._next(vessel, "uwb"), sender=vessel,
+                                          ranges={peer: float(r) for peer, r in reading.ranges.items()})),
+                    ("sensor/bearing", Bearing(stamp_ns=stamp, seq=self._next(vessel, "bearing"), sender=vessel,
+                                               bearing=bearing)),
+                    ("sensor/sonar", Sonar(stamp_ns=stamp, seq=self._next(vessel, "sonar"), sender=vessel,
+                                           points=[tuple(float(v) for v in p) for p in reading.obstacle_points]))):
+                self._publisher(session, key(vessel, topic)).put(encode(message))
+
+    def _publisher(self, session, key_expr: str):
+        """A declared publisher per key: a put on it skips the key's resolution a session.put repeats. It
+        blocks rather than drops when the link is congested: the world model decides what is lost."""
+        import zenoh
+
+        publisher = self._publishers.get(key_expr)
+        if publisher is None:
+            publisher = self._publishers[key_expr] = session.declare_publisher(
+                key_expr, congestion_control=zenoh.CongestionControl.BLOCK)
+        return publisher
 
     def _wait_for_answers(self, stamp: int) -> None:
         """Lockstep: wait for every live agent's command and status of this tick (the status comes after
         the agent's share, and says whether it shared)."""
         deadline = time.monotonic() + self.settings.command_timeout
         with self._arrived:
-            while not self.stopping.is_set():
-                waiting = [v for v in self.world.live() if v in self.alive and not (
-                    all(v in got and got[v].stamp_ns >= stamp for got in (self.commands, self.statuses))
-                    and self.statuses[v].ticked)]
-                if not waiting:
-                    return
-                remaining = deadline - time.monotonic()
-                if remaining <= 0:
-                    self.missed_commands += len(waiting)
-                    return
-                self._arrived.wait(remaining)
+            try:
+                while not self.stopping.is_set():
+                    waiting = {v for v in self.world.live() if v in self.alive and not self._answered(v, stamp)}
+                    if not waiting:
+                        return
+                    remaining = deadline - time.monotonic()
+                    if remaining <= 0:
+                        self.missed_commands += len(waiting)
+                        return
+                    self._waiting = waiting
+                    self._arrived.wait(remaining)
+            finally:
+                self._waiting = None
+
+    def _answered(self, vessel: str, stamp: int | None) -> bool:
+        """The vessel's command and (ticked) status of the tick stamped `stamp` are in; caller holds the lock."""
+        command, status = self.commands.get(vessel), self.statuses.get(vessel)
+        return (stamp is not None and command is not None and status is not None and status.ticked
+                and command.stamp_ns >= stamp and status.stamp_ns >= stamp)
 
     def _commands_now(self, now: float) -> dict[str, Command]:
         commands = {}

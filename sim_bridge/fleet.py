@@ -42,7 +42,8 @@ class Fleet:
     it starts a joining vessel's agent when the sim reaches its `join_time` (the bridge waits for it), and
     kills a leaving vessel's agent with SIGKILL at its `leave_time`, as a vessel lost at sea. When the
     bridge has finished, the agents get SIGTERM and finish their logs. `on_time(fleet, sim_seconds)` lets a
-    caller act during the mission (tests kill an agent with it).
+    caller act during the mission (tests kill an agent with it); it is called on each sim clock message, from
+    Zenoh's thread, so it must be quick and must not call Zenoh.
     """
 
     def __init__(self, scenario_path: Path, variant: str | None, out: Path, seed: int | None = None,
@@ -100,6 +101,9 @@ class Fleet:
             message, _ = decode(Clock, sample.payload.to_bytes())
             if message is not None:
                 self._sim_time = max(self._sim_time, seconds(message.stamp_ns))
+                if on_time is not None:
+                    # Here rather than in the polling loop: in lockstep the sim runs ahead of any poll.
+                    on_time(self, self._sim_time)
 
         config = zenoh_config(ZenohSettings(connect=[f"tcp/127.0.0.1:{self.bridge_port}"]))
         self.bridge = self._start("bridge", self.bridge_cmd)
@@ -107,6 +111,7 @@ class Fleet:
         try:
             with zenoh.open(config) as session:
                 session.declare_subscriber(CLOCK_KEY, on_clock)
+                self._wait_for_bridge(session, deadline)
                 dt = self.scenario.world.dt
                 pending = {v.id: v for v in self.scenario.world.vessels}
                 leaving = {v.id: v.leave_time for v in self.scenario.world.vessels if v.leave_time is not None}
@@ -122,13 +127,22 @@ class Fleet:
                     for vessel in [v for v, t in leaving.items() if now >= t - 1e-9 and v in self.agents]:
                         self.kill(vessel)
                         del leaving[vessel]
-                    if on_time is not None:
-                        on_time(self, now)
                     self._note_memory()
                     time.sleep(0.02)
         finally:
             self._stop()
         return self.folder
+
+    def _wait_for_bridge(self, session, deadline: float) -> None:
+        """Start no agent before this session reaches the bridge: Zenoh retries a connection with a growing
+        delay, and a launcher that connects late misses the sim clock of the mission's first seconds."""
+        while not list(session.info.peers_zid()):
+            if self.bridge.poll() is not None:
+                raise RuntimeError(f"the sim bridge exited with code {self.bridge.returncode}; "
+                                   f"see {self.folder / 'bridge.log'}")
+            if time.monotonic() > deadline:
+                raise TimeoutError("the launcher could not reach the sim bridge")
+            time.sleep(0.01)
 
     def _note_memory(self) -> None:
         for name, process in [("bridge", self.bridge), *((f"agent-{v}", p) for v, p in self.agents.items())]:

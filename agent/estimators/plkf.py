@@ -12,9 +12,6 @@ import numpy as np
 
 from agent.params import TargetEstimationParams
 
-# Pseudo-inverse cut-off, relative to the largest singular value: S in (25) is rank one in exact
-# arithmetic, and round-off leaves a second singular value near 1e-17 that must not be inverted.
-PINV_RCOND = 1e-9
 # A measured bearing whose norm is this far from 1 is not a direction: a sensor fault, not noise.
 BEARING_NORM_TOLERANCE = 0.5
 
@@ -56,7 +53,9 @@ def plkf_predict(x: np.ndarray, P: np.ndarray, A: np.ndarray, Q: np.ndarray,
 def plkf_update(x: np.ndarray, P: np.ndarray, bearing: np.ndarray, bearing_variance: float,
                 min_range: float, gain_bearing: str = "measured") -> tuple[np.ndarray, np.ndarray, float, float]:
     """(22)-(25) with a unit measured bearing b~: z = 0, innovation -G(b~) p^-,
-    R_z = r^2 G R_b G^T with r = |p^-| (floored at min_range), K = P H^T (H P H^T + R_z)^+ (pseudo-inverse),
+    R_z = r^2 G R_b G^T with r = |p^-| (floored at min_range), K = P H^T (H P H^T + R_z)^+ (pseudo-inverse).
+    G = I - u u^T = q q^T for the unit bearing u and its unit normal q, so S = H P H^T + R_z = s q q^T with
+    s = q^T (P_pp + r^2 R_b) q: S is rank one, and its pseudo-inverse is exactly q q^T / s.
     x^+ = x^- - K G(b~) p^-. The covariance uses the Joseph form (I - K H) P (I - K H)^T + K R_z K^T, equal to
     (25)'s (I - K H) P for this gain and symmetric positive semi-definite by construction.
 
@@ -80,13 +79,13 @@ def plkf_update(x: np.ndarray, P: np.ndarray, bearing: np.ndarray, bearing_varia
     H = np.zeros((2, 4))
     H[:, :2] = G
     Rz = (r * r * bearing_variance) * (G @ G.T)
-    S = H @ P @ H.T + Rz
-    K = P @ H.T @ np.linalg.pinv(S, rcond=PINV_RCOND, hermitian=True)
+    q = np.array([-gain_direction[1], gain_direction[0]])
+    s = float(q @ P[:2, :2] @ q) + r * r * bearing_variance
+    K = P @ H.T @ np.outer(q, q) / s
     I_KH = np.eye(4) - K @ H
     x_post = x - K @ (G_measured @ x[:2])
     P_post = I_KH @ P @ I_KH.T + K @ Rz @ K.T
-    q = np.array([-gain_direction[1], gain_direction[0]])
-    return x_post, 0.5 * (P_post + P_post.T), float(q @ G_measured @ x[:2]), float(q @ S @ q)
+    return x_post, 0.5 * (P_post + P_post.T), float(q @ G_measured @ x[:2]), s
 
 
 class PLKF:
@@ -116,7 +115,7 @@ class PLKF:
         x = np.asarray(state, dtype=float).reshape(4).copy()
         P = (self.params.initial_covariance * np.eye(4) if covariance is None
              else np.asarray(covariance, dtype=float).reshape(4, 4).copy())
-        if not (np.all(np.isfinite(x)) and np.all(np.isfinite(P))):
+        if not (np.isfinite(x).all() and np.isfinite(P).all()):
             raise ValueError("reset needs a finite state and covariance")
         self._x, self._P = x, 0.5 * (P + P.T)
 
@@ -126,7 +125,7 @@ class PLKF:
         x = np.asarray(state, dtype=float).reshape(4)
         P = np.asarray(covariance, dtype=float).reshape(4, 4)
         P = 0.5 * (P + P.T)
-        if not (np.all(np.isfinite(x)) and np.all(np.isfinite(P)) and np.all(np.linalg.eigvalsh(P) > 0)):
+        if not (np.isfinite(x).all() and np.isfinite(P).all() and np.all(np.linalg.eigvalsh(P) > 0)):
             self.rejected += 1
             return False
         self._x, self._P = x.copy(), P
@@ -137,7 +136,7 @@ class PLKF:
         accepted = True
         if own_velocity_change is not None:
             dv = np.asarray(own_velocity_change, dtype=float).reshape(2)
-            if not np.all(np.isfinite(dv)):
+            if not np.isfinite(dv).all():
                 self.rejected += 1
                 dv, accepted = None, False
             own_velocity_change = dv
@@ -164,7 +163,7 @@ class PLKF:
             self._x, self._P, b / norm, self.params.bearing_variance, self.params.min_range,
             self.params.gain_bearing,
         )
-        if not (np.all(np.isfinite(x)) and np.all(np.isfinite(P))):
+        if not (np.isfinite(x).all() and np.isfinite(P).all()):
             self.rejected += 1
             return BearingOutcome(accepted=False, reason="update produced a non-finite state")
         self._x, self._P = x, P

@@ -8,7 +8,10 @@
     receiving the agent's command (`/bridge/command_latency` in sim.mcap). This is a round trip through an
     agent, so it is set against the bare round trip measured just before it.
 (c) The lockstep real-time factor of the Table II mission (MCKF, 4 vessels): simulated time over the wall
-    time of the bridge's tick loop (`/bridge/summary`), and of the whole launch.
+    time of the bridge's tick loop (`/bridge/summary`), and of the whole launch. Set against it, in the same
+    run: the in-process runner on the same mission and seed (one process, no messaging: what the
+    computation alone allows on one core), and the CPU each process spent per tick (every thread, Zenoh's
+    included; from each process's own summary record), which is what the two cores have to share.
 (d) The peak resident memory of every process of each run (/proc VmHWM).
 """
 
@@ -114,6 +117,28 @@ def _bridge_records(folder: Path) -> tuple[list[float], dict]:
     return latencies, summary
 
 
+def _cpu_per_tick(folder: Path) -> dict[str, float]:
+    """CPU milliseconds per tick of each process's loop, from the summary record each one logs at the end."""
+    cpu = {}
+    for path in sorted(folder.glob("*.mcap")):
+        for topic, _, message in read_messages(path):
+            if topic.endswith("/summary") and message.get("ticks"):
+                name = "bridge" if topic == "/bridge/summary" else f"agent-{topic.split('/')[1]}"
+                cpu[name] = 1e3 * message["cpu_seconds"] / message["ticks"]
+    return cpu
+
+
+def in_process_baseline(path: Path, variant: str) -> tuple[float, float]:
+    """The in-process runner on the same mission and seed: (real-time factor, mean core tick in ms)."""
+    from sim_bridge.runner import run as run_in_process
+    from sim_bridge.scenario import select_scenario
+
+    _, scenario = select_scenario(path, variant)
+    started = time.perf_counter()
+    trace = run_in_process(scenario)
+    return scenario.duration / (time.perf_counter() - started), 1e3 * float(np.nanmean(trace.tick_seconds))
+
+
 def _memory(folder: Path) -> dict[str, float]:
     return json.loads((folder / "memory.json").read_text())["peak_resident_mb"]
 
@@ -143,11 +168,21 @@ def run(args: argparse.Namespace) -> int:
         folder = fleet.run()
         launch_seconds = time.monotonic() - started
         _, summary = _bridge_records(folder)
+        cpu = _cpu_per_tick(folder)
         simulated = summary["ticks"] * fleet.scenario.world.dt
         memory_rows.append(["lockstep Table II, 4 vessels", *_memory_cells(_memory(folder))])
-    lockstep = [[summary["ticks"], f"{simulated:.1f}", f"{summary['loop_seconds']:.2f}",
-                 f"{simulated / summary['loop_seconds']:.1f}x", f"{launch_seconds:.1f}",
-                 f"{simulated / launch_seconds:.1f}x", summary["missed_commands"]]]
+        print("runtime-bench: the same mission in process (the baseline)", file=sys.stderr)
+        alone_factor, core_ms = in_process_baseline(table2, "mckf")
+    factor = simulated / summary["loop_seconds"]
+    lockstep = [[summary["ticks"], f"{simulated:.1f}", f"{summary['loop_seconds']:.2f}", f"{factor:.1f}x",
+                 f"{launch_seconds:.1f}", f"{simulated / launch_seconds:.1f}x", summary["missed_commands"],
+                 f"{alone_factor:.1f}x", f"{factor / alone_factor:.2f}"]]
+    agents_cpu = [v for k, v in cpu.items() if k.startswith("agent-")]
+    dt_ms = 1e3 * fleet.scenario.world.dt
+    cores = os.cpu_count() or 1
+    total_cpu = cpu.get("bridge", float("nan")) + sum(agents_cpu)
+    cpu_rows = [[f"{cpu.get('bridge', float('nan')):.2f}", f"{np.mean(agents_cpu):.2f}", f"{core_ms:.2f}",
+                 f"{total_cpu:.2f}", f"{cores * dt_ms / total_cpu:.1f}x", f"{cores * dt_ms / 50:.1f}"]]
     text = "\n".join([
         "# Runtime benchmark: the fleet over Zenoh on loopback", "",
         f"Command: `{invocation(args)}`", "",
@@ -165,7 +200,14 @@ def run(args: argparse.Namespace) -> int:
         "The bridge advances a tick when every agent has answered, and each agent waits for its neighbours' "
         "shares of the tick before (tests/test_lockstep.py checks the result equals the in-process runner).", "",
         markdown_table(["ticks", "simulated (s)", "tick loop (s)", "real-time factor", "whole launch (s)",
-                        "factor incl. start-up", "missed commands"], lockstep), "",
+                        "factor incl. start-up", "missed commands", "in process, same seed",
+                        "over Zenoh / in process"], lockstep), "",
+        "Where the time goes: CPU milliseconds per tick of each process (all its threads), against the core "
+        "tick alone (the in-process run's mean `VesselAgent.tick`). With every process busy all the time the "
+        f"{cores} cores could give at best {cores} x {dt_ms:.0f} ms / (sum of CPU per tick) of real time; "
+        f"{50}x real time needs the whole fleet's CPU per tick under {cores * dt_ms / 50:.1f} ms.", "",
+        markdown_table(["sim bridge", "agent (mean)", "of which the core tick (in process)", "sum over processes",
+                        "factor if the cores were never idle", "CPU budget per tick for 50x"], cpu_rows), "",
         "## Peak resident memory per process (MB)", "",
         markdown_table(["run", "sim bridge", "agents: min", "agents: max", "agents: mean"], memory_rows), "",
     ])
