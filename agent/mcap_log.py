@@ -57,8 +57,9 @@ class McapLog:
             data = message.model_dump_json().encode() if model else json.dumps(message).encode()
         channel = self._channels.get(topic)
         if channel is None:  # a schema is made once per topic: generating one costs milliseconds
-            if model:
-                name, body = schema_name or type(message).__name__, schema or type(message).model_json_schema()
+            if model:  # a model's title is its class name unless it sets one (the Foxglove models do)
+                body = schema or type(message).model_json_schema()
+                name = schema_name or body.get("title", type(message).__name__)
             else:
                 name, body = schema_name or topic, schema or {"type": "object"}
             channel = self.channel(topic, name, body)
@@ -104,3 +105,20 @@ def read_messages(path: str | Path) -> Iterator[tuple[str, int, dict]]:
         except (McapError, EOFError, ValueError) as error:
             warnings.warn(f"{path}: unfinished MCAP, read up to the last complete record ({error})",
                           stacklevel=2)
+
+
+def read_metadata(path: str | Path) -> dict[str, dict[str, str]]:
+    """The metadata records of a log (name -> key -> value); they are written first, so an unfinished file
+    has them too."""
+    from mcap.exceptions import McapError
+    from mcap.stream_reader import Metadata, StreamReader
+
+    found: dict[str, dict[str, str]] = {}
+    with Path(path).open("rb") as handle:
+        try:
+            for record in StreamReader(handle, skip_magic=False).records:
+                if isinstance(record, Metadata):
+                    found[record.name] = dict(record.metadata)
+        except (McapError, EOFError, ValueError):
+            pass  # read_messages warns about an unfinished file; the metadata before the cut is all there
+    return found

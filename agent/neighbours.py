@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from agent.estimators import RelativePositionEstimator, make_relative_estimator
+from agent.estimators.base import UpdateOutcome
 from agent.params import RelativeEstimationParams
 from agent.tick_io import Share
 
@@ -72,6 +73,7 @@ class NeighbourTrack:
         self.updates = 0
         self.rejected = 0
         self.last_iterations = 0
+        self.outcomes: list[tuple[float, float, UpdateOutcome]] = []   # (stamp s, range m, outcome) of the last advance
 
     def receive(self, share: Share, now: float) -> None:
         """Keep j's odometry and what it shares; shares may repeat or arrive out of order."""
@@ -109,6 +111,7 @@ class NeighbourTrack:
 
     def advance(self, own: History) -> None:
         """Run the filter over every stamp after the epoch at which both odometries are known."""
+        self.outcomes = []
         if self.estimator is None or self.epoch is None:
             return
         for key in self.odometry.keys_after(self.epoch):
@@ -128,6 +131,7 @@ class NeighbourTrack:
                 self.last_range = range_now
                 continue
             outcome = self.estimator.update(self.last_range, range_now)
+            self.outcomes.append((key * 1e-6, range_now, outcome))
             self.last_iterations = outcome.iterations
             if outcome.accepted:
                 self.last_range = range_now

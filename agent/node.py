@@ -79,11 +79,24 @@ def zenoh_config(settings: ZenohSettings):
     return config
 
 
+def core_from_settings(vessel_id: str, settings: NodeSettings) -> VesselAgent:
+    """The vessel's core as the settings start it (parameters and initial estimates)."""
+    import numpy as np
+
+    from agent.neighbours import NeighbourPrior
+
+    start = settings.initial
+    priors = {j: NeighbourPrior(np.array(p), start.neighbour_variance * np.eye(2), start.stamp)
+              for j, p in start.neighbours.items()}
+    target = None if start.target is None else np.array(start.target)
+    return VesselAgent(vessel_id, settings.agent, target, start.target_variance * np.eye(4), priors=priors)
+
+
 class AgentNode:
     def __init__(self, vessel_id: str, settings: NodeSettings, core: VesselAgent | None = None) -> None:
         self.id = vessel_id
         self.settings = settings
-        self.core = core or self._core_from(settings)
+        self.core = core or core_from_settings(vessel_id, settings)
         self.live_peers: set[str] = set()
         self.gate = InputGate(vessel_id, max_age=settings.max_input_age, known_peers=lambda: set(self.live_peers),
                               hold_shares=settings.clock == "sim")
@@ -98,20 +111,13 @@ class AgentNode:
         self.log_errors = 0
         if settings.log:
             from agent.mcap_log import McapLog
+            from agent.tick_log import TickLogger
 
+            # The settings go in whole: with the logged inputs they are all `usv-log replay` needs.
             self.log = McapLog(settings.log.replace("{vessel}", vessel_id),
-                               metadata={"vessel": vessel_id, "clock": settings.clock})
-
-    def _core_from(self, settings: NodeSettings) -> VesselAgent:
-        import numpy as np
-
-        from agent.neighbours import NeighbourPrior
-
-        start = settings.initial
-        priors = {j: NeighbourPrior(np.array(p), start.neighbour_variance * np.eye(2), start.stamp)
-                  for j, p in start.neighbours.items()}
-        target = None if start.target is None else np.array(start.target)
-        return VesselAgent(self.id, settings.agent, target, start.target_variance * np.eye(4), priors=priors)
+                               metadata={"vessel": vessel_id, "clock": settings.clock,
+                                         "settings": settings.model_dump_json()})
+            self.tick_log = TickLogger(self.log, vessel_id, settings.agent.control.radius)
 
     # ----- clock -----
     def now(self) -> float:
@@ -277,39 +283,12 @@ class AgentNode:
         publishers["status"].put(wire["status"])
         if self.log is not None:
             try:
-                self._log_tick(stamp, inputs, command, output, status, wire)
+                self.tick_log.tick(stamp, inputs, output, command, status, wire)
             except Exception as error:  # a full disk or a bad value must not stop the vessel's control
                 self.log_errors += 1
                 if self.log_errors == 1:
                     print(f"usv-agent {self.id}: logging failed: {type(error).__name__}: {error}", file=sys.stderr)
         self.ticks += 1
-
-    def _log_tick(self, stamp, inputs, command, output, status, wire: dict[str, bytes]) -> None:
-        """What this tick received and decided; log time is the tick's (sim or wall) time."""
-        received = {
-            "odometry": None if inputs.odometry is None else {
-                "stamp": inputs.odometry.stamp, "position": [float(v) for v in inputs.odometry.position],
-                "heading": inputs.odometry.heading},
-            "ranges": dict(inputs.ranges),
-            "bearing": None if inputs.bearing is None else [float(v) for v in inputs.bearing],
-            "shares_from": sorted(inputs.shares),
-            "obstacle_points": 0 if inputs.obstacle_points is None else len(inputs.obstacle_points),
-        }
-        self.log.log(f"/{self.id}/inputs", received, stamp)
-        self.log.log(key(self.id, "cmd"), command, stamp, data=wire["cmd"])
-        self.log.log(key(self.id, "status"), status, stamp, data=wire["status"])
-        record = output.record
-        if record is not None:
-            self.log.log(f"/{self.id}/estimates", {
-                "neighbours": {j: {"position": [float(v) for v in n.position],
-                                   "covariance": [float(v) for v in n.covariance.ravel()],
-                                   "iterations": n.iterations, "updates": n.updates}
-                               for j, n in record.neighbours.items()},
-                "target_state": None if record.target_state is None else [float(v) for v in record.target_state],
-                "target_covariance": None if record.target_covariance is None
-                else [float(v) for v in record.target_covariance.ravel()],
-                "saturated": {name: bool(flag) for name, flag in record.saturated.items()},
-            }, stamp)
 
     def _next(self, stream: str) -> int:
         value = self._seq[stream]

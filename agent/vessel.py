@@ -21,6 +21,7 @@ from agent.control.formation import (
 )
 from agent.control.oscillator import oscillator_step
 from agent.estimators import PLKF
+from agent.estimators.plkf import BearingOutcome
 from agent.fusion import covariance_intersection, covariance_intersection_many
 from agent.neighbours import History, NeighbourPrior, NeighbourTrack, stamp_key
 from agent.params import AgentParams
@@ -35,6 +36,7 @@ class NeighbourRecord:
     updates: int
     rejected: int
     iterations: int               # MCKF iterations of the last update
+    outcomes: tuple = ()          # (stamp s, range m, UpdateOutcome) of each update this tick ran
 
 
 @dataclass(frozen=True)
@@ -47,6 +49,7 @@ class TickRecord:
     target_state: np.ndarray      # x^_io = [p_io; v_io]
     target_covariance: np.ndarray
     bearing_used: bool
+    bearing_outcome: BearingOutcome | None   # the PLKF's update this tick (None before it has a target)
     formation_velocity: np.ndarray
     tracking_velocity: np.ndarray
     avoidance_velocity: np.ndarray
@@ -141,7 +144,7 @@ class VesselAgent:
 
         estimates = {j: t.estimate_at(self.own, now) for j, t in self.tracks.items()}
         bearing = self._valid_bearing(inputs.bearing)
-        target_state, target_cov, bearing_used = self._track_target(bearing, velocity_change)
+        target_state, target_cov, bearing_outcome = self._track_target(bearing, velocity_change)
         if target_state is not None and self.params.fleet.fuse_target_estimates:
             target_state, target_cov = self._fuse_targets(estimates, now)
         if self.phase is None:
@@ -168,7 +171,8 @@ class VesselAgent:
             time=now, phase=self.phase,
             neighbours={j: self._neighbour_record(t, estimates[j]) for j, t in self.tracks.items()
                         if estimates[j] is not None},
-            target_state=target_state, target_covariance=target_cov, bearing_used=bearing_used,
+            target_state=target_state, target_covariance=target_cov,
+            bearing_used=bearing_outcome is not None and bearing_outcome.accepted, bearing_outcome=bearing_outcome,
             formation_velocity=parts[0], tracking_velocity=parts[1], avoidance_velocity=parts[2],
             safety_correction=parts[3], velocity_command=parts[4], command=command, saturated=saturated,
             health=self.health.as_dict(),
@@ -324,7 +328,7 @@ class VesselAgent:
     def _track_target(self, bearing: np.ndarray | None, velocity_change: np.ndarray):
         if self.tracker is None:
             if bearing is None or not np.linalg.norm(bearing) > 0:
-                return None, None, False
+                return None, None, None
             p = self.params.target
             guess = bearing / np.linalg.norm(bearing) * p.initial_range_guess
             covariance = np.diag([p.initial_range_guess**2] * 2 + [p.initial_covariance] * 2)
@@ -334,7 +338,7 @@ class VesselAgent:
         outcome = self.tracker.update(bearing)
         if bearing is not None and not outcome.accepted:
             self.health.bad_bearing += 1
-        return self.tracker.state, self.tracker.covariance, outcome.accepted
+        return self.tracker.state, self.tracker.covariance, outcome
 
     def _phase_of(self, track: NeighbourTrack, now: float) -> float:
         """j's phase carried from its share's stamp to now at the nominal rate omega*."""
@@ -393,6 +397,7 @@ class VesselAgent:
         return NeighbourRecord(
             position=estimate, covariance=track.estimator.covariance, epoch=track.epoch * 1e-6,
             updates=track.updates, rejected=track.rejected, iterations=track.last_iterations,
+            outcomes=tuple(track.outcomes),
         )
 
 

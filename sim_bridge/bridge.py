@@ -28,9 +28,11 @@ from agent.contract import (
     CLOCK_KEY, LIVELINESS, Bearing, Clock, Cmd, Odometry, Ranges, Sonar, Status, decode, encode, every, key,
     seconds, vessel_of,
 )
+from agent import foxglove
 from agent.node import ZenohSettings, zenoh_config
 from agent.params import ConfigError, PositiveFloat, StrictModel, load_yaml
 from agent.tick_io import STOP, Command
+from agent.tick_log import SCENE_PERIOD_NS
 from sim_bridge.runner import streams
 from sim_bridge.scenario import Scenario, select_scenario
 from sim_bridge.world import World, lost_shares
@@ -65,6 +67,7 @@ class SimBridge:
         self._arrived = threading.Condition(self._lock)
         self._seq: dict[str, int] = {}
         self._publishers: dict[str, object] = {}
+        self._next_scene = 0
         # Sensor-to-command latency: wall time from publishing a tick's sensors to each agent's command.
         self._tick_stamp: int | None = None
         self._tick_sent = 0.0
@@ -264,6 +267,7 @@ class SimBridge:
             latency = {v: round(value * 1e3, 4) for v, value in self._latency.items()}
         self.log.log("/bridge/command_latency", {"milliseconds": latency}, stamp)
         truth = self.world.truth()
+        self._log_frames(stamp, truth)
         self.log.log("/truth", {
             "time": truth.time,
             "vessels": {v: {"position": [float(x) for x in p], "heading": float(truth.headings[v])}
@@ -271,6 +275,22 @@ class SimBridge:
             "target": [float(x) for x in truth.target_position],
             "target_velocity": [float(x) for x in truth.target_velocity],
         }, stamp)
+
+    def _log_frames(self, stamp: int, truth) -> None:
+        """Ground truth for Foxglove's 3D panel: the vessels and the target in the `world` frame and, once a
+        second, the islands and the desired circle (agent/foxglove.py)."""
+        links = [("world", "target", float(truth.target_position[0]), float(truth.target_position[1]), 0.0)]
+        for vessel, position in truth.positions.items():
+            frame = foxglove.vessel_frame(vessel)
+            links += [("world", frame, float(position[0]), float(position[1]), 0.0),
+                      (frame, f"{frame}/hull", 0.0, 0.0, float(truth.headings[vessel]))]
+        self.log.log("/tf", foxglove.transforms(stamp, links), stamp)
+        if stamp >= self._next_scene:
+            self._next_scene = stamp + SCENE_PERIOD_NS
+            radius = self.scenario.agent_params().control.radius
+            self.log.log("/scene", foxglove.SceneUpdate(entities=[
+                *foxglove.target_entities(stamp, "target", radius, "target"),
+                *foxglove.island_entities(stamp, "world", self.scenario.world.islands)]), stamp)
 
     def _next(self, vessel: str, stream: str) -> int:
         name = f"{vessel}/{stream}"

@@ -19,12 +19,9 @@ import time
 from datetime import datetime, timezone
 from pathlib import Path
 
-import numpy as np
 import yaml
 
-from agent.mcap_log import read_messages
 from agent.params import ConfigError
-from sim_bridge.metrics import summarise
 from sim_bridge.scenario import select_scenario
 
 
@@ -206,77 +203,27 @@ def _initial_estimates(scenario, seed: int | None) -> dict[str, dict]:
 
 
 def analyse(folder: Path, radius: float) -> dict:
-    """The paper's metrics from the run folder's logs; writes metrics.json, summary.md, trajectories.png."""
-    truth = {t: m for topic, t, m in read_messages(folder / "sim.mcap") if topic == "/truth"}
-    stamps = sorted(truth)
-    vessels = sorted({v for m in truth.values() for v in m["vessels"]})
-    index = {t: k for k, t in enumerate(stamps)}
-    n = len(stamps)
-    e_ij, e_io, e_v = (np.full(n, np.nan) for _ in range(3))
-    for vessel in vessels:
-        path = folder / f"agent-{vessel}.mcap"
-        if not path.exists():
-            continue
-        for topic, t, m in read_messages(path):
-            if topic != f"/{vessel}/estimates" or t not in index:
-                continue
-            k, world = index[t], truth[t]
-            own = np.array(world["vessels"].get(vessel, {}).get("position", [math.nan] * 2))
-            for j, estimate in m["neighbours"].items():
-                if j in world["vessels"]:
-                    error = np.hypot(*(np.array(estimate["position"]) - (own - world["vessels"][j]["position"])))
-                    e_ij[k] = np.nanmax([e_ij[k], error])
-            if m["target_state"] is not None:
-                error = np.hypot(*(np.array(m["target_state"][:2]) - (own - np.array(world["target"]))))
-                e_io[k] = np.nanmax([e_io[k], error])
-    positions = np.full((n, len(vessels), 2), np.nan)
-    target = np.array([truth[t]["target"] for t in stamps])
-    for k, t in enumerate(stamps):
-        for v, state in truth[t]["vessels"].items():
-            positions[k, vessels.index(v)] = state["position"]
-    radii = np.linalg.norm(positions - target[:, None, :], axis=-1)
-    e_c = np.linalg.norm(np.nanmean(positions, axis=1) - target, axis=-1)
-    time_s = np.array(stamps) * 1e-9
-    metrics = summarise(time_s, e_ij, e_io, e_v, e_c, radii, radius, [])
-    result = {
-        "vessels": vessels, "ticks": n, "radius": radius,
-        "mean_e_ij": metrics.mean_e_ij, "mean_e_io": metrics.mean_e_io, "mean_e_c": metrics.mean_e_c,
-        "settling_time": metrics.settling_time,
-    }
+    """The paper's metrics from the run folder's logs; writes metrics.json, summary.md and the figures of
+    `usv-log plot` (trajectories.png, errors.png, ranges.png)."""
+    from sim_bridge.logs.metrics import truth_metrics
+    from sim_bridge.logs.plots import plot_run
+    from sim_bridge.logs.reader import load_run
+
+    run = load_run(folder)
+    result = truth_metrics(run, radius)
     (folder / "metrics.json").write_text(json.dumps(result, indent=2))
-    lines = [f"# Fleet run {folder.name}", "", f"{len(vessels)} vessels, {n} ticks, r* = {radius} m", "",
+    figures = plot_run(run, folder, radius)
+    settling = result["settling_time"]
+    lines = [f"# Fleet run {folder.name}", "",
+             f"{len(result['vessels'])} vessels, {result['ticks']} ticks, r* = {radius} m", "",
              "| mean e_ij (m) | mean e_io (m) | mean e_c (m) | settling time (s) |", "|---|---|---|---|",
-             f"| {metrics.mean_e_ij:.3f} | {metrics.mean_e_io:.3f} | {metrics.mean_e_c:.3f} | "
-             f"{'never' if metrics.settling_time is None else f'{metrics.settling_time:.1f}'} |", "",
-             "Computed from the logs alone: `sim.mcap` (ground truth) and `agent-<id>.mcap` (what each believed).",
-             "", "![trajectories](trajectories.png)"]
+             f"| {result['mean_e_ij']:.3f} | {result['mean_e_io']:.3f} | {result['mean_e_c']:.3f} | "
+             f"{'never' if settling is None else f'{settling:.1f}'} |", "",
+             "Computed from the logs alone: `sim.mcap` (ground truth) and `agent-<id>.mcap` (what each believed). "
+             "`usv-log summary|metrics|plot` on this folder says more.", "",
+             *(f"![{path.stem}]({path.name})" for path in figures)]
     (folder / "summary.md").write_text("\n".join(lines) + "\n")
-    _plot(folder / "trajectories.png", positions, target, vessels, radius)
     return result
-
-
-def _plot(path: Path, positions: np.ndarray, target: np.ndarray, vessels: list[str], radius: float) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(10, 4.5), dpi=120)
-    for n, vessel in enumerate(vessels):
-        line, = ax.plot(positions[:, n, 0], positions[:, n, 1], lw=1.2, label=f"USV {vessel}")
-        present = np.isfinite(positions[:, n, 0])
-        if present.any():
-            ax.plot(*positions[present, n][-1], "^", color=line.get_color())
-    ax.plot(target[:, 0], target[:, 1], "k--", lw=1, label="target")
-    circle = plt.Circle(target[-1], radius, fill=False, ls=":", color="grey")
-    ax.add_patch(circle)
-    ax.set_aspect("equal")
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
-    ax.set_title("fleet run over Zenoh (truth from the sim bridge's log)")
-    fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -11,24 +11,8 @@ import pytest
 
 pytest.importorskip("zenoh")
 
-SCENARIO = """
-name: short
-base:
-  duration: 12.0
-  seed: 2
-  world:
-    vessels:
-      - {id: "1", position: [-6.0, -7.0]}
-      - {id: "2", position: [6.0, 6.0]}
-      - {id: "3", position: [-10.0, 3.0]}
-    target: {kind: constant_velocity, position: [1.0, 1.0], velocity: [0.5, 0.0]}
-  agent: {control: {radius: 5.0}}
-"""
-
-
-def test_fleet_run_leaves_a_run_folder_with_logs_plot_and_metrics(tmp_path):
-    scenario = tmp_path / "short.yaml"
-    scenario.write_text(SCENARIO)
+def test_fleet_run_leaves_a_run_folder_with_logs_plot_and_metrics(tmp_path, short_scenario):
+    scenario = short_scenario
     result = subprocess.run([sys.executable, "-m", "sim_bridge.fleet_cli", "run", str(scenario),
                              "--out", str(tmp_path / "runs")], capture_output=True, text=True, timeout=240)
     assert result.returncode == 0, result.stderr
@@ -36,7 +20,8 @@ def test_fleet_run_leaves_a_run_folder_with_logs_plot_and_metrics(tmp_path):
     for name in ("sim.mcap", "agent-1.mcap", "agent-2.mcap", "agent-3.mcap", "metrics.json", "summary.md",
                  "trajectories.png"):
         assert (folder / name).exists(), name
-    assert (folder / "trajectories.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    for figure in ("trajectories.png", "errors.png", "ranges.png"):
+        assert (folder / figure).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     metrics = json.loads((folder / "metrics.json").read_text())
     assert metrics["ticks"] == 121 and metrics["vessels"] == ["1", "2", "3"]
     assert all(math.isfinite(metrics[k]) for k in ("mean_e_ij", "mean_e_io", "mean_e_c"))
@@ -51,9 +36,8 @@ def test_fleet_run_leaves_a_run_folder_with_logs_plot_and_metrics(tmp_path):
         assert summary["ticks"] == 121 and 0.0 < summary["cpu_seconds"] and 0.0 < summary["loop_seconds"]
 
 
-def test_unknown_variant_is_a_clear_error(tmp_path):
-    scenario = tmp_path / "short.yaml"
-    scenario.write_text(SCENARIO)
+def test_unknown_variant_is_a_clear_error(tmp_path, short_scenario):
+    scenario = short_scenario
     result = subprocess.run([sys.executable, "-m", "sim_bridge.fleet_cli", "run", str(scenario), "--variant", "x",
                              "--out", str(tmp_path / "runs")], capture_output=True, text=True, timeout=60)
     assert result.returncode == 2 and "no variant 'x'" in result.stderr

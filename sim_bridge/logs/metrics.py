@@ -1,0 +1,174 @@
+"""Metrics of a mission from its logs.
+
+With the sim bridge's ground truth: the paper's metrics (e_ij, e_io, e_c, settling time, Sec. VI). Without
+it (a real boat) nothing can be compared with the truth, so the figures are self-consistency ones that need
+only the agents' logs:
+- normalised innovation squared (NIS) of each filter's updates: innovation^2 / predicted variance. A
+  consistent filter averages 1, and 95 % of its updates fall under the chi-square(1) 95 % point (3.84).
+  The MCKF's mean weight says how much it discounted (1: not at all);
+- pair agreement: vessel i's p^_ij against vessel j's p^_ji, which should be its exact opposite;
+- target agreement: i's and j's target estimates against i's estimate of where j is,
+  (p^_io - p^_jo) - p^_ij, which is zero when all three agree.
+"""
+
+from __future__ import annotations
+
+import math
+from itertools import combinations
+
+import numpy as np
+from scipy.stats import chi2
+
+from sim_bridge.logs.reader import RunLog, agent_radius
+from sim_bridge.metrics import summarise
+
+NIS_BOUND_95 = float(chi2.ppf(0.95, 1))
+
+
+def truth_metrics(run: RunLog, radius: float) -> dict:
+    """The paper's metrics from the logs: worst e_ij and e_io over the vessels at each tick, e_c, settling
+    time, and their means. Needs the sim bridge's log."""
+    truth = dict(run.sim.messages("/truth"))
+    stamps = sorted(truth)
+    vessels = sorted({v for m in truth.values() for v in m["vessels"]})
+    index = {t: k for k, t in enumerate(stamps)}
+    n = len(stamps)
+    e_ij, e_io, e_v = (np.full(n, np.nan) for _ in range(3))
+    for vessel, log in run.vessels.items():
+        for t, m in log.topic("estimates"):
+            if t not in index:
+                continue
+            k, world = index[t], truth[t]
+            if vessel not in world["vessels"]:
+                continue
+            own = np.array(world["vessels"][vessel]["position"])
+            for j, estimate in m["neighbours"].items():
+                if j in world["vessels"]:
+                    error = np.hypot(*(np.array(estimate["position"]) - (own - world["vessels"][j]["position"])))
+                    e_ij[k] = np.nanmax([e_ij[k], error])
+            if m["target_state"] is not None:
+                error = np.hypot(*(np.array(m["target_state"][:2]) - (own - np.array(world["target"]))))
+                e_io[k] = np.nanmax([e_io[k], error])
+    positions = np.full((n, len(vessels), 2), np.nan)
+    target = np.array([truth[t]["target"] for t in stamps])
+    for k, t in enumerate(stamps):
+        for v, state in truth[t]["vessels"].items():
+            positions[k, vessels.index(v)] = state["position"]
+    radii = np.linalg.norm(positions - target[:, None, :], axis=-1)
+    e_c = np.linalg.norm(np.nanmean(positions, axis=1) - target, axis=-1)
+    metrics = summarise(np.array(stamps) * 1e-9, e_ij, e_io, e_v, e_c, radii, radius, [])
+    return {"vessels": vessels, "ticks": n, "radius": radius, "mean_e_ij": metrics.mean_e_ij,
+            "mean_e_io": metrics.mean_e_io, "mean_e_c": metrics.mean_e_c, "settling_time": metrics.settling_time}
+
+
+def _nis(pairs: list[tuple[float, float]]) -> dict:
+    values = np.array([innovation**2 / variance for innovation, variance in pairs if variance > 0])
+    if values.size == 0:
+        return {"updates": 0, "mean_nis": None, "within_95": None}
+    return {"updates": int(values.size), "mean_nis": float(values.mean()),
+            "within_95": float(np.mean(values <= NIS_BOUND_95))}
+
+
+def innovation_statistics(run: RunLog) -> dict:
+    """NIS per filter over its accepted updates: each inter-vessel filter of each vessel (with its mean
+    MCKF weight) and each vessel's target filter (bearing updates)."""
+    result = {}
+    for vessel, log in sorted(run.vessels.items()):
+        relative: dict[str, list] = {}
+        weights: dict[str, list] = {}
+        bearings = []
+        for _, m in log.topic("estimates"):
+            for j, neighbour in m["neighbours"].items():
+                for o in neighbour.get("outcomes", []):
+                    if o["accepted"]:
+                        relative.setdefault(j, []).append((o["innovation"], o["innovation_variance"]))
+                        weights.setdefault(j, []).append(o["weight"])
+            bearing = m.get("bearing")
+            if bearing is not None and bearing["accepted"]:
+                bearings.append((bearing["innovation"], bearing["innovation_variance"]))
+        result[vessel] = {
+            "relative": {j: {**_nis(v), "mean_weight": float(np.mean(weights[j]))} for j, v in sorted(relative.items())},
+            "target": _nis(bearings),
+        }
+    return result
+
+
+def _spread(errors: list[float]) -> dict:
+    if not errors:
+        return {"ticks": 0, "mean_m": None, "p95_m": None, "max_m": None}
+    values = np.array(errors)
+    return {"ticks": int(values.size), "mean_m": float(values.mean()), "p95_m": float(np.percentile(values, 95)),
+            "max_m": float(values.max())}
+
+
+def agreement(run: RunLog) -> dict:
+    """Pair agreement |p^_ij + p^_ji| and target agreement |(p^_io - p^_jo) - p^_ij| over the ticks both
+    vessels logged."""
+    estimates = {v: dict(log.topic("estimates")) for v, log in run.vessels.items()}
+    pairs, targets = {}, {}
+    for i, j in combinations(sorted(estimates), 2):
+        pair_errors, target_errors = [], []
+        for t in sorted(estimates[i].keys() & estimates[j].keys()):
+            mine, theirs = estimates[i][t], estimates[j][t]
+            p_ij = mine["neighbours"].get(j, {}).get("position")
+            p_ji = theirs["neighbours"].get(i, {}).get("position")
+            if p_ij is not None and p_ji is not None:
+                pair_errors.append(math.hypot(p_ij[0] + p_ji[0], p_ij[1] + p_ji[1]))
+            if p_ij is not None and mine["target_state"] is not None and theirs["target_state"] is not None:
+                gap = np.array(mine["target_state"][:2]) - np.array(theirs["target_state"][:2]) - np.array(p_ij)
+                target_errors.append(float(np.hypot(*gap)))
+        pairs[f"{i}-{j}"] = _spread(pair_errors)
+        targets[f"{i}-{j}"] = _spread(target_errors)
+    return {"pairs": pairs, "targets": targets}
+
+
+def run_metrics(run: RunLog, radius: float | None = None) -> dict:
+    """Everything `usv-log metrics` reports: truth metrics when the sim bridge's log is there, and the
+    self-consistency figures always."""
+    radius = radius if radius is not None else agent_radius(run)
+    return {
+        "truth": truth_metrics(run, radius) if run.has_truth else None,
+        "innovations": innovation_statistics(run),
+        "agreement": agreement(run),
+    }
+
+
+def _cell(value, digits: int = 3) -> str:
+    return "–" if value is None else f"{value:.{digits}f}"
+
+
+def metrics_markdown(result: dict, source: str) -> str:
+    lines = [f"# Metrics of {source}", ""]
+    truth = result["truth"]
+    if truth is None:
+        lines += ["**No ground truth** (no sim bridge log with `/truth` among the files): the paper's metrics "
+                  "need it. What follows checks the estimates against each other instead.", ""]
+    else:
+        settling = "never" if truth["settling_time"] is None else f"{truth['settling_time']:.1f} s"
+        lines += ["## Against the ground truth (the paper's metrics)", "",
+                  f"{len(truth['vessels'])} vessels, {truth['ticks']} ticks, r* = {truth['radius']} m", "",
+                  "| mean e_ij (m) | mean e_io (m) | mean e_c (m) | settling time |", "|---|---|---|---|",
+                  f"| {_cell(truth['mean_e_ij'])} | {_cell(truth['mean_e_io'])} | {_cell(truth['mean_e_c'])} | "
+                  f"{settling} |", ""]
+    lines += ["## Normalised innovations (NIS)", "",
+              f"A consistent filter averages 1 with 95 % of updates under {NIS_BOUND_95:.2f}. The mean weight is "
+              "how much the MCKF trusted its range updates (1: fully; outliers get less).", "",
+              "| vessel | filter | updates | mean NIS | within 95 % | mean weight |",
+              "|---|---|---|---|---|---|"]
+    for vessel, filters in result["innovations"].items():
+        for j, s in filters["relative"].items():
+            lines.append(f"| {vessel} | p_{vessel}{j} (ranges) | {s['updates']} | {_cell(s['mean_nis'], 2)} | "
+                         f"{_cell(s['within_95'], 2)} | {_cell(s['mean_weight'], 2)} |")
+        s = filters["target"]
+        lines.append(f"| {vessel} | target (bearings) | {s['updates']} | {_cell(s['mean_nis'], 2)} | "
+                     f"{_cell(s['within_95'], 2)} | |")
+    lines += ["", "## Agreement between vessels", "",
+              "Pair: |p^_ij + p^_ji| (each vessel's estimate of the other should be the exact opposite). Target: "
+              "|(p^_io - p^_jo) - p^_ij| (two target estimates and one inter-vessel estimate closing the triangle).",
+              "", "| pair | ticks | pair mean (m) | pair p95 (m) | pair max (m) | target mean (m) | target p95 (m) |",
+              "|---|---|---|---|---|---|---|"]
+    for name, p in result["agreement"]["pairs"].items():
+        q = result["agreement"]["targets"][name]
+        lines.append(f"| {name} | {p['ticks']} | {_cell(p['mean_m'])} | {_cell(p['p95_m'])} | {_cell(p['max_m'])} | "
+                     f"{_cell(q['mean_m'])} | {_cell(q['p95_m'])} |")
+    return "\n".join(lines) + "\n"

@@ -1,0 +1,198 @@
+"""`usv-log` on the logs of a short real fleet run (separate processes over Zenoh, made once per module)."""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+pytest.importorskip("zenoh")
+
+from sim_bridge.logs.metrics import agreement, innovation_statistics, run_metrics  # noqa: E402
+from sim_bridge.logs.reader import LogError, RunLog, VesselLog, load_run, read_log  # noqa: E402
+from sim_bridge.logs.replay import replay  # noqa: E402
+from sim_bridge.logs.summary import run_summary, topic_statistics  # noqa: E402
+
+TICKS = 121   # the short run of conftest.fleet_run: 12 s at 10 Hz
+
+
+def usv_log(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "sim_bridge.logs", *args], capture_output=True, text=True,
+                          timeout=240)
+
+
+def test_summary_counts_every_message_of_every_process(fleet_run):
+    folder, _ = fleet_run
+    summary = run_summary(load_run(folder))
+    assert sorted(summary["vessels"]) == ["1", "2", "3"]
+    for vessel, s in summary["vessels"].items():
+        assert s["ticks"] == TICKS and not s["unfinished"] and s["refused"] == {} and s["overruns"] == 0
+        assert s["duration_s"] == pytest.approx(12.0)
+        for topic in (f"usv/{vessel}/cmd", f"usv/{vessel}/status", f"/{vessel}/inputs", f"/{vessel}/tf"):
+            stats = s["topics"][topic]
+            assert stats["messages"] == TICKS and stats["gaps"] == 0
+            assert stats["rate_hz"] == pytest.approx(10.0)        # sim time: exactly one per 0.1 s
+        assert s["topics"][f"/{vessel}/scene"]["messages"] == 13   # once a second, 0 to 12 s
+        assert sum(row["ticks"] for row in s["health_over_time"]) == TICKS
+        assert s["cpu_ms_per_tick"] > 0
+    assert summary["sim"]["ticks"] == TICKS and summary["sim"]["missed_commands"] == 0
+    shown = usv_log("summary", str(folder))
+    assert shown.returncode == 0, shown.stderr
+    assert "| 1 | 0.0 | 12.0 | 121 |" in shown.stdout and "## Sim bridge" in shown.stdout
+
+
+def test_a_gap_in_a_topic_is_found():
+    stamps = [k * 100_000_000 for k in range(100) if not 30 <= k < 40]    # 10 Hz with 1 s missing
+    stats = topic_statistics([(t, {}) for t in stamps])
+    assert stats["messages"] == 90 and stats["gaps"] == 1
+    assert stats["largest_gap_s"] == pytest.approx(1.1)
+
+
+def test_metrics_from_the_logs_equal_the_in_process_runner(fleet_run):
+    # The fleet over Zenoh in lockstep computes what the in-process runner computes, so the paper's metrics
+    # worked out from the logs must equal the runner's, which come from its own arrays by another route.
+    folder, scenario_path = fleet_run
+    from sim_bridge.runner import run
+    from sim_bridge.scenario import select_scenario
+
+    _, scenario = select_scenario(scenario_path)
+    expected = run(scenario).metrics
+    measured = run_metrics(load_run(folder))["truth"]
+    for name in ("mean_e_ij", "mean_e_io", "mean_e_c"):
+        assert measured[name] == pytest.approx(getattr(expected, name), abs=1e-9), name
+    assert measured["settling_time"] == pytest.approx(expected.settling_time)
+
+
+def test_metrics_without_truth_say_so_and_check_the_vessels_against_each_other(fleet_run, tmp_path):
+    folder, _ = fleet_run
+    for path in folder.glob("agent-*.mcap"):
+        shutil.copy(path, tmp_path / path.name)
+    run = load_run(tmp_path)
+    assert not run.has_truth
+    result = run_metrics(run)
+    assert result["truth"] is None
+    # Pair agreement straight from the raw estimates of vessels 1 and 2.
+    one, two = dict(run.vessels["1"].topic("estimates")), dict(run.vessels["2"].topic("estimates"))
+    gaps = [math.hypot(*(np.array(one[t]["neighbours"]["2"]["position"]) + two[t]["neighbours"]["1"]["position"]))
+            for t in sorted(one.keys() & two.keys())
+            if "2" in one[t]["neighbours"] and "1" in two[t]["neighbours"]]
+    pair = result["agreement"]["pairs"]["1-2"]
+    assert pair["ticks"] == len(gaps) and pair["mean_m"] == pytest.approx(np.mean(gaps))
+    # The vessels fuse their pair estimates symmetrically, so each is nearly the other's opposite.
+    assert pair["mean_m"] < 0.05
+    shown = usv_log("metrics", str(tmp_path))
+    assert shown.returncode == 0 and "No ground truth" in shown.stdout and "| 1-2 |" in shown.stdout
+
+
+def _estimates(*outcomes: tuple[float, float, bool], bearing=None) -> dict:
+    return {"neighbours": {"2": {"position": [1.0, 0.0], "outcomes": [
+        {"stamp": 0.0, "range": 1.0, "accepted": a, "reason": "", "iterations": 1, "innovation": i,
+         "innovation_variance": v, "weight": 1.0} for i, v, a in outcomes]}},
+        "target_state": None, "bearing": bearing}
+
+
+def test_innovation_statistics_of_known_innovations(tmp_path):
+    # NIS 1 and 4 (innovations 1 and 2 over unit variance); the refused update does not count. Bearing NIS 9.
+    log = VesselLog(tmp_path / "x.mcap", {}, {"/1/estimates": [
+        (0, _estimates((1.0, 1.0, True), (5.0, 1.0, False))),
+        (1, _estimates((2.0, 1.0, True), bearing={"accepted": True, "innovation": 3.0, "innovation_variance": 1.0,
+                                                  "reason": ""}))]}, vessel="1")
+    stats = innovation_statistics(RunLog("x", {"1": log}))["1"]
+    assert stats["relative"]["2"]["updates"] == 2
+    assert stats["relative"]["2"]["mean_nis"] == pytest.approx(2.5)
+    assert stats["relative"]["2"]["within_95"] == pytest.approx(0.5)      # 4 > 3.84
+    assert stats["target"] == {"updates": 1, "mean_nis": pytest.approx(9.0), "within_95": 0.0}
+    assert agreement(RunLog("x", {"1": log}))["pairs"] == {}
+
+
+def test_plot_writes_the_figures_with_and_without_truth(fleet_run, tmp_path):
+    folder, _ = fleet_run
+    made = usv_log("plot", str(folder), "--out", str(tmp_path / "all"))
+    assert made.returncode == 0, made.stderr
+    for name in ("trajectories.png", "errors.png", "ranges.png"):
+        assert (tmp_path / "all" / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", name
+    agents = [str(p) for p in sorted(folder.glob("agent-*.mcap"))]
+    made = usv_log("plot", *agents, "--out", str(tmp_path / "boats"))
+    assert made.returncode == 0, made.stderr
+    assert (tmp_path / "boats" / "ranges.png").exists() and not (tmp_path / "boats" / "errors.png").exists()
+
+
+def test_replay_with_the_same_settings_reproduces_the_recording_exactly(fleet_run, tmp_path):
+    folder, _ = fleet_run
+    result = replay(folder / "agent-2.mcap", tmp_path / "again.mcap")
+    assert result.ticks == TICKS
+    assert result.commands_identical == result.commands_compared == TICKS
+    assert result.estimates_identical == TICKS
+    recorded, again = read_log(folder / "agent-2.mcap"), read_log(tmp_path / "again.mcap")
+    for topic in ("usv/2/cmd", "/2/estimates", "/2/tf", "/2/inputs"):
+        before, after = recorded.messages(topic), again.messages(topic)
+        assert len(before) == len(after) == TICKS
+        if topic == "usv/2/cmd":
+            assert [(t, m["surge"], m["yaw_rate"]) for t, m in before] == [(t, m["surge"], m["yaw_rate"]) for t, m in after]
+        else:
+            assert before == after, topic
+
+
+def test_replay_with_other_settings_changes_the_outputs(fleet_run, tmp_path):
+    folder, _ = fleet_run
+    shown = usv_log("replay", str(folder / "agent-1.mcap"), "--out", str(tmp_path / "kf.mcap"),
+                    "--set", "relative.estimator=kf")
+    assert shown.returncode == 0, shown.stderr
+    assert '"estimator": "kf"' in shown.stdout
+    result = run_summary(load_run(tmp_path / "kf.mcap"))["vessels"]["1"]
+    assert result["ticks"] == TICKS
+    log = read_log(tmp_path / "kf.mcap")
+    assert json.loads(log.metadata["settings"])["agent"]["relative"]["estimator"] == "kf"
+    changed = replay(folder / "agent-1.mcap", tmp_path / "kf2.mcap", {"relative": {"estimator": "kf"}})
+    assert changed.estimates_identical < TICKS
+
+
+def test_bad_input_gets_a_clear_error(fleet_run, tmp_path):
+    folder, _ = fleet_run
+    wrong = usv_log("replay", str(folder / "agent-1.mcap"), "--out", str(tmp_path / "x.mcap"),
+                    "--set", "relative.estimator=nonsense")
+    assert wrong.returncode == 2 and "relative.estimator" in wrong.stderr and "Traceback" not in wrong.stderr
+    wrong = usv_log("replay", str(folder / "agent-1.mcap"), "--out", str(tmp_path / "x.mcap"), "--set", "novalue")
+    assert wrong.returncode == 2 and "key.path=value" in wrong.stderr
+    with pytest.raises(LogError, match="not an agent's log"):
+        replay(folder / "sim.mcap", tmp_path / "y.mcap")
+    (tmp_path / "junk.mcap").write_bytes(b"not a log at all")
+    wrong = usv_log("summary", str(tmp_path / "junk.mcap"))
+    assert wrong.returncode == 2 and "not an MCAP file" in wrong.stderr
+    wrong = usv_log("metrics", str(tmp_path / "nothing-here"))
+    assert wrong.returncode == 2 and "no such file" in wrong.stderr
+
+
+def test_the_log_of_an_agent_killed_with_sigkill_is_read_up_to_its_last_chunk(tmp_path):
+    import signal
+    import time
+
+    import yaml
+
+    log_path = tmp_path / "agent-7.mcap"
+    config = tmp_path / "node.yaml"
+    config.write_text(yaml.safe_dump({"clock": "wall", "log": str(log_path)}))
+    agent = subprocess.Popen([sys.executable, "-m", "agent", "--vessel", "7", "--config", str(config)],
+                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and (not log_path.exists() or log_path.stat().st_size < 4096):
+            time.sleep(0.1)
+        time.sleep(2.5)                 # a few flushes into the mission
+    finally:
+        killed_at = time.time()
+        agent.send_signal(signal.SIGKILL)
+        agent.wait()
+    log = read_log(log_path)
+    assert log.unfinished and log.vessel == "7"
+    ticks = log.messages("/7/inputs")
+    assert len(ticks) >= 20                              # wall clock, 10 Hz: at least 2 s of ticks
+    # A chunk is written out at least once a second, so at most about that much is lost.
+    assert killed_at - ticks[-1][0] * 1e-9 < 1.5
+    shown = usv_log("summary", str(log_path))
+    assert shown.returncode == 0 and "unfinished" in shown.stderr and "**unfinished**" in shown.stdout
