@@ -19,7 +19,6 @@ import signal
 import sys
 import threading
 import time
-from pathlib import Path
 from typing import Literal
 
 from pydantic import Field, TypeAdapter, ValidationError
@@ -38,6 +37,9 @@ class ZenohSettings(StrictModel):
     connect: list[str] = Field(default_factory=list, description="endpoints to connect to, e.g. tcp/10.0.0.2:7447")
     listen: list[str] = Field(default_factory=list, description="endpoints to listen on, e.g. tcp/0.0.0.0:7447")
     multicast_scouting: bool = Field(False, description="off by default: explicit endpoints only")
+    connect_timeout: PositiveFloat = Field(
+        30.0, description="client: seconds to keep trying to reach the router at start-up (a boat's agent may "
+                          "boot before the shore router is up); then it exits and its service restarts it")
 
 
 class InitialEstimates(StrictModel):
@@ -57,7 +59,8 @@ class NodeSettings(StrictModel):
     zenoh: ZenohSettings = ZenohSettings()
     max_input_age: PositiveFloat = Field(1.0, description="inputs older than this (s) are ignored")
     share_wait: PositiveFloat = Field(2.0, description="sim lockstep: wall seconds to wait for neighbours' shares")
-    log: str | None = Field(None, description="MCAP file to write; '{vessel}' is replaced by the vessel id")
+    log: str | None = Field(None, description="MCAP file to write; '{vessel}' is replaced by the vessel id and "
+                            "'{start}' by the UTC start time (so a restarted agent starts a new file)")
     initial: InitialEstimates = InitialEstimates()
     agent: AgentParams = AgentParams()
 
@@ -76,6 +79,8 @@ def zenoh_config(settings: ZenohSettings):
         config.insert_json5("connect/endpoints", json.dumps(settings.connect))
     if settings.listen:
         config.insert_json5("listen/endpoints", json.dumps(settings.listen))
+    if settings.mode == "client":
+        config.insert_json5("connect/timeout_ms", json.dumps(int(settings.connect_timeout * 1000)))
     return config
 
 
@@ -114,7 +119,8 @@ class AgentNode:
             from agent.tick_log import TickLogger
 
             # The settings go in whole: with the logged inputs they are all `usv-log replay` needs.
-            self.log = McapLog(settings.log.replace("{vessel}", vessel_id),
+            start = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
+            self.log = McapLog(settings.log.replace("{vessel}", vessel_id).replace("{start}", start),
                                metadata={"vessel": vessel_id, "clock": settings.clock,
                                          "settings": settings.model_dump_json()})
             self.tick_log = TickLogger(self.log, vessel_id, settings.agent.control.radius)
@@ -296,26 +302,54 @@ class AgentNode:
         return value
 
 
-def load_settings(path: str | Path | None) -> NodeSettings:
-    return load_yaml(NodeSettings, path) if path else parse_mapping(NodeSettings, {}, "<defaults>")
+def print_config(what: str, settings: StrictModel) -> None:
+    """The settings a process would run with, as YAML, and where its Zenoh configuration comes from."""
+    import yaml
+
+    source = os.environ.get("ZENOH_CONFIG")
+    print(f"# {what}: effective settings")
+    if source:
+        print(f"# Zenoh: ZENOH_CONFIG={source} is used instead of the 'zenoh' section below")
+    print(yaml.safe_dump(settings.model_dump(mode="json"), sort_keys=False), end="")
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="usv-agent", description="The onboard agent of one vessel.")
+def vessel_process(prog: str, description: str, model: type[StrictModel], argv: list[str] | None,
+                   add_arguments=None, config_required: bool = False):
+    """The command line of a vessel's process: --vessel, --config, --print-config (and what `add_arguments`
+    adds). Returns (arguments, settings) to run with, or an exit code once it has said why not (a bad id, a
+    bad file) or printed the configuration."""
+    parser = argparse.ArgumentParser(prog=prog, description=description)
     parser.add_argument("--vessel", required=True, help="this vessel's id (1-32 of A-Z a-z 0-9 _ -)")
-    parser.add_argument("--config", default=None, help="node settings YAML (NodeSettings); default: defaults")
-    parser.add_argument("--ticks", type=int, default=None, help="stop after this many ticks (tests)")
+    parser.add_argument("--config", required=config_required, default=None,
+                        help=f"settings YAML ({model.__name__})" + ("" if config_required else "; default: defaults"))
+    parser.add_argument("--print-config", action="store_true",
+                        help="print the effective settings (defaults filled in) and exit without starting")
+    if add_arguments is not None:
+        add_arguments(parser)
     args = parser.parse_args(argv)
     try:
         TypeAdapter(VesselId).validate_python(args.vessel)
     except ValidationError as error:
-        print(f"usv-agent: invalid --vessel {args.vessel!r}: {error.errors()[0]['msg']}", file=sys.stderr)
+        print(f"{prog}: invalid --vessel {args.vessel!r}: {error.errors()[0]['msg']}", file=sys.stderr)
         return 2
     try:
-        settings = load_settings(args.config)
+        settings = load_yaml(model, args.config) if args.config else parse_mapping(model, {}, "<defaults>")
     except ConfigError as error:
-        print(f"usv-agent: {error}", file=sys.stderr)
+        print(f"{prog}: {error}", file=sys.stderr)
         return 2
+    if args.print_config:
+        print_config(f"{prog} --vessel {args.vessel}", settings)
+        return 0
+    return args, settings
+
+
+def main(argv: list[str] | None = None) -> int:
+    started = vessel_process("usv-agent", "The onboard agent of one vessel.", NodeSettings, argv, lambda parser:
+                             parser.add_argument("--ticks", type=int, default=None,
+                                                 help="stop after this many ticks (tests)"))
+    if isinstance(started, int):
+        return started
+    args, settings = started
     node = AgentNode(args.vessel, settings)
 
     def stop(signum, frame):  # noqa: ARG001

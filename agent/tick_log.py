@@ -27,7 +27,7 @@ SCENE_PERIOD_NS = 1_000_000_000   # the scene is redrawn once a second: enough f
 
 
 def _floats(values) -> list[float]:
-    return [float(v) for v in np.asarray(values, dtype=float).ravel()]
+    return np.asarray(values, dtype=float).ravel().tolist()
 
 
 def _odometry_to_json(odometry: Odometry) -> dict:

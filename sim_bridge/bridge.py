@@ -58,6 +58,7 @@ class SimBridge:
         self.commands: dict[str, Cmd] = {}
         self.statuses: dict[str, Status] = {}
         self.missed_commands = 0
+        self.startup_missing: set[str] = set()   # vessels whose agent was not ready when the bridge gave up waiting
         self.watchdog_stops = 0
         self.rejected = 0
         self.ticks = 0
@@ -162,6 +163,7 @@ class SimBridge:
                 self.log.log("/bridge/summary", {
                     "ticks": self.ticks, "loop_seconds": self.loop_seconds,
                     "cpu_seconds": time.process_time() - cpu_start, "missed_commands": self.missed_commands,
+                    "startup_missing": sorted(self.startup_missing),
                     "watchdog_stops": self.watchdog_stops, "refused": self.rejected}, self.world.time_ns)
             for entity in [*subscribers, watcher, *self._publishers.values()]:
                 entity.undeclare()
@@ -193,6 +195,11 @@ class SimBridge:
             while not self.stopping.is_set() and not all(ready(v) for v in vessels):
                 remaining = deadline - time.monotonic()
                 if remaining <= 0:
+                    missing = sorted(v for v in vessels if not ready(v))
+                    self.startup_missing.update(missing)
+                    print(f"usv-sim: no agent ready for vessel(s) {', '.join(missing)} after "
+                          f"{self.settings.startup_timeout:.0f} s; going on without (they will be stopped by the "
+                          "watchdog)", file=sys.stderr)
                     return
                 self._arrived.wait(remaining)
 
@@ -324,6 +331,7 @@ def main(argv: list[str] | None = None) -> int:
     factor = simulated / bridge.loop_seconds if bridge.loop_seconds > 0 else float("nan")
     print(f"usv-sim: {bridge.ticks} ticks, {bridge.missed_commands} missed commands, "
           f"{bridge.watchdog_stops} watchdog stops, {bridge.rejected} refused; "
-          f"{simulated:.1f} s simulated in {bridge.loop_seconds:.2f} s of wall time ({factor:.1f}x real time)",
+          f"{simulated:.1f} s simulated in {bridge.loop_seconds:.2f} s of wall time ({factor:.1f}x real time)"
+          + (f"; no agent came for {', '.join(sorted(bridge.startup_missing))}" if bridge.startup_missing else ""),
           file=sys.stderr)
     return 0

@@ -55,17 +55,9 @@ class Fleet:
         self.bridge_cmd = [sys.executable, "-m", "sim_bridge", "--scenario", str(scenario_path), "--variant",
                            self.name, "--config", str(self.folder / "bridge.yaml")]
         self.bridge_cmd += ["--seed", str(seed)] if seed is not None else []
-        agent_params = self.scenario.agent_params().model_dump(mode="json")
-        starts = _initial_estimates(self.scenario, seed)
-        for vessel in self.scenario.world.vessels:
-            (self.folder / f"agent-{vessel.id}.yaml").write_text(yaml.safe_dump({
-                "clock": "sim",
-                "zenoh": {"listen": [f"tcp/127.0.0.1:{free_port()}"],
-                          "connect": [f"tcp/127.0.0.1:{self.bridge_port}"]},
-                "log": str(self.folder / f"agent-{vessel.id}.mcap"),
-                "agent": agent_params,
-                "initial": starts.get(vessel.id, {}),
-            }))
+        for vessel, settings in agent_configs(self.scenario, seed, self.folder, lambda v: {
+                "listen": [f"tcp/127.0.0.1:{free_port()}"], "connect": [f"tcp/127.0.0.1:{self.bridge_port}"]}).items():
+            (self.folder / f"agent-{vessel}.yaml").write_text(yaml.safe_dump(settings))
         self.bridge: subprocess.Popen | None = None
         self.agents: dict[str, subprocess.Popen] = {}
         self.killed: dict[str, float] = {}        # vessel -> sim time (s) when its agent was killed
@@ -186,7 +178,18 @@ def launch(scenario_path: Path, variant: str | None, out: Path, seed: int | None
     return folder
 
 
-def _initial_estimates(scenario, seed: int | None) -> dict[str, dict]:
+def agent_configs(scenario, seed: int | None, folder: Path, zenoh) -> dict[str, dict]:
+    """Each vessel's agent settings (NodeSettings as a mapping) for a simulated mission: sim clock, the
+    scenario's parameters and initial estimates, its log in `folder`, and `zenoh(vessel)` as its Zenoh section
+    (loopback peers for the launcher, clients of a router in tests/test_multihost.py)."""
+    agent_params = scenario.agent_params().model_dump(mode="json")
+    starts = initial_settings(scenario, seed)
+    return {v.id: {"clock": "sim", "zenoh": zenoh(v.id), "log": str(folder / f"agent-{v.id}.mcap"),
+                   "agent": agent_params, "initial": starts.get(v.id, {})}
+            for v in scenario.world.vessels}
+
+
+def initial_settings(scenario, seed: int | None) -> dict[str, dict]:
     """Each agent's starting estimates, drawn as the in-process runner draws them (for the vessels there
     at the start; a later joiner starts from its first bearing and its neighbours' shares)."""
     from sim_bridge.runner import initial_estimates, streams

@@ -2,22 +2,11 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 
-SCENARIO = """
-name: short
-base:
-  duration: 12.0
-  seed: 5
-  world:
-    vessels:
-      - {id: "1", position: [-6.0, -7.0]}
-      - {id: "2", position: [6.0, 6.0]}
-      - {id: "3", position: [-10.0, 3.0]}
-    target: {kind: constant_velocity, position: [1.0, 1.0], velocity: [0.5, 0.0]}
-    islands: [[[20.0, -3.0], [24.0, -3.0], [22.0, 1.0]]]
-  agent: {control: {radius: 5.0}}
-"""
+SCENARIO = (Path(__file__).parent / "data" / "short_scenario.yaml").read_text()
 
 
 @pytest.fixture

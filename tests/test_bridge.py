@@ -71,4 +71,5 @@ def test_watchdog_stops_a_vessel_whose_agent_is_silent():
     thread.join(timeout=10)
     assert bridge.ticks == 11
     assert bridge.watchdog_stops >= 11           # vessel 2 stopped at every tick
+    assert bridge.startup_missing == {"2"}        # and the bridge says which agent never came
     np.testing.assert_array_equal(bridge.world.truth().positions["2"], start)

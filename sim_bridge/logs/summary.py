@@ -111,6 +111,7 @@ def sim_summary(log: Log) -> dict:
         "duration_s": None if span is None else span[1] - span[0],
         "ticks": final.get("ticks", len(log.messages("/truth"))),
         "missed_commands": final.get("missed_commands"), "watchdog_stops": final.get("watchdog_stops"),
+        "startup_missing": final.get("startup_missing", []),
         "refused": final.get("refused"),
         "command_latency_ms": None if not latencies else {
             "p50": float(np.percentile(latencies, 50)), "p99": float(np.percentile(latencies, 99))},
@@ -157,7 +158,9 @@ def summary_markdown(summary: dict) -> str:
                   f"{sim['ticks']} ticks, {_fmt(sim['missed_commands'])} missed commands, "
                   f"{_fmt(sim['watchdog_stops'])} watchdog stops, {_fmt(sim['refused'])} refused messages"
                   + ("" if latency is None else
-                     f"; sensor-to-command latency p50 {latency['p50']:.2f} ms, p99 {latency['p99']:.2f} ms"), ""]
+                     f"; sensor-to-command latency p50 {latency['p50']:.2f} ms, p99 {latency['p99']:.2f} ms")
+                  + ("" if not sim["startup_missing"] else
+                     f". **No agent came for vessel(s) {', '.join(sim['startup_missing'])}**"), ""]
     for v, s in vessels.items():
         lines += [f"## Vessel {v}", ""]
         if s["unfinished"]:

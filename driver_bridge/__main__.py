@@ -1,0 +1,5 @@
+import sys
+
+from driver_bridge.node import main
+
+sys.exit(main())

@@ -1,0 +1,220 @@
+"""The driver bridge process: a vessel's hardware behind the agents' Zenoh contract (`usv-driver`).
+
+It does on a boat what the sim bridge does in simulation, for one vessel: it reads the serial devices,
+publishes the contract's sensor messages under `usv/<id>/sensor/...`, and turns the agent's commands into
+thrust. Each hardware side is one adapter (uwb, odometry, bearing, thrusters); this file only wires them to
+the ports and to Zenoh, so swapping a device means swapping an adapter.
+
+    UWB module  --NLink frames-->  NLinkParser     -> usv/<id>/sensor/uwb      (Ranges)
+    speed log   --$..VHW------->   DeadReckoning   -> usv/<id>/sensor/odom     (Odometry)
+    detector    --$DET--------->   BearingAdapter  -> usv/<id>/sensor/bearing  (Bearing, with the odometry's heading)
+    usv/<id>/cmd (Cmd)  -------->  ThrusterAdapter -> $THR lines to the motor controller, `rate_hz` times a second
+
+The watchdog is the adapter's: with no fresh command the thrusters get zero. Stamps are wall time (the
+clock the agents run on at sea). One thread reads the ports (select); the Zenoh callback only stores the
+latest command. SIGINT and SIGTERM stop it, with a last zero-thrust line.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import select
+import signal
+import sys
+import threading
+import time
+from collections import Counter
+
+from pydantic import Field
+
+from agent.contract import Bearing, Cmd, Ranges, decode, encode, key, nanoseconds
+from agent.node import ZenohSettings, vessel_process, zenoh_config
+from agent.params import PositiveFloat, StrictModel
+from driver_bridge.bearing import BearingAdapter, CameraSettings, parse_detection
+from driver_bridge.odometry import DeadReckoning, OdometrySettings, parse_vhw
+from driver_bridge.serial_port import LineReader, open_serial, write_all
+from driver_bridge.thrusters import STOP, ThrusterAdapter, ThrusterSettings, command_line
+from driver_bridge.uwb import NLinkParser, UwbSettings
+
+
+class Port(StrictModel):
+    device: str = Field(description="serial device, e.g. /dev/ttyUSB0 or /dev/serial/by-id/...")
+    baud: int = Field(115_200, gt=0)
+
+
+class UwbPort(Port):
+    module: UwbSettings
+
+
+class OdometryPort(Port):
+    # NMEA VHW gives a compass heading (clockwise from north): with x east and y north that is yaw_sign -1
+    # and yaw_offset pi/2 in the common counter-clockwise reference.
+    dead_reckoning: OdometrySettings = OdometrySettings(yaw_sign=-1, yaw_offset=math.pi / 2)
+
+
+class CameraPort(Port):
+    camera: CameraSettings
+
+
+class ThrusterPort(Port):
+    hull: ThrusterSettings
+    rate_hz: PositiveFloat = Field(10.0, description="thrust lines per second to the motor controller")
+
+
+class DriverSettings(StrictModel):
+    zenoh: ZenohSettings = ZenohSettings()
+    uwb: UwbPort | None = None
+    odometry: OdometryPort | None = None
+    camera: CameraPort | None = None
+    thrusters: ThrusterPort | None = None
+
+
+class DriverBridge:
+    def __init__(self, vessel: str, settings: DriverSettings) -> None:
+        self.id = vessel
+        self.settings = settings
+        self.stopping = threading.Event()
+        self.uwb = NLinkParser(settings.uwb.module) if settings.uwb else None
+        self.dead_reckoning = DeadReckoning(settings.odometry.dead_reckoning) if settings.odometry else None
+        self.camera = BearingAdapter(settings.camera.camera) if settings.camera else None
+        self.thrusters = ThrusterAdapter(settings.thrusters.hull) if settings.thrusters else None
+        self.published: Counter[str] = Counter()
+        self.refused: Counter[str] = Counter()
+        self.lines = {"odometry": LineReader(), "camera": LineReader()}
+        self._seq: Counter[str] = Counter()
+        self._command_lock = threading.Lock()
+        self._command: Cmd | None = None
+        self._applied_seq: int | None = None
+
+    # ----- Zenoh side -----
+    def _on_command(self, sample) -> None:
+        message, _ = decode(Cmd, sample.payload.to_bytes())
+        if message is None or message.sender != self.id:
+            self.refused["command"] += 1
+            return
+        with self._command_lock:
+            if self._command is None or message.seq > self._command.seq or message.seq == 0:
+                self._command = message
+
+    def _publish(self, publishers, topic: str, message) -> None:
+        publishers[topic].put(encode(message))
+        self.published[topic] += 1
+
+    def _next(self, topic: str) -> int:
+        value = self._seq[topic]
+        self._seq[topic] += 1
+        return value
+
+    # ----- device side -----
+    def _on_uwb(self, data: bytes, publishers) -> None:
+        for frame in self.uwb.feed(data):
+            self._publish(publishers, "sensor/uwb", Ranges(
+                stamp_ns=nanoseconds(time.time()), seq=self._next("uwb"), sender=self.id, ranges=frame.ranges))
+
+    def _on_odometry(self, data: bytes, publishers) -> None:
+        for body in self.lines["odometry"].feed(data):
+            sample = parse_vhw(body)
+            if sample is None:
+                self.refused["odometry_sentence"] += 1
+                continue
+            speed, heading = sample
+            before = self.dead_reckoning.state
+            state = self.dead_reckoning.update(time.time(), speed, heading)
+            if state is not None and state is not before:
+                self._publish(publishers, "sensor/odom", state.message(self._next("odom"), self.id))
+
+    def _on_camera(self, data: bytes, publishers) -> None:
+        for body in self.lines["camera"].feed(data):
+            detection = parse_detection(body)
+            if detection is None:
+                self.refused["camera_sentence"] += 1
+                continue
+            state = self.dead_reckoning.state if self.dead_reckoning else None
+            if state is None:
+                self.refused["bearing_without_heading"] += 1   # a bearing needs the common heading
+                continue
+            column, row = detection
+            vector = self.camera.bearing(column, row, state.heading)
+            if vector is None and column is not None:
+                continue   # refused by the adapter (counted there)
+            self._publish(publishers, "sensor/bearing", Bearing(
+                stamp_ns=nanoseconds(time.time()), seq=self._next("bearing"), sender=self.id, bearing=vector))
+
+    def _drive(self, fd: int, now: float) -> None:
+        with self._command_lock:
+            command = self._command
+        if command is not None and command.seq != self._applied_seq:
+            self._applied_seq = command.seq
+            # The command's age is judged on arrival: its stamp is the agent's wall clock, ours may differ.
+            self.thrusters.command(command.surge, command.yaw_rate, now)
+        write_all(fd, command_line(self.thrusters.output(now)))
+
+    # ----- the loop -----
+    def run(self, max_seconds: float | None = None) -> None:
+        import zenoh
+
+        ports = {}
+        for name in ("uwb", "odometry", "camera", "thrusters"):
+            port = getattr(self.settings, name)
+            if port is not None:
+                ports[name] = open_serial(port.device, port.baud)
+        handlers = {"uwb": self._on_uwb, "odometry": self._on_odometry, "camera": self._on_camera}
+        readers = {fd: handlers[name] for name, fd in ports.items() if name in handlers}
+        started = time.monotonic()
+        try:
+            with zenoh.open(zenoh_config(self.settings.zenoh)) as session:
+                publishers = {t: session.declare_publisher(key(self.id, t))
+                              for t in ("sensor/uwb", "sensor/odom", "sensor/bearing")}
+                subscriber = session.declare_subscriber(key(self.id, "cmd"), self._on_command)
+                period = 1.0 / self.settings.thrusters.rate_hz if self.thrusters else 0.1
+                next_drive = time.monotonic()
+                while not self.stopping.is_set():
+                    if max_seconds is not None and time.monotonic() - started > max_seconds:
+                        break
+                    ready, _, _ = select.select(list(readers), [], [], max(0.0, next_drive - time.monotonic()))
+                    for fd in ready:
+                        data = os.read(fd, 4096)
+                        if data:
+                            readers[fd](data, publishers)
+                    if time.monotonic() >= next_drive:
+                        next_drive += period
+                        if self.thrusters:
+                            self._drive(ports["thrusters"], time.time())
+                subscriber.undeclare()
+        finally:
+            if "thrusters" in ports:
+                write_all(ports["thrusters"], command_line(STOP))   # leave the boat stopped
+            for fd in ports.values():
+                os.close(fd)
+
+
+def main(argv: list[str] | None = None) -> int:
+    started = vessel_process("usv-driver", "The driver bridge of one vessel.", DriverSettings, argv, lambda parser:
+                             parser.add_argument("--seconds", type=float, default=None,
+                                                 help="stop after this long (tests)"), config_required=True)
+    if isinstance(started, int):
+        return started
+    args, settings = started
+    bridge = DriverBridge(args.vessel, settings)
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, lambda *_: bridge.stopping.set())
+    try:
+        bridge.run(args.seconds)
+    except OSError as error:
+        print(f"usv-driver: {error}", file=sys.stderr)
+        return 1
+    counts = {"published": dict(bridge.published), "refused": dict(bridge.refused)}
+    for name in ("uwb", "dead_reckoning", "camera", "thrusters"):
+        adapter = getattr(bridge, name)
+        if adapter is not None and adapter.rejected:
+            counts[f"{name}_refused"] = dict(adapter.rejected)
+    for name, lines in bridge.lines.items():
+        if lines.rejected:
+            counts[f"{name}_lines_refused"] = dict(lines.rejected)
+    print(f"usv-driver {args.vessel}: stopped; {counts}", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,164 @@
+"""Deployment: the fleet inventory rendered into each boat's files, --print-config, the systemd units, and the
+two Zenoh topologies working as rendered (peers on a LAN, clients of the shore router)."""
+
+from __future__ import annotations
+
+import configparser
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import yaml
+
+from agent.node import NodeSettings, zenoh_config
+from driver_bridge.node import DriverSettings
+from sim_bridge.fleet import free_port
+from usv_deploy.inventory import LOG_ROOT, Inventory, agent_settings, driver_settings, render, render_router
+
+ROOT = Path(__file__).resolve().parents[1]
+DEPLOY = ROOT / "deploy"
+
+
+def usv_deploy(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "usv_deploy", *args], capture_output=True, text=True, timeout=120)
+
+
+def inventory(**changes) -> Inventory:
+    data = yaml.safe_load((DEPLOY / "fleet.example.yaml").read_text())
+    data.update(changes)
+    return Inventory.model_validate(data)
+
+
+def test_the_example_inventory_renders_every_boat(tmp_path):
+    result = usv_deploy("render", str(DEPLOY / "fleet.example.yaml"), "--all", "--out", str(tmp_path))
+    assert result.returncode == 0, result.stderr
+    for vessel in ("1", "2", "3"):
+        folder = tmp_path / vessel
+        agent = NodeSettings.model_validate(yaml.safe_load((folder / "agent.yaml").read_text()))
+        driver = DriverSettings.model_validate(yaml.safe_load((folder / "driver.yaml").read_text()))
+        assert agent.clock == "wall" and agent.log == f"{LOG_ROOT}/agent-{{vessel}}-{{start}}.mcap"
+        assert agent.agent.control.radius == 20.0                       # the fleet's parameter
+        assert agent.zenoh.mode == "peer" and not agent.zenoh.multicast_scouting
+        # Every other vessel's agent and driver bridge, explicitly; UWB node ids of the others.
+        others = [v for v in ("1", "2", "3") if v != vessel]
+        expected = {f"tcp/10.10.0.1{v}:{p}" for v in others for p in (7447, 7448)}
+        assert set(agent.zenoh.connect) == expected | {f"tcp/10.10.0.1{vessel}:7448"}
+        assert agent.zenoh.listen == [f"tcp/10.10.0.1{vessel}:7447"]
+        assert driver.zenoh.listen == [f"tcp/10.10.0.1{vessel}:7448"]
+        assert driver.uwb.module.peers == {int(v): v for v in others}
+        assert driver.thrusters.hull.max_thrust == 60.0 and driver.camera.camera.width == 1280
+        assert (folder / "usv.env").read_text() == f"USV_VESSEL={vessel}\nUSV_FLEET=lake-trial\n"
+    # One boat's own parameters go over the fleet's.
+    assert yaml.safe_load((tmp_path / "3" / "agent.yaml").read_text())["agent"]["control"]["max_speed"] == 1.2
+    assert yaml.safe_load((tmp_path / "1" / "agent.yaml").read_text())["agent"]["control"]["max_speed"] != 1.2
+
+
+def test_print_config_shows_the_effective_settings_without_starting(tmp_path):
+    render(inventory(), "2", tmp_path)
+    for program, model, name in (("agent", NodeSettings, "agent.yaml"), ("driver_bridge", DriverSettings,
+                                                                         "driver.yaml")):
+        started = time.monotonic()
+        shown = subprocess.run([sys.executable, "-m", program, "--vessel", "2", "--config", str(tmp_path / name),
+                                "--print-config"], capture_output=True, text=True, timeout=60)
+        assert shown.returncode == 0, shown.stderr
+        # Nothing started: the boat's addresses do not exist here, and it still returns at once.
+        assert time.monotonic() - started < 30
+        printed = model.model_validate(yaml.safe_load(shown.stdout))
+        assert printed == model.model_validate(yaml.safe_load((tmp_path / name).read_text()))
+        assert "effective settings" in shown.stdout
+
+
+def test_bad_inventories_are_refused_with_the_reason(tmp_path):
+    cases = {
+        "duplicate": ({"vessels": [{"id": "1", "address": "a"}, {"id": "1", "address": "b"}]}, "unique"),
+        "no router": ({"topology": "router"}, "needs a router"),
+        "tls on peers": ({"tls": "certs"}, "tls needs topology 'router'"),
+        "bad id": ({"vessels": [{"id": "no spaces", "address": "a"}]}, "vessels.0.id"),
+    }
+    for name, (change, reason) in cases.items():
+        data = yaml.safe_load((DEPLOY / "fleet.example.yaml").read_text()) | change
+        path = tmp_path / f"{name}.yaml"
+        path.write_text(yaml.safe_dump(data))
+        result = usv_deploy("render", str(path), "--all", "--out", str(tmp_path / "out"))
+        assert result.returncode == 2 and reason in result.stderr and "Traceback" not in result.stderr, name
+    result = usv_deploy("render", str(DEPLOY / "fleet.example.yaml"), "--vessel", "9", "--out", str(tmp_path))
+    assert result.returncode == 2 and "vessel '9' is not in the inventory" in result.stderr
+
+
+def test_the_systemd_units_run_the_rendered_files():
+    for unit, program, config in (("usv-agent@.service", "usv-agent", "agent.yaml"),
+                                  ("usv-driver@.service", "usv-driver", "driver.yaml")):
+        parser = configparser.ConfigParser(strict=False, interpolation=None)
+        parser.optionxform = str
+        parser.read(DEPLOY / "systemd" / unit)
+        service = parser["Service"]
+        assert service["ExecStart"] == f"/opt/usv/.venv/bin/{program} --vessel %i --config /etc/usv/%i/{config}"
+        assert service["EnvironmentFile"] == "/etc/usv/%i/usv.env"          # what render writes
+        assert service["Restart"] == "always" and service["KillSignal"] == "SIGTERM"
+        assert service["LogsDirectory"] == Path(LOG_ROOT).name
+        assert parser["Install"]["WantedBy"] == "multi-user.target"
+
+
+def test_the_zenoh_topology_files_load():
+    import zenoh
+
+    modes = {name: json.loads(zenoh.Config.from_file(str(DEPLOY / "zenoh" / f"{name}.json5")).get_json("mode"))
+             for name in ("peer-lan", "client-to-router", "router")}
+    assert modes == {"peer-lan": "peer", "client-to-router": "client", "router": "router"}
+
+
+def _wait_for(condition, seconds: float = 10.0) -> bool:
+    deadline = time.monotonic() + seconds
+    while time.monotonic() < deadline:
+        if condition():
+            return True
+        time.sleep(0.05)
+    return False
+
+
+def _exchange(first, second) -> bool:
+    """Does a put on one session reach a subscriber on the other?"""
+    got = []
+    second.declare_subscriber("usv/1/cmd", lambda sample: got.append(sample.payload.to_bytes()))
+    publisher = first.declare_publisher("usv/1/cmd")
+    return _wait_for(lambda: publisher.put(b"x") or bool(got))
+
+
+def test_peer_topology_as_rendered_links_two_boats():
+    import zenoh
+
+    ports = [free_port(), free_port()]
+    fleet = inventory(vessels=[{"id": "1", "address": "127.0.0.1", "port": ports[0]},
+                               {"id": "2", "address": "127.0.0.1", "port": ports[1]}])
+    one, two = (agent_settings(fleet, fleet.vessel(v)) for v in ("1", "2"))
+    with zenoh.open(zenoh_config(one.zenoh)) as first, zenoh.open(zenoh_config(two.zenoh)) as second:
+        assert _exchange(first, second)
+
+
+def test_router_topology_as_rendered_links_clients_through_the_router(tmp_path):
+    import threading
+
+    import zenoh
+
+    from usv_deploy.router import run_router
+
+    port = free_port()
+    fleet = inventory(topology="router", router={"address": "127.0.0.1", "port": port})
+    config = render_router(fleet, tmp_path)
+    ready, stopping = threading.Event(), threading.Event()
+    router = threading.Thread(target=run_router, args=(config, []), kwargs={"ready": ready, "stopping": stopping},
+                              daemon=True)
+    router.start()
+    assert ready.wait(20)
+    one, two = (agent_settings(fleet, fleet.vessel(v)) for v in ("1", "2"))
+    assert one.zenoh.mode == "client" and one.zenoh.connect == [f"tcp/127.0.0.1:{port}"] and not one.zenoh.listen
+    assert driver_settings(fleet, fleet.vessel("1")).zenoh.connect == one.zenoh.connect
+    try:
+        with zenoh.open(zenoh_config(one.zenoh)) as first, zenoh.open(zenoh_config(two.zenoh)) as second:
+            assert _wait_for(lambda: list(first.info.routers_zid()))
+            assert _exchange(first, second)
+    finally:
+        stopping.set()
+        router.join(10)

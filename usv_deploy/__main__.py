@@ -1,0 +1,5 @@
+import sys
+
+from usv_deploy.cli import main
+
+sys.exit(main())
