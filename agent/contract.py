@@ -33,7 +33,8 @@ FLEET_PREFIX = "usv"
 CLOCK_KEY = "sim/clock"
 LIVELINESS = "alive"
 
-VesselId = Annotated[str, Field(pattern=r"^[A-Za-z0-9_-]{1,32}$")]
+VESSEL_ID_PATTERN = r"^[A-Za-z0-9_-]{1,32}$"
+VesselId = Annotated[str, Field(pattern=VESSEL_ID_PATTERN)]
 Finite = Annotated[float, Field(allow_inf_nan=False)]
 NonNegative = Annotated[float, Field(ge=0, allow_inf_nan=False)]
 Vec2 = tuple[Finite, Finite]

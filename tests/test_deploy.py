@@ -10,6 +10,7 @@ import sys
 import time
 from pathlib import Path
 
+import pytest
 import yaml
 
 from agent.node import NodeSettings, zenoh_config
@@ -162,3 +163,33 @@ def test_router_topology_as_rendered_links_clients_through_the_router(tmp_path):
     finally:
         stopping.set()
         router.join(10)
+
+
+def test_a_secure_fleet_renders_tls_configs_and_certificates(tmp_path):
+    pytest.importorskip("cryptography")
+    import zenoh
+
+    inventory_path = DEPLOY / "fleet.shore-router.example.yaml"
+    made = usv_deploy("certs", "--inventory", str(inventory_path), "--out", str(tmp_path / "certs"))
+    assert made.returncode == 0, made.stderr
+    for name in ("ca", "router", "operator", "vessel-1", "vessel-2", "vessel-3"):
+        assert (tmp_path / "certs" / f"{name}.pem").exists(), name
+    rendered = usv_deploy("render", str(inventory_path), "--all", "--out", str(tmp_path / "rendered"))
+    assert rendered.returncode == 0, rendered.stderr
+    boat = tmp_path / "rendered" / "1"
+    assert "ZENOH_CONFIG=/etc/usv/1/zenoh.json5" in (boat / "usv.env").read_text()
+    config = json.loads((boat / "zenoh.json5").read_text())
+    assert config["mode"] == "client" and config["connect"]["endpoints"] == ["tls/10.10.0.1:7447"]
+    tls = config["transport"]["link"]["tls"]
+    assert tls["connect_certificate"] == "/etc/usv/1/certs/vessel-1.pem" and tls["enable_mtls"] is True
+    assert tls["root_ca_certificate"] == "/etc/usv/1/certs/ca.pem"
+    router = json.loads((tmp_path / "rendered" / "router" / "router.json5").read_text())
+    assert router["access_control"]["enabled"] and router["access_control"]["default_permission"] == "deny"
+    assert router["listen"]["endpoints"] == ["tls/0.0.0.0:7447"]
+    operator = json.loads((tmp_path / "rendered" / "router" / "operator.json5").read_text())
+    assert operator["transport"]["link"]["tls"]["connect_certificate"].endswith("operator.pem")
+    for text in ((boat / "zenoh.json5").read_text(), json.dumps(router), json.dumps(operator)):
+        zenoh.Config.from_json5(text)                     # each one is a configuration Zenoh accepts
+    # The agent and the driver bridge both read the same Zenoh file through ZENOH_CONFIG.
+    agent = NodeSettings.model_validate(yaml.safe_load((boat / "agent.yaml").read_text()))
+    assert agent.zenoh.connect == ["tls/10.10.0.1:7447"]

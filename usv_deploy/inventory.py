@@ -160,18 +160,25 @@ def _certificate_names(vessel_id: str) -> dict[str, dict[str, str]]:
 
 
 def render_router(inventory: Inventory, out: Path, certs_dir: str | None = None) -> Path:
-    """The shore router's Zenoh configuration (`usv-deploy router --config`)."""
+    """The shore router's Zenoh configuration (`usv-deploy router --config`) and, with TLS, the operator's
+    (`operator.json5`, for ZENOH_CONFIG on the operator's station)."""
     if inventory.router is None:
         raise ValueError("the inventory has no router")
     out.mkdir(parents=True, exist_ok=True)
     listen = [f"{'tls' if inventory.tls else 'tcp'}/0.0.0.0:{inventory.router.port}"]
+    vessels = [v.id for v in inventory.vessels]
     if inventory.tls:
         from usv_deploy.security import secure_config
 
         folder = certs_dir or inventory.tls
         certs = {"ca": {"cert": f"{folder}/ca.pem"},
                  "router": {"cert": f"{folder}/router.pem", "key": f"{folder}/router-key.pem"}}
-        config = secure_config(certs, "router", "router", listen, [], [v.id for v in inventory.vessels])
+        config = secure_config(certs, "router", "router", listen, [], vessels)
+        # The operator's station, a client like the boats, with the one certificate that may change the mission.
+        operator = {"ca": certs["ca"], "operator": {"cert": f"{folder}/operator.pem", "key": f"{folder}/operator-key.pem"}}
+        connect = [f"tls/{inventory.router.address}:{inventory.router.port}"]
+        (out / "operator.json5").write_text(json.dumps(
+            secure_config(operator, "operator", "client", [], connect, vessels), indent=2))
     else:
         config = {"mode": "router", "listen": {"endpoints": listen}, "scouting": {"multicast": {"enabled": False}}}
     path = out / "router.json5"
