@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable, Sequence
+from functools import cache
 
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -156,13 +157,23 @@ def yaw_rotation(yaw: float) -> Quaternion:
     return Quaternion(z=math.sin(0.5 * yaw), w=math.cos(0.5 * yaw))
 
 
-def transforms(stamp_ns: int, links: Iterable[tuple[str, str, float, float, float]]) -> FrameTransforms:
-    """FrameTransforms from (parent, child, x, y, yaw) links, all stamped `stamp_ns`."""
-    when = time_of(stamp_ns)
-    return FrameTransforms(transforms=[
-        FrameTransform(timestamp=when, parent_frame_id=parent, child_frame_id=child,
-                       translation=Vector3(x=x, y=y), rotation=yaw_rotation(yaw))
-        for parent, child, x, y, yaw in links])
+def transforms(stamp_ns: int, links: Iterable[tuple[str, str, float, float, float]]) -> dict:
+    """A FrameTransforms message, as the dict `FrameTransforms` would dump, from (parent, child, x, y, yaw)
+    links all stamped `stamp_ns`. Built directly: it goes out every tick, and building the pydantic models
+    cost more than the rest of the tick's log (tests/test_foxglove.py checks the two agree)."""
+    when = {"sec": stamp_ns // 1_000_000_000, "nsec": stamp_ns % 1_000_000_000}
+    return {"transforms": [
+        {"timestamp": when, "parent_frame_id": parent, "child_frame_id": child,
+         "translation": {"x": float(x), "y": float(y), "z": 0.0},
+         "rotation": {"x": 0.0, "y": 0.0, "z": math.sin(0.5 * yaw), "w": math.cos(0.5 * yaw)}}
+        for parent, child, x, y, yaw in links]}
+
+
+@cache
+def schema(model: type[BaseModel]) -> tuple[str, dict]:
+    """(schema name, JSON schema) of a Foxglove message model, for an MCAP channel."""
+    body = model.model_json_schema()
+    return body["title"], body
 
 
 def circle(radius: float, points: int = 72) -> list[Vector3]:

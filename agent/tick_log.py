@@ -144,7 +144,8 @@ class TickLogger:
         if record.target_state is not None and all(math.isfinite(v) for v in record.target_state[:2]):
             links.append((me, foxglove.estimate_frame(self.id, "target"), -float(record.target_state[0]),
                           -float(record.target_state[1]), 0.0))
-        self.log.log(f"/{self.id}/tf", foxglove.transforms(stamp, links), stamp)
+        name, body = foxglove.schema(foxglove.FrameTransforms)
+        self.log.log(f"/{self.id}/tf", foxglove.transforms(stamp, links), stamp, schema_name=name, schema=body)
         if record.target_state is not None and stamp >= self._next_scene:
             self._next_scene = stamp + SCENE_PERIOD_NS
             frame = foxglove.estimate_frame(self.id, "target")

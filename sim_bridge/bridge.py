@@ -291,7 +291,8 @@ class SimBridge:
             frame = foxglove.vessel_frame(vessel)
             links += [("world", frame, float(position[0]), float(position[1]), 0.0),
                       (frame, f"{frame}/hull", 0.0, 0.0, float(truth.headings[vessel]))]
-        self.log.log("/tf", foxglove.transforms(stamp, links), stamp)
+        name, body = foxglove.schema(foxglove.FrameTransforms)
+        self.log.log("/tf", foxglove.transforms(stamp, links), stamp, schema_name=name, schema=body)
         if stamp >= self._next_scene:
             self._next_scene = stamp + SCENE_PERIOD_NS
             radius = self.scenario.agent_params().control.radius

@@ -84,6 +84,12 @@ def test_the_estimate_frames_place_neighbours_and_target_where_the_estimates_say
     assert frames["transforms"][0]["timestamp"] == {"sec": t // 10**9, "nsec": t % 10**9}
 
 
+def test_the_transforms_written_directly_are_what_the_model_dumps():
+    written = foxglove.transforms(12_345_678_901, [("vessel/1", "vessel/1/hull", 1.5, -2.0, 0.3),
+                                                   ("world", "target", 0.0, 4.0, 0.0)])
+    assert foxglove.FrameTransforms.model_validate(written).model_dump() == written
+
+
 def test_a_heading_becomes_a_rotation_about_z():
     turned = foxglove.yaw_rotation(math.pi / 2)
     assert (turned.x, turned.y) == (0.0, 0.0)
