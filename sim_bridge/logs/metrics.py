@@ -20,6 +20,7 @@ import numpy as np
 from scipy.stats import chi2
 
 from sim_bridge.logs.reader import RunLog, agent_radius
+from sim_bridge.logs.series import beliefs_of, centroid_error, estimate_errors, truth_of
 from sim_bridge.metrics import summarise
 
 NIS_BOUND_95 = float(chi2.ppf(0.95, 1))
@@ -28,35 +29,19 @@ NIS_BOUND_95 = float(chi2.ppf(0.95, 1))
 def truth_metrics(run: RunLog, radius: float) -> dict:
     """The paper's metrics from the logs: worst e_ij and e_io over the vessels at each tick, e_c, settling
     time, and their means. Needs the sim bridge's log."""
-    truth = dict(run.sim.messages("/truth"))
-    stamps = sorted(truth)
-    vessels = sorted({v for m in truth.values() for v in m["vessels"]})
-    index = {t: k for k, t in enumerate(stamps)}
-    n = len(stamps)
-    e_ij, e_io, e_v = (np.full(n, np.nan) for _ in range(3))
+    truth = truth_of(run.sim)
+    vessels = list(truth.vessels)
+    n = len(truth.t_ns)
+    e_ij, e_io = np.full(n, np.nan), np.full(n, np.nan)
     for vessel, log in run.vessels.items():
-        for t, m in log.topic("estimates"):
-            if t not in index:
-                continue
-            k, world = index[t], truth[t]
-            if vessel not in world["vessels"]:
-                continue
-            own = np.array(world["vessels"][vessel]["position"])
-            for j, estimate in m["neighbours"].items():
-                if j in world["vessels"]:
-                    error = np.hypot(*(np.array(estimate["position"]) - (own - world["vessels"][j]["position"])))
-                    e_ij[k] = np.nanmax([e_ij[k], error])
-            if m["target_state"] is not None:
-                error = np.hypot(*(np.array(m["target_state"][:2]) - (own - np.array(world["target"]))))
-                e_io[k] = np.nanmax([e_io[k], error])
-    positions = np.full((n, len(vessels), 2), np.nan)
-    target = np.array([truth[t]["target"] for t in stamps])
-    for k, t in enumerate(stamps):
-        for v, state in truth[t]["vessels"].items():
-            positions[k, vessels.index(v)] = state["position"]
-    radii = np.linalg.norm(positions - target[:, None, :], axis=-1)
-    e_c = np.linalg.norm(np.nanmean(positions, axis=1) - target, axis=-1)
-    metrics = summarise(np.array(stamps) * 1e-9, e_ij, e_io, e_v, e_c, radii, radius, [])
+        beliefs = beliefs_of(log)
+        if beliefs is None or vessel not in truth.vessels:
+            continue
+        worst_ij, error_io = estimate_errors(vessel, beliefs, truth)
+        e_ij, e_io = np.fmax(e_ij, worst_ij), np.fmax(e_io, error_io)   # fmax: a vessel absent at a tick does not count
+    positions = np.stack([truth.vessels[v] for v in vessels], axis=1)   # (T, n, 2)
+    radii = np.linalg.norm(positions - truth.target[:, None, :], axis=-1)
+    metrics = summarise(truth.t_ns * 1e-9, e_ij, e_io, np.full(n, np.nan), centroid_error(truth), radii, radius, [])
     return {"vessels": vessels, "ticks": n, "radius": radius, "mean_e_ij": metrics.mean_e_ij,
             "mean_e_io": metrics.mean_e_io, "mean_e_c": metrics.mean_e_c, "settling_time": metrics.settling_time}
 

@@ -17,7 +17,11 @@ from pathlib import Path
 
 import numpy as np
 
-from sim_bridge.logs.reader import Log, RunLog, VesselLog, agent_radius
+from sim_bridge.logs.reader import RunLog, VesselLog, agent_radius
+from sim_bridge.logs.series import (
+    Beliefs, Truth, beliefs_of, centroid_error, estimate_errors, get, islands_of, number, ordered, take, time_sorted,
+    truth_of,
+)
 
 DEFAULT_RADIUS = 5.0        # m, when no agent recorded its settings
 BELIEF_WINDOW = 20.0        # s of trails in the "as vessel i sees it" panels; longer ones smear into blobs
@@ -33,8 +37,8 @@ def plot_run(run: RunLog, out: Path, radius: float | None = None) -> list[Path]:
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     radius = agent_radius(run, DEFAULT_RADIUS) if radius is None else float(radius)
-    truth = _truth(run.sim) if run.has_truth else None
-    beliefs = {vid: _beliefs(run.vessels[vid]) for vid in _ordered(run.vessels)}
+    truth = truth_of(run.sim) if run.has_truth else None
+    beliefs = {vid: beliefs_of(run.vessels[vid]) for vid in ordered(run.vessels)}
     t0 = _start_ns(run, truth)
     colours = _palette(_all_ids(run, truth, beliefs))
     written = []
@@ -46,116 +50,6 @@ def plot_run(run: RunLog, out: Path, radius: float | None = None) -> list[Path]:
     if beliefs:
         written.append(_ranges_figure(run, beliefs, colours, t0, out / "ranges.png"))
     return written
-
-
-# --- reading the logs into arrays ---------------------------------------------------------------------------
-
-
-@dataclass
-class Beliefs:
-    """One vessel's estimates at its own ticks; NaN where it had none (target None, neighbour absent)."""
-    t_ns: np.ndarray                    # (K,) log time
-    target: np.ndarray                  # (K, 2) p^_io = estimated p_i - p_o
-    neighbours: dict[str, np.ndarray]   # j -> (K, 2) p^_ij = estimated p_i - p_j
-
-
-@dataclass
-class Truth:
-    t_ns: np.ndarray                    # (T,) log time, sorted
-    target: np.ndarray                  # (T, 2)
-    vessels: dict[str, np.ndarray]      # id -> (T, 2), NaN while the vessel is not in the run
-
-    def index(self, t_ns: np.ndarray) -> np.ndarray:
-        """Index of the truth sample at each log time; -1 where none is within half a tick (in real runs
-        the agents' ticks need not land exactly on the bridge's)."""
-        t = np.asarray(t_ns, dtype=np.int64)
-        n = len(self.t_ns)
-        if n == 0:
-            return np.full(t.shape, -1)
-        tolerance = np.median(np.diff(self.t_ns)) / 2 if n > 1 else 1e6
-        right = np.clip(np.searchsorted(self.t_ns, t), 0, n - 1)
-        left = np.clip(right - 1, 0, n - 1)
-        nearest = np.where(np.abs(self.t_ns[left] - t) <= np.abs(self.t_ns[right] - t), left, right)
-        return np.where(np.abs(self.t_ns[nearest] - t) <= tolerance, nearest, -1)
-
-
-def _get(message, *keys):
-    """message[k1][k2]..., or None where a level is missing or not a dict."""
-    for key in keys:
-        if not isinstance(message, dict):
-            return None
-        message = message.get(key)
-    return message
-
-
-def _number(value) -> float | None:
-    try:
-        value = float(value)
-    except (TypeError, ValueError):
-        return None
-    return value if math.isfinite(value) else None
-
-
-def _xy(value) -> tuple[float, float]:
-    """The first two numbers of a list as a point; NaN for None or anything malformed."""
-    try:
-        return float(value[0]), float(value[1])
-    except (TypeError, IndexError, KeyError, ValueError):
-        return math.nan, math.nan
-
-
-def _points(values: list) -> np.ndarray:
-    return np.array([_xy(v) for v in values], dtype=float).reshape(-1, 2)
-
-
-def _id_key(vid: str) -> tuple:
-    """Vessel ids in numeric order where they are numbers ('2' before '10')."""
-    return (0, int(vid), "") if vid.isdigit() else (1, 0, vid)
-
-
-def _ordered(ids) -> list[str]:
-    return sorted((str(i) for i in ids), key=_id_key)
-
-
-def _time_sorted(messages: list[tuple[int, dict]]) -> list[tuple[int, dict]]:
-    return sorted(messages, key=lambda pair: pair[0])
-
-
-def _beliefs(vessel: VesselLog) -> Beliefs | None:
-    messages = _time_sorted(vessel.topic("estimates"))
-    if not messages:
-        return None
-    ids = _ordered({j for _, m in messages for j in (_get(m, "neighbours") or {})})
-    return Beliefs(
-        t_ns=np.array([t for t, _ in messages], dtype=np.int64),
-        target=_points([_get(m, "target_state") for _, m in messages]),
-        neighbours={j: _points([_get(m, "neighbours", j, "position") for _, m in messages]) for j in ids},
-    )
-
-
-def _truth(sim: Log) -> Truth:
-    messages = _time_sorted(sim.messages("/truth"))
-    ids = _ordered({v for _, m in messages for v in (_get(m, "vessels") or {})})
-    return Truth(
-        t_ns=np.array([t for t, _ in messages], dtype=np.int64),
-        target=_points([_get(m, "target") for _, m in messages]),
-        vessels={v: _points([_get(m, "vessels", v, "position") for _, m in messages]) for v in ids},
-    )
-
-
-def _islands(sim: Log | None) -> list[np.ndarray]:
-    """Island outlines from the bridge's scene; the latest drawing of each id wins (they do not move)."""
-    found: dict[str, np.ndarray] = {}
-    for _, update in (sim.messages("/scene") if sim is not None else []):
-        for entity in _get(update, "entities") or []:
-            if _get(entity, "frame_id") != "world" or not str(_get(entity, "id")).startswith("island/"):
-                continue
-            lines = _get(entity, "lines") or [{}]
-            points = _get(lines[0], "points") or []
-            outline = np.array([(p.get("x", math.nan), p.get("y", math.nan)) for p in points], dtype=float)
-            if len(outline) >= 3:
-                found[entity["id"]] = outline
-    return list(found.values())
 
 
 def _start_ns(run: RunLog, truth: Truth | None) -> int:
@@ -175,8 +69,8 @@ def _all_ids(run: RunLog, truth: Truth | None, beliefs: dict[str, Beliefs | None
     ids = set(run.vessels) | set(truth.vessels if truth else ())
     ids |= {j for b in beliefs.values() if b for j in b.neighbours}
     ids |= {str(j) for v in run.vessels.values() for _, m in v.topic("inputs")
-            for j in _get(m, "ranges") or {}}
-    return _ordered(ids)
+            for j in get(m, "ranges") or {}}
+    return ordered(ids)
 
 
 def _palette(ids: list[str]) -> dict[str, tuple]:
@@ -185,14 +79,6 @@ def _palette(ids: list[str]) -> dict[str, tuple]:
 
     cmap = matplotlib.colormaps["tab10" if len(ids) <= 10 else "tab20"]
     return {vid: cmap(n % cmap.N) for n, vid in enumerate(ids)}
-
-
-def _take(rows: np.ndarray, index: np.ndarray) -> np.ndarray:
-    """rows[index], with NaN where index is -1 (no sample)."""
-    out = np.full((len(index), rows.shape[1]), np.nan)
-    present = index >= 0
-    out[present] = rows[index[present]]
-    return out
 
 
 def _with_gaps(t: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -267,7 +153,7 @@ def _trajectories_figure(run, truth, beliefs, colours, radius, t0, path) -> Path
                 map_fig, panels = fig.subfigures(1, 2, width_ratios=[rows, columns])
             else:
                 map_fig = fig
-            _map_panel(map_fig.subplots(), truth, _islands(run.sim), colours, radius)
+            _map_panel(map_fig.subplots(), truth, islands_of(run.sim), colours, radius)
         if believers:
             axes = panels.subplots(rows, columns, squeeze=False)
             for ax, vid in zip(axes.flat, believers, strict=False):
@@ -359,7 +245,7 @@ def _belief_panel(ax, vid: str, beliefs: Beliefs | None, truth: Truth | None, co
         ax.plot(trail[:, 0], trail[:, 1], color=colours[j], lw=1.6 if itself else 1.2, zorder=3, label=label)
         ax.plot(*final, "o", color=colours[j], mec="black", ms=8 if itself else 6, zorder=5)
         if index is not None and j in truth.vessels:
-            _, actual = _with_gaps(t, _take(truth.vessels[j], index) - _take(truth.target, index))
+            _, actual = _with_gaps(t, take(truth.vessels[j], index) - take(truth.target, index))
             ax.plot(actual[:, 0], actual[:, 1], color=colours[j], ls="--", lw=0.7, zorder=2)
     if index is not None:
         ax.plot([], [], color="0.3", ls="--", lw=0.7, label="true, from true target")
@@ -378,13 +264,13 @@ def _errors_figure(truth: Truth, beliefs, colours, radius: float, t0: int, path:
         for vid, found in beliefs.items():
             if found is None or vid not in truth.vessels:
                 continue
-            e_ij, e_io = _estimate_errors(vid, found, truth)
+            e_ij, e_io = estimate_errors(vid, found, truth)
             _curve(axes[0], t, e_ij, colours[vid], f"vessel {vid}")
             _curve(axes[1], t, e_io, colours[vid], f"vessel {vid}")
         for vid, positions in truth.vessels.items():
             distance = np.linalg.norm(positions - truth.target, axis=1) - radius
             _curve(axes[2], t, distance, colours[vid], f"vessel {vid}")
-        _curve(axes[3], t, _centroid_error(truth), "black", "fleet")
+        _curve(axes[3], t, centroid_error(truth), "black", "fleet")
         _label_errors(axes, radius)
         fig.suptitle("Estimation and formation errors against ground truth")
     return path
@@ -393,34 +279,6 @@ def _errors_figure(truth: Truth, beliefs, colours, radius: float, t0: int, path:
 def _curve(ax, t, values, colour, label) -> None:
     t, values = _with_gaps(t, values)
     ax.plot(t, values, color=colour, lw=1.1, label=label)
-
-
-def _estimate_errors(vid: str, beliefs: Beliefs, truth: Truth) -> tuple[np.ndarray, np.ndarray]:
-    """e_ij (worst over i's neighbours) and e_io of vessel i, on the truth's ticks; NaN where unknown."""
-    index = truth.index(beliefs.t_ns)
-    p_i = _take(truth.vessels[vid], index)
-    e_io = np.linalg.norm(beliefs.target - (p_i - _take(truth.target, index)), axis=1)
-    worst = np.full(len(index), np.nan)
-    for j, estimate in beliefs.neighbours.items():
-        if j in truth.vessels:
-            error = np.linalg.norm(estimate - (p_i - _take(truth.vessels[j], index)), axis=1)
-            worst = np.fmax(worst, error)    # fmax skips NaN: a neighbour absent at a tick does not count
-    on_truth = np.full((2, len(truth.t_ns)), np.nan)
-    present = index >= 0
-    on_truth[:, index[present]] = worst[present], e_io[present]
-    return on_truth[0], on_truth[1]
-
-
-def _centroid_error(truth: Truth) -> np.ndarray:
-    """e_c: distance from the mean position of the vessels present to the target."""
-    if not truth.vessels:
-        return np.full(len(truth.t_ns), np.nan)
-    positions = np.stack(list(truth.vessels.values()))            # (N, T, 2)
-    present = np.isfinite(positions).all(axis=2)
-    total = np.where(present[..., None], positions, 0.0).sum(axis=0)
-    with np.errstate(invalid="ignore", divide="ignore"):          # no vessel at a tick: NaN, as wanted
-        mean = total / present.sum(axis=0)[:, None]
-    return np.linalg.norm(mean - truth.target, axis=1)
 
 
 def _label_errors(axes, radius: float) -> None:
@@ -474,7 +332,7 @@ def _ranges_figure(run: RunLog, beliefs, colours, t0: int, path: Path) -> Path:
         fig.colorbar(scale, ax=axes[:, 1], label="MCKF weight (near 0: outlier)")
         for ax in axes[-1]:
             ax.set_xlabel("time (s)")
-        senders = _ordered({u.neighbour for found in updates.values() for u in found})
+        senders = ordered({u.neighbour for found in updates.values() for u in found})
         fig.legend(handles=_innovation_legend(senders, markers), loc="outside lower center",
                    ncol=len(senders) + 3, fontsize=8, title="Right-hand panels", title_fontsize=8)
         fig.suptitle("Inter-vessel ranges: measurements, estimates and how the range filter weighed them")
@@ -484,8 +342,8 @@ def _ranges_figure(run: RunLog, beliefs, colours, t0: int, path: Path) -> Path:
 def _measured_ranges(vessel: VesselLog, t0: int) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     found: dict[str, list[tuple[int, float]]] = defaultdict(list)
     for t, message in vessel.topic("inputs"):
-        for j, value in (_get(message, "ranges") or {}).items():
-            if (metres := _number(value)) is not None:
+        for j, value in (get(message, "ranges") or {}).items():
+            if (metres := number(value)) is not None:
                 found[str(j)].append((t, metres))
     return {j: (_seconds([t for t, _ in pairs], t0), np.array([r for _, r in pairs]))
             for j, pairs in found.items()}
@@ -495,7 +353,7 @@ def _range_panel(ax, vid: str, vessel: VesselLog, beliefs: Beliefs | None, colou
     """Measured ranges as dots, the range the estimate implies (|p^_ij|) as a line of the same colour."""
     measured = _measured_ranges(vessel, t0)
     estimated = beliefs.neighbours if beliefs is not None else {}
-    for j in _ordered(set(measured) | set(estimated)):
+    for j in ordered(set(measured) | set(estimated)):
         if j in measured:
             ax.plot(*measured[j], ".", color=colours[j], ms=3, label=f"to vessel {j}")
         if j in estimated:
@@ -514,30 +372,30 @@ def _range_panel(ax, vid: str, vessel: VesselLog, beliefs: Beliefs | None, colou
 def _updates(vessel: VesselLog, t0: int) -> list[Update]:
     """The filter's range updates, once each, placed at their measurement stamp on the log's clock."""
     seen, found = set(), []
-    for t_ns, message in _time_sorted(vessel.topic("estimates")):
+    for t_ns, message in time_sorted(vessel.topic("estimates")):
         tick = float(_seconds(t_ns, t0))
-        agent_time = _number(_get(message, "time"))
+        agent_time = number(get(message, "time"))
         # stamps are on the agent's clock; the offset at this tick carries them onto the log's
         offset = tick - agent_time if agent_time is not None else None
-        for j, estimate in (_get(message, "neighbours") or {}).items():
-            for outcome in _get(estimate, "outcomes") or []:
+        for j, estimate in (get(message, "neighbours") or {}).items():
+            for outcome in get(estimate, "outcomes") or []:
                 if not isinstance(outcome, dict):
                     continue
                 key = (j, outcome.get("stamp"), outcome.get("range"), outcome.get("innovation"))
                 if key in seen:      # a log that repeats recent outcomes must not double them
                     continue
                 seen.add(key)
-                stamp = _number(outcome.get("stamp"))
+                stamp = number(outcome.get("stamp"))
                 when = stamp + offset if stamp is not None and offset is not None else tick
                 found.append(_update(str(j), when, outcome))
     return found
 
 
 def _update(neighbour: str, when: float, outcome: dict) -> Update:
-    innovation = _number(outcome.get("innovation"))
-    variance = _number(outcome.get("innovation_variance"))
+    innovation = number(outcome.get("innovation"))
+    variance = number(outcome.get("innovation_variance"))
     z = innovation / math.sqrt(variance) if innovation is not None and variance and variance > 0 else math.nan
-    weight = _number(outcome.get("weight"))
+    weight = number(outcome.get("weight"))
     weight = math.nan if weight is None else weight
     return Update(when, neighbour, z, weight, bool(outcome.get("accepted", True)))
 
@@ -552,7 +410,7 @@ def _innovation_panel(ax, vid: str, updates: list[Update], scale, markers: dict[
     if not updates:
         _no_data(ax, "no range updates logged")
         return
-    for j in _ordered({u.neighbour for u in updates}):
+    for j in ordered({u.neighbour for u in updates}):
         used = [u for u in updates if u.neighbour == j and u.accepted]
         ax.scatter([u.t for u in used], [u.z for u in used], c=[u.weight for u in used], cmap=scale.cmap,
                    norm=scale.norm, marker=markers.get(j, "o"), s=16, lw=0, zorder=3)
