@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable, Sequence
-from functools import cache
 
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -167,13 +166,6 @@ def transforms(stamp_ns: int, links: Iterable[tuple[str, str, float, float, floa
          "translation": {"x": float(x), "y": float(y), "z": 0.0},
          "rotation": {"x": 0.0, "y": 0.0, "z": math.sin(0.5 * yaw), "w": math.cos(0.5 * yaw)}}
         for parent, child, x, y, yaw in links]}
-
-
-@cache
-def schema(model: type[BaseModel]) -> tuple[str, dict]:
-    """(schema name, JSON schema) of a Foxglove message model, for an MCAP channel."""
-    body = model.model_json_schema()
-    return body["title"], body
 
 
 def circle(radius: float, points: int = 72) -> list[Vector3]:

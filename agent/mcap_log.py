@@ -49,9 +49,11 @@ class McapLog:
         return self._channels[topic]
 
     def log(self, topic: str, message: BaseModel | dict, log_time_ns: int, publish_time_ns: int | None = None,
-            schema_name: str | None = None, schema: dict | None = None, data: bytes | None = None) -> None:
-        """Append one message; a pydantic message brings its own schema, a dict needs `schema`. `data` is the
-        message already encoded as JSON (what went on the wire), to save encoding it twice."""
+            schema_name: str | None = None, schema: dict | type[BaseModel] | None = None,
+            data: bytes | None = None) -> None:
+        """Append one message; a pydantic message brings its own schema, a dict needs `schema` (a JSON schema,
+        or the model whose dump the dict is). `data` is the message already encoded as JSON (what went on the
+        wire), to save encoding it twice."""
         if self._closed:
             return
         model = isinstance(message, BaseModel)
@@ -61,11 +63,13 @@ class McapLog:
             data = message.model_dump_json().encode() if model else orjson.dumps(message, option=NUMPY)
         channel = self._channels.get(topic)
         if channel is None:  # a schema is made once per topic: generating one costs milliseconds
-            if model:  # a model's title is its class name unless it sets one (the Foxglove models do)
-                body = schema or type(message).model_json_schema()
-                name = schema_name or body.get("title", type(message).__name__)
+            source = type(message) if model and schema is None else schema
+            if isinstance(source, type) and issubclass(source, BaseModel):
+                # A model's title is its class name unless it sets one (the Foxglove models do).
+                body = source.model_json_schema()
+                name = schema_name or body.get("title", source.__name__)
             else:
-                name, body = schema_name or topic, schema or {"type": "object"}
+                name, body = schema_name or topic, source or {"type": "object"}
             channel = self.channel(topic, name, body)
         self._writer.add_message(channel_id=channel, log_time=log_time_ns,
                                  publish_time=publish_time_ns if publish_time_ns is not None else log_time_ns,

@@ -233,7 +233,9 @@ class AgentNode:
         if self.log is None:
             return
         try:
-            self.log.log(f"/{self.id}/summary", {
+            from agent.tick_log import log_topic
+
+            self.log.log(log_topic(self.id, "summary"), {
                 "ticks": self.ticks, "overruns": self.overruns, "refused": dict(self.gate.rejected),
                 "loop_seconds": wall_seconds, "cpu_seconds": cpu_seconds}, nanoseconds(self.now()))
         except Exception:  # noqa: BLE001  (the summary must not stop a clean shutdown)

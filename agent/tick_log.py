@@ -20,10 +20,17 @@ import math
 import numpy as np
 
 from agent import foxglove
+from agent.contract import key
 from agent.tick_io import Odometry, Share, TickInputs
 from agent.vessel import TickOutput, TickRecord
 
 SCENE_PERIOD_NS = 1_000_000_000   # the scene is redrawn once a second: enough for Foxglove to show it after a seek
+
+
+def log_topic(vessel: str, name: str) -> str:
+    """The topic of `name` in a vessel's log: the contract's key for what went on the wire (cmd, status),
+    `/<id>/<name>` for the rest (inputs, estimates, tf, scene, summary)."""
+    return key(vessel, name) if name in ("cmd", "status") else f"/{vessel}/{name}"
 
 
 def _floats(values) -> list[float]:
@@ -125,14 +132,14 @@ class TickLogger:
         """Log one tick at time `stamp` (ns): `command` and `status` are the contract's messages (already
         encoded in `wire` when they went out)."""
         wire = wire or {}
-        self.log.log(f"/{self.id}/inputs", inputs_to_json(inputs), stamp)
-        self.log.log(f"usv/{self.id}/cmd", command, stamp, data=wire.get("cmd"))
+        self.log.log(log_topic(self.id, "inputs"), inputs_to_json(inputs), stamp)
+        self.log.log(log_topic(self.id, "cmd"), command, stamp, data=wire.get("cmd"))
         if status is not None:
-            self.log.log(f"usv/{self.id}/status", status, stamp, data=wire.get("status"))
+            self.log.log(log_topic(self.id, "status"), status, stamp, data=wire.get("status"))
         record = output.record
         if record is None:
             return
-        self.log.log(f"/{self.id}/estimates", estimates_to_json(record), stamp)
+        self.log.log(log_topic(self.id, "estimates"), estimates_to_json(record), stamp)
         self._log_frames(stamp, inputs, record)
 
     def _log_frames(self, stamp: int, inputs: TickInputs, record: TickRecord) -> None:
@@ -144,10 +151,10 @@ class TickLogger:
         if record.target_state is not None and all(math.isfinite(v) for v in record.target_state[:2]):
             links.append((me, foxglove.estimate_frame(self.id, "target"), -float(record.target_state[0]),
                           -float(record.target_state[1]), 0.0))
-        name, body = foxglove.schema(foxglove.FrameTransforms)
-        self.log.log(f"/{self.id}/tf", foxglove.transforms(stamp, links), stamp, schema_name=name, schema=body)
+        self.log.log(log_topic(self.id, "tf"), foxglove.transforms(stamp, links), stamp,
+                     schema=foxglove.FrameTransforms)
         if record.target_state is not None and stamp >= self._next_scene:
             self._next_scene = stamp + SCENE_PERIOD_NS
             frame = foxglove.estimate_frame(self.id, "target")
-            self.log.log(f"/{self.id}/scene", foxglove.SceneUpdate(entities=foxglove.target_entities(
+            self.log.log(log_topic(self.id, "scene"), foxglove.SceneUpdate(entities=foxglove.target_entities(
                 stamp, frame, self.radius, f"target as {self.id} sees it")), stamp)

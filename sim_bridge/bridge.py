@@ -69,6 +69,7 @@ class SimBridge:
         self._seq: dict[str, int] = {}
         self._publishers: dict[str, object] = {}
         self._next_scene = 0
+        self._radius = scenario.agent_params().control.radius   # r*, for the desired circle in the log
         # Sensor-to-command latency: wall time from publishing a tick's sensors to each agent's command.
         self._tick_stamp: int | None = None
         self._tick_sent = 0.0
@@ -291,13 +292,11 @@ class SimBridge:
             frame = foxglove.vessel_frame(vessel)
             links += [("world", frame, float(position[0]), float(position[1]), 0.0),
                       (frame, f"{frame}/hull", 0.0, 0.0, float(truth.headings[vessel]))]
-        name, body = foxglove.schema(foxglove.FrameTransforms)
-        self.log.log("/tf", foxglove.transforms(stamp, links), stamp, schema_name=name, schema=body)
+        self.log.log("/tf", foxglove.transforms(stamp, links), stamp, schema=foxglove.FrameTransforms)
         if stamp >= self._next_scene:
             self._next_scene = stamp + SCENE_PERIOD_NS
-            radius = self.scenario.agent_params().control.radius
             self.log.log("/scene", foxglove.SceneUpdate(entities=[
-                *foxglove.target_entities(stamp, "target", radius, "target"),
+                *foxglove.target_entities(stamp, "target", self._radius, "target"),
                 *foxglove.island_entities(stamp, "world", self.scenario.world.islands)]), stamp)
 
     def _next(self, vessel: str, stream: str) -> int:

@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from agent.mcap_log import read_messages, read_metadata
+from agent.tick_log import log_topic
 
 
 class LogError(ValueError):
@@ -48,9 +49,7 @@ class VesselLog(Log):
 
     def topic(self, name: str) -> list[tuple[int, dict]]:
         """Messages of this vessel's topic `name` (inputs, estimates, summary, cmd, status, tf, scene)."""
-        if name in ("cmd", "status"):
-            return self.messages(f"usv/{self.vessel}/{name}")
-        return self.messages(f"/{self.vessel}/{name}")
+        return self.messages(log_topic(self.vessel, name))
 
 
 @dataclass

@@ -11,6 +11,7 @@ import math
 
 import numpy as np
 
+from agent.tick_log import log_topic
 from sim_bridge.logs.reader import Log, RunLog
 
 GAP_FACTOR = 2.5   # an interval this many times the topic's median interval is a gap
@@ -74,8 +75,8 @@ def health_windows(estimates: list[tuple[int, dict]], window: float) -> list[dic
 
 def vessel_summary(log, window: float) -> dict:
     span = _span(log)
-    status = log.last(f"usv/{log.vessel}/status") or {}
-    final = log.last(f"/{log.vessel}/summary") or {}
+    status = log.last(log_topic(log.vessel, "status")) or {}
+    final = log.last(log_topic(log.vessel, "summary")) or {}
     estimates = log.topic("estimates")
     health = status.get("health", {})
     refused = final.get("refused") or {k[len("rejected_"):]: v for k, v in health.items() if k.startswith("rejected_")}
