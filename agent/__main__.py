@@ -1,3 +1,3 @@
-from agent.node import main
+from agent.shell.node import main
 
 raise SystemExit(main())

@@ -25,9 +25,9 @@ from typing import Annotated
 import numpy as np
 from pydantic import Field, ValidationError, field_validator
 
-from agent.params import StrictModel
-from agent.tick_io import Odometry as OdometryReading
-from agent.tick_io import Share
+from agent.config import StrictModel
+from agent.core.records import Odometry as OdometryReading
+from agent.core.records import Share
 
 FLEET_PREFIX = "usv"
 CLOCK_KEY = "sim/clock"

@@ -26,7 +26,7 @@ from collections import Counter
 
 from pydantic import Field, model_validator
 
-from agent.params import PositiveFloat, StrictModel
+from agent.config import PositiveFloat, StrictModel
 
 
 class CameraSettings(StrictModel):

@@ -28,9 +28,10 @@ from collections import Counter
 
 from pydantic import Field
 
+from agent.config import PositiveFloat, StrictModel
 from agent.contract import Bearing, Cmd, Ranges, decode, encode, key, nanoseconds
-from agent.node import ZenohSettings, vessel_process, zenoh_config
-from agent.params import PositiveFloat, StrictModel
+from agent.runtime.process import vessel_process
+from agent.runtime.zenoh_session import ZenohSettings, zenoh_config
 from driver_bridge.bearing import BearingAdapter, CameraSettings, parse_detection
 from driver_bridge.odometry import DeadReckoning, OdometrySettings, parse_vhw
 from driver_bridge.serial_port import LineReader, open_serial, write_all

@@ -29,9 +29,9 @@ from typing import Literal
 
 from pydantic import Field
 
+from agent.angles import wrap_angle
+from agent.config import NonNegativeFloat, StrictModel
 from agent.contract import Odometry, nanoseconds
-from agent.control.angles import wrap_angle
-from agent.params import NonNegativeFloat, StrictModel
 
 KNOT = 1852.0 / 3600.0  # m/s
 

@@ -30,7 +30,7 @@ from dataclasses import dataclass
 
 from pydantic import Field
 
-from agent.params import PositiveFloat, StrictModel
+from agent.config import PositiveFloat, StrictModel
 from driver_bridge.serial_port import nmea_sentence
 
 

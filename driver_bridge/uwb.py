@@ -36,8 +36,8 @@ from typing import Annotated
 
 from pydantic import Field
 
+from agent.config import PositiveFloat, StrictModel
 from agent.contract import VesselId
-from agent.params import PositiveFloat, StrictModel
 
 HEADER = 0x55
 NodeNumber = Annotated[int, Field(ge=0, le=255)]

@@ -24,18 +24,29 @@ from typing import Literal
 
 from pydantic import Field
 
+from agent.config import ConfigError, PositiveFloat, StrictModel, load_yaml
 from agent.contract import (
-    CLOCK_KEY, LIVELINESS, Bearing, Clock, Cmd, Odometry, Ranges, Sonar, Status, decode, encode, every, key,
-    seconds, vessel_of,
+    CLOCK_KEY,
+    LIVELINESS,
+    Bearing,
+    Clock,
+    Cmd,
+    Odometry,
+    Ranges,
+    Sonar,
+    Status,
+    decode,
+    encode,
+    every,
+    key,
+    seconds,
+    vessel_of,
 )
-from agent import foxglove
-from agent.node import ZenohSettings, zenoh_config
-from agent.params import ConfigError, PositiveFloat, StrictModel, load_yaml
-from agent.tick_io import STOP, Command
-from agent.tick_log import SCENE_PERIOD_NS
-from sim_bridge.runner import streams
+from agent.core.records import STOP, Command
+from agent.runtime import foxglove
+from agent.runtime.zenoh_session import ZenohSettings, zenoh_config
 from sim_bridge.scenario import Scenario, select_scenario
-from sim_bridge.world import World, lost_shares
+from sim_bridge.world import World, lost_shares, streams
 
 
 class BridgeSettings(StrictModel):
@@ -77,7 +88,7 @@ class SimBridge:
         self._waiting: set[str] | None = None   # vessels the tick in progress still waits for
         self.log = None
         if settings.log:
-            from agent.mcap_log import McapLog
+            from agent.runtime.mcap_log import McapLog
 
             self.log = McapLog(settings.log, metadata={"scenario": scenario.name, "mode": settings.mode})
 
@@ -294,7 +305,7 @@ class SimBridge:
                       (frame, f"{frame}/hull", 0.0, 0.0, float(truth.headings[vessel]))]
         self.log.log("/tf", foxglove.transforms(stamp, links), stamp, schema=foxglove.FrameTransforms)
         if stamp >= self._next_scene:
-            self._next_scene = stamp + SCENE_PERIOD_NS
+            self._next_scene = stamp + foxglove.SCENE_PERIOD_NS
             self.log.log("/scene", foxglove.SceneUpdate(entities=[
                 *foxglove.target_entities(stamp, "target", self._radius, "target"),
                 *foxglove.island_entities(stamp, "world", self.scenario.world.islands)]), stamp)

@@ -21,8 +21,9 @@ from pathlib import Path
 
 import yaml
 
-from agent.params import ConfigError
-from sim_bridge.scenario import select_scenario
+from agent.config import ConfigError
+from sim_bridge.scenario import initial_estimates, select_scenario
+from sim_bridge.world import World, streams
 
 
 def free_port() -> int:
@@ -84,7 +85,7 @@ class Fleet:
         import zenoh
 
         from agent.contract import CLOCK_KEY, Clock, decode, seconds
-        from agent.node import ZenohSettings, zenoh_config
+        from agent.runtime.zenoh_session import ZenohSettings, zenoh_config
 
         def on_clock(sample) -> None:
             message, _ = decode(Clock, sample.payload.to_bytes())
@@ -192,25 +193,18 @@ def agent_configs(scenario, seed: int | None, folder: Path, zenoh) -> dict[str, 
 def initial_settings(scenario, seed: int | None) -> dict[str, dict]:
     """Each agent's starting estimates, drawn as the in-process runner draws them (for the vessels there
     at the start; a later joiner starts from its first bearing and its neighbours' shares)."""
-    from sim_bridge.runner import initial_estimates, streams
-    from sim_bridge.world import World
-
     random = streams(scenario.seed if seed is None else seed)
     world = World(scenario.world, random.world)
-    drawn = initial_estimates(scenario, world.truth(), random.initial)
-    return {v: {"target": [float(x) for x in target],
-                "target_variance": scenario.initial.target_covariance,
-                "neighbours": {j: [float(x) for x in prior.position] for j, prior in priors.items()},
-                "neighbour_variance": scenario.initial.neighbour_covariance}
-            for v, (target, priors) in drawn.items()}
+    return {v: start.model_dump(mode="json")
+            for v, start in initial_estimates(scenario, world.truth(), random.initial).items()}
 
 
 def analyse(folder: Path, radius: float) -> dict:
     """The paper's metrics from the run folder's logs; writes metrics.json, summary.md and the figures of
     `usv-log plot` (trajectories.png, errors.png, ranges.png)."""
-    from sim_bridge.logs.metrics import truth_metrics
-    from sim_bridge.logs.plots import plot_run
-    from sim_bridge.logs.reader import load_run
+    from mission_log.metrics import truth_metrics
+    from mission_log.plots import plot_run
+    from mission_log.reader import load_run
 
     run = load_run(folder)
     result = truth_metrics(run, radius)

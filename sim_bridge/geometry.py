@@ -11,8 +11,6 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from agent.control.angles import TWO_PI, wrap_angle  # noqa: F401  (re-exported for the world model)
-
 
 def as_polygon(polygon: Sequence[Sequence[float]] | np.ndarray) -> np.ndarray:
     """The vertices as an (N, 2) float array (N >= 3)."""

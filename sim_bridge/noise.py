@@ -22,7 +22,7 @@ from typing import Annotated, Literal, Union
 import numpy as np
 from pydantic import Field
 
-from agent.params import NonNegativeFloat, PositiveFloat, StrictModel
+from agent.config import NonNegativeFloat, PositiveFloat, StrictModel
 
 Shape = int | tuple[int, ...]
 

@@ -7,23 +7,33 @@ Every merged variant is validated like a whole scenario, so a typo in a variant 
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Literal
 
+import numpy as np
 import yaml
 from pydantic import Field, model_validator
 
-from agent.params import (
-    AgentParams, ConfigError, NonNegativeFloat, PositiveFloat, StrictModel, parse_mapping, read_yaml,
+from agent.config import (
+    ConfigError,
+    NonNegativeFloat,
+    PositiveFloat,
+    StrictModel,
+    deep_merge,
+    parse_mapping,
+    read_yaml,
 )
-from sim_bridge.world import WorldConfig
+from agent.core.build import InitialEstimates
+from agent.core.params import AgentParams
+from sim_bridge.world import Truth, WorldConfig
 
 
-class InitialEstimates(StrictModel):
+class InitialUncertainty(StrictModel):
     """How the vessels' first estimates are drawn (Sec. VI: p^_ij,0 ~ N(p_ij,0, P_ij,0), likewise x_io)."""
 
-    neighbour_covariance: PositiveFloat = Field(0.04, description="P_ij,0 = value * I (Table II: 0.04)")
-    target_covariance: PositiveFloat = Field(1.0, description="P_io,0 = value * I (Table II: I)")
+    neighbour_variance: PositiveFloat = Field(0.04, description="P_ij,0 = value * I (Table II: 0.04)")
+    target_variance: PositiveFloat = Field(1.0, description="P_io,0 = value * I (Table II: I)")
 
 
 class PaperRow(StrictModel):
@@ -48,7 +58,7 @@ class Scenario(StrictModel):
     )
     world: WorldConfig
     agent: AgentParams = AgentParams()
-    initial: InitialEstimates = InitialEstimates()
+    initial: InitialUncertainty = InitialUncertainty()
     paper: PaperRow = PaperRow()
 
     @model_validator(mode="after")
@@ -71,19 +81,6 @@ class ScenarioFile(StrictModel):
     description: str = ""
     base: dict
     variants: dict[str, dict] = Field(default_factory=dict)
-
-
-def deep_merge(base: dict, override: dict) -> dict:
-    """`override` onto `base`, recursing into mappings; lists and values replace, and so does a tagged
-    mapping whose `kind` changes (a log-normal noise model shares no field with a mixture)."""
-    merged = dict(base)
-    for key, value in override.items():
-        if isinstance(value, dict) and isinstance(merged.get(key), dict) and value.get(
-                "kind", merged[key].get("kind")) == merged[key].get("kind"):
-            merged[key] = deep_merge(merged[key], value)
-        else:
-            merged[key] = value
-    return merged
 
 
 def load_scenarios(path: str | Path) -> tuple[ScenarioFile, dict[str, Scenario]]:
@@ -117,3 +114,22 @@ def select_scenario(path: str | Path, variant: str | None = None) -> tuple[str, 
         raise ConfigError(f"{path}: no variant {variant!r}; it has {', '.join(variants)}")
     name = variant or next(iter(variants))
     return name, variants[name]
+
+
+def initial_estimates(scenario: Scenario, truth: Truth, rng: np.random.Generator) -> dict[str, InitialEstimates]:
+    """The deployment knowledge of the vessels there at the start (`truth` at time 0), drawn around the
+    truth as in Sec. VI: x^_io,0 ~ N(x_io,0, P_io,0) for each, and p^_ij,0 ~ N(p_ij,0, P_ij,0) for each pair."""
+    p_ij, p_io = scenario.initial.neighbour_variance, scenario.initial.target_variance
+    estimates = {}
+    for i in truth.positions:
+        x_io = np.concatenate([truth.positions[i] - truth.target_position,
+                               truth.velocities[i] - truth.target_velocity])
+        target = x_io + rng.normal(0.0, math.sqrt(p_io), 4)
+        neighbours = {}
+        for j in truth.positions:
+            if j != i:
+                true = truth.positions[i] - truth.positions[j]
+                neighbours[j] = tuple((true + rng.normal(0.0, math.sqrt(p_ij), 2)).tolist())
+        estimates[i] = InitialEstimates(target=tuple(target.tolist()), target_variance=p_io, neighbours=neighbours,
+                                        neighbour_variance=p_ij, stamp=truth.time)
+    return estimates

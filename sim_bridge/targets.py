@@ -13,7 +13,7 @@ import numpy as np
 from pydantic import Field, model_validator
 from scipy.optimize import brentq
 
-from agent.params import NonNegativeFloat, PositiveFloat, StrictModel
+from agent.config import NonNegativeFloat, PositiveFloat, StrictModel
 
 FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
 Point = tuple[FiniteFloat, FiniteFloat]

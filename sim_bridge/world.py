@@ -24,14 +24,14 @@ from typing import Annotated
 import numpy as np
 from pydantic import Field, field_validator, model_validator
 
+from agent.angles import wrap_angle
+from agent.config import NonNegativeFloat, PositiveFloat, StrictModel
 from agent.contract import nanoseconds, seconds
-from agent.params import NonNegativeFloat, PositiveFloat, StrictModel
-from agent.tick_io import Command, Odometry
+from agent.core.records import Command, Odometry
 from sim_bridge.geometry import (
     is_simple_polygon,
     sample_boundary,
     segment_intersects_polygon,
-    wrap_angle,
 )
 from sim_bridge.noise import GaussianMixtureNoise, IsotropicGaussianNoise, RangeNoise
 from sim_bridge.targets import FiniteFloat, Point, TargetSpec, make_target
@@ -294,3 +294,21 @@ def lost_shares(seed: int, senders: list[str], receivers: list[str], joined: set
     """
     return [(j, i) for j in senders for i in receivers
             if j != i and (i in joined or message_lost(seed, j, i, tick, probability))]
+
+
+@dataclass(frozen=True)
+class Streams:
+    """The random streams of one run, all from its seed: the world's, the initial estimates', and the key
+    of the packet-loss hash. The in-process runner, the sim bridge and the fleet launcher derive them the
+    same way."""
+
+    world: np.random.Generator
+    initial: np.random.Generator
+    loss_seed: int
+
+
+def streams(seed: np.random.SeedSequence | int) -> Streams:
+    sequence = seed if isinstance(seed, np.random.SeedSequence) else np.random.SeedSequence(seed)
+    world_seed, initial_seed = sequence.spawn(2)
+    return Streams(np.random.default_rng(world_seed), np.random.default_rng(initial_seed),
+                   int(sequence.generate_state(1)[0]))

@@ -13,9 +13,9 @@ import pytest
 
 pytest.importorskip("filterpy")
 
-from agent.params import ESTIMATOR_NAMES  # noqa: E402
-from sim_bridge.lab import bench  # noqa: E402
-from sim_bridge.lab.cli import main  # noqa: E402
+from agent.core.params import ESTIMATOR_NAMES
+from lab import bench
+from lab.cli import main
 
 
 def _table_rows(document: str) -> dict[str, list[str]]:

@@ -9,12 +9,13 @@ import pytest
 
 pytest.importorskip("zenoh")
 
-from agent.mcap_log import read_messages  # noqa: E402
-from agent.node import AgentNode, NodeSettings, ZenohSettings  # noqa: E402
-from sim_bridge.fleet import free_port  # noqa: E402
+from agent.runtime.mcap_log import read_messages
+from agent.runtime.zenoh_session import ZenohSettings
+from agent.shell.node import AgentNode
+from agent.shell.settings import NodeSettings
 from sim_bridge.bridge import BridgeSettings, SimBridge  # noqa: E402
+from sim_bridge.fleet import free_port  # noqa: E402
 from sim_bridge.scenario import Scenario  # noqa: E402
-
 
 
 def two_vessel_scenario(duration: float = 4.0) -> Scenario:

@@ -11,12 +11,23 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from agent.contract import (
-    TOPICS, Bearing, Cmd, Odometry, Ranges, ShareMessage, decode, encode, every, key, message_from_share,
-    share_from_message, vessel_of,
+    TOPICS,
+    Bearing,
+    Cmd,
+    Odometry,
+    Ranges,
+    ShareMessage,
+    decode,
+    encode,
+    every,
+    key,
+    message_from_share,
+    share_from_message,
+    vessel_of,
 )
-from agent.inputs import InputGate
-from agent.params import AgentParams
-from agent.vessel import VesselAgent
+from agent.core.params import AgentParams
+from agent.core.vessel import VesselAgent
+from agent.shell.gate import InputGate
 
 NOW = 100.0
 NS = int(NOW * 1e9)

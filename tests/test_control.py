@@ -9,13 +9,13 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from agent.control.angles import wrap_angle
-from agent.control.avoidance import avoidance_velocity, safety_filter
-from agent.control.formation import desired_offset, desired_velocity, saturate, surge_and_yaw_rate
-from agent.control.oscillator import coupling_gains, oscillator_step
-from agent.params import AgentParams
-from agent.tick_io import Odometry, Share, TickInputs
-from agent.vessel import VesselAgent
+from agent.angles import wrap_angle
+from agent.core.control.avoidance import avoidance_velocity, safety_filter
+from agent.core.control.formation import desired_offset, desired_velocity, saturate, surge_and_yaw_rate
+from agent.core.control.oscillator import coupling_gains, oscillator_step
+from agent.core.params import AgentParams
+from agent.core.records import Odometry, Share, TickInputs
+from agent.core.vessel import VesselAgent
 
 DT, OMEGA = 0.1, math.pi / 30
 

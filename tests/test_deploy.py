@@ -13,7 +13,8 @@ from pathlib import Path
 import pytest
 import yaml
 
-from agent.node import NodeSettings, zenoh_config
+from agent.runtime.zenoh_session import zenoh_config
+from agent.shell.settings import NodeSettings
 from driver_bridge.node import DriverSettings
 from sim_bridge.fleet import free_port
 from usv_deploy.inventory import LOG_ROOT, Inventory, agent_settings, driver_settings, render, render_router

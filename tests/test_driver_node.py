@@ -15,11 +15,12 @@ import yaml
 
 zenoh = pytest.importorskip("zenoh")
 
-from agent.contract import Bearing, Cmd, Odometry, Ranges, decode, encode  # noqa: E402
-from agent.node import ZenohSettings, zenoh_config  # noqa: E402
-from sim_bridge.fleet import free_port  # noqa: E402
 from test_driver_odometry import xor_sentence  # noqa: E402
 from test_driver_uwb import node_frame2  # noqa: E402
+
+from agent.contract import Bearing, Cmd, Odometry, Ranges, decode, encode  # noqa: E402
+from agent.runtime.zenoh_session import ZenohSettings, zenoh_config
+from sim_bridge.fleet import free_port  # noqa: E402
 
 MODELS = {"sensor/odom": Odometry, "sensor/uwb": Ranges, "sensor/bearing": Bearing}
 

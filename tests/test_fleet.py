@@ -29,7 +29,7 @@ def test_fleet_run_leaves_a_run_folder_with_logs_plot_and_metrics(tmp_path, shor
     assert metrics["mean_e_io"] < 1.0 and metrics["mean_e_ij"] < 1.0
     assert "missed commands" in (folder / "bridge.log").read_text()
     # Each process ends its log with what the run cost it: every tick counted, CPU time measured.
-    from agent.mcap_log import read_messages
+    from agent.runtime.mcap_log import read_messages
 
     for name, topic in [("sim.mcap", "/bridge/summary"), *((f"agent-{i}.mcap", f"/{i}/summary") for i in "123")]:
         (summary,) = [m for t, _, m in read_messages(folder / name) if t == topic]

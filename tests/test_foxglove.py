@@ -8,8 +8,8 @@ from pathlib import Path
 
 import pytest
 
-from agent import foxglove
-from sim_bridge.logs.reader import read_log
+from agent.runtime import foxglove
+from mission_log.reader import read_log
 
 jsonschema = pytest.importorskip("jsonschema")
 SCHEMAS = Path(__file__).parent / "data" / "foxglove"

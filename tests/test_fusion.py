@@ -7,13 +7,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from agent.estimators import PLKF, make_relative_estimator
-from agent.fusion import covariance_intersection, covariance_intersection_many
-from agent.params import AgentParams, RelativeEstimationParams, TargetEstimationParams
-from agent.tick_io import Odometry, Share, TickInputs
-from agent.vessel import VesselAgent
-from sim_bridge.runner import run
-from sim_bridge.scenario import Scenario, deep_merge, load_scenarios
+from agent.config import deep_merge
+from agent.core.estimators import PLKF, make_relative_estimator
+from agent.core.fusion import covariance_intersection, covariance_intersection_many
+from agent.core.params import AgentParams, RelativeEstimationParams, TargetEstimationParams
+from agent.core.records import Odometry, Share, TickInputs
+from agent.core.vessel import VesselAgent
+from lab.runner import run
+from sim_bridge.scenario import Scenario, load_scenarios
 
 SCENARIOS = Path(__file__).resolve().parents[1] / "configs" / "scenarios"
 
@@ -62,7 +63,7 @@ def test_a_faulty_neighbour_target_estimate_is_gated_out():
                         priors={})
     liar = Share("2", Odometry(0.0, np.zeros(2), 0.0), np.zeros(2), 0.0,
                  target=np.array([500.0, 300.0, 0.0, 0.0]), target_covariance=0.01 * np.eye(4))
-    from agent.neighbours import NeighbourPrior
+    from agent.core.neighbours import NeighbourPrior
 
     agent.priors["2"] = NeighbourPrior(np.array([3.0, 0.0]), 0.04 * np.eye(2), 0.0)
     for k in range(3):

@@ -11,10 +11,10 @@ import pytest
 
 pytest.importorskip("zenoh")
 
-from agent.mcap_log import read_messages  # noqa: E402
+from agent.runtime.mcap_log import read_messages
+from lab.runner import run
+from mission_log.metrics import spacing_error
 from sim_bridge.fleet import launch  # noqa: E402
-from sim_bridge.runner import run  # noqa: E402
-from sim_bridge.metrics import spacing_error  # noqa: E402
 from sim_bridge.scenario import select_scenario, with_duration  # noqa: E402
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs" / "scenarios"

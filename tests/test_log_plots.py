@@ -10,8 +10,8 @@ from pathlib import Path
 
 import pytest
 
-from sim_bridge.logs.plots import plot_run
-from sim_bridge.logs.reader import Log, RunLog, VesselLog, agent_radius
+from mission_log.plots import plot_run
+from mission_log.reader import Log, RunLog, VesselLog, agent_radius
 
 PNG = b"\x89PNG\r\n\x1a\n"
 TICKS = 30
@@ -142,6 +142,6 @@ def test_radius_from_any_vessel_with_settings():
 
 def test_importing_the_module_does_not_load_matplotlib():
     """The module sits beside the reader the agent side uses; matplotlib must wait for a plot."""
-    code = "import sys, sim_bridge.logs.plots; sys.exit('matplotlib' in sys.modules)"
+    code = "import sys, mission_log.plots; sys.exit('matplotlib' in sys.modules)"
     done = subprocess.run([sys.executable, "-c", code], cwd=Path(__file__).parents[1], check=False)
     assert done.returncode == 0

@@ -13,7 +13,7 @@ import time
 import pytest
 
 from agent.contract import Cmd
-from agent.mcap_log import McapLog, read_messages
+from agent.runtime.mcap_log import McapLog, read_messages
 
 
 def test_messages_and_schemas_round_trip(tmp_path):
@@ -40,7 +40,7 @@ def test_a_process_killed_hard_loses_at_most_the_last_second(tmp_path):
     path = tmp_path / "killed.mcap"
     child = textwrap.dedent(f"""
         import time, sys
-        from agent.mcap_log import McapLog
+        from agent.runtime.mcap_log import McapLog
         log = McapLog({str(path)!r}, flush_seconds=1.0)
         k = 0
         while True:

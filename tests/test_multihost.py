@@ -193,10 +193,10 @@ def _stop(process: subprocess.Popen) -> int | None:
 
 
 def test_router_bridge_and_agents_in_separate_namespaces_complete_a_mission(tmp_path, net):
-    from agent.mcap_log import read_messages
+    from agent.runtime.mcap_log import read_messages
+    from lab.runner import run
+    from mission_log.reader import read_log
     from sim_bridge.fleet import agent_configs
-    from sim_bridge.logs.reader import read_log
-    from sim_bridge.runner import run
     from sim_bridge.scenario import select_scenario
 
     scenario_path = tmp_path / "multihost.yaml"

@@ -15,11 +15,12 @@ import pytest
 zenoh = pytest.importorskip("zenoh")
 
 from agent.contract import Bearing, Clock, Cmd, Odometry, Ranges, Status, decode, encode, key  # noqa: E402
-from agent.mcap_log import read_messages  # noqa: E402
-from agent.node import AgentNode, NodeSettings, ZenohSettings  # noqa: E402
+from agent.core.vessel import VesselAgent
+from agent.runtime.mcap_log import read_messages
+from agent.runtime.zenoh_session import ZenohSettings
+from agent.shell.node import AgentNode
+from agent.shell.settings import NodeSettings
 from sim_bridge.fleet import free_port  # noqa: E402
-from agent.vessel import VesselAgent  # noqa: E402
-
 
 
 def test_node_ticks_on_sim_time_and_answers_each_tick(tmp_path):

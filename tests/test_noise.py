@@ -9,7 +9,11 @@ import pytest
 from pydantic import TypeAdapter, ValidationError
 
 from sim_bridge.noise import (
-    GaussianMixtureNoise, GaussianNoise, IsotropicGaussianNoise, LogNormalNoise, RangeNoise,
+    GaussianMixtureNoise,
+    GaussianNoise,
+    IsotropicGaussianNoise,
+    LogNormalNoise,
+    RangeNoise,
 )
 
 N = 400_000

@@ -7,7 +7,8 @@ from pathlib import Path
 
 import pytest
 
-from agent.params import AgentParams, ConfigError, load_yaml
+from agent.config import ConfigError, load_yaml
+from agent.core.params import AgentParams
 
 REPO = Path(__file__).resolve().parents[1]
 

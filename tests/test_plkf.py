@@ -9,8 +9,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from agent.estimators.plkf import PLKF, plkf_predict, plkf_update, transition
-from agent.params import TargetEstimationParams
+from agent.core.estimators.plkf import PLKF, plkf_predict, plkf_update, transition
+from agent.core.params import TargetEstimationParams
 
 DT = 0.1
 

@@ -9,14 +9,14 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from agent.estimators import ESTIMATORS, make_relative_estimator
-from agent.estimators.akf import sage_husa_scale
-from agent.estimators.huber_rls import huber_weight
-from agent.estimators.kf import kf_correct
-from agent.estimators.mckf import mckf_correct
-from agent.estimators.pseudolinear import equivalent_noise_variance, pseudo_measurement
-from agent.estimators.rls import rls_correct
-from agent.params import MckfParams, RelativeEstimationParams
+from agent.core.estimators import ESTIMATORS, make_relative_estimator
+from agent.core.estimators.akf import sage_husa_scale
+from agent.core.estimators.huber_rls import huber_weight
+from agent.core.estimators.kf import kf_correct
+from agent.core.estimators.mckf import mckf_correct
+from agent.core.estimators.pseudolinear import equivalent_noise_variance, pseudo_measurement
+from agent.core.estimators.rls import rls_correct
+from agent.core.params import MckfParams, RelativeEstimationParams
 
 ALL = sorted(ESTIMATORS)
 

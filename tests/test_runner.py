@@ -9,11 +9,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from agent.tick_io import TickInputs
-from agent.vessel import VesselAgent
-from sim_bridge.metrics import spacing_error
-from sim_bridge.runner import run
-from sim_bridge.scenario import Scenario, deep_merge, load_scenarios
+from agent.config import deep_merge
+from agent.core.records import TickInputs
+from agent.core.vessel import VesselAgent
+from lab.runner import run
+from mission_log.metrics import spacing_error
+from sim_bridge.scenario import Scenario, load_scenarios
 from sim_bridge.world import World, WorldConfig
 
 SCENARIOS = Path(__file__).resolve().parents[1] / "configs" / "scenarios"
@@ -80,7 +81,7 @@ def test_occlusion_gives_prediction_only_steps():
         islands=[[(-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0)]],
     )
     world = World(config, np.random.default_rng(0))
-    from agent.params import AgentParams
+    from agent.core.params import AgentParams
 
     agent = VesselAgent("1", AgentParams(), np.array([-12.0, 0.0, 0.0, 0.0]))
     for k in range(20):

@@ -10,8 +10,8 @@ from pathlib import Path
 
 import pytest
 
-from sim_bridge.lab import scenario_cmd
-from sim_bridge.lab.cli import main
+from lab import scenario_cmd
+from lab.cli import main
 
 SCENARIOS_DIR = Path(__file__).resolve().parents[1] / "configs" / "scenarios"
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"

@@ -13,16 +13,16 @@ import pytest
 
 pytest.importorskip("zenoh")
 
-from sim_bridge.logs.metrics import agreement, innovation_statistics, run_metrics  # noqa: E402
-from sim_bridge.logs.reader import LogError, RunLog, VesselLog, load_run, read_log  # noqa: E402
-from sim_bridge.logs.replay import replay  # noqa: E402
-from sim_bridge.logs.summary import run_summary, topic_statistics  # noqa: E402
+from mission_log.metrics import agreement, innovation_statistics, run_metrics
+from mission_log.reader import LogError, RunLog, VesselLog, load_run, read_log
+from mission_log.replay import replay
+from mission_log.summary import run_summary, topic_statistics
 
 TICKS = 121   # the short run of conftest.fleet_run: 12 s at 10 Hz
 
 
 def usv_log(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "sim_bridge.logs", *args], capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "mission_log", *args], capture_output=True, text=True,
                           timeout=240)
 
 
@@ -57,7 +57,7 @@ def test_metrics_from_the_logs_equal_the_in_process_runner(fleet_run):
     # The fleet over Zenoh in lockstep computes what the in-process runner computes, so the paper's metrics
     # worked out from the logs must equal the runner's, which come from its own arrays by another route.
     folder, scenario_path = fleet_run
-    from sim_bridge.runner import run
+    from lab.runner import run
     from sim_bridge.scenario import select_scenario
 
     _, scenario = select_scenario(scenario_path)

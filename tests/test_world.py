@@ -17,14 +17,14 @@ import pytest
 from pydantic import ValidationError
 from scipy.integrate import quad
 
-from agent.tick_io import Command
+from agent.angles import wrap_angle
+from agent.core.records import Command
 from sim_bridge.geometry import (
     is_simple_polygon,
     point_in_polygon,
     sample_boundary,
     segment_intersects_polygon,
     segments_intersect,
-    wrap_angle,
 )
 from sim_bridge.targets import RandomWalkSpec, SinusoidSpec, make_target
 from sim_bridge.world import World, WorldConfig, message_lost

@@ -87,7 +87,7 @@ def _router(args) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from agent.params import ConfigError
+    from agent.config import ConfigError
 
     args = build_parser().parse_args(argv)
     try:

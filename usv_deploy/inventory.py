@@ -22,11 +22,10 @@ from typing import Literal
 import yaml
 from pydantic import Field, model_validator
 
+from agent.config import StrictModel, deep_merge, load_yaml, parse_mapping
 from agent.contract import VesselId
-from agent.node import NodeSettings
-from agent.params import StrictModel, load_yaml, parse_mapping
+from agent.shell.settings import NodeSettings
 from driver_bridge.node import DriverSettings
-from sim_bridge.scenario import deep_merge
 
 CONFIG_ROOT = "/etc/usv"          # where the units look for a vessel's files: /etc/usv/<id>/
 LOG_ROOT = "/var/log/usv"         # where the agents write their MCAP logs (the units' LogsDirectory)

@@ -1,0 +1,81 @@
+"""Formation controller (27), (29)-(33) and the command of (31), with the paper's saturations.
+
+Vectors are 2-D numpy arrays in the common heading reference; p_ij = p_i - p_j and p_io = p_i - p_o as in
+the paper, so p*_io is where vessel i should sit relative to the target.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from agent.angles import wrap_angle
+
+
+def saturate(bound: float, vector: np.ndarray) -> np.ndarray:
+    """sat(U, u) = min(U, |u|) / |u| u of (31), and 0 for u = 0."""
+    norm = math.hypot(vector[0], vector[1])
+    if norm <= bound:
+        return vector
+    return vector * (bound / norm)
+
+
+def desired_offset(radius: float, phase: float) -> np.ndarray:
+    """(27): p*_io = r* [cos phi_i, sin phi_i]."""
+    return np.array([radius * math.cos(phase), radius * math.sin(phase)])
+
+
+def desired_velocity(radius: float, phase: float, next_phase: float, dt: float) -> np.ndarray:
+    """(29): v*_io = (p*_io,k+1 - p*_io,k) / dt."""
+    return (desired_offset(radius, next_phase) - desired_offset(radius, phase)) / dt
+
+
+def neighbour_gain(count: int, gain: float, total_cap: float | None) -> float:
+    """kappa_ij for each of `count` neighbours, scaled down so that their sum stays within `total_cap`.
+
+    Summed over a complete graph, (33) moves vessel i with gain (n - 1) kappa_ij + kappa_io per metre of
+    error, and the sampled loop is only well damped while dt times that stays well below 1; with Table I's
+    gains (kappa_ij = 1.5, dt = 0.1) that holds for n = 4 (0.54) but not for n = 12 (1.74, on the edge of
+    oscillation, which the U_vf saturation turns into a limit cycle). Capping the sum at the n = 4 value
+    (4.5) leaves (33) unchanged up to four vessels. None gives (33) as written.
+    """
+    if total_cap is None or count * gain <= total_cap:
+        return gain
+    return total_cap / count
+
+
+def formation_velocity(offset_errors: list[tuple[float, np.ndarray]]) -> np.ndarray:
+    """(33) first line: v^f = sum_j kappa_ij (p*_ij - p^_ij), given the pairs (kappa_ij, p*_ij - p^_ij)
+    over the neighbours and the target."""
+    total = np.zeros(2)
+    for gain, error in offset_errors:
+        total += gain * error
+    return total
+
+
+def tracking_velocity(target_velocity_estimate: np.ndarray, desired_relative_velocity: np.ndarray,
+                      max_target_speed: float) -> np.ndarray:
+    """(33) second line: v^t = sat(U_vo, v^_o) + v*_io."""
+    return saturate(max_target_speed, target_velocity_estimate) + desired_relative_velocity
+
+
+def surge_and_yaw_rate(velocity_command: np.ndarray, heading: float, yaw_rate: float, dt: float,
+                       max_correction: float, max_speed: float) -> tuple[float, float, bool]:
+    """(31): v = [cos theta, sin theta] v^c (bounded by U_v), omega = sat(U_omega_c, omega^c) + omega*.
+
+    The correction omega^c = (atan2(v^c) - theta) / dt, with the heading error wrapped to (-pi, pi]: the
+    paper's arccos of the x-component loses the sign of the heading. A zero v^c asks for no turn.
+    Returns (surge, yaw rate, whether the correction saturated).
+    """
+    speed = math.hypot(velocity_command[0], velocity_command[1])
+    surge = math.cos(heading) * velocity_command[0] + math.sin(heading) * velocity_command[1]
+    surge = min(max(surge, -max_speed), max_speed)
+    if speed == 0.0:
+        correction = 0.0
+    else:
+        error = wrap_angle(math.atan2(velocity_command[1], velocity_command[0]) - heading)
+        correction = error / dt
+    saturated = abs(correction) > max_correction
+    correction = min(max(correction, -max_correction), max_correction)
+    return surge, correction + yaw_rate, saturated

@@ -1,0 +1,205 @@
+"""The one interface every inter-vessel relative position estimator offers.
+
+Life of an estimator for the pair (i, j), state p_ij in R^2:
+
+- `predict(displacement)` each time the relative displacement delta~_ij = delta~_i - delta~_j over one
+  odometry interval is known; the state moves by it, (15).
+- `update(range_prev, range_now)` at a range epoch. `range_prev` is the range measured at the previous range
+  epoch (the last accepted update, or `mark_range_epoch`), and the displacement used in (12) is the sum of
+  every displacement predicted since then, so it covers exactly the interval between the two range epochs
+  even when epochs are missed or irregular.
+- `position`, `covariance`, `diagnostics` to read; `reset` to start again.
+
+Inputs are checked before they touch the state: a non-finite displacement, or a range that is non-finite,
+negative or beyond `max_range`, is refused, counted, and leaves the state as it was.
+"""
+
+from __future__ import annotations
+
+import math
+from abc import ABC, abstractmethod
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from agent.core.estimators.pseudolinear import (
+    equivalent_noise_variance,
+    is_positive_definite,
+    pseudo_measurement,
+    range_pair_noise_variance,
+)
+from agent.core.params import RelativeEstimationParams
+
+
+@dataclass(frozen=True, slots=True)
+class UpdateOutcome:
+    """What one update did. `innovation` is z - delta^T p^-; `innovation_variance` is delta^T P^- delta + R_z
+    (for RLS, with unit noise), so innovation^2 / innovation_variance is the normalised innovation squared."""
+
+    accepted: bool
+    reason: str = ""
+    iterations: int = 0
+    innovation: float = 0.0
+    innovation_variance: float = 0.0
+    weight: float = 1.0
+    noise_scale: float = 1.0
+
+
+REJECTED_DISPLACEMENT = "displacement is not a finite 2-vector"
+REJECTED_RANGE = "range is not finite, is negative or exceeds max_range"
+REJECTED_NUMERICS = "update produced a non-finite or indefinite state"
+
+
+def _real(value: object) -> float:
+    """The value as a float if it is a real number (not a string or a bool), else NaN."""
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
+        return math.nan
+    return float(value)
+
+
+def _as_range(value: object, limit: float) -> float:
+    """The value as a valid range in [0, limit], or NaN when it is not one."""
+    r = _real(value)
+    return r if 0.0 <= r <= limit else math.nan
+
+
+@dataclass(slots=True)
+class Diagnostics:
+    predictions: int = 0
+    updates: int = 0
+    rejected: int = 0
+    last: UpdateOutcome = field(default_factory=lambda: UpdateOutcome(accepted=False, reason="no update yet"))
+
+
+class RelativePositionEstimator(ABC):
+    """Base of the five estimators; subclasses provide the correction step."""
+
+    name: str = ""
+
+    def __init__(
+        self,
+        params: RelativeEstimationParams,
+        position: np.ndarray | tuple[float, float],
+        covariance: np.ndarray | None = None,
+        dt: float = 0.1,
+    ) -> None:
+        self.params = params
+        self.dt = dt
+        self.reset(position, covariance)
+
+    # ----- reading -----
+    @property
+    def position(self) -> np.ndarray:
+        return np.array([self._px, self._py])
+
+    @property
+    def covariance(self) -> np.ndarray:
+        return np.array([[self._p11, self._p12], [self._p12, self._p22]])
+
+    @property
+    def diagnostics(self) -> Diagnostics:
+        return self._diag
+
+    # ----- life cycle -----
+    def reset(self, position: np.ndarray | tuple[float, float], covariance: np.ndarray | None = None) -> None:
+        """Start again from `position` with `covariance` (default: initial_covariance * I)."""
+        px, py = (float(v) for v in np.asarray(position, dtype=float).reshape(2))
+        if covariance is None:
+            p11 = p22 = self.params.initial_covariance
+            p12 = 0.0
+        else:
+            c = np.asarray(covariance, dtype=float).reshape(2, 2)
+            p11, p12, p22 = float(c[0, 0]), 0.5 * float(c[0, 1] + c[1, 0]), float(c[1, 1])
+        if not (math.isfinite(px) and math.isfinite(py) and is_positive_definite(p11, p12, p22)):
+            raise ValueError("reset needs a finite position and a symmetric positive-definite covariance")
+        self._px, self._py = px, py
+        self._p11, self._p12, self._p22 = p11, p12, p22
+        self._pair_dx = self._pair_dy = 0.0
+        self._pair_steps = 0.0
+        self._diag = Diagnostics()
+        self._reset_extra()
+
+    def assimilate(self, position: np.ndarray, covariance: np.ndarray) -> bool:
+        """Replace the estimate by a fused one (e.g. with a neighbour's, by covariance intersection), keeping
+        the range pairing and any adaptive state. Refused (False, counted) unless finite and SPD."""
+        px, py = (float(v) for v in np.asarray(position, dtype=float).reshape(2))
+        c = np.asarray(covariance, dtype=float).reshape(2, 2)
+        p11, p12, p22 = float(c[0, 0]), 0.5 * float(c[0, 1] + c[1, 0]), float(c[1, 1])
+        if not (math.isfinite(px) and math.isfinite(py) and is_positive_definite(p11, p12, p22)):
+            self._diag.rejected += 1
+            return False
+        self._px, self._py, self._p11, self._p12, self._p22 = px, py, p11, p12, p22
+        return True
+
+    def mark_range_epoch(self) -> None:
+        """Declare a range epoch without updating (the first range of a pair sequence)."""
+        self._pair_dx = self._pair_dy = 0.0
+        self._pair_steps = 0.0
+
+    # ----- prediction -----
+    def predict(self, displacement: np.ndarray | tuple[float, float], intervals: float = 1.0) -> bool:
+        """Propagate by the measured relative displacement, (15).
+
+        `intervals` is the length of the odometry interval in sampling periods dt: the displacement noise
+        R_delta_ij = 2 R_delta_i is per period and grows linearly with it (a random walk).
+        """
+        try:
+            dx, dy = (float(v) for v in np.asarray(displacement, dtype=float).reshape(2))
+        except (TypeError, ValueError):
+            dx = dy = math.nan
+        intervals = _real(intervals)
+        if not (math.isfinite(dx) and math.isfinite(dy) and math.isfinite(intervals) and intervals >= 0):
+            self._diag.rejected += 1
+            return False
+        self._px += dx
+        self._py += dy
+        self._pair_dx += dx
+        self._pair_dy += dy
+        self._pair_steps += intervals
+        self._inflate(2.0 * self.params.displacement_variance * intervals)
+        self._diag.predictions += 1
+        return True
+
+    def _inflate(self, variance: float) -> None:
+        """Add the displacement noise to the covariance; RLS overrides this (its P is not a covariance)."""
+        self._p11 += variance
+        self._p22 += variance
+
+    # ----- correction -----
+    def update(self, range_prev: float, range_now: float) -> UpdateOutcome:
+        """Correct with the range pair (r~_{k-1}, r~_k) and the displacement accumulated since r~_{k-1}."""
+        range_prev, range_now = _as_range(range_prev, self.params.max_range), _as_range(
+            range_now, self.params.max_range)
+        if math.isnan(range_prev) or math.isnan(range_now):
+            self._diag.rejected += 1
+            return self._record(UpdateOutcome(accepted=False, reason=REJECTED_RANGE))
+        dx, dy = self._pair_dx, self._pair_dy
+        z = pseudo_measurement(range_prev, range_now, dx, dy)
+        displacement_variance = 2.0 * self.params.displacement_variance * self._pair_steps
+        if self.params.noise_ranges == "measured":
+            rz = range_pair_noise_variance(range_now, range_prev, self.params.range_variance,
+                                           displacement_variance)
+        else:
+            rz = equivalent_noise_variance(self._px, self._py, dx, dy, self.params.range_variance,
+                                           displacement_variance)
+        saved = (self._px, self._py, self._p11, self._p12, self._p22)
+        outcome = self._correct(z, dx, dy, rz)
+        if not (math.isfinite(self._px) and math.isfinite(self._py)
+                and is_positive_definite(self._p11, self._p12, self._p22)):
+            self._px, self._py, self._p11, self._p12, self._p22 = saved
+            self._diag.rejected += 1
+            return self._record(UpdateOutcome(accepted=False, reason=REJECTED_NUMERICS))
+        self.mark_range_epoch()
+        self._diag.updates += 1
+        return self._record(outcome)
+
+    def _record(self, outcome: UpdateOutcome) -> UpdateOutcome:
+        self._diag.last = outcome
+        return outcome
+
+    @abstractmethod
+    def _correct(self, z: float, dx: float, dy: float, rz: float) -> UpdateOutcome:
+        """Apply the measurement z = (dx, dy)^T p + mu_z, Var mu_z = rz, to the state in place."""
+
+    def _reset_extra(self) -> None:
+        """Subclasses with extra state (AKF, Huber-RLS) clear it here."""

@@ -1,0 +1,171 @@
+"""Pseudo-linear Kalman filter of the target, Sec. III-B (22)-(26).
+
+State x_io = [p_io; v_io] (vessel relative to target), constant-velocity model (3)-(4).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from agent.core.params import TargetEstimationParams
+
+# A measured bearing whose norm is this far from 1 is not a direction: a sensor fault, not noise.
+BEARING_NORM_TOLERANCE = 0.5
+
+
+@dataclass(frozen=True, slots=True)
+class BearingOutcome:
+    """What one bearing update did; `innovation` is the cross-bearing component q^T p^- (metres) and
+    `innovation_variance` its predicted variance q^T (P^-_pp + R_z) q."""
+
+    accepted: bool
+    reason: str = ""
+    innovation: float = 0.0
+    innovation_variance: float = 0.0
+
+
+def transition(dt: float) -> np.ndarray:
+    """A of (4)."""
+    a = np.eye(4)
+    a[0, 2] = a[1, 3] = dt
+    return a
+
+
+def plkf_predict(x: np.ndarray, P: np.ndarray, A: np.ndarray, Q: np.ndarray,
+                 own_velocity_change: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(24): x^- = A x^+, P^- = A P^+ A^T + Q_o, with the vessel's own manoeuvre as a known input.
+
+    `own_velocity_change` is dv_i, the change of the vessel's own velocity at the start of this interval
+    (known from its odometry): the relative velocity over the interval is v_io + dv_i, so
+    x^- = A (x^+ + [0; dv_i]). The paper's (24) leaves it out and lets Q_o absorb the vessel's manoeuvres;
+    with it the relative model is exact for a constant-velocity target. None or zero gives (24) as printed.
+    """
+    if own_velocity_change is not None:
+        x = x.copy()
+        x[2:] += own_velocity_change
+    P_prior = A @ P @ A.T + Q
+    return A @ x, 0.5 * (P_prior + P_prior.T)  # keep it exactly symmetric despite round-off
+
+
+def plkf_update(x: np.ndarray, P: np.ndarray, bearing: np.ndarray, bearing_variance: float,
+                min_range: float, gain_bearing: str = "measured") -> tuple[np.ndarray, np.ndarray, float, float]:
+    """(22)-(25) with a unit measured bearing b~: z = 0, innovation -G(b~) p^-,
+    R_z = r^2 G R_b G^T with r = |p^-| (floored at min_range), K = P H^T (H P H^T + R_z)^+ (pseudo-inverse).
+    G = I - u u^T = q q^T for the unit bearing u and its unit normal q, so S = H P H^T + R_z = s q q^T with
+    s = q^T (P_pp + r^2 R_b) q: S is rank one, and its pseudo-inverse is exactly q q^T / s.
+    x^+ = x^- - K G(b~) p^-. The covariance uses the Joseph form (I - K H) P (I - K H)^T + K R_z K^T, equal to
+    (25)'s (I - K H) P for this gain and symmetric positive semi-definite by construction.
+
+    `gain_bearing` picks the bearing G and H are built from for the gain and the covariance:
+    - "measured": H = [G(b~) 0], (25) as printed. The noise of b~ then sits in both the gain and the
+      innovation, and their product biases the range towards zero (the known pseudo-linear bias), strongly
+      while the range is uncertain.
+    - "predicted": H = [G(b^-) 0] with b^- = p^- / |p^-|, the instrumental-variable Kalman filter of
+      N. H. Nguyen and K. Dogancay (IEEE Signal Processing Letters 25(9), 2018), which removes that
+      correlation; the innovation still uses the measured bearing.
+
+    Returns (x+, P+, innovation, innovation variance) with the innovation along q, the unit normal of the
+    bearing the gain uses.
+    """
+    r = max(math.hypot(x[0], x[1]), min_range)
+    gain_direction = bearing
+    if gain_bearing == "predicted" and math.hypot(x[0], x[1]) >= min_range:
+        gain_direction = x[:2] / r
+    G_measured = np.eye(2) - np.outer(bearing, bearing)
+    G = np.eye(2) - np.outer(gain_direction, gain_direction)
+    H = np.zeros((2, 4))
+    H[:, :2] = G
+    Rz = (r * r * bearing_variance) * (G @ G.T)
+    q = np.array([-gain_direction[1], gain_direction[0]])
+    s = float(q @ P[:2, :2] @ q) + r * r * bearing_variance
+    K = P @ H.T @ np.outer(q, q) / s
+    I_KH = np.eye(4) - K @ H
+    x_post = x - K @ (G_measured @ x[:2])
+    P_post = I_KH @ P @ I_KH.T + K @ Rz @ K.T
+    return x_post, 0.5 * (P_post + P_post.T), float(q @ G_measured @ x[:2]), s
+
+
+class PLKF:
+    """Target tracker of one vessel: the relative state to the target from bearings alone."""
+
+    def __init__(self, params: TargetEstimationParams, state: np.ndarray, covariance: np.ndarray | None = None,
+                 dt: float = 0.1) -> None:
+        self.params = params
+        self.dt = dt
+        self._A = transition(dt)
+        self._Q = params.process_noise * np.eye(4)
+        self.predictions = 0
+        self.updates = 0
+        self.skipped = 0
+        self.rejected = 0
+        self.reset(state, covariance)
+
+    @property
+    def state(self) -> np.ndarray:
+        return self._x.copy()
+
+    @property
+    def covariance(self) -> np.ndarray:
+        return self._P.copy()
+
+    def reset(self, state: np.ndarray, covariance: np.ndarray | None = None) -> None:
+        x = np.asarray(state, dtype=float).reshape(4).copy()
+        P = (self.params.initial_covariance * np.eye(4) if covariance is None
+             else np.asarray(covariance, dtype=float).reshape(4, 4).copy())
+        if not (np.isfinite(x).all() and np.isfinite(P).all()):
+            raise ValueError("reset needs a finite state and covariance")
+        self._x, self._P = x, 0.5 * (P + P.T)
+
+    def assimilate(self, state: np.ndarray, covariance: np.ndarray) -> bool:
+        """Replace the estimate by a fused one (cooperative fusion with the neighbours' estimates).
+        Refused (False, counted) unless finite and symmetric positive-definite."""
+        x = np.asarray(state, dtype=float).reshape(4)
+        P = np.asarray(covariance, dtype=float).reshape(4, 4)
+        P = 0.5 * (P + P.T)
+        if not (np.isfinite(x).all() and np.isfinite(P).all() and np.all(np.linalg.eigvalsh(P) > 0)):
+            self.rejected += 1
+            return False
+        self._x, self._P = x.copy(), P
+        return True
+
+    def predict(self, own_velocity_change: np.ndarray | None = None) -> bool:
+        """Time update (24). A non-finite velocity change is refused (counted) and the step uses none."""
+        accepted = True
+        if own_velocity_change is not None:
+            dv = np.asarray(own_velocity_change, dtype=float).reshape(2)
+            if not np.isfinite(dv).all():
+                self.rejected += 1
+                dv, accepted = None, False
+            own_velocity_change = dv
+        self._x, self._P = plkf_predict(self._x, self._P, self._A, self._Q, own_velocity_change)
+        self.predictions += 1
+        return accepted
+
+    def update(self, bearing: np.ndarray | None) -> BearingOutcome:
+        """Measurement update (25) with a measured bearing (target to vessel), or (26) when it is None.
+
+        The measured bearing is normalised first: a bearing is a direction, and G is a projection only for
+        a unit vector. A non-finite bearing, or one whose norm is far from 1, is refused and the step is
+        prediction-only, exactly as for a missing one.
+        """
+        if bearing is None:
+            self.skipped += 1
+            return BearingOutcome(accepted=False, reason="no bearing (prediction only)")
+        b = np.asarray(bearing, dtype=float).reshape(-1)
+        norm = float(np.hypot(b[0], b[1])) if b.shape == (2,) else math.nan
+        if not (math.isfinite(norm) and abs(norm - 1.0) <= BEARING_NORM_TOLERANCE):
+            self.rejected += 1
+            return BearingOutcome(accepted=False, reason="bearing is not a finite unit vector")
+        x, P, innovation, variance = plkf_update(
+            self._x, self._P, b / norm, self.params.bearing_variance, self.params.min_range,
+            self.params.gain_bearing,
+        )
+        if not (np.isfinite(x).all() and np.isfinite(P).all()):
+            self.rejected += 1
+            return BearingOutcome(accepted=False, reason="update produced a non-finite state")
+        self._x, self._P = x, P
+        self.updates += 1
+        return BearingOutcome(accepted=True, innovation=innovation, innovation_variance=variance)

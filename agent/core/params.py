@@ -1,0 +1,176 @@
+"""Typed parameters of the agent, with the paper's Table I as defaults (strict models: unknown keys are errors)."""
+
+from __future__ import annotations
+
+import math
+from typing import Literal
+
+from pydantic import Field, model_validator
+
+from agent.config import NonNegativeFloat, PositiveFloat, StrictModel, commented_yaml
+
+EstimatorName = Literal["mckf", "kf", "akf", "rls", "huber_rls"]
+ESTIMATOR_NAMES: tuple[str, ...] = ("rls", "huber_rls", "kf", "akf", "mckf")
+
+
+class MckfParams(StrictModel):
+    """Maximum-correntropy update, Sec. III-A steps 3-5."""
+
+    bandwidths: tuple[PositiveFloat, PositiveFloat, PositiveFloat] = Field(
+        (9999.0, 9999.0, 0.8), description="Gaussian kernel bandwidths [sigma1, sigma2, sigma3] (Table I)"
+    )
+    tolerance: PositiveFloat = Field(1e-6, description="stopping threshold iota of (20) (Table I)")
+    max_iterations: int = Field(10, ge=1, le=1000, description="L_max (Table I)")
+
+
+class AkfParams(StrictModel):
+    """Sage-Husa noise estimation with a fading memory (see agent/estimators/akf.py)."""
+
+    fading_factor: float = Field(0.98, gt=0, lt=1, description="b: weight of the past in the noise estimate")
+    min_scale: PositiveFloat = Field(0.05, description="lower bound of the estimated noise scale")
+    max_scale: PositiveFloat = Field(1e3, description="upper bound of the estimated noise scale")
+
+    @model_validator(mode="after")
+    def _ordered(self) -> AkfParams:
+        if self.min_scale >= self.max_scale:
+            raise ValueError("min_scale must be below max_scale")
+        return self
+
+
+class RlsParams(StrictModel):
+    forgetting_factor: float = Field(0.99, gt=0, le=1, description="lambda of exponentially weighted RLS")
+
+
+class HuberParams(StrictModel):
+    threshold: PositiveFloat = Field(1.345, description="Huber constant c, in robust standard deviations")
+    scale_window: int = Field(50, ge=5, le=10_000, description="residuals kept for the MAD scale estimate")
+
+
+class RelativeEstimationParams(StrictModel):
+    """Inter-vessel relative position estimation, Sec. III-A."""
+
+    estimator: EstimatorName = "mckf"
+    initial_covariance: PositiveFloat = Field(25.0, description="P_ij,0 = value * I (Table I)")
+    displacement_variance: PositiveFloat = Field(
+        1e-6, description="R_delta_i per axis over one sampling period dt (Table I)"
+    )
+    range_variance: PositiveFloat = Field(
+        2.32,
+        description=(
+            "variance of one range error, used to build R_z from (14); default: the Table II mixture "
+            "0.8 N(0, 0.4) + 0.2 N(0, 10)"
+        ),
+    )
+    noise_ranges: Literal["predicted", "measured"] = Field(
+        "predicted",
+        description=(
+            "ranges at which R_z of (14) is evaluated: predicted from the estimate (the paper's choice) "
+            "or the measured pair, which does not move with the estimate's error (docs/estimation.md)"
+        ),
+    )
+    max_range: PositiveFloat = Field(1000.0, description="ranges beyond this are rejected as invalid")
+    mckf: MckfParams = MckfParams()
+    akf: AkfParams = AkfParams()
+    rls: RlsParams = RlsParams()
+    huber_rls: HuberParams = HuberParams()
+
+
+class TargetEstimationParams(StrictModel):
+    """Pseudo-linear Kalman filter of the target, Sec. III-B."""
+
+    process_noise: PositiveFloat = Field(
+        1e-5,
+        description=(
+            "Q_o = value * I_4 per step. Table I's 0.01 must also absorb the vessel's own turns, which this "
+            "filter takes as a known input, and with it the range collapses (docs/estimation.md, PLKF)"
+        ),
+    )
+    gain_bearing: Literal["predicted", "measured"] = Field(
+        "predicted",
+        description=(
+            "bearing the PLKF gain is built from: 'measured' is (25) as printed (biased towards the target), "
+            "'predicted' the instrumental-variable form of Nguyen and Dogancay 2018"
+        ),
+    )
+    bearing_variance: PositiveFloat = Field(1e-4, description="R_b = value * I_2 (Table I)")
+    initial_covariance: PositiveFloat = Field(1.0, description="P_io,0 = value * I_4 (Table I)")
+    min_range: PositiveFloat = Field(
+        0.1, description="floor on the predicted range used to scale R_z, so R_z never vanishes"
+    )
+    initial_range_guess: PositiveFloat = Field(
+        10.0, description="range assumed along the first bearing when no initial target estimate is given (m)"
+    )
+
+
+class ControlParams(StrictModel):
+    """Formation control and obstacle avoidance, Sec. IV (Table I)."""
+
+    radius: PositiveFloat = Field(5.0, description="r*_io, circumnavigation radius (m)")
+    yaw_rate: PositiveFloat = Field(math.pi / 30, description="omega*_i, desired yaw rate (rad/s)")
+    safety_distance: PositiveFloat = Field(3.0, description="d_s (m)")
+    max_correction_yaw_rate: PositiveFloat = Field(math.pi / 3, description="U_omega_c (rad/s)")
+    max_speed: PositiveFloat = Field(5.0, description="U_v (m/s)")
+    max_target_speed: PositiveFloat = Field(0.5, description="U_vo (m/s)")
+    max_formation_speed: PositiveFloat = Field(1.5, description="U_vf (m/s)")
+    max_avoidance_speed: PositiveFloat = Field(0.7, description="U_vs (m/s)")
+    gain_neighbour: PositiveFloat = Field(1.5, description="kappa_ij")
+    gain_target: PositiveFloat = Field(0.9, description="kappa_io")
+    neighbour_gain_cap: PositiveFloat | None = Field(
+        4.5,
+        description=(
+            "cap on the sum of kappa_ij over the neighbours (Table I's value for n = 4); keeps the sampled "
+            "loop damped for large fleets; null for (33) as written (agent/control/formation.py)"
+        ),
+    )
+    avoidance_gain: PositiveFloat = Field(1.7, description="k_1")
+    avoidance_spread: PositiveFloat = Field(0.5, description="k_2")
+    min_clearance: NonNegativeFloat = Field(
+        1.0, description="safety filter: closest a vessel may come to an obstacle point (m); see avoidance.py"
+    )
+    clearance_rate: PositiveFloat = Field(
+        1.0, description="safety filter: closing speed allowed per metre of clearance left (1/s)"
+    )
+    safety_filter: bool = Field(True, description="apply the safety filter after (35); false: (35) alone")
+    oscillator_gain: PositiveFloat = Field(
+        1.0, description="K of (28): K_m = K for m <= n/2, 0 above (the paper leaves K_m open)"
+    )
+
+
+class FleetParams(StrictModel):
+    """How a vessel keeps track of its neighbours."""
+
+    neighbour_timeout: PositiveFloat = Field(
+        1.0, description="a neighbour silent for longer than this (s) leaves the formation"
+    )
+    history_ticks: int = Field(50, ge=2, le=100_000, description="odometry and ranges kept per neighbour")
+    fuse_shared_estimates: bool = Field(
+        True,
+        description=(
+            "fuse each neighbour's shared estimate of p_ji with our p_ij by covariance intersection, so the "
+            "two vessels of a pair agree (agent/fusion.py); false: each vessel keeps its own, as in the paper"
+        ),
+    )
+    fuse_target_estimates: bool = Field(
+        True,
+        description=(
+            "fuse the neighbours' target estimates, moved to this vessel through p_ij, with our own by "
+            "covariance intersection (bearings from several angles triangulate); false: as in the paper"
+        ),
+    )
+
+
+class AgentParams(StrictModel):
+    """Everything one vessel's agent needs; Table I of the paper by default."""
+
+    dt: PositiveFloat = Field(0.1, description="sampling period (s) (Table I)")
+    fleet: FleetParams = FleetParams()
+    relative: RelativeEstimationParams = RelativeEstimationParams()
+    target: TargetEstimationParams = TargetEstimationParams()
+    control: ControlParams = ControlParams()
+
+
+if __name__ == "__main__":
+    print("# Parameters of one vessel's agent: the paper's Table I (Liu et al., Sec. VI).")
+    print("# Every key is optional; a file need only name what it changes. Unknown keys are errors.")
+    print("# Regenerate with: python -m agent.core.params > configs/agent.yaml")
+    print(commented_yaml(AgentParams()))

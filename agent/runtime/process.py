@@ -1,0 +1,53 @@
+"""The command line every vessel process shares (the agent and the driver bridge): --vessel, --config, --print-config."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+
+import yaml
+from pydantic import TypeAdapter, ValidationError
+
+from agent.config import ConfigError, StrictModel, load_yaml, parse_mapping
+from agent.contract import VesselId
+
+
+def print_config(what: str, settings: StrictModel) -> None:
+    """The settings a process would run with, as YAML, and where its Zenoh configuration comes from."""
+
+    source = os.environ.get("ZENOH_CONFIG")
+    print(f"# {what}: effective settings")
+    if source:
+        print(f"# Zenoh: ZENOH_CONFIG={source} is used instead of the 'zenoh' section below")
+    print(yaml.safe_dump(settings.model_dump(mode="json"), sort_keys=False), end="")
+
+
+def vessel_process(prog: str, description: str, model: type[StrictModel], argv: list[str] | None,
+                   add_arguments=None, config_required: bool = False):
+    """The command line of a vessel's process: --vessel, --config, --print-config (and what `add_arguments`
+    adds). Returns (arguments, settings) to run with, or an exit code once it has said why not (a bad id, a
+    bad file) or printed the configuration."""
+    parser = argparse.ArgumentParser(prog=prog, description=description)
+    parser.add_argument("--vessel", required=True, help="this vessel's id (1-32 of A-Z a-z 0-9 _ -)")
+    parser.add_argument("--config", required=config_required, default=None,
+                        help=f"settings YAML ({model.__name__})" + ("" if config_required else "; default: defaults"))
+    parser.add_argument("--print-config", action="store_true",
+                        help="print the effective settings (defaults filled in) and exit without starting")
+    if add_arguments is not None:
+        add_arguments(parser)
+    args = parser.parse_args(argv)
+    try:
+        TypeAdapter(VesselId).validate_python(args.vessel)
+    except ValidationError as error:
+        print(f"{prog}: invalid --vessel {args.vessel!r}: {error.errors()[0]['msg']}", file=sys.stderr)
+        return 2
+    try:
+        settings = load_yaml(model, args.config) if args.config else parse_mapping(model, {}, "<defaults>")
+    except ConfigError as error:
+        print(f"{prog}: {error}", file=sys.stderr)
+        return 2
+    if args.print_config:
+        print_config(f"{prog} --vessel {args.vessel}", settings)
+        return 0
+    return args, settings

@@ -1,0 +1,169 @@
+"""Experiment 1, the paper's Figs. 4 and 5: five inter-vessel estimators on the same noisy data.
+
+Two vessels move on the desired circles (radius r*, yaw rate omega*, half a turn apart, no target and no
+controller: the trajectories are exact), so only the estimators differ. Each Monte Carlo run draws its own
+range noise, displacement noise and initial estimate from a child of the experiment's seed; every estimator
+of a run sees exactly the same numbers.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+from pydantic import Field
+
+from agent.config import PositiveFloat, StrictModel, updated
+from agent.core.estimators import make_relative_estimator
+from agent.core.params import ESTIMATOR_NAMES, AgentParams
+from lab.errors import ErrorHistory
+from lab.parallel import map_in_order
+from sim_bridge.noise import GaussianMixtureNoise, IsotropicGaussianNoise, LogNormalNoise, RangeNoise
+
+
+class ComparisonConfig(StrictModel):
+    """One estimator comparison; YAML under configs/experiments/."""
+
+    duration: PositiveFloat = Field(60.0, description="simulated seconds per run")
+    radius: PositiveFloat = Field(5.0, description="r*, radius of both circles (m)")
+    runs: int = Field(100, ge=1, le=100_000, description="Monte Carlo runs per noise model")
+    seed: int = Field(2024, ge=0, description="root seed of every random number")
+    settle_time: float = Field(10.0, ge=0, description="the 'after' column averages from this time on (s)")
+    filter_range_variance: Literal["total", "nominal"] = Field(
+        "total",
+        description=(
+            "range variance given to the Kalman-type filters for R_z: the noise model's true variance "
+            "('total'), or, for a mixture, only its nominal component ('nominal')"
+        ),
+    )
+    noise_models: dict[str, RangeNoise] = Field(
+        default_factory=lambda: {
+            "gmm": GaussianMixtureNoise(outlier_fraction=0.2, variance=0.4, outlier_variance=10.0),
+            "lognormal": LogNormalNoise(log_variance=0.7, shift=0.75),
+        },
+        description="range noise models, by name (Sec. VI-A: the paper's Fig. 4 and Fig. 5 settings)",
+    )
+    variance_scale: PositiveFloat = Field(
+        1.0, description="multiplies the filters' range variance; 1 is the derivation, others diagnose"
+    )
+    estimators: tuple[str, ...] = ESTIMATOR_NAMES
+    agent: AgentParams = AgentParams()
+
+
+@dataclass
+class ComparisonResult(ErrorHistory):
+    """Per-time errors of every estimator over every run, for one noise model."""
+
+    noise_name: str
+    iterations: np.ndarray            # (runs, K) MCKF iterations per update (0 if MCKF not run)
+    range_bias: float                 # mean of the range noise model
+    filter_range_variance: float
+    least_squares: np.ndarray         # (runs, len(LS_TIMES)) batch least-squares error at LS_TIMES
+
+
+def relative_trajectory(config: ComparisonConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Time, and the true positions of vessel i and j, each (K+1, 2)."""
+    dt = config.agent.dt
+    steps = int(round(config.duration / dt))
+    t = np.arange(steps + 1) * dt
+    phase = config.agent.control.yaw_rate * t
+    own = config.radius * np.column_stack([np.cos(phase), np.sin(phase)])
+    other = config.radius * np.column_stack([np.cos(phase + math.pi), np.sin(phase + math.pi)])
+    return t, own, other
+
+
+def filter_variance(noise: RangeNoise, config: ComparisonConfig) -> float:
+    """The range variance the Kalman-type filters are given to build R_z."""
+    if config.filter_range_variance == "nominal" and isinstance(noise, GaussianMixtureNoise):
+        base = noise.variance
+    else:
+        base = noise.total_variance
+    return base * config.variance_scale
+
+
+def run_once(config: ComparisonConfig, noise: RangeNoise, seed_sequence: np.random.SeedSequence
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One Monte Carlo run: errors (estimators, K+1), MCKF iterations (K,), batch LS errors at LS_TIMES."""
+    rng = np.random.default_rng(seed_sequence)
+    t, own, other = relative_trajectory(config)
+    truth = own - other
+    steps = len(t) - 1
+    relative = config.agent.relative
+    ranges = np.linalg.norm(truth, axis=1) + noise.sample(rng, steps + 1)
+    odometry_noise = IsotropicGaussianNoise(variance=relative.displacement_variance)
+    measured_own = np.diff(own, axis=0) + odometry_noise.sample(rng, steps)
+    measured_other = np.diff(other, axis=0) + odometry_noise.sample(rng, steps)
+    displacement = measured_own - measured_other
+    initial = truth[0] + rng.normal(0.0, math.sqrt(relative.initial_covariance), size=2)
+
+    params = updated(relative, range_variance=filter_variance(noise, config))
+    errors = np.empty((len(config.estimators), steps + 1))
+    iterations = np.zeros(steps, dtype=np.int16)
+    for e, name in enumerate(config.estimators):
+        estimator = make_relative_estimator(params, initial, dt=config.agent.dt, name=name)
+        estimator.mark_range_epoch()
+        errors[e, 0] = math.hypot(*(initial - truth[0]))
+        for k in range(1, steps + 1):
+            estimator.predict(displacement[k - 1])
+            outcome = estimator.update(ranges[k - 1], ranges[k])
+            if name == "mckf":
+                iterations[k - 1] = outcome.iterations
+            p = estimator.position
+            errors[e, k] = math.hypot(p[0] - truth[k, 0], p[1] - truth[k, 1])
+    least_squares = np.array([
+        np.linalg.norm(batch_least_squares(displacement[:k], ranges[: k + 1]) - truth[k]) if k <= steps
+        else math.nan
+        for k in (int(round(t_ls / config.agent.dt)) for t_ls in LS_TIMES)
+    ])
+    return errors, iterations, least_squares
+
+
+# Times (s) at which the offline batch least-squares reference is evaluated.
+LS_TIMES = (10.0, 30.0, 60.0)
+
+
+def batch_least_squares(displacement: np.ndarray, ranges: np.ndarray) -> np.ndarray:
+    """Offline reference: unweighted least squares of every pseudo-linear equation (12) up to epoch K,
+    solved for p_K. Not an estimator we ship; it shows what the equations contain when nothing is
+    down-weighted, so the consecutive-pair noise telescopes (see docs/estimation.md).
+
+    With p_k = p_K - sum_{m>k} delta_m, equation k reads z_k + delta_k^T sum_{m>k} delta_m = delta_k^T p_K.
+    """
+    d = displacement
+    z = 0.5 * (ranges[1:] ** 2 - ranges[:-1] ** 2 + np.sum(d * d, axis=1))
+    later = np.cumsum(d[::-1], axis=0)[::-1] - d  # sum over m > k
+    solution, *_ = np.linalg.lstsq(d, z + np.sum(d * later, axis=1), rcond=None)
+    return solution
+
+
+def _run_job(job: tuple[ComparisonConfig, RangeNoise, np.random.SeedSequence]
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    return run_once(*job)
+
+
+def run_comparison(config: ComparisonConfig, noise_name: str, workers: int = 1, progress=None
+                   ) -> ComparisonResult:
+    """All Monte Carlo runs for one noise model; `progress(n)` is called as runs finish."""
+    noise = config.noise_models[noise_name]
+    # One child seed per (noise model, run): adding runs or models never changes an existing run.
+    root = np.random.SeedSequence([config.seed, _stable_id(noise_name)])
+    jobs = [(config, noise, child) for child in root.spawn(config.runs)]
+    outputs = map_in_order(_run_job, jobs, workers, progress)
+    t, _, _ = relative_trajectory(config)
+    errors = np.stack([o[0] for o in outputs])  # (runs, estimators, K+1)
+    return ComparisonResult(
+        noise_name=noise_name,
+        time=t,
+        errors={name: errors[:, e, :] for e, name in enumerate(config.estimators)},
+        iterations=np.stack([o[1] for o in outputs]),
+        range_bias=noise.mean,
+        filter_range_variance=filter_variance(noise, config),
+        least_squares=np.stack([o[2] for o in outputs]),
+    )
+
+
+def _stable_id(text: str) -> int:
+    """A seed word from a name that is the same in every process (unlike hash())."""
+    return int.from_bytes(text.encode("utf-8")[:8].ljust(8, b"\0"), "little")

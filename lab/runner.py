@@ -1,0 +1,153 @@
+"""In-process fleet runner: the world and one `VesselAgent` per vessel in lockstep.
+
+Each tick: the world senses, every live vessel ticks on its readings and on the shares its neighbours sent
+at the previous tick (minus the ones `lost_shares` drops), the world applies the commands. Shares keep
+their latest value per sender, as the agent process's input gate does. Everything random comes from one
+seed, so a run is bit-for-bit repeatable; only the measured compute time differs. The sim bridge with one
+agent process per vessel gives the same numbers in lockstep (tests/test_lockstep.py).
+"""
+
+from __future__ import annotations
+
+import math
+import time as clock
+from dataclasses import dataclass
+
+import numpy as np
+
+from agent.core.build import InitialEstimates, build_core
+from agent.core.records import Command, Share, TickInputs
+from agent.core.vessel import TickRecord, VesselAgent
+from mission_log.metrics import RunMetrics, summarise
+from sim_bridge.scenario import Scenario, initial_estimates
+from sim_bridge.world import Truth, World, lost_shares, streams
+
+
+@dataclass
+class RunTrace:
+    """What a run leaves for metrics and plots; arrays are (ticks, ...) and NaN where a vessel is absent."""
+
+    scenario: str
+    seed: int
+    vessels: list[str]
+    time: np.ndarray            # (K,)
+    positions: np.ndarray       # (K, n, 2) true positions
+    target: np.ndarray          # (K, 2) true target position
+    occluded: np.ndarray        # (K, n) bool: no line of sight to the target
+    e_ij: np.ndarray            # (K,)
+    e_io: np.ndarray            # (K,)
+    e_io_velocity: np.ndarray   # (K,)
+    e_c: np.ndarray             # (K,)
+    radii: np.ndarray           # (K, n)
+    commands: np.ndarray        # (K, n, 2) surge, yaw rate
+    estimates: np.ndarray       # (K, n, 4) each vessel's target estimate x^_io
+    relative: np.ndarray        # (K, n, n, 2) vessel i's estimate p^_ij of each neighbour j
+    tick_seconds: np.ndarray    # (K, n) compute time of each tick
+    metrics: RunMetrics | None = None
+
+
+def run(scenario: Scenario, seed: np.random.SeedSequence | int | None = None) -> RunTrace:
+    """One run of `scenario`; `seed` defaults to the scenario's own. A vessel that joins later starts with
+    no estimates (its target from its first bearing, its neighbours from the shares), as its agent process
+    would."""
+    sequence = seed if isinstance(seed, np.random.SeedSequence) else np.random.SeedSequence(
+        scenario.seed if seed is None else seed)
+    random = streams(sequence)
+    world = World(scenario.world, random.world)
+    params = scenario.agent_params()
+    ids = [v.id for v in scenario.world.vessels]
+    index = {v: n for n, v in enumerate(ids)}
+    steps = int(round(scenario.duration / scenario.world.dt)) + 1
+    trace = _empty_trace(scenario, int(sequence.entropy) if isinstance(sequence.entropy, int) else 0, ids, steps)
+
+    agents: dict[str, VesselAgent] = {}
+    inbox: dict[str, dict[str, Share]] = {}
+    sent: dict[str, Share] = {}
+    for k in range(steps):
+        readings = world.sense()
+        live = world.live()
+        joined = {v for v in live if v not in agents}
+        if k == 0:
+            starts = initial_estimates(scenario, world.truth(), random.initial)
+            agents.update({i: build_core(i, params, start) for i, start in starts.items()})
+        else:
+            agents.update({i: build_core(i, params, InitialEstimates()) for i in joined})
+        for gone in [v for v in agents if v not in live]:
+            del agents[gone]
+            inbox.pop(gone, None)
+            for box in inbox.values():
+                box.pop(gone, None)
+        senders = [j for j in sent if j in agents]
+        lost = set(lost_shares(random.loss_seed, senders, live, joined, k, scenario.world.packet_loss))
+        truth = world.truth()
+        commands: dict[str, Command] = {}
+        records: dict[str, TickRecord] = {}
+        outgoing: dict[str, Share] = {}
+        for i in live:
+            box = inbox.setdefault(i, {})
+            for j in senders:
+                if j != i and (j, i) not in lost:
+                    box[j] = sent[j]
+            reading = readings[i]
+            inputs = TickInputs(time=truth.time, odometry=reading.odometry, ranges=reading.ranges,
+                                shares=dict(box), bearing=reading.bearing,
+                                obstacle_points=reading.obstacle_points)
+            started = clock.perf_counter()
+            output = agents[i].tick(inputs)
+            trace.tick_seconds[k, index[i]] = clock.perf_counter() - started
+            commands[i] = output.command
+            if output.share is not None:
+                outgoing[i] = output.share
+            if output.record is not None:
+                records[i] = output.record
+            trace.occluded[k, index[i]] = reading.occluded
+        _record(trace, k, truth, records, commands, index, scenario)
+        sent = outgoing
+        world.step(commands)
+    trace.metrics = summarise(trace.time, trace.e_ij, trace.e_io, trace.e_io_velocity, trace.e_c, trace.radii,
+                              params.control.radius, trace.tick_seconds)
+    return trace
+
+
+def _empty_trace(scenario: Scenario, seed: int, ids: list[str], steps: int) -> RunTrace:
+    n = len(ids)
+    nan = np.full
+    return RunTrace(
+        scenario=scenario.name, seed=seed, vessels=ids,
+        time=np.arange(steps) * scenario.world.dt,
+        positions=nan((steps, n, 2), np.nan), target=nan((steps, 2), np.nan),
+        occluded=np.zeros((steps, n), dtype=bool),
+        e_ij=nan(steps, np.nan), e_io=nan(steps, np.nan), e_io_velocity=nan(steps, np.nan),
+        e_c=nan(steps, np.nan), radii=nan((steps, n), np.nan), commands=nan((steps, n, 2), np.nan),
+        estimates=nan((steps, n, 4), np.nan), relative=nan((steps, n, n, 2), np.nan),
+        tick_seconds=nan((steps, n), np.nan),
+    )
+
+
+def _record(trace: RunTrace, k: int, truth: Truth, records: dict[str, TickRecord],
+            commands: dict[str, Command], index: dict[str, int], scenario: Scenario) -> None:
+    trace.target[k] = truth.target_position
+    worst_ij = worst_io = worst_v = -math.inf
+    for i, position in truth.positions.items():
+        n = index[i]
+        trace.positions[k, n] = position
+        trace.radii[k, n] = float(np.hypot(*(position - truth.target_position)))
+        if i in commands:
+            trace.commands[k, n] = (commands[i].surge, commands[i].yaw_rate)
+        record = records.get(i)
+        if record is None:
+            continue
+        for j, neighbour in record.neighbours.items():
+            trace.relative[k, n, index[j]] = neighbour.position
+            if j in truth.positions:
+                error = neighbour.position - (position - truth.positions[j])
+                worst_ij = max(worst_ij, float(np.hypot(*error)))
+        if record.target_state is not None:
+            trace.estimates[k, n] = record.target_state
+            worst_io = max(worst_io, float(np.hypot(*(record.target_state[:2] - (position - truth.target_position)))))
+            relative_velocity = truth.velocities[i] - truth.target_velocity
+            worst_v = max(worst_v, float(np.hypot(*(record.target_state[2:] - relative_velocity))))
+    for array, value in ((trace.e_ij, worst_ij), (trace.e_io, worst_io), (trace.e_io_velocity, worst_v)):
+        array[k] = value if value > -math.inf else np.nan
+    centre = np.mean(list(truth.positions.values()), axis=0)
+    trace.e_c[k] = float(np.hypot(*(centre - truth.target_position)))

@@ -1,0 +1,223 @@
+"""`usv-lab runtime-bench`: what the Zenoh runtime costs on this machine. A benchmark, not a test.
+
+(a) Bare Zenoh on loopback, the baseline: a ping process and an echo process with the agents' session
+    settings; each ping carries its send time (CLOCK_MONOTONIC is shared by the processes of one machine),
+    so one exchange gives the one-way publish-to-subscribe latency and the round trip.
+(b) Sensor-to-command latency: the fleet in real-time mode (sim clock at 10 Hz of wall time), 4 and 12
+    vessels; the sim bridge logs, per tick and vessel, the wall time from publishing the tick's sensors to
+    receiving the agent's command (`/bridge/command_latency` in sim.mcap). This is a round trip through an
+    agent, so it is set against the bare round trip measured just before it.
+(c) The lockstep real-time factor of the Table II mission (MCKF, 4 vessels): simulated time over the wall
+    time of the bridge's tick loop (`/bridge/summary`), and of the whole launch. Set against it, in the same
+    run: the in-process runner on the same mission and seed (one process, no messaging: what the
+    computation alone allows on one core), and the CPU each process spent per tick (every thread, Zenoh's
+    included; from each process's own summary record), which is what the two cores have to share.
+(d) The peak resident memory of every process of each run (/proc VmHWM).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from agent.runtime.mcap_log import read_messages
+from agent.runtime.zenoh_session import ZenohSettings, zenoh_config
+from lab import arguments
+from lab.report import invocation, markdown_table
+from lab.scenario_cmd import DEFAULT_DIR
+from sim_bridge.fleet import Fleet, free_port
+from sim_bridge.scenario import with_duration
+
+PAYLOAD_BYTES = 300     # about one Odometry or Cmd message
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--pings", type=arguments.positive_int, default=2000, help="bare Zenoh exchanges per baseline")
+    parser.add_argument("--seconds", type=arguments.positive_float, default=30.0,
+                        help="simulated (= wall) seconds of each real-time latency run")
+    parser.add_argument("--sizes", type=arguments.positive_int, nargs="+", default=[4, 12],
+                        help="fleet sizes of the latency runs (variants n<size>_r5 of table4_scale)")
+    parser.add_argument("--out", type=Path, default=Path("docs/results"), help="where runtime_benchmark.md goes")
+    parser.add_argument("--scenarios-dir", type=Path, default=DEFAULT_DIR, help="where the scenario files are")
+
+
+def _session_config(listen: int | None = None, connect: int | None = None):
+    """The agents' session settings (`zenoh_config`) on loopback."""
+    return zenoh_config(ZenohSettings(listen=[f"tcp/127.0.0.1:{listen}"] if listen is not None else [],
+                                      connect=[f"tcp/127.0.0.1:{connect}"] if connect is not None else []))
+
+
+def echo(port: int, seconds: float) -> None:
+    """The echo side of (a): answer each ping at once, adding the one-way latency it measured."""
+    import zenoh
+
+    with zenoh.open(_session_config(listen=port)) as session:
+        pong = session.declare_publisher("bench/pong")
+
+        def on_ping(sample) -> None:
+            arrived = time.monotonic_ns()
+            sent = int(bytes(sample.payload.to_bytes()[:20]).decode())
+            pong.put(f"{sent:020d}{arrived - sent:020d}".encode().ljust(PAYLOAD_BYTES, b" "))
+
+        session.declare_subscriber("bench/ping", on_ping)
+        time.sleep(seconds)
+
+
+def bare_zenoh(pings: int) -> dict[str, float]:
+    """One-way and round-trip latency percentiles (ms) of plain put/subscribe between two processes."""
+    import zenoh
+
+    port = free_port()
+    seconds = 5.0 + pings * 0.004
+    child = subprocess.Popen([sys.executable, "-c",
+                              f"from lab.runtime_bench import echo; echo({port}, {seconds})"])
+    one_way, round_trip = [], []
+    try:
+        time.sleep(1.5)  # the echo process imports and listens
+        with zenoh.open(_session_config(connect=port)) as session:
+            def on_pong(sample) -> None:
+                now = time.monotonic_ns()
+                text = bytes(sample.payload.to_bytes()[:40]).decode()
+                sent, forward = int(text[:20]), int(text[20:40])
+                one_way.append(forward * 1e-6)
+                round_trip.append((now - sent) * 1e-6)
+
+            session.declare_subscriber("bench/pong", on_pong)
+            ping = session.declare_publisher("bench/ping")
+            time.sleep(1.0)  # let the two sessions find each other before anything counts
+            for _ in range(pings):
+                ping.put(f"{time.monotonic_ns():020d}".encode().ljust(PAYLOAD_BYTES, b" "))
+                time.sleep(0.002)
+            time.sleep(0.5)
+    finally:
+        child.wait(timeout=seconds + 10)
+    if len(round_trip) < pings // 2:
+        raise RuntimeError(f"bare Zenoh baseline: only {len(round_trip)} of {pings} pings came back")
+    return {"one_way_p50": float(np.percentile(one_way, 50)), "one_way_p99": float(np.percentile(one_way, 99)),
+            "round_trip_p50": float(np.percentile(round_trip, 50)),
+            "round_trip_p99": float(np.percentile(round_trip, 99)), "samples": len(round_trip)}
+
+
+def _bridge_records(folder: Path) -> tuple[list[float], dict]:
+    latencies, summary = [], {}
+    for topic, _, message in read_messages(folder / "sim.mcap"):
+        if topic == "/bridge/command_latency":
+            latencies += list(message["milliseconds"].values())
+        elif topic == "/bridge/summary":
+            summary = message
+    return latencies, summary
+
+
+def _cpu_per_tick(folder: Path) -> dict[str, float]:
+    """CPU milliseconds per tick of each process's loop, from the summary record each one logs at the end."""
+    cpu = {}
+    for path in sorted(folder.glob("*.mcap")):
+        for topic, _, message in read_messages(path):
+            if topic.endswith("/summary") and message.get("ticks"):
+                name = "bridge" if topic == "/bridge/summary" else f"agent-{topic.split('/')[1]}"
+                cpu[name] = 1e3 * message["cpu_seconds"] / message["ticks"]
+    return cpu
+
+
+def in_process_baseline(path: Path, variant: str) -> tuple[float, float]:
+    """The in-process runner on the same mission and seed: (real-time factor, mean core tick in ms)."""
+    from lab.runner import run as run_in_process
+    from sim_bridge.scenario import select_scenario
+
+    _, scenario = select_scenario(path, variant)
+    started = time.perf_counter()
+    trace = run_in_process(scenario)
+    return scenario.duration / (time.perf_counter() - started), 1e3 * float(np.nanmean(trace.tick_seconds))
+
+
+def _memory(folder: Path) -> dict[str, float]:
+    return json.loads((folder / "memory.json").read_text())["peak_resident_mb"]
+
+
+def run(args: argparse.Namespace) -> int:
+    scale = args.scenarios_dir / "table4_scale.yaml"
+    table2 = args.scenarios_dir / "table2_estimators.yaml"
+    rows, memory_rows = [], []
+    with tempfile.TemporaryDirectory() as scratch:
+        scratch = Path(scratch)
+        for size in args.sizes:
+            print(f"runtime-bench: bare Zenoh baseline, then {size} vessels in real time for {args.seconds:.0f} s",
+                  file=sys.stderr)
+            baseline = bare_zenoh(args.pings)
+            fleet = Fleet(with_duration(scale, scratch, args.seconds), f"n{size}_r5", scratch / "runs", mode="realtime")
+            folder = fleet.run()
+            latencies, summary = _bridge_records(folder)
+            expected = size * summary.get("ticks", 0)
+            p50, p99 = np.percentile(latencies, 50), np.percentile(latencies, 99)
+            rows.append([size, f"{p50:.2f}", f"{p99:.2f}", f"{baseline['round_trip_p50']:.3f}",
+                         f"{baseline['round_trip_p99']:.3f}", f"{baseline['one_way_p50']:.3f}",
+                         f"{p50 / baseline['round_trip_p50']:.0f}x", f"{len(latencies)}/{expected}"])
+            memory_rows.append([f"real time, {size} vessels", *_memory_cells(_memory(folder))])
+        print("runtime-bench: Table II (MCKF, 4 vessels, 60 s) in lockstep", file=sys.stderr)
+        started = time.monotonic()
+        fleet = Fleet(table2, "mckf", scratch / "runs")
+        folder = fleet.run()
+        launch_seconds = time.monotonic() - started
+        _, summary = _bridge_records(folder)
+        cpu = _cpu_per_tick(folder)
+        simulated = summary["ticks"] * fleet.scenario.world.dt
+        memory_rows.append(["lockstep Table II, 4 vessels", *_memory_cells(_memory(folder))])
+        print("runtime-bench: the same mission in process (the baseline)", file=sys.stderr)
+        alone_factor, core_ms = in_process_baseline(table2, "mckf")
+    factor = simulated / summary["loop_seconds"]
+    lockstep = [[summary["ticks"], f"{simulated:.1f}", f"{summary['loop_seconds']:.2f}", f"{factor:.1f}x",
+                 f"{launch_seconds:.1f}", f"{simulated / launch_seconds:.1f}x", summary["missed_commands"],
+                 f"{alone_factor:.1f}x", f"{factor / alone_factor:.2f}"]]
+    agents_cpu = [v for k, v in cpu.items() if k.startswith("agent-")]
+    dt_ms = 1e3 * fleet.scenario.world.dt
+    cores = os.cpu_count() or 1
+    total_cpu = cpu.get("bridge", float("nan")) + sum(agents_cpu)
+    cpu_rows = [[f"{cpu.get('bridge', float('nan')):.2f}", f"{np.mean(agents_cpu):.2f}", f"{core_ms:.2f}",
+                 f"{total_cpu:.2f}", f"{cores * dt_ms / total_cpu:.1f}x", f"{cores * dt_ms / 50:.1f}"]]
+    text = "\n".join([
+        "# Runtime benchmark: the fleet over Zenoh on loopback", "",
+        f"Command: `{invocation(args)}`", "",
+        f"Machine: {platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}, "
+        f"{platform.system()} {platform.release()}. Every figure is from one run of the command above; the "
+        "processes share the machine's cores, so the figures move with whatever else runs.", "",
+        "## Sensor-to-command latency (real-time mode)", "",
+        "From the sim bridge publishing a tick's sensors to it receiving each agent's command: two Zenoh hops "
+        "plus the agent's decoding, tick, encoding and logging. The baseline is bare Zenoh between two processes "
+        "(same session settings, 300-byte payloads), measured just before each fleet run; the ratio is the "
+        "p50 latency over the baseline's p50 round trip.", "",
+        markdown_table(["vessels", "p50 (ms)", "p99 (ms)", "bare round trip p50 (ms)", "bare round trip p99 (ms)",
+                        "bare one-way p50 (ms)", "p50 / bare round trip", "commands timed"], rows), "",
+        "## Lockstep real-time factor (Table II, MCKF, 4 vessels)", "",
+        "The bridge advances a tick when every agent has answered, and each agent waits for its neighbours' "
+        "shares of the tick before (tests/test_lockstep.py checks the result equals the in-process runner).", "",
+        markdown_table(["ticks", "simulated (s)", "tick loop (s)", "real-time factor", "whole launch (s)",
+                        "factor incl. start-up", "missed commands", "in process, same seed",
+                        "over Zenoh / in process"], lockstep), "",
+        "Where the time goes: CPU milliseconds per tick of each process (all its threads), against the core "
+        "tick alone (the in-process run's mean `VesselAgent.tick`). With every process busy all the time the "
+        f"{cores} cores could give at best {cores} x {dt_ms:.0f} ms / (sum of CPU per tick) of real time; "
+        f"{50}x real time needs the whole fleet's CPU per tick under {cores * dt_ms / 50:.1f} ms.", "",
+        markdown_table(["sim bridge", "agent (mean)", "of which the core tick (in process)", "sum over processes",
+                        "factor if the cores were never idle", "CPU budget per tick for 50x"], cpu_rows), "",
+        "## Peak resident memory per process (MB)", "",
+        markdown_table(["run", "sim bridge", "agents: min", "agents: max", "agents: mean"], memory_rows), "",
+    ])
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "runtime_benchmark.md").write_text(text)
+    print(text)
+    return 0
+
+
+def _memory_cells(memory: dict[str, float]) -> list[str]:
+    agents = [v for k, v in memory.items() if k.startswith("agent-")]
+    return [f"{memory.get('bridge', float('nan')):.0f}", f"{min(agents):.0f}", f"{max(agents):.0f}",
+            f"{np.mean(agents):.0f}"]

@@ -1,0 +1,5 @@
+import sys
+
+from mission_log.cli import main
+
+sys.exit(main())

@@ -1,0 +1,134 @@
+"""`usv-log`: post-mission analysis of MCAP logs (also `python -m mission_log`).
+
+    usv-log summary RUN...            what the logs hold: counts, rates, gaps, refusals, overruns, health
+    usv-log metrics RUN...            the paper's metrics with ground truth, self-consistency without
+    usv-log plot RUN... [--out DIR]   trajectories, errors, ranges and residuals as PNG files
+    usv-log replay LOG --out FILE [--set key=value ...] [--params FILE]
+                                      a vessel's recorded inputs through the core again
+
+RUN is a run folder (every *.mcap in it) or MCAP files. Reports are Markdown on standard output; --json
+writes the figures as JSON too.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from agent.config import ConfigError, read_yaml
+from mission_log.reader import LogError, load_run
+
+
+def _run_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("run", nargs="+", type=Path, help="a run folder, or MCAP files")
+    parser.add_argument("--json", type=Path, default=None, help="also write the figures to this JSON file")
+
+
+def _load(paths: list[Path]):
+    run = load_run(paths if len(paths) > 1 else paths[0])
+    for path in run.unfinished:
+        print(f"usv-log: warning: {path} is unfinished (its process was killed?); read up to its last "
+              "complete chunk", file=sys.stderr)
+    return run
+
+
+def _write_json(path: Path | None, data: dict) -> None:
+    if path is not None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(data, indent=2))
+
+
+def summary_command(args) -> int:
+    from mission_log.summary import run_summary, summary_markdown
+
+    result = run_summary(_load(args.run), args.window)
+    print(summary_markdown(result), end="")
+    _write_json(args.json, result)
+    return 0
+
+
+def metrics_command(args) -> int:
+    from mission_log.metrics import metrics_markdown, run_metrics
+
+    run = _load(args.run)
+    result = run_metrics(run, args.radius)
+    print(metrics_markdown(result, run.source), end="")
+    _write_json(args.json, result)
+    return 0
+
+
+def plot_command(args) -> int:
+    from mission_log.plots import plot_run
+
+    run = _load(args.run)
+    out = args.out or (args.run[0] if args.run[0].is_dir() else args.run[0].parent) / "plots"
+    for path in plot_run(run, out, args.radius):
+        print(path)
+    return 0
+
+
+def replay_command(args) -> int:
+    from agent.config import deep_merge
+    from mission_log.replay import parse_assignments, replay
+
+    changes = {}
+    if args.params is not None:
+        loaded = read_yaml(args.params)
+        if not isinstance(loaded, dict):
+            raise ConfigError(f"{args.params}: expected a mapping of agent parameters")
+        changes = loaded
+    changes = deep_merge(changes, parse_assignments(args.set))
+    result = replay(args.log, args.out, changes)
+    same = result.commands_identical == result.commands_compared and result.estimates_identical == result.ticks
+    print(f"usv-log replay: vessel {result.vessel}, {result.ticks} ticks -> {result.out}")
+    print(f"  changes: {json.dumps(changes) if changes else 'none'}")
+    print(f"  commands identical to the recorded ones: {result.commands_identical}/{result.commands_compared} "
+          f"(largest difference: surge {result.max_surge_difference:.3g} m/s, yaw rate "
+          f"{result.max_yaw_rate_difference:.3g} rad/s); estimates identical: {result.estimates_identical}/"
+          f"{result.ticks}")
+    if not changes and not same:
+        print("  the replay with unchanged settings differs from the recording: report this", file=sys.stderr)
+        return 1
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="usv-log", description="Post-mission analysis of the fleet's MCAP logs.")
+    commands = parser.add_subparsers(dest="command", required=True)
+    summary = commands.add_parser("summary", help="counts, rates, gaps, refusals, overruns, estimator health")
+    _run_arguments(summary)
+    summary.add_argument("--window", type=float, default=10.0, help="seconds per row of the health table")
+    summary.set_defaults(handler=summary_command)
+    metrics = commands.add_parser("metrics", help="the paper's metrics (with truth) and self-consistency figures")
+    _run_arguments(metrics)
+    metrics.add_argument("--radius", type=float, default=None, help="r* (default: from the agents' settings)")
+    metrics.set_defaults(handler=metrics_command)
+    plot = commands.add_parser("plot", help="PNG figures: trajectories, errors, ranges and residuals")
+    plot.add_argument("run", nargs="+", type=Path, help="a run folder, or MCAP files")
+    plot.add_argument("--out", type=Path, default=None, help="folder for the PNGs (default: RUN/plots)")
+    plot.add_argument("--radius", type=float, default=None, help="r* (default: from the agents' settings)")
+    plot.set_defaults(handler=plot_command)
+    again = commands.add_parser("replay", help="a vessel's recorded inputs through the core, same or new settings")
+    again.add_argument("log", type=Path, help="an agent's MCAP log")
+    again.add_argument("--out", type=Path, required=True, help="the new MCAP file")
+    again.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                       help="change one agent parameter, e.g. relative.estimator=ekf or "
+                            "relative.mckf.bandwidths=[9999,9999,1.5] (repeatable)")
+    again.add_argument("--params", type=Path, default=None, help="YAML of agent parameters to change")
+    again.set_defaults(handler=replay_command)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return args.handler(args)
+    except (LogError, ConfigError) as error:
+        print(f"usv-log: {error}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

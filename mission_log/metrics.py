@@ -1,0 +1,218 @@
+"""Metrics of a mission: the paper's, from truth and estimates, and self-consistency ones from the logs alone.
+
+The paper's metrics (Sec. VI), from a run's truth and the vessels' estimates (the in-process runner's trace
+or the sim bridge's and agents' logs):
+- e_ij^p(k) = max_i max_j |p^_ij - p_ij|: worst inter-vessel estimate;
+- e_io^p(k) = max_i |p^_io - p_io|, e_io^v(k) = max_i |v^_io - v_io|: worst target estimate;
+- e_c(k) = |(1/n) sum_i p_i - p_o|: formation centre against the target;
+- settling time: the first time from which every vessel's distance to the target stays within +-10 % of r*
+  to the end of the run;
+- the mean tick compute time.
+"Mean" in the tables is the time average over the whole run, as in the paper's Tables II-IV.
+
+Without ground truth (a real boat) nothing can be compared with the truth, so the figures are
+self-consistency ones that need only the agents' logs:
+- normalised innovation squared (NIS) of each filter's updates: innovation^2 / predicted variance. A
+  consistent filter averages 1, and 95 % of its updates fall under the chi-square(1) 95 % point (3.84).
+  The MCKF's mean weight says how much it discounted (1: not at all);
+- pair agreement: vessel i's p^_ij against vessel j's p^_ji, which should be its exact opposite;
+- target agreement: i's and j's target estimates against i's estimate of where j is,
+  (p^_io - p^_jo) - p^_ij, which is zero when all three agree.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from itertools import combinations
+
+import numpy as np
+from scipy.stats import chi2
+
+from mission_log.reader import RunLog, agent_radius
+from mission_log.series import beliefs_of, centroid_error, estimate_errors, truth_of
+
+NIS_BOUND_95 = float(chi2.ppf(0.95, 1))
+SETTLING_BAND = 0.10
+
+
+@dataclass(frozen=True)
+class RunMetrics:
+    mean_e_ij: float
+    mean_e_io: float
+    mean_e_io_velocity: float
+    mean_e_c: float
+    settling_time: float | None     # None: never settled
+    mean_tick_ms: float
+    p99_tick_ms: float
+
+
+def settling_time(time: np.ndarray, radii: np.ndarray, radius: float, band: float = SETTLING_BAND
+                  ) -> float | None:
+    """First time from which all radii (k, n; NaN for absent vessels) stay within (1 +- band) r*."""
+    inside = np.all(np.isnan(radii) | (np.abs(radii - radius) <= band * radius), axis=1)
+    if not inside[-1]:
+        return None
+    outside = np.flatnonzero(~inside)
+    return float(time[0] if len(outside) == 0 else time[outside[-1] + 1])
+
+
+def spacing_error(positions: np.ndarray, centre: np.ndarray) -> float:
+    """Largest departure (rad) of the angular gaps between the vessels around `centre` from the uniform
+    2 pi / n: zero when they are evenly spaced on the circle."""
+    angles = np.sort(np.arctan2(*(np.asarray(positions) - centre).T[::-1]))
+    gaps = np.diff(np.append(angles, angles[0] + 2 * math.pi))
+    return float(np.max(np.abs(gaps - 2 * math.pi / len(angles))))
+
+
+def nan_mean(values: np.ndarray) -> float:
+    finite = values[np.isfinite(values)]
+    return float(finite.mean()) if len(finite) else math.nan
+
+
+def summarise(time, e_ij, e_io, e_io_velocity, e_c, radii, radius, tick_seconds) -> RunMetrics:
+    ticks = np.asarray(tick_seconds, dtype=float)
+    ticks = ticks[np.isfinite(ticks)]
+    return RunMetrics(
+        mean_e_ij=nan_mean(np.asarray(e_ij)),
+        mean_e_io=nan_mean(np.asarray(e_io)),
+        mean_e_io_velocity=nan_mean(np.asarray(e_io_velocity)),
+        mean_e_c=nan_mean(np.asarray(e_c)),
+        settling_time=settling_time(np.asarray(time), np.asarray(radii), radius),
+        mean_tick_ms=float(ticks.mean() * 1e3) if len(ticks) else math.nan,
+        p99_tick_ms=float(np.percentile(ticks, 99) * 1e3) if len(ticks) else math.nan,
+    )
+
+
+
+def truth_metrics(run: RunLog, radius: float) -> dict:
+    """The paper's metrics from the logs: worst e_ij and e_io over the vessels at each tick, e_c, settling
+    time, and their means. Needs the sim bridge's log."""
+    truth = truth_of(run.sim)
+    vessels = list(truth.vessels)
+    n = len(truth.t_ns)
+    e_ij, e_io = np.full(n, np.nan), np.full(n, np.nan)
+    for vessel, log in run.vessels.items():
+        beliefs = beliefs_of(log)
+        if beliefs is None or vessel not in truth.vessels:
+            continue
+        worst_ij, error_io = estimate_errors(vessel, beliefs, truth)
+        e_ij, e_io = np.fmax(e_ij, worst_ij), np.fmax(e_io, error_io)   # fmax: a vessel absent at a tick does not count
+    positions = np.stack([truth.vessels[v] for v in vessels], axis=1)   # (T, n, 2)
+    radii = np.linalg.norm(positions - truth.target[:, None, :], axis=-1)
+    metrics = summarise(truth.t_ns * 1e-9, e_ij, e_io, np.full(n, np.nan), centroid_error(truth), radii, radius, [])
+    return {"vessels": vessels, "ticks": n, "radius": radius, "mean_e_ij": metrics.mean_e_ij,
+            "mean_e_io": metrics.mean_e_io, "mean_e_c": metrics.mean_e_c, "settling_time": metrics.settling_time}
+
+
+def _nis(pairs: list[tuple[float, float]]) -> dict:
+    values = np.array([innovation**2 / variance for innovation, variance in pairs if variance > 0])
+    if values.size == 0:
+        return {"updates": 0, "mean_nis": None, "within_95": None}
+    return {"updates": int(values.size), "mean_nis": float(values.mean()),
+            "within_95": float(np.mean(values <= NIS_BOUND_95))}
+
+
+def innovation_statistics(run: RunLog) -> dict:
+    """NIS per filter over its accepted updates: each inter-vessel filter of each vessel (with its mean
+    MCKF weight) and each vessel's target filter (bearing updates)."""
+    result = {}
+    for vessel, log in sorted(run.vessels.items()):
+        relative: dict[str, list] = {}
+        weights: dict[str, list] = {}
+        bearings = []
+        for _, m in log.topic("estimates"):
+            for j, neighbour in m["neighbours"].items():
+                for o in neighbour.get("outcomes", []):
+                    if o["accepted"]:
+                        relative.setdefault(j, []).append((o["innovation"], o["innovation_variance"]))
+                        weights.setdefault(j, []).append(o["weight"])
+            bearing = m.get("bearing")
+            if bearing is not None and bearing["accepted"]:
+                bearings.append((bearing["innovation"], bearing["innovation_variance"]))
+        result[vessel] = {
+            "relative": {j: {**_nis(v), "mean_weight": float(np.mean(weights[j]))} for j, v in sorted(relative.items())},
+            "target": _nis(bearings),
+        }
+    return result
+
+
+def _spread(errors: list[float]) -> dict:
+    if not errors:
+        return {"ticks": 0, "mean_m": None, "p95_m": None, "max_m": None}
+    values = np.array(errors)
+    return {"ticks": int(values.size), "mean_m": float(values.mean()), "p95_m": float(np.percentile(values, 95)),
+            "max_m": float(values.max())}
+
+
+def agreement(run: RunLog) -> dict:
+    """Pair agreement |p^_ij + p^_ji| and target agreement |(p^_io - p^_jo) - p^_ij| over the ticks both
+    vessels logged."""
+    estimates = {v: dict(log.topic("estimates")) for v, log in run.vessels.items()}
+    pairs, targets = {}, {}
+    for i, j in combinations(sorted(estimates), 2):
+        pair_errors, target_errors = [], []
+        for t in sorted(estimates[i].keys() & estimates[j].keys()):
+            mine, theirs = estimates[i][t], estimates[j][t]
+            p_ij = mine["neighbours"].get(j, {}).get("position")
+            p_ji = theirs["neighbours"].get(i, {}).get("position")
+            if p_ij is not None and p_ji is not None:
+                pair_errors.append(math.hypot(p_ij[0] + p_ji[0], p_ij[1] + p_ji[1]))
+            if p_ij is not None and mine["target_state"] is not None and theirs["target_state"] is not None:
+                gap = np.array(mine["target_state"][:2]) - np.array(theirs["target_state"][:2]) - np.array(p_ij)
+                target_errors.append(float(np.hypot(*gap)))
+        pairs[f"{i}-{j}"] = _spread(pair_errors)
+        targets[f"{i}-{j}"] = _spread(target_errors)
+    return {"pairs": pairs, "targets": targets}
+
+
+def run_metrics(run: RunLog, radius: float | None = None) -> dict:
+    """Everything `usv-log metrics` reports: truth metrics when the sim bridge's log is there, and the
+    self-consistency figures always."""
+    radius = radius if radius is not None else agent_radius(run)
+    return {
+        "truth": truth_metrics(run, radius) if run.has_truth else None,
+        "innovations": innovation_statistics(run),
+        "agreement": agreement(run),
+    }
+
+
+def _cell(value, digits: int = 3) -> str:
+    return "–" if value is None else f"{value:.{digits}f}"
+
+
+def metrics_markdown(result: dict, source: str) -> str:
+    lines = [f"# Metrics of {source}", ""]
+    truth = result["truth"]
+    if truth is None:
+        lines += ["**No ground truth** (no sim bridge log with `/truth` among the files): the paper's metrics "
+                  "need it. What follows checks the estimates against each other instead.", ""]
+    else:
+        settling = "never" if truth["settling_time"] is None else f"{truth['settling_time']:.1f} s"
+        lines += ["## Against the ground truth (the paper's metrics)", "",
+                  f"{len(truth['vessels'])} vessels, {truth['ticks']} ticks, r* = {truth['radius']} m", "",
+                  "| mean e_ij (m) | mean e_io (m) | mean e_c (m) | settling time |", "|---|---|---|---|",
+                  f"| {_cell(truth['mean_e_ij'])} | {_cell(truth['mean_e_io'])} | {_cell(truth['mean_e_c'])} | "
+                  f"{settling} |", ""]
+    lines += ["## Normalised innovations (NIS)", "",
+              f"A consistent filter averages 1 with 95 % of updates under {NIS_BOUND_95:.2f}. The mean weight is "
+              "how much the MCKF trusted its range updates (1: fully; outliers get less).", "",
+              "| vessel | filter | updates | mean NIS | within 95 % | mean weight |",
+              "|---|---|---|---|---|---|"]
+    for vessel, filters in result["innovations"].items():
+        for j, s in filters["relative"].items():
+            lines.append(f"| {vessel} | p_{vessel}{j} (ranges) | {s['updates']} | {_cell(s['mean_nis'], 2)} | "
+                         f"{_cell(s['within_95'], 2)} | {_cell(s['mean_weight'], 2)} |")
+        s = filters["target"]
+        lines.append(f"| {vessel} | target (bearings) | {s['updates']} | {_cell(s['mean_nis'], 2)} | "
+                     f"{_cell(s['within_95'], 2)} | |")
+    lines += ["", "## Agreement between vessels", "",
+              "Pair: |p^_ij + p^_ji| (each vessel's estimate of the other should be the exact opposite). Target: "
+              "|(p^_io - p^_jo) - p^_ij| (two target estimates and one inter-vessel estimate closing the triangle).",
+              "", "| pair | ticks | pair mean (m) | pair p95 (m) | pair max (m) | target mean (m) | target p95 (m) |",
+              "|---|---|---|---|---|---|---|"]
+    for name, p in result["agreement"]["pairs"].items():
+        q = result["agreement"]["targets"][name]
+        lines.append(f"| {name} | {p['ticks']} | {_cell(p['mean_m'])} | {_cell(p['p95_m'])} | {_cell(p['max_m'])} | "
+                     f"{_cell(q['mean_m'])} | {_cell(q['p95_m'])} |")
+    return "\n".join(lines) + "\n"

@@ -1,0 +1,184 @@
+"""`usv-log summary`: what a mission's logs hold and how the processes fared.
+
+Per vessel: the span of its log, message counts, rates and gaps per topic, what its input gate refused, tick
+overruns, the time its commands spent at each limit, and its estimators' health in windows of time. For the
+sim bridge: ticks, missed commands, watchdog stops, command latency.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from agent.shell.tick_log import log_topic
+from mission_log.reader import Log, RunLog
+
+GAP_FACTOR = 2.5   # an interval this many times the topic's median interval is a gap
+
+
+def topic_statistics(messages: list[tuple[int, dict]]) -> dict:
+    """Count, mean rate, and gaps (intervals over GAP_FACTOR x the median) of one topic's log times."""
+    stamps = np.array([t for t, _ in messages], dtype=np.int64)
+    result = {"messages": int(stamps.size), "rate_hz": None, "gaps": 0, "largest_gap_s": None}
+    if stamps.size >= 2:
+        intervals = np.diff(np.sort(stamps)) * 1e-9
+        span = (stamps.max() - stamps.min()) * 1e-9
+        result["rate_hz"] = float((stamps.size - 1) / span) if span > 0 else None
+        median = float(np.median(intervals))
+        result["largest_gap_s"] = float(intervals.max())
+        result["gaps"] = int(np.sum(intervals > GAP_FACTOR * median)) if median > 0 else 0
+    return result
+
+
+def _span(log: Log) -> tuple[float, float] | None:
+    stamps = [t for messages in log.topics.values() for t, _ in messages]
+    return (min(stamps) * 1e-9, max(stamps) * 1e-9) if stamps else None
+
+
+def health_windows(estimates: list[tuple[int, dict]], window: float) -> list[dict]:
+    """The inter-vessel filters' and the target filter's work in consecutive windows of `window` seconds."""
+    if not estimates:
+        return []
+    start, end = estimates[0][0] * 1e-9, estimates[-1][0] * 1e-9
+    last = max(1, math.ceil((end - start) / window - 1e-9)) - 1   # a tick on the last boundary closes the last window
+    rows: dict[int, dict] = {}
+    for t, m in estimates:
+        k = min(int((t * 1e-9 - start) // window), last)
+        row = rows.setdefault(k, {"from_s": start + k * window, "to_s": start + (k + 1) * window, "ticks": 0,
+                                  "relative_updates": 0, "relative_refused": 0, "iterations": [], "weights": [],
+                                  "nis": [], "bearing_updates": 0, "bearing_refused": 0, "neighbours": 0})
+        row["ticks"] += 1
+        row["neighbours"] = max(row["neighbours"], len(m["neighbours"]))
+        for neighbour in m["neighbours"].values():
+            for o in neighbour.get("outcomes", []):
+                if not o["accepted"]:
+                    row["relative_refused"] += 1
+                    continue
+                row["relative_updates"] += 1
+                row["iterations"].append(o["iterations"])
+                row["weights"].append(o["weight"])
+                if o["innovation_variance"] > 0:
+                    row["nis"].append(o["innovation"] ** 2 / o["innovation_variance"])
+        bearing = m.get("bearing")
+        if bearing is not None:
+            row["bearing_updates" if bearing["accepted"] else "bearing_refused"] += 1
+    result = []
+    for k in sorted(rows):
+        row = rows[k]
+        for name, values in (("mean_iterations", row.pop("iterations")), ("mean_weight", row.pop("weights")),
+                             ("mean_nis", row.pop("nis"))):
+            row[name] = float(np.mean(values)) if values else None
+        result.append(row)
+    return result
+
+
+def vessel_summary(log, window: float) -> dict:
+    span = _span(log)
+    status = log.last(log_topic(log.vessel, "status")) or {}
+    final = log.last(log_topic(log.vessel, "summary")) or {}
+    estimates = log.topic("estimates")
+    health = status.get("health", {})
+    refused = final.get("refused") or {k[len("rejected_"):]: v for k, v in health.items() if k.startswith("rejected_")}
+    ticks = len(log.topic("inputs"))
+    dt = float(np.median(np.diff([t for t, _ in log.topic("inputs")]))) * 1e-9 if ticks > 1 else 0.0
+    saturation: dict[str, float] = {}
+    for _, m in estimates:
+        for name, flag in m.get("saturated", {}).items():
+            saturation[name] = saturation.get(name, 0.0) + (dt if flag else 0.0)
+    return {
+        "file": str(log.path), "unfinished": log.unfinished,
+        "from_s": None if span is None else span[0], "to_s": None if span is None else span[1],
+        "duration_s": None if span is None else span[1] - span[0],
+        "ticks": ticks, "ticks_with_estimates": len(estimates),
+        "topics": {topic: topic_statistics(messages) for topic, messages in sorted(log.topics.items())},
+        "refused": dict(sorted(refused.items())),
+        "overruns": final.get("overruns", health.get("overruns", 0)),
+        "log_errors": health.get("log_errors", 0),
+        "core_health": {k: v for k, v in health.items() if not k.startswith("rejected_")
+                        and k not in ("overruns", "log_errors")},
+        "saturation_s": saturation,
+        "cpu_ms_per_tick": 1e3 * final["cpu_seconds"] / final["ticks"] if final.get("ticks") else None,
+        "health_over_time": health_windows(estimates, window),
+    }
+
+
+def sim_summary(log: Log) -> dict:
+    span = _span(log)
+    final = log.last("/bridge/summary") or {}
+    latencies = [v for _, m in log.messages("/bridge/command_latency") for v in m["milliseconds"].values()]
+    return {
+        "file": str(log.path), "unfinished": log.unfinished,
+        "duration_s": None if span is None else span[1] - span[0],
+        "ticks": final.get("ticks", len(log.messages("/truth"))),
+        "missed_commands": final.get("missed_commands"), "watchdog_stops": final.get("watchdog_stops"),
+        "startup_missing": final.get("startup_missing", []),
+        "refused": final.get("refused"),
+        "command_latency_ms": None if not latencies else {
+            "p50": float(np.percentile(latencies, 50)), "p99": float(np.percentile(latencies, 99))},
+        "topics": {topic: topic_statistics(messages) for topic, messages in sorted(log.topics.items())},
+    }
+
+
+def run_summary(run: RunLog, window: float = 10.0) -> dict:
+    return {"source": run.source,
+            "vessels": {v: vessel_summary(log, window) for v, log in sorted(run.vessels.items())},
+            "sim": None if run.sim is None else sim_summary(run.sim)}
+
+
+def _fmt(value, digits: int = 2) -> str:
+    if value is None:
+        return "–"
+    return f"{value:.{digits}f}" if isinstance(value, float) else str(value)
+
+
+def _topic_table(topics: dict) -> list[str]:
+    lines = ["| topic | messages | rate (Hz) | gaps | largest gap (s) |", "|---|---|---|---|---|"]
+    for topic, s in topics.items():
+        lines.append(f"| `{topic}` | {s['messages']} | {_fmt(s['rate_hz'], 1)} | {s['gaps']} | "
+                     f"{_fmt(s['largest_gap_s'], 2)} |")
+    return lines
+
+
+def summary_markdown(summary: dict) -> str:
+    lines = [f"# Summary of {summary['source']}", ""]
+    vessels = summary["vessels"]
+    if vessels:
+        lines += ["| vessel | from (s) | to (s) | ticks | with estimates | refused inputs | overruns | "
+                  "CPU per tick (ms) | log |", "|---|---|---|---|---|---|---|---|---|"]
+        for v, s in vessels.items():
+            refused = ", ".join(f"{k} {n}" for k, n in s["refused"].items()) or "none"
+            lines.append(f"| {v} | {_fmt(s['from_s'], 1)} | {_fmt(s['to_s'], 1)} | {s['ticks']} | "
+                         f"{s['ticks_with_estimates']} | {refused} | {s['overruns']} | {_fmt(s['cpu_ms_per_tick'])} | "
+                         f"{'**unfinished**' if s['unfinished'] else 'complete'} |")
+        lines.append("")
+    sim = summary["sim"]
+    if sim is not None:
+        latency = sim["command_latency_ms"]
+        lines += ["## Sim bridge", "",
+                  f"{sim['ticks']} ticks, {_fmt(sim['missed_commands'])} missed commands, "
+                  f"{_fmt(sim['watchdog_stops'])} watchdog stops, {_fmt(sim['refused'])} refused messages"
+                  + ("" if latency is None else
+                     f"; sensor-to-command latency p50 {latency['p50']:.2f} ms, p99 {latency['p99']:.2f} ms")
+                  + ("" if not sim["startup_missing"] else
+                     f". **No agent came for vessel(s) {', '.join(sim['startup_missing'])}**"), ""]
+    for v, s in vessels.items():
+        lines += [f"## Vessel {v}", ""]
+        if s["unfinished"]:
+            lines += ["The log is unfinished (the process was killed): read up to its last complete chunk.", ""]
+        lines += _topic_table(s["topics"]) + [""]
+        if s["saturation_s"]:
+            lines += ["Time at a limit: " + ", ".join(f"{k} {t:.1f} s" for k, t in s["saturation_s"].items()), ""]
+        counters = {k: n for k, n in s["core_health"].items() if n}
+        lines += ["Core health counters: " + (", ".join(f"{k} {n}" for k, n in counters.items()) or "all zero"), ""]
+        if s["health_over_time"]:
+            lines += ["| from (s) | to (s) | neighbours | range updates | refused | mean MCKF iterations | "
+                      "mean weight | mean NIS | bearing updates | bearings refused |",
+                      "|---|---|---|---|---|---|---|---|---|---|"]
+            for row in s["health_over_time"]:
+                lines.append(f"| {row['from_s']:.0f} | {row['to_s']:.0f} | {row['neighbours']} | "
+                             f"{row['relative_updates']} | {row['relative_refused']} | {_fmt(row['mean_iterations'])} | "
+                             f"{_fmt(row['mean_weight'])} | {_fmt(row['mean_nis'])} | {row['bearing_updates']} | "
+                             f"{row['bearing_refused']} |")
+            lines.append("")
+    return "\n".join(lines) + "\n"

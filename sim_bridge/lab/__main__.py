@@ -1,3 +1,0 @@
-from sim_bridge.lab.cli import main
-
-raise SystemExit(main())
