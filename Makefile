@@ -5,7 +5,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed-stamp
 
-.PHONY: demo compare test bench scenarios fleet-bench runtime-bench venv clean
+.PHONY: demo compare test test-fast bench scenarios fleet-bench runtime-bench venv clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -24,8 +24,14 @@ demo: $(STAMP)
 compare: $(STAMP)
 	$(VENV)/bin/usv-lab compare --runs 100 --seed 2024
 
+# Everything (what .ci/run calls), about 2 minutes on 2 cores.
 test: $(STAMP)
 	$(PY) -m pytest -q
+
+# The pure, in-process suite, under a minute: no fleet processes, Zenoh sessions or real-time waits
+# (the tests marked `slow`; tests/conftest.py says which).
+test-fast: $(STAMP)
+	$(PY) -m pytest -q -m "not slow"
 
 bench: $(STAMP)
 	$(VENV)/bin/usv-lab bench --seed 7

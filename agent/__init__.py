@@ -1,1 +1,1 @@
-"""Onboard agent of one vessel: estimation, control and (later) the Zenoh runtime."""
+"""The onboard agent of one vessel: its core (core/), its process (shell/), what every process shares (runtime/, config, contract, angles)."""

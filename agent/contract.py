@@ -26,8 +26,7 @@ import numpy as np
 from pydantic import Field, ValidationError, field_validator
 
 from agent.config import StrictModel
-from agent.core.records import Odometry as OdometryReading
-from agent.core.records import Share
+from agent.core.records import OdometryReading, Share
 
 FLEET_PREFIX = "usv"
 CLOCK_KEY = "sim/clock"
@@ -148,7 +147,6 @@ class Status(Header):
                                   description="the agents this one sees alive (liveliness)")
     ticked: bool = Field(True, description="false for a heartbeat before the agent's first tick")
     target: tuple[Finite, Finite, Finite, Finite] | None = None
-    neighbours: dict[VesselId, PairEstimate] = Field(default_factory=dict)
     health: dict[str, int] = Field(default_factory=dict)
 
 

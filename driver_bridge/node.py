@@ -26,6 +26,7 @@ import threading
 import time
 from collections import Counter
 
+import zenoh
 from pydantic import Field
 
 from agent.config import PositiveFloat, StrictModel
@@ -35,7 +36,7 @@ from agent.runtime.zenoh_session import ZenohSettings, zenoh_config
 from driver_bridge.bearing import BearingAdapter, CameraSettings, parse_detection
 from driver_bridge.odometry import DeadReckoning, OdometrySettings, parse_vhw
 from driver_bridge.serial_port import LineReader, open_serial, write_all
-from driver_bridge.thrusters import STOP, ThrusterAdapter, ThrusterSettings, command_line
+from driver_bridge.thrusters import ZERO_THRUST, ThrusterAdapter, ThrusterSettings, command_line
 from driver_bridge.uwb import NLinkParser, UwbSettings
 
 
@@ -153,8 +154,6 @@ class DriverBridge:
 
     # ----- the loop -----
     def run(self, max_seconds: float | None = None) -> None:
-        import zenoh
-
         ports = {}
         for name in ("uwb", "odometry", "camera", "thrusters"):
             port = getattr(self.settings, name)
@@ -185,7 +184,7 @@ class DriverBridge:
                 subscriber.undeclare()
         finally:
             if "thrusters" in ports:
-                write_all(ports["thrusters"], command_line(STOP))   # leave the boat stopped
+                write_all(ports["thrusters"], command_line(ZERO_THRUST))   # leave the boat stopped
             for fd in ports.values():
                 os.close(fd)
 

@@ -48,7 +48,7 @@ class Thrust:
     right: float
 
 
-STOP = Thrust(0.0, 0.0)
+ZERO_THRUST = Thrust(0.0, 0.0)
 
 
 def _clip(value: float, limit: float) -> float:
@@ -67,7 +67,7 @@ class ThrusterAdapter:
         self.settings = settings
         self.rejected: Counter[str] = Counter()
         self.events: Counter[str] = Counter()
-        self._thrust = STOP
+        self._thrust = ZERO_THRUST
         self._stamp: float | None = None
         self._stale = True
 
@@ -87,15 +87,15 @@ class ThrusterAdapter:
     def command(self, surge: float, yaw_rate: float, now: float) -> Thrust:
         if not math.isfinite(now):
             self.rejected["non_finite"] += 1
-            self._thrust = STOP  # a stop, and without a usable time it stays one until a good command
-            return STOP
+            self._thrust = ZERO_THRUST  # a stop, and without a usable time it stays one until a good command
+            return ZERO_THRUST
         if self._stamp is not None and now < self._stamp:
             self.rejected["out_of_order"] += 1
             return self._thrust
         self._stamp = now
         if not (math.isfinite(surge) and math.isfinite(yaw_rate)):
             self.rejected["non_finite"] += 1
-            self._thrust = STOP
+            self._thrust = ZERO_THRUST
         else:
             self._thrust = self.mix(surge, yaw_rate)
         return self._thrust
@@ -105,7 +105,7 @@ class ThrusterAdapter:
         if stale and not self._stale:
             self.events["watchdog_stop"] += 1
         self._stale = stale
-        return STOP if stale else self._thrust
+        return ZERO_THRUST if stale else self._thrust
 
 
 def command_line(thrust: Thrust) -> bytes:

@@ -155,6 +155,8 @@ def make_data(seed: int, updates: int, params: RelativeEstimationParams
 
 def new_filterpy(data: PairData, params: RelativeEstimationParams):
     """filterpy KalmanFilter set up as our KF: x0, P0 = initial_covariance I, F = I, B = I, Q = R_delta."""
+    # filterpy is imported where it is used: it is no dependency of the lab (only of the tests), and `run`
+    # says how to get it when it is missing.
     from filterpy.kalman import KalmanFilter
 
     kf = KalmanFilter(dim_x=2, dim_z=1, dim_u=2)
@@ -508,7 +510,8 @@ def _peak_memory(build: Callable[[], list], pairs: Sequence[PairData], ours: boo
 
 
 def machine_info() -> list[tuple[str, str]]:
-    import filterpy
+    import filterpy  # optional, as in new_filterpy
+
 
     cpu = platform.processor() or platform.machine()
     try:
@@ -646,7 +649,7 @@ def render(results: Results, command: str, info: Sequence[tuple[str, str]]) -> t
 
 def run(args: argparse.Namespace) -> int:
     try:
-        import filterpy  # noqa: F401
+        import filterpy  # noqa: F401  (optional, as in new_filterpy: checked here, before any work)
     except ImportError:
         print("usv-lab bench: needs filterpy (pip install -e '.[test]')", file=sys.stderr)
         return 2

@@ -47,6 +47,7 @@ def load_config(args: argparse.Namespace) -> ComparisonConfig:
 
 
 def run(args: argparse.Namespace) -> int:
+    # tqdm (the optional 'lab' extra) is imported by the command that shows a bar, not by `usv-lab --help`.
     from tqdm import tqdm
 
     config = load_config(args)

@@ -16,6 +16,8 @@ def rmse_figure(time: np.ndarray, curves: dict[str, tuple[np.ndarray, np.ndarray
 
     `curves` maps an estimator name to (rmse, std), each shaped like `time`.
     """
+    # Matplotlib (the optional 'lab' extra, and slow to import) only when a figure is drawn: `usv-lab --help`
+    # and every command module stay light.
     import matplotlib
 
     matplotlib.use("Agg")

@@ -95,6 +95,7 @@ def machine() -> list[str]:
 
 
 def run(args: argparse.Namespace) -> int:
+    # tqdm (the optional 'lab' extra) is imported by the command that shows a bar, not by `usv-lab --help`.
     from tqdm import tqdm
 
     (mc_path,) = resolve([args.monte_carlo], args.scenarios_dir)
@@ -170,7 +171,7 @@ def render(command: str, mc_table: str, tick_table: str, args: argparse.Namespac
         f"least {SPACING:g} m apart and {TARGET_CLEARANCE:g} m from the target's start. The runs are "
         "sequential, in the main process, after the Monte Carlo pool has shut down.",
         "",
-        "A vessel tick is one `VesselAgent.tick` (its n - 1 inter-vessel estimators, the target tracker, "
+        "A vessel tick is one core `step` (its n - 1 inter-vessel estimators, the target tracker, "
         "the controller) timed with time.perf_counter by the runner; mean and p99 are over all vessel ticks "
         "of the run. A fleet step is the sum over the vessels of one sampling period (what one computer "
         "simulating the whole fleet pays per 0.1 s). The paper's Avg. Run Time (Table IV, same n and r*) is "

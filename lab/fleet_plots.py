@@ -19,6 +19,7 @@ LOG_SPAN = 100.0             # a panel gets a log axis when its curves span more
 
 
 def _pyplot():
+    # Matplotlib only when a figure is drawn (the module docstring says why), here and below.
     import matplotlib
 
     matplotlib.use("Agg")
@@ -67,6 +68,7 @@ def trajectory_figure(panels: dict[str, tuple[RunTrace, Scenario]], title: str, 
 
 
 def _trajectory_panel(ax, trace: RunTrace, scenario: Scenario) -> None:
+    # Deferred like _pyplot's matplotlib, which has loaded these by now.
     from matplotlib.collections import LineCollection
     from matplotlib.lines import Line2D
     from matplotlib.patches import Patch, Polygon
@@ -115,7 +117,7 @@ def _trajectory_panel(ax, trace: RunTrace, scenario: Scenario) -> None:
 
 
 def _colours(palette: str, count: int) -> list:
-    import matplotlib
+    import matplotlib  # deferred like _pyplot's
 
     cmap = matplotlib.colormaps[palette]
     return [cmap(i % cmap.N) for i in range(count)]

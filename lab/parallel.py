@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from concurrent.futures import ProcessPoolExecutor
 from typing import TypeVar
 
 J = TypeVar("J")
@@ -14,8 +15,6 @@ def map_in_order(function: Callable[[J], R], jobs: Sequence[J], workers: int,
     """`function` over `jobs` in `workers` processes (in this one when 1), calling `progress(1)` per job."""
     results: list[R] = []
     if workers > 1 and len(jobs) > 1:
-        from concurrent.futures import ProcessPoolExecutor
-
         # A few chunks per worker: few round trips, yet a slow chunk at the end does not idle the others.
         chunk = max(1, len(jobs) // (4 * workers))
         with ProcessPoolExecutor(max_workers=min(workers, len(jobs))) as pool:

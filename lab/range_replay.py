@@ -38,6 +38,8 @@ from agent.core.estimators import make_relative_estimator
 from agent.core.params import ESTIMATOR_NAMES, AgentParams, RelativeEstimationParams
 from lab import arguments
 from lab.errors import ErrorHistory
+from lab.estimator_plots import LABELS, rmse_figure
+from lab.report import invocation, markdown_table
 from sim_bridge.noise import IsotropicGaussianNoise
 
 COLUMNS: tuple[str, ...] = ("t", "range", "ax", "ay", "bx", "by")
@@ -314,10 +316,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    # tqdm (the optional 'lab' extra) is imported by the command that shows a bar, not by `usv-lab --help`.
     from tqdm import tqdm
-
-    from lab.estimator_plots import LABELS, rmse_figure
-    from lab.report import invocation, markdown_table
 
     params = load_yaml(AgentParams, args.config) if args.config is not None else AgentParams()
     log = parse_csv(args.csv)

@@ -1,4 +1,4 @@
-"""In-process fleet runner: the world and one `VesselAgent` per vessel in lockstep.
+"""In-process fleet runner: the world and one core (`step` and its state) per vessel in lockstep.
 
 Each tick: the world senses, every live vessel ticks on its readings and on the shares its neighbours sent
 at the previous tick (minus the ones `lost_shares` drops), the world applies the commands. Shares keep
@@ -15,9 +15,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from agent.core.build import InitialEstimates, build_core
-from agent.core.records import Command, Share, TickInputs
-from agent.core.vessel import TickRecord, VesselAgent
+from agent.core.build import InitialEstimates, initial_state
+from agent.core.records import Command, Share, TickInputs, TickRecord
+from agent.core.state import VesselState
+from agent.core.step import step
 from mission_log.metrics import RunMetrics, summarise
 from sim_bridge.scenario import Scenario, initial_estimates
 from sim_bridge.world import Truth, World, lost_shares, streams
@@ -60,7 +61,7 @@ def run(scenario: Scenario, seed: np.random.SeedSequence | int | None = None) ->
     steps = int(round(scenario.duration / scenario.world.dt)) + 1
     trace = _empty_trace(scenario, int(sequence.entropy) if isinstance(sequence.entropy, int) else 0, ids, steps)
 
-    agents: dict[str, VesselAgent] = {}
+    agents: dict[str, VesselState] = {}
     inbox: dict[str, dict[str, Share]] = {}
     sent: dict[str, Share] = {}
     for k in range(steps):
@@ -69,9 +70,9 @@ def run(scenario: Scenario, seed: np.random.SeedSequence | int | None = None) ->
         joined = {v for v in live if v not in agents}
         if k == 0:
             starts = initial_estimates(scenario, world.truth(), random.initial)
-            agents.update({i: build_core(i, params, start) for i, start in starts.items()})
+            agents.update({i: initial_state(i, params, start) for i, start in starts.items()})
         else:
-            agents.update({i: build_core(i, params, InitialEstimates()) for i in joined})
+            agents.update({i: initial_state(i, params, InitialEstimates()) for i in joined})
         for gone in [v for v in agents if v not in live]:
             del agents[gone]
             inbox.pop(gone, None)
@@ -93,7 +94,7 @@ def run(scenario: Scenario, seed: np.random.SeedSequence | int | None = None) ->
                                 shares=dict(box), bearing=reading.bearing,
                                 obstacle_points=reading.obstacle_points)
             started = clock.perf_counter()
-            output = agents[i].tick(inputs)
+            agents[i], output = step(params, agents[i], inputs)
             trace.tick_seconds[k, index[i]] = clock.perf_counter() - started
             commands[i] = output.command
             if output.share is not None:

@@ -28,16 +28,19 @@ import time
 from pathlib import Path
 
 import numpy as np
+import zenoh
 
 from agent.runtime.mcap_log import read_messages
 from agent.runtime.zenoh_session import ZenohSettings, zenoh_config
 from lab import arguments
 from lab.report import invocation, markdown_table
+from lab.runner import run as run_in_process
 from lab.scenario_cmd import DEFAULT_DIR
 from sim_bridge.fleet import Fleet, free_port
-from sim_bridge.scenario import with_duration
+from sim_bridge.scenario import select_scenario, with_duration
 
 PAYLOAD_BYTES = 300     # about one Odometry or Cmd message
+WARM_UP_SECONDS = 30.0  # the most the echo process may take to import, listen and answer a first ping
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -58,8 +61,6 @@ def _session_config(listen: int | None = None, connect: int | None = None):
 
 def echo(port: int, seconds: float) -> None:
     """The echo side of (a): answer each ping at once, adding the one-way latency it measured."""
-    import zenoh
-
     with zenoh.open(_session_config(listen=port)) as session:
         pong = session.declare_publisher("bench/pong")
 
@@ -74,32 +75,49 @@ def echo(port: int, seconds: float) -> None:
 
 def bare_zenoh(pings: int) -> dict[str, float]:
     """One-way and round-trip latency percentiles (ms) of plain put/subscribe between two processes."""
-    import zenoh
-
     port = free_port()
-    seconds = 5.0 + pings * 0.004
+    seconds = WARM_UP_SECONDS + 5.0 + pings * 0.004
     child = subprocess.Popen([sys.executable, "-c",
                               f"from lab.runtime_bench import echo; echo({port}, {seconds})"])
     one_way, round_trip = [], []
+    counted_from = [time.monotonic_ns()]   # pongs of pings sent before this are the warm-up's, not counted
     try:
-        time.sleep(1.5)  # the echo process imports and listens
         with zenoh.open(_session_config(connect=port)) as session:
             def on_pong(sample) -> None:
                 now = time.monotonic_ns()
                 text = bytes(sample.payload.to_bytes()[:40]).decode()
                 sent, forward = int(text[:20]), int(text[20:40])
-                one_way.append(forward * 1e-6)
-                round_trip.append((now - sent) * 1e-6)
+                if sent >= counted_from[0]:
+                    one_way.append(forward * 1e-6)
+                    round_trip.append((now - sent) * 1e-6)
 
             session.declare_subscriber("bench/pong", on_pong)
             ping = session.declare_publisher("bench/ping")
-            time.sleep(1.0)  # let the two sessions find each other before anything counts
-            for _ in range(pings):
+
+            def send() -> None:
                 ping.put(f"{time.monotonic_ns():020d}".encode().ljust(PAYLOAD_BYTES, b" "))
+
+            # Warm up until the echo answers (it has imported, listens, and the two sessions know of each
+            # other's subscriber): then every ping that counts can come back.
+            deadline = time.monotonic() + WARM_UP_SECONDS
+            while not round_trip:
+                if child.poll() is not None or time.monotonic() > deadline:
+                    raise RuntimeError(f"bare Zenoh baseline: the echo process did not answer within "
+                                       f"{WARM_UP_SECONDS:.0f} s (exit code {child.poll()})")
+                send()
+                time.sleep(0.02)
+            counted_from[0] = time.monotonic_ns()
+            one_way.clear()
+            round_trip.clear()
+            for _ in range(pings):
+                send()
                 time.sleep(0.002)
-            time.sleep(0.5)
+            deadline = time.monotonic() + 2.0   # the last pongs are on their way
+            while len(round_trip) < pings and time.monotonic() < deadline:
+                time.sleep(0.01)
     finally:
-        child.wait(timeout=seconds + 10)
+        child.terminate()
+        child.wait(timeout=10)
     if len(round_trip) < pings // 2:
         raise RuntimeError(f"bare Zenoh baseline: only {len(round_trip)} of {pings} pings came back")
     return {"one_way_p50": float(np.percentile(one_way, 50)), "one_way_p99": float(np.percentile(one_way, 99)),
@@ -130,9 +148,6 @@ def _cpu_per_tick(folder: Path) -> dict[str, float]:
 
 def in_process_baseline(path: Path, variant: str) -> tuple[float, float]:
     """The in-process runner on the same mission and seed: (real-time factor, mean core tick in ms)."""
-    from lab.runner import run as run_in_process
-    from sim_bridge.scenario import select_scenario
-
     _, scenario = select_scenario(path, variant)
     started = time.perf_counter()
     trace = run_in_process(scenario)
@@ -203,7 +218,7 @@ def run(args: argparse.Namespace) -> int:
                         "factor incl. start-up", "missed commands", "in process, same seed",
                         "over Zenoh / in process"], lockstep), "",
         "Where the time goes: CPU milliseconds per tick of each process (all its threads), against the core "
-        "tick alone (the in-process run's mean `VesselAgent.tick`). With every process busy all the time the "
+        "tick alone (the in-process run's mean core `step`). With every process busy all the time the "
         f"{cores} cores could give at best {cores} x {dt_ms:.0f} ms / (sum of CPU per tick) of real time; "
         f"{50}x real time needs the whole fleet's CPU per tick under {cores * dt_ms / 50:.1f} ms.", "",
         markdown_table(["sim bridge", "agent (mean)", "of which the core tick (in process)", "sum over processes",

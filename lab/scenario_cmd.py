@@ -19,6 +19,7 @@ import numpy as np
 
 from agent.config import ConfigError, updated
 from lab import arguments
+from lab.fleet_plots import error_figure, trajectory_figure
 from lab.parallel import map_in_order
 from lab.report import invocation, markdown_table
 from lab.runner import RunTrace
@@ -181,9 +182,8 @@ def run_monte_carlo(files: dict[str, dict[str, Scenario]], workers: int,
 # ----------------------------------------------------------------------------------------------------------
 
 def run(args: argparse.Namespace) -> int:
+    # tqdm (the optional 'lab' extra) is imported by the command that shows a bar, not by `usv-lab --help`.
     from tqdm import tqdm
-
-    from lab.fleet_plots import error_figure, trajectory_figure
 
     paths = resolve(args.names, args.scenarios_dir)
     loaded = {path.stem: (path, *load(path, args.runs, args.seed)) for path in paths}

@@ -3,7 +3,7 @@
     usv-log summary RUN...            what the logs hold: counts, rates, gaps, refusals, overruns, health
     usv-log metrics RUN...            the paper's metrics with ground truth, self-consistency without
     usv-log plot RUN... [--out DIR]   trajectories, errors, ranges and residuals as PNG files
-    usv-log replay LOG --out FILE [--set key=value ...] [--params FILE]
+    usv-log replay LOG --out FILE [--set key=value ...] [--params FILE] [--start SECONDS]
                                       a vessel's recorded inputs through the core again
 
 RUN is a run folder (every *.mcap in it) or MCAP files. Reports are Markdown on standard output; --json
@@ -17,8 +17,12 @@ import json
 import sys
 from pathlib import Path
 
-from agent.config import ConfigError, read_yaml
+from agent.config import ConfigError, deep_merge, read_yaml
+from mission_log.metrics import metrics_markdown, run_metrics
+from mission_log.plots import plot_run
 from mission_log.reader import LogError, load_run
+from mission_log.replay import parse_assignments, replay
+from mission_log.summary import run_summary, summary_markdown
 
 
 def _run_arguments(parser: argparse.ArgumentParser) -> None:
@@ -41,8 +45,6 @@ def _write_json(path: Path | None, data: dict) -> None:
 
 
 def summary_command(args) -> int:
-    from mission_log.summary import run_summary, summary_markdown
-
     result = run_summary(_load(args.run), args.window)
     print(summary_markdown(result), end="")
     _write_json(args.json, result)
@@ -50,8 +52,6 @@ def summary_command(args) -> int:
 
 
 def metrics_command(args) -> int:
-    from mission_log.metrics import metrics_markdown, run_metrics
-
     run = _load(args.run)
     result = run_metrics(run, args.radius)
     print(metrics_markdown(result, run.source), end="")
@@ -60,8 +60,6 @@ def metrics_command(args) -> int:
 
 
 def plot_command(args) -> int:
-    from mission_log.plots import plot_run
-
     run = _load(args.run)
     out = args.out or (args.run[0] if args.run[0].is_dir() else args.run[0].parent) / "plots"
     for path in plot_run(run, out, args.radius):
@@ -70,9 +68,6 @@ def plot_command(args) -> int:
 
 
 def replay_command(args) -> int:
-    from agent.config import deep_merge
-    from mission_log.replay import parse_assignments, replay
-
     changes = {}
     if args.params is not None:
         loaded = read_yaml(args.params)
@@ -80,9 +75,12 @@ def replay_command(args) -> int:
             raise ConfigError(f"{args.params}: expected a mapping of agent parameters")
         changes = loaded
     changes = deep_merge(changes, parse_assignments(args.set))
-    result = replay(args.log, args.out, changes)
+    if args.start is not None and args.start < 0:
+        raise ConfigError(f"--start {args.start}: must be zero or more seconds")
+    result = replay(args.log, args.out, changes, args.start)
     same = result.commands_identical == result.commands_compared and result.estimates_identical == result.ticks
-    print(f"usv-log replay: vessel {result.vessel}, {result.ticks} ticks -> {result.out}")
+    began = "the start" if result.resumed_at is None else f"the state saved at {result.resumed_at:.1f} s"
+    print(f"usv-log replay: vessel {result.vessel}, {result.ticks} ticks from {began} -> {result.out}")
     print(f"  changes: {json.dumps(changes) if changes else 'none'}")
     print(f"  commands identical to the recorded ones: {result.commands_identical}/{result.commands_compared} "
           f"(largest difference: surge {result.max_surge_difference:.3g} m/s, yaw rate "
@@ -117,6 +115,9 @@ def build_parser() -> argparse.ArgumentParser:
                        help="change one agent parameter, e.g. relative.estimator=ekf or "
                             "relative.mckf.bandwidths=[9999,9999,1.5] (repeatable)")
     again.add_argument("--params", type=Path, default=None, help="YAML of agent parameters to change")
+    again.add_argument("--start", type=float, default=None, metavar="SECONDS",
+                       help="start from the last state the agent saved before this time (s after its first "
+                            "tick) instead of the beginning")
     again.set_defaults(handler=replay_command)
     return parser
 

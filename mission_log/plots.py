@@ -20,7 +20,7 @@ import numpy as np
 from mission_log.reader import RunLog, VesselLog, agent_radius
 from mission_log.series import (
     Beliefs,
-    Truth,
+    TruthSeries,
     beliefs_of,
     centroid_error,
     estimate_errors,
@@ -62,7 +62,7 @@ def plot_run(run: RunLog, out: Path, radius: float | None = None) -> list[Path]:
     return written
 
 
-def _start_ns(run: RunLog, truth: Truth | None) -> int:
+def _start_ns(run: RunLog, truth: TruthSeries | None) -> int:
     """The run's time zero: the earliest message any agent or the bridge logged."""
     firsts = [min(t for t, _ in v.topic(name)) for v in run.vessels.values()
               for name in ("inputs", "estimates") if v.topic(name)]
@@ -75,7 +75,7 @@ def _seconds(t_ns, t0: int) -> np.ndarray:
     return (np.asarray(t_ns, dtype=np.int64) - t0) / 1e9   # subtract first: epoch ns do not fit a float
 
 
-def _all_ids(run: RunLog, truth: Truth | None, beliefs: dict[str, Beliefs | None]) -> list[str]:
+def _all_ids(run: RunLog, truth: TruthSeries | None, beliefs: dict[str, Beliefs | None]) -> list[str]:
     ids = set(run.vessels) | set(truth.vessels if truth else ())
     ids |= {j for b in beliefs.values() if b for j in b.neighbours}
     ids |= {str(j) for v in run.vessels.values() for _, m in v.topic("inputs")
@@ -85,7 +85,7 @@ def _all_ids(run: RunLog, truth: Truth | None, beliefs: dict[str, Beliefs | None
 
 def _palette(ids: list[str]) -> dict[str, tuple]:
     """One colour per vessel, the same in every figure."""
-    import matplotlib
+    import matplotlib  # deferred: see the module docstring
 
     cmap = matplotlib.colormaps["tab10" if len(ids) <= 10 else "tab20"]
     return {vid: cmap(n % cmap.N) for n, vid in enumerate(ids)}
@@ -114,6 +114,7 @@ def _last_finite(points: np.ndarray) -> np.ndarray | None:
 
 
 def _pyplot():
+    """pyplot, drawing to files. Imported on the first figure, not with the module (see its docstring)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -145,7 +146,7 @@ def _legend(ax, **options) -> None:
 
 
 def _circle(ax, centre, radius: float) -> None:
-    from matplotlib.patches import Circle
+    from matplotlib.patches import Circle  # deferred: see the module docstring
 
     ax.add_patch(Circle(centre, radius, fill=False, ls=":", lw=1.1, color="0.35", zorder=2))
 
@@ -200,8 +201,8 @@ def _trajectories_size(count: int, with_map: bool) -> tuple[float, float]:
     return panel * columns, panel * rows + 0.6
 
 
-def _map_panel(ax, truth: Truth, islands: list[np.ndarray], colours, radius: float) -> None:
-    from matplotlib.patches import Polygon
+def _map_panel(ax, truth: TruthSeries, islands: list[np.ndarray], colours, radius: float) -> None:
+    from matplotlib.patches import Polygon  # deferred: see the module docstring
 
     t = _seconds(truth.t_ns, int(truth.t_ns[0]) if len(truth.t_ns) else 0)
     for n, outline in enumerate(islands):
@@ -228,7 +229,7 @@ def _map_panel(ax, truth: Truth, islands: list[np.ndarray], colours, radius: flo
     ax.legend(fontsize=8, loc="best", framealpha=0.8)
 
 
-def _belief_panel(ax, vid: str, beliefs: Beliefs | None, truth: Truth | None, colours, radius, t0) -> None:
+def _belief_panel(ax, vid: str, beliefs: Beliefs | None, truth: TruthSeries | None, colours, radius, t0) -> None:
     """Vessel i's formation in a frame centred on its estimated target: i at p^_io, j at p^_io - p^_ij."""
     _circle(ax, (0.0, 0.0), radius)
     ax.plot(0.0, 0.0, "+", color="black", ms=10, zorder=4)
@@ -267,7 +268,7 @@ def _belief_panel(ax, vid: str, beliefs: Beliefs | None, truth: Truth | None, co
 # errors.png
 
 
-def _errors_figure(truth: Truth, beliefs, colours, radius: float, t0: int, path: Path) -> Path:
+def _errors_figure(truth: TruthSeries, beliefs, colours, radius: float, t0: int, path: Path) -> Path:
     t = _seconds(truth.t_ns, t0)
     with _figure(path, (11.0, 10.0)) as fig:
         axes = fig.subplots(4, 1, sharex=True)
@@ -326,7 +327,7 @@ class Update:
 
 
 def _ranges_figure(run: RunLog, beliefs, colours, t0: int, path: Path) -> Path:
-    from matplotlib.cm import ScalarMappable
+    from matplotlib.cm import ScalarMappable  # deferred: see the module docstring
     from matplotlib.colors import Normalize
 
     ids = list(beliefs)
@@ -429,7 +430,7 @@ def _innovation_panel(ax, vid: str, updates: list[Update], scale, markers: dict[
 
 def _outlier_marks(ax, updates: list[Update]) -> None:
     """Rings round the updates the MCKF down-weighted, red crosses on those the filter rejected outright."""
-    from matplotlib.transforms import blended_transform_factory
+    from matplotlib.transforms import blended_transform_factory  # deferred: see the module docstring
 
     down = [u for u in updates if u.accepted and u.weight < OUTLIER_WEIGHT]
     ax.scatter([u.t for u in down], [u.z for u in down], s=70, facecolors="none", edgecolors="black", lw=0.8,
@@ -444,7 +445,7 @@ def _outlier_marks(ax, updates: list[Update]) -> None:
 
 
 def _innovation_legend(senders: list[str], markers: dict[str, str]) -> list:
-    from matplotlib.lines import Line2D
+    from matplotlib.lines import Line2D  # deferred: see the module docstring
 
     return [
         *(Line2D([], [], color="0.45", marker=markers.get(j, "o"), ls="", label=f"range to vessel {j}")

@@ -3,7 +3,9 @@
 `load_run(paths)` takes a run folder (every `*.mcap` in it) or MCAP files. An agent's file is recognised by
 its `vessel` metadata, the sim bridge's by its `/truth` topic. A file cut short (its process was killed) is
 read up to its last complete chunk and marked `unfinished`; a file that is not an MCAP at all is an error
-that names it.
+that names it, and so is a file whose log format version (its `usv-log-format` metadata) this reader does not
+know. A file without that record was written before the version was recorded: it is read as version 1,
+which has the same messages.
 """
 
 from __future__ import annotations
@@ -14,8 +16,11 @@ from collections import defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from agent.runtime.mcap_log import read_messages, read_metadata
+from agent.runtime.mcap_log import FORMAT_RECORD, read_messages, read_metadata
 from agent.shell.tick_log import log_topic
+
+READS_FORMATS = ("1",)      # the log format versions this reader knows (agent/runtime/mcap_log.py writes them)
+UNRECORDED_FORMAT = "1"     # what a file from before the version was recorded holds
 
 
 class LogError(ValueError):
@@ -28,6 +33,7 @@ class Log:
     metadata: dict[str, str]
     topics: dict[str, list[tuple[int, dict]]]     # topic -> [(log time ns, message)] in file order
     unfinished: bool = False
+    format_version: str = UNRECORDED_FORMAT
 
     def messages(self, topic: str) -> list[tuple[int, dict]]:
         return self.topics.get(topic, [])
@@ -74,17 +80,29 @@ def read_log(path: Path) -> Log:
     with path.open("rb") as handle:
         if handle.read(8) != b"\x89MCAP0\r\n":
             raise LogError(f"{path}: not an MCAP file")
+    metadata = read_metadata(path)
+    version = format_version(path, metadata)
     topics: dict[str, list[tuple[int, dict]]] = defaultdict(list)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         for topic, stamp, message in read_messages(path):
             topics[topic].append((stamp, message))
     unfinished = any("unfinished MCAP" in str(w.message) for w in caught)
-    run_metadata = read_metadata(path).get("run", {})
+    run_metadata = metadata.get("run", {})
     vessel = run_metadata.get("vessel")
     if vessel is not None:
-        return VesselLog(path, run_metadata, dict(topics), unfinished, vessel=vessel)
-    return Log(path, run_metadata, dict(topics), unfinished)
+        return VesselLog(path, run_metadata, dict(topics), unfinished, version, vessel=vessel)
+    return Log(path, run_metadata, dict(topics), unfinished, version)
+
+
+def format_version(path: Path, metadata: dict[str, dict[str, str]]) -> str:
+    """The file's log format version, or LogError if this reader does not know it."""
+    record = metadata.get(FORMAT_RECORD)
+    version = UNRECORDED_FORMAT if record is None else record.get("version", "(none)")
+    if version not in READS_FORMATS:
+        raise LogError(f"{path}: log format version {version}, which this usv-log cannot read "
+                       f"(it reads version {', '.join(READS_FORMATS)})")
+    return version
 
 
 def load_run(paths: list[Path] | Path) -> RunLog:

@@ -21,10 +21,13 @@ import yaml
 
 from agent.config import ConfigError, deep_merge, parse_mapping
 from agent.contract import Cmd
-from agent.core.build import build_core
+from agent.core.build import initial_state
+from agent.core.records import inputs_from_json
+from agent.core.snapshot import state_from_json
+from agent.core.step import step
 from agent.runtime.mcap_log import McapLog
 from agent.shell.settings import NodeSettings
-from agent.shell.tick_log import TickLogger, estimates_to_json, inputs_from_json
+from agent.shell.tick_log import TickLogger, estimates_to_json
 from mission_log.reader import LogError, VesselLog, read_log
 
 
@@ -39,6 +42,7 @@ class ReplayResult:
     max_yaw_rate_difference: float
     estimates_identical: int
     out: Path
+    resumed_at: float | None = None   # s after the first tick: the saved state replay started from
 
 
 def parse_assignments(assignments: list[str]) -> dict:
@@ -59,9 +63,11 @@ def parse_assignments(assignments: list[str]) -> dict:
     return changes
 
 
-def replay(path: Path, out: Path, changes: dict | None = None) -> ReplayResult:
+def replay(path: Path, out: Path, changes: dict | None = None, start: float | None = None) -> ReplayResult:
     """Replay the agent log at `path` into `out` with the agent parameters changed by `changes` (a nested
-    mapping merged into the recorded `agent` settings)."""
+    mapping merged into the recorded `agent` settings). With `start` (seconds after the log's first tick),
+    the core starts from the last state the agent saved before that time (`/<id>/state`, every
+    `snapshot_every` ticks), or from the beginning if none was saved before it."""
     log = read_log(path)
     if not isinstance(log, VesselLog):
         raise LogError(f"{path}: not an agent's log (no vessel in its metadata)")
@@ -74,17 +80,31 @@ def replay(path: Path, out: Path, changes: dict | None = None) -> ReplayResult:
     recorded = log.settings
     settings = parse_mapping(NodeSettings, {**recorded, "agent": deep_merge(recorded["agent"], changes)},
                              f"{path} settings with the changes")
-    core = build_core(log.vessel, settings.agent, settings.initial)
+    params = settings.agent
+    state = initial_state(log.vessel, params, settings.initial)
+    resumed_at = None
+    if start is not None:
+        target_ns = inputs[0][0] + round(start * 1e9)
+        saved = [(stamp, data) for stamp, data in log.topic("state") if stamp < target_ns]
+        if saved:
+            resumed_at, data = saved[-1]
+            try:
+                state = state_from_json(data, params)
+            except (KeyError, TypeError, ValueError) as error:
+                raise LogError(f"{path}: the state saved at {resumed_at} ns cannot be read: {error}") from None
+            inputs = [(stamp, tick) for stamp, tick in inputs if stamp > resumed_at]
     commands = dict(log.topic("cmd"))
     estimates = dict(log.topic("estimates"))
-    result = ReplayResult(log.vessel, 0, changes, 0, 0, 0.0, 0.0, 0, Path(out))
+    result = ReplayResult(log.vessel, 0, changes, 0, 0, 0.0, 0.0, 0, Path(out),
+                          None if resumed_at is None else (resumed_at - log.topic("inputs")[0][0]) * 1e-9)
     with McapLog(out, metadata={"vessel": log.vessel, "clock": recorded.get("clock", "sim"),
                                 "settings": settings.model_dump_json(), "replay_of": str(path),
-                                "changes": json.dumps(changes)}) as new_log:
-        writer = TickLogger(new_log, log.vessel, settings.agent.control.radius)
+                                "changes": json.dumps(changes),
+                                "resumed_at_ns": "" if resumed_at is None else str(resumed_at)}) as new_log:
+        writer = TickLogger(new_log, log.vessel, params.control.radius)
         for seq, (stamp, data) in enumerate(inputs):
             tick_inputs = inputs_from_json(data)
-            output = core.tick(tick_inputs)
+            state, output = step(params, state, tick_inputs)
             command = Cmd(stamp_ns=stamp, seq=seq, sender=log.vessel, surge=output.command.surge,
                           yaw_rate=output.command.yaw_rate)
             writer.tick(stamp, tick_inputs, output, command)

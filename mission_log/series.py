@@ -22,7 +22,7 @@ class Beliefs:
 
 
 @dataclass
-class Truth:
+class TruthSeries:
     t_ns: np.ndarray                    # (T,) log time, sorted
     target: np.ndarray                  # (T, 2)
     vessels: dict[str, np.ndarray]      # id -> (T, 2), NaN while the vessel is not in the run
@@ -95,10 +95,10 @@ def beliefs_of(vessel: VesselLog) -> Beliefs | None:
     )
 
 
-def truth_of(sim: Log) -> Truth:
+def truth_of(sim: Log) -> TruthSeries:
     messages = time_sorted(sim.messages("/truth"))
     ids = ordered({v for _, m in messages for v in (get(m, "vessels") or {})})
-    return Truth(
+    return TruthSeries(
         t_ns=np.array([t for t, _ in messages], dtype=np.int64),
         target=_points([get(m, "target") for _, m in messages]),
         vessels={v: _points([get(m, "vessels", v, "position") for _, m in messages]) for v in ids},
@@ -128,7 +128,7 @@ def take(rows: np.ndarray, index: np.ndarray) -> np.ndarray:
     return out
 
 
-def estimate_errors(vid: str, beliefs: Beliefs, truth: Truth) -> tuple[np.ndarray, np.ndarray]:
+def estimate_errors(vid: str, beliefs: Beliefs, truth: TruthSeries) -> tuple[np.ndarray, np.ndarray]:
     """e_ij (worst over i's neighbours) and e_io of vessel i, on the truth's ticks; NaN where unknown."""
     index = truth.index(beliefs.t_ns)
     p_i = take(truth.vessels[vid], index)
@@ -144,7 +144,7 @@ def estimate_errors(vid: str, beliefs: Beliefs, truth: Truth) -> tuple[np.ndarra
     return on_truth[0], on_truth[1]
 
 
-def centroid_error(truth: Truth) -> np.ndarray:
+def centroid_error(truth: TruthSeries) -> np.ndarray:
     """e_c: distance from the mean position of the vessels present to the target."""
     if not truth.vessels:
         return np.full(len(truth.t_ns), np.nan)

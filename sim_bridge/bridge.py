@@ -19,9 +19,11 @@ import signal
 import sys
 import threading
 import time
+from contextlib import nullcontext
 from pathlib import Path
 from typing import Literal
 
+import zenoh
 from pydantic import Field
 
 from agent.config import ConfigError, PositiveFloat, StrictModel, load_yaml
@@ -44,7 +46,9 @@ from agent.contract import (
 )
 from agent.core.records import STOP, Command
 from agent.runtime import foxglove
-from agent.runtime.zenoh_session import ZenohSettings, zenoh_config
+from agent.runtime.log_schema import BridgeSummary, CommandLatency, LoggedTruth
+from agent.runtime.mcap_log import McapLog
+from agent.runtime.zenoh_session import ZenohSettings, open_session, zenoh_config
 from sim_bridge.scenario import Scenario, select_scenario
 from sim_bridge.world import World, lost_shares, streams
 
@@ -88,8 +92,6 @@ class SimBridge:
         self._waiting: set[str] | None = None   # vessels the tick in progress still waits for
         self.log = None
         if settings.log:
-            from agent.runtime.mcap_log import McapLog
-
             self.log = McapLog(settings.log, metadata={"scenario": scenario.name, "mode": settings.mode})
 
     # ----- callbacks -----
@@ -125,8 +127,6 @@ class SimBridge:
         return message
 
     def _on_liveliness(self, sample) -> None:
-        import zenoh
-
         vessel = vessel_of(str(sample.key_expr))
         if vessel is None:
             return
@@ -139,10 +139,9 @@ class SimBridge:
 
     # ----- the loop -----
     def run(self) -> None:
-        import zenoh
-
+        """The mission, tick by tick; the log is finished however the run ends, an exception included."""
         steps = int(round(self.scenario.duration / self.scenario.world.dt)) + 1
-        with zenoh.open(zenoh_config(self.settings.zenoh)) as session:
+        with self.log if self.log is not None else nullcontext(), open_session(self.settings.zenoh) as session:
             subscribers = [session.declare_subscriber(every("cmd"), self._on_command),
                            session.declare_subscriber(every("status"), self._on_status)]
             watcher = session.liveliness().declare_subscriber(every(LIVELINESS), self._on_liveliness, history=True)
@@ -171,17 +170,10 @@ class SimBridge:
                 self.ticks += 1
                 previous_live, previous_stamp = live, stamp
             self.loop_seconds = time.monotonic() - start
-            if self.log is not None:
-                self.log.log("/bridge/summary", {
-                    "ticks": self.ticks, "loop_seconds": self.loop_seconds,
-                    "cpu_seconds": time.process_time() - cpu_start, "missed_commands": self.missed_commands,
-                    "startup_missing": sorted(self.startup_missing),
-                    "watchdog_stops": self.watchdog_stops, "refused": self.rejected}, self.world.time_ns)
+            self._log_summary(time.process_time() - cpu_start)
             for entity in [*subscribers, watcher, *self._publishers.values()]:
                 entity.undeclare()
             self._publishers.clear()
-        if self.log is not None:
-            self.log.close()
 
     def _clock(self, k: int, stamp: int, previous_stamp: int | None, live: list[str], joined: set[str]) -> Clock:
         """Tick k, and which shares of tick k - 1 reach whom now (the runner's rule, `lost_shares`)."""
@@ -234,8 +226,6 @@ class SimBridge:
     def _publisher(self, session, key_expr: str):
         """A declared publisher per key: a put on it skips the key's resolution a session.put repeats. It
         blocks rather than drops when the link is congested: the world model decides what is lost."""
-        import zenoh
-
         publisher = self._publishers.get(key_expr)
         if publisher is None:
             publisher = self._publishers[key_expr] = session.declare_publisher(
@@ -284,7 +274,7 @@ class SimBridge:
             return
         with self._lock:
             latency = {v: round(value * 1e3, 4) for v, value in self._latency.items()}
-        self.log.log("/bridge/command_latency", {"milliseconds": latency}, stamp)
+        self.log.log("/bridge/command_latency", {"milliseconds": latency}, stamp, schema=CommandLatency)
         truth = self.world.truth()
         self._log_frames(stamp, truth)
         self.log.log("/truth", {
@@ -293,7 +283,16 @@ class SimBridge:
                         for v, p in truth.positions.items()},
             "target": [float(x) for x in truth.target_position],
             "target_velocity": [float(x) for x in truth.target_velocity],
-        }, stamp)
+        }, stamp, schema=LoggedTruth)
+
+    def _log_summary(self, cpu_seconds: float) -> None:
+        """The run as a whole, once at the end (built as the model, so a wrong value fails here)."""
+        if self.log is None:
+            return
+        self.log.log("/bridge/summary", BridgeSummary(
+            ticks=self.ticks, loop_seconds=self.loop_seconds, cpu_seconds=cpu_seconds,
+            missed_commands=self.missed_commands, startup_missing=sorted(self.startup_missing),
+            watchdog_stops=self.watchdog_stops, refused=self.rejected), self.world.time_ns)
 
     def _log_frames(self, stamp: int, truth) -> None:
         """Ground truth for Foxglove's 3D panel: the vessels and the target in the `world` frame and, once a
@@ -327,6 +326,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         _, scenario = select_scenario(args.scenario, args.variant)
         settings = load_yaml(BridgeSettings, args.config) if args.config else BridgeSettings()
+        zenoh_config(settings.zenoh)   # a bad ZENOH_CONFIG file or override: one line now, not a traceback later
     except ConfigError as error:
         print(f"usv-sim: {error}", file=sys.stderr)
         return 2

@@ -32,7 +32,8 @@ def _as_shape(shape: Shape) -> tuple[int, ...]:
 
 
 class GaussianNoise(StrictModel):
-    """Zero-mean Gaussian range noise N(0, variance)."""
+    """Zero-mean Gaussian range noise N(0, variance), for tests and baselines (not one of the paper's models;
+    (7) with eps = 0)."""
 
     kind: Literal["gaussian"] = "gaussian"
     variance: NonNegativeFloat

@@ -37,7 +37,7 @@ class SinusoidSpec(StrictModel):
 
 
 class RandomWalkSpec(StrictModel):
-    """The noise-driven double integrator (3)-(4), its speed kept at or below `max_speed`."""
+    """The noise-driven double integrator (3), (4), its speed kept at or below `max_speed`."""
 
     kind: Literal["random_walk"] = "random_walk"
     position: Point = Field(description="start position (m)")
@@ -65,6 +65,8 @@ class Target(Protocol):
 
 
 class ConstantVelocityTarget:
+    """(3), (4) without process noise (w = 0): the constant-velocity target of Sec. VI-B."""
+
     def __init__(self, spec: ConstantVelocitySpec) -> None:
         self.position = np.array(spec.position, dtype=float)
         self.velocity = np.array(spec.velocity, dtype=float)
@@ -120,7 +122,7 @@ class SinusoidTarget:
 
 
 class RandomWalkTarget:
-    """(3)-(4): x_o,k = A x_o,k-1 + w_o,k-1, A = [[I, dt I], [0, I]], w ~ N(0, q I_4); |v_o| <= U_vo."""
+    """(3), (4): x_o,k = A x_o,k-1 + w_o,k-1, A = [[I, dt I], [0, I]], w ~ N(0, q I_4); |v_o| <= U_vo."""
 
     def __init__(self, spec: RandomWalkSpec) -> None:
         self.position = np.array(spec.position, dtype=float)

@@ -1,5 +1,9 @@
 """The simulated world: vessels, target, islands and every sensor, advanced one sampling period at a time.
 
+The paper's world and sensor models (Sec. II): surge-yaw kinematics (1), (2); the target (3), (4) and its
+other motions in `targets.py`; odometry (5); ranges (6) with the noise of (7) or (8) (`noise.py`); bearings
+(9). docs/equations.md says where the simulation departs from them (ranges clipped at 0, unit bearings).
+
 Pure code: no clock, no I/O. All randomness comes from the generator given to `World`, drawn in the same
 order every tick whatever the caller does, so a run is reproducible bit for bit from its seed:
 
@@ -27,7 +31,7 @@ from pydantic import Field, field_validator, model_validator
 from agent.angles import wrap_angle
 from agent.config import NonNegativeFloat, PositiveFloat, StrictModel
 from agent.contract import nanoseconds, seconds
-from agent.core.records import Command, Odometry
+from agent.core.records import Command, OdometryReading
 from sim_bridge.geometry import (
     is_simple_polygon,
     sample_boundary,
@@ -96,7 +100,7 @@ class WorldConfig(StrictModel):
 class Reading:
     """What one vessel's sensors report at one tick (arrays are read-only)."""
 
-    odometry: Odometry
+    odometry: OdometryReading
     ranges: dict[str, float]          # neighbour id -> measured range (m), (6)
     bearing: np.ndarray | None        # (2,) noisy target -> vessel unit vector (9); None when not visible
     obstacle_points: np.ndarray       # (M, 2) island points within sonar range, relative to the vessel
@@ -133,7 +137,8 @@ class _Vessel:
 
 
 class World:
-    """Vessels following (1), a target, islands and sensors (5)-(9), stepped by `step(commands)`."""
+    """Vessels following (1), (2), a target (3), (4), islands, and sensors (5), (6), (7), (8), (9), stepped by
+    `step(commands)`."""
 
     def __init__(self, config: WorldConfig, rng: np.random.Generator) -> None:
         self.config = config
@@ -162,7 +167,8 @@ class World:
         return dict(self._readings)
 
     def step(self, commands: Mapping[str, Command]) -> None:
-        """Apply each live vessel's command for one period dt, move the target, and start the next tick.
+        """Apply each live vessel's command for one period dt, move the target, and start the next tick:
+        the kinematics (1), (2), the odometry (5) and the target's model ((3), (4) for the random walk).
 
         A missing or non-finite command stops that vessel for the period and is counted in `bad_commands`.
         """
@@ -173,7 +179,7 @@ class World:
             surge, yaw_rate = self._checked(commands.get(vessel_id))
             surge = min(max(surge, -config.max_speed), config.max_speed)
             yaw_rate = min(max(yaw_rate, -config.max_yaw_rate), config.max_yaw_rate)
-            # (1)-(2): move along the heading held over the period, then turn.
+            # (1), (2): move along the heading held over the period, then turn.
             vessel.velocity = surge * np.array([math.cos(vessel.heading), math.sin(vessel.heading)])
             displacement = vessel.velocity * dt
             vessel.position = vessel.position + displacement
@@ -234,6 +240,8 @@ class World:
         self._readings = {vessel_id: self._read(vessel_id) for vessel_id in self.live()}
 
     def _read(self, vessel_id: str) -> Reading:
+        """One vessel's readings at this tick: ranges (6) with the range noise (7) or (8), the bearing (9),
+        its cumulative odometry (5) and the sonar's island points (the obstacle points of (34))."""
         vessel = self._vessels[vessel_id]
         here = vessel.position
         others = [j for j in self.live() if j != vessel_id]
@@ -257,7 +265,7 @@ class World:
             bearing = _frozen(noisy / np.linalg.norm(noisy))
         relative = self._boundary - here
         near = np.einsum("ij,ij->i", relative, relative) <= self.config.sonar_range**2
-        odometry = Odometry(
+        odometry = OdometryReading(
             stamp=self.time, position=_frozen(vessel.odometry_position), heading=vessel.odometry_heading
         )
         return Reading(

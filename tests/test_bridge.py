@@ -7,15 +7,15 @@ import threading
 import numpy as np
 import pytest
 
-pytest.importorskip("zenoh")
-
 from agent.runtime.mcap_log import read_messages
 from agent.runtime.zenoh_session import ZenohSettings
 from agent.shell.node import AgentNode
 from agent.shell.settings import NodeSettings
-from sim_bridge.bridge import BridgeSettings, SimBridge  # noqa: E402
-from sim_bridge.fleet import free_port  # noqa: E402
-from sim_bridge.scenario import Scenario  # noqa: E402
+from sim_bridge.bridge import BridgeSettings, SimBridge
+from sim_bridge.fleet import AGENT_LISTEN, free_port
+from sim_bridge.scenario import Scenario
+
+pytestmark = pytest.mark.slow   # Zenoh sessions on loopback, in real time
 
 
 def two_vessel_scenario(duration: float = 4.0) -> Scenario:
@@ -27,7 +27,8 @@ def two_vessel_scenario(duration: float = 4.0) -> Scenario:
 
 
 def start_agent(vessel: str, bridge_port: int) -> tuple[AgentNode, threading.Thread]:
-    settings = NodeSettings(clock="sim", zenoh=ZenohSettings(listen=[f"tcp/127.0.0.1:{free_port()}"],
+    # As the launcher does: the agent listens on port 0 (the OS picks as it binds), so it races nobody.
+    settings = NodeSettings(clock="sim", zenoh=ZenohSettings(listen=[AGENT_LISTEN],
                                                              connect=[f"tcp/127.0.0.1:{bridge_port}"]))
     node = AgentNode(vessel, settings)
     thread = threading.Thread(target=node.run, daemon=True)

@@ -25,8 +25,9 @@ from agent.contract import (
     share_from_message,
     vessel_of,
 )
+from agent.core.build import InitialEstimates, initial_state
 from agent.core.params import AgentParams
-from agent.core.vessel import VesselAgent
+from agent.core.step import step
 from agent.shell.gate import InputGate
 
 NOW = 100.0
@@ -53,10 +54,11 @@ def test_keys():
 def test_round_trip_of_every_message_and_of_a_share():
     cmd = Cmd(stamp_ns=5, seq=1, sender="3", surge=1.5, yaw_rate=-0.2)
     assert decode(Cmd, encode(cmd)) == (cmd, "")
-    agent = VesselAgent("1", AgentParams(), np.array([5.0, 0.0, 0.1, 0.2]))
+    params = AgentParams()
+    state = initial_state("1", params, InitialEstimates(target=(5.0, 0.0, 0.1, 0.2)))
     g = gate()
     g.offer("usv/1/sensor/odom", odom(), NOW)
-    share = agent.tick(g.snapshot(NOW)).share
+    share = step(params, state, g.snapshot(NOW))[1].share
     again = share_from_message(ShareMessage.model_validate_json(encode(message_from_share(share, 0))))
     np.testing.assert_allclose(again.target, share.target)
     np.testing.assert_allclose(again.target_covariance, share.target_covariance)
@@ -166,8 +168,9 @@ def test_valid_json_with_wrong_contents_never_reaches_the_tick_as_garbage(topic,
         return
     g.offer(f"usv/{sender}/{topic}", payload, NOW)
     g.offer("usv/1/sensor/odom", odom(seq=10**9), NOW)
-    agent = VesselAgent("1", AgentParams(), np.array([5.0, 0.0, 0.0, 0.0]))
-    command = agent.tick(g.snapshot(NOW)).command
+    params = AgentParams()
+    state = initial_state("1", params, InitialEstimates(target=(5.0, 0.0, 0.0, 0.0)))
+    command = step(params, state, g.snapshot(NOW))[1].command
     assert math.isfinite(command.surge) and math.isfinite(command.yaw_rate)
 
 

@@ -10,12 +10,13 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from agent.angles import wrap_angle
+from agent.core.build import InitialEstimates, initial_state
 from agent.core.control.avoidance import avoidance_velocity, safety_filter
 from agent.core.control.formation import desired_offset, desired_velocity, saturate, surge_and_yaw_rate
 from agent.core.control.oscillator import coupling_gains, oscillator_step
 from agent.core.params import AgentParams
-from agent.core.records import Odometry, Share, TickInputs
-from agent.core.vessel import VesselAgent
+from agent.core.records import OdometryReading, Share, TickInputs
+from agent.core.step import step
 
 DT, OMEGA = 0.1, math.pi / 30
 
@@ -143,17 +144,17 @@ finite = st.floats(-50, 50)
 def test_no_saturation_bound_is_ever_exceeded(heading, bearing_angle, target, neighbours, obstacles, seconds):
     params = AgentParams()
     c = params.control
-    agent = VesselAgent("1", params, np.array(target, dtype=float))
+    state = initial_state("1", params, InitialEstimates(target=tuple(target)))
     for k in range(seconds * 10):
         t = k * DT
         shares = {
-            f"n{j}": Share(f"n{j}", Odometry(t - DT, np.array([x, y]) + 0.1 * k, 0.0),
+            f"n{j}": Share(f"n{j}", OdometryReading(t - DT, np.array([x, y]) + 0.1 * k, 0.0),
                            np.array([v, -v]), phase)
             for j, (x, y, phase, v) in enumerate(neighbours)
         } if k > 0 else {}
         ranges = {f"n{j}": float(np.hypot(x, y)) + 1.0 for j, (x, y, _, _) in enumerate(neighbours)}
-        out = agent.tick(TickInputs(
-            time=t, odometry=Odometry(t, np.array([0.05 * k, 0.0]), heading), ranges=ranges, shares=shares,
+        state, out = step(params, state, TickInputs(
+            time=t, odometry=OdometryReading(t, np.array([0.05 * k, 0.0]), heading), ranges=ranges, shares=shares,
             bearing=np.array([math.cos(bearing_angle), math.sin(bearing_angle)]),
             obstacle_points=np.array(obstacles, dtype=float).reshape(-1, 2),
         ))

@@ -7,17 +7,20 @@ import configparser
 import json
 import subprocess
 import sys
-import time
+import threading
 from pathlib import Path
 
 import pytest
 import yaml
+import zenoh
+from conftest import free_ports, wait_until
 
 from agent.runtime.zenoh_session import zenoh_config
 from agent.shell.settings import NodeSettings
 from driver_bridge.node import DriverSettings
 from sim_bridge.fleet import free_port
 from usv_deploy.inventory import LOG_ROOT, Inventory, agent_settings, driver_settings, render, render_router
+from usv_deploy.router import run_router
 
 ROOT = Path(__file__).resolve().parents[1]
 DEPLOY = ROOT / "deploy"
@@ -61,12 +64,11 @@ def test_print_config_shows_the_effective_settings_without_starting(tmp_path):
     render(inventory(), "2", tmp_path)
     for program, model, name in (("agent", NodeSettings, "agent.yaml"), ("driver_bridge", DriverSettings,
                                                                          "driver.yaml")):
-        started = time.monotonic()
         shown = subprocess.run([sys.executable, "-m", program, "--vessel", "2", "--config", str(tmp_path / name),
                                 "--print-config"], capture_output=True, text=True, timeout=60)
+        # Nothing started: started, either would fail here (neither the boat's address 10.10.0.12 nor its
+        # serial devices exist on this machine), so exit code 0 says it only printed.
         assert shown.returncode == 0, shown.stderr
-        # Nothing started: the boat's addresses do not exist here, and it still returns at once.
-        assert time.monotonic() - started < 30
         printed = model.model_validate(yaml.safe_load(shown.stdout))
         assert printed == model.model_validate(yaml.safe_load((tmp_path / name).read_text()))
         assert "effective settings" in shown.stdout
@@ -104,20 +106,9 @@ def test_the_systemd_units_run_the_rendered_files():
 
 
 def test_the_zenoh_topology_files_load():
-    import zenoh
-
     modes = {name: json.loads(zenoh.Config.from_file(str(DEPLOY / "zenoh" / f"{name}.json5")).get_json("mode"))
              for name in ("peer-lan", "client-to-router", "router")}
     assert modes == {"peer-lan": "peer", "client-to-router": "client", "router": "router"}
-
-
-def _wait_for(condition, seconds: float = 10.0) -> bool:
-    deadline = time.monotonic() + seconds
-    while time.monotonic() < deadline:
-        if condition():
-            return True
-        time.sleep(0.05)
-    return False
 
 
 def _exchange(first, second) -> bool:
@@ -125,13 +116,12 @@ def _exchange(first, second) -> bool:
     got = []
     second.declare_subscriber("usv/1/cmd", lambda sample: got.append(sample.payload.to_bytes()))
     publisher = first.declare_publisher("usv/1/cmd")
-    return _wait_for(lambda: publisher.put(b"x") or bool(got))
+    return wait_until(lambda: publisher.put(b"x") or bool(got), interval=0.05)
 
 
+@pytest.mark.slow
 def test_peer_topology_as_rendered_links_two_boats():
-    import zenoh
-
-    ports = [free_port(), free_port()]
+    ports = free_ports(2)
     fleet = inventory(vessels=[{"id": "1", "address": "127.0.0.1", "port": ports[0]},
                                {"id": "2", "address": "127.0.0.1", "port": ports[1]}])
     one, two = (agent_settings(fleet, fleet.vessel(v)) for v in ("1", "2"))
@@ -139,13 +129,8 @@ def test_peer_topology_as_rendered_links_two_boats():
         assert _exchange(first, second)
 
 
+@pytest.mark.slow
 def test_router_topology_as_rendered_links_clients_through_the_router(tmp_path):
-    import threading
-
-    import zenoh
-
-    from usv_deploy.router import run_router
-
     port = free_port()
     fleet = inventory(topology="router", router={"address": "127.0.0.1", "port": port})
     config = render_router(fleet, tmp_path)
@@ -159,7 +144,7 @@ def test_router_topology_as_rendered_links_clients_through_the_router(tmp_path):
     assert driver_settings(fleet, fleet.vessel("1")).zenoh.connect == one.zenoh.connect
     try:
         with zenoh.open(zenoh_config(one.zenoh)) as first, zenoh.open(zenoh_config(two.zenoh)) as second:
-            assert _wait_for(lambda: list(first.info.routers_zid()))
+            assert wait_until(lambda: list(first.info.routers_zid()))
             assert _exchange(first, second)
     finally:
         stopping.set()
@@ -168,8 +153,6 @@ def test_router_topology_as_rendered_links_clients_through_the_router(tmp_path):
 
 def test_a_secure_fleet_renders_tls_configs_and_certificates(tmp_path):
     pytest.importorskip("cryptography")
-    import zenoh
-
     inventory_path = DEPLOY / "fleet.shore-router.example.yaml"
     made = usv_deploy("certs", "--inventory", str(inventory_path), "--out", str(tmp_path / "certs"))
     assert made.returncode == 0, made.stderr

@@ -3,6 +3,7 @@ thrust lines out, and the watchdog stop."""
 
 from __future__ import annotations
 
+import itertools
 import os
 import select
 import signal
@@ -12,34 +13,55 @@ import time
 
 import pytest
 import yaml
+import zenoh
+from conftest import wait_until
+from test_driver_odometry import xor_sentence
+from test_driver_uwb import node_frame2
 
-zenoh = pytest.importorskip("zenoh")
-
-from test_driver_odometry import xor_sentence  # noqa: E402
-from test_driver_uwb import node_frame2  # noqa: E402
-
-from agent.contract import Bearing, Cmd, Odometry, Ranges, decode, encode  # noqa: E402
+from agent.contract import Bearing, Cmd, Odometry, Ranges, decode, encode
 from agent.runtime.zenoh_session import ZenohSettings, zenoh_config
-from sim_bridge.fleet import free_port  # noqa: E402
+from sim_bridge.fleet import free_port
+
+pytestmark = pytest.mark.slow   # the driver bridge's process, over Zenoh
 
 MODELS = {"sensor/odom": Odometry, "sensor/uwb": Ranges, "sensor/bearing": Bearing}
+FULL_AHEAD = "$THR,+0.250,+0.250*"   # the thrust line of 1 m/s straight ahead (see below)
+STOPPED = "$THR,+0.000,+0.000*"
 
 
 def wait_for(condition, seconds: float = 10.0, what: str = "") -> None:
-    deadline = time.monotonic() + seconds
-    while not condition():
-        assert time.monotonic() < deadline, f"timed out waiting for {what}"
-        time.sleep(0.02)
+    assert wait_until(condition, seconds), f"timed out waiting for {what}"
 
 
-def thrust_lines(master: int, seconds: float) -> list[str]:
-    """The $THR lines the driver wrote within `seconds`."""
-    data, deadline = b"", time.monotonic() + seconds
-    while time.monotonic() < deadline:
-        ready, _, _ = select.select([master], [], [], 0.05)
+class ThrustLines:
+    """The $THR lines the driver writes to the thrusters' pseudo-terminal, read as they come."""
+
+    def __init__(self, master: int) -> None:
+        self.master, self.pending = master, b""
+
+    def read(self, seconds: float) -> list[str]:
+        """Every line that comes within `seconds`."""
+        lines, deadline = [], time.monotonic() + seconds
+        while time.monotonic() < deadline:
+            lines += self._some(deadline - time.monotonic())
+        return lines
+
+    def read_until(self, predicate, seconds: float = 10.0, what: str = "") -> list[str]:
+        """Lines up to and including the first for which `predicate` holds (which must come in `seconds`)."""
+        lines, deadline = [], time.monotonic() + seconds
+        while True:
+            for line in self._some(0.05):
+                lines.append(line)
+                if predicate(line):
+                    return lines
+            assert time.monotonic() < deadline, f"timed out waiting for {what}; got {lines[-5:]}"
+
+    def _some(self, seconds: float) -> list[str]:
+        ready, _, _ = select.select([self.master], [], [], max(seconds, 0.0))
         if ready:
-            data += os.read(master, 4096)
-    return [line for line in data.decode().split("\r\n") if line.startswith("$THR")]
+            self.pending += os.read(self.master, 4096)
+        *complete, self.pending = self.pending.split(b"\r\n")
+        return [line.decode() for line in complete if line.startswith(b"$THR")]
 
 
 def test_driver_bridge_turns_serial_streams_into_the_contract_and_commands_into_thrust(tmp_path):
@@ -69,8 +91,15 @@ def test_driver_bridge_turns_serial_streams_into_the_contract_and_commands_into_
         with zenoh.open(zenoh_config(ZenohSettings(connect=[f"tcp/127.0.0.1:{port}"]))) as session:
             session.declare_subscriber("usv/1/sensor/*", on_sensor)
             wait_for(lambda: list(session.info.peers_zid()), what="the driver bridge's session")
-            time.sleep(0.3)
             write = {name: pair[0] for name, pair in ptys.items()}
+
+            # Connected is not yet subscribed: until the driver has heard of our subscriber it sends to
+            # nobody. So a UWB frame (node 3 only) goes in until its message comes out; then nothing is lost.
+            def probe_heard() -> bool:
+                os.write(write["uwb"], node_frame2(1, 500, [(3, 2000)]))
+                return wait_until(lambda: received["sensor/uwb"], timeout=0.3)
+
+            wait_for(probe_heard, what="the driver bridge to hear of the test's subscriber")
 
             # Speed log: 2 knots on a compass heading of 090 (east, +x); a bad checksum in between is refused.
             for _ in range(3):
@@ -85,8 +114,13 @@ def test_driver_bridge_turns_serial_streams_into_the_contract_and_commands_into_
 
             # UWB: one ranging round, node 2 at 7.5 m and node 9, which is no vessel of ours.
             os.write(write["uwb"], node_frame2(1, 1000, [(2, 7500), (9, 4000)]))
-            wait_for(lambda: received["sensor/uwb"], what="a range message")
-            assert received["sensor/uwb"][0].ranges == {"2": pytest.approx(7.5)}
+
+            def rounds() -> list:
+                return [m for m in received["sensor/uwb"] if "3" not in m.ranges]   # the probes have node 3
+
+            wait_for(rounds, what="a range message")
+            (ranges,) = rounds()
+            assert ranges.ranges == {"2": pytest.approx(7.5)}
 
             # Camera: a detection at the image centre with the bow east: the target is due east of the
             # vessel, so the unit vector from the target to the vessel points west. Then no detection.
@@ -97,22 +131,37 @@ def test_driver_bridge_turns_serial_streams_into_the_contract_and_commands_into_
             assert first.bearing == (pytest.approx(-1.0), pytest.approx(0.0, abs=1e-12))
             assert second.bearing is None
 
-            # Commands: 1 m/s straight ahead is 50 N of drag, 25 N (0.25 of full) on each thruster.
-            thrusters = ptys["thrusters"][0]
-            thrust_lines(thrusters, 0.2)                                   # drain the stopped start
+            # Commands: 1 m/s straight ahead is 50 N of drag, 25 N (0.25 of full) on each thruster. Before
+            # the first command arrives the thrusters are stopped; from then on, commands every 0.05 s (well
+            # within the 0.5 s timeout) hold them at 0.25.
+            thrusters = ThrustLines(ptys["thrusters"][0])
             command = session.declare_publisher("usv/1/cmd")
-            for seq in range(10):
-                command.put(encode(Cmd(stamp_ns=time.time_ns(), seq=seq, sender="1", surge=1.0, yaw_rate=0.0)))
-                time.sleep(0.05)
-            lines = thrust_lines(thrusters, 0.2)
-            assert lines and all(line.startswith("$THR,+0.250,+0.250*") for line in lines), lines
+            seqs = itertools.count()
+
+            def ahead_for(seconds: float) -> list[str]:
+                """Send a command of 1 m/s ahead, then read the thrust lines of the next `seconds`."""
+                command.put(encode(Cmd(stamp_ns=time.time_ns(), seq=next(seqs), sender="1", surge=1.0,
+                                       yaw_rate=0.0)))
+                return thrusters.read(seconds)
+
+            lines = ahead_for(0.05)
+            deadline = time.monotonic() + 10
+            while not any(line.startswith(FULL_AHEAD) for line in lines):
+                assert time.monotonic() < deadline, f"the commands never moved the thrusters: {lines[-5:]}"
+                lines += ahead_for(0.05)
+            first = next(k for k, line in enumerate(lines) if line.startswith(FULL_AHEAD))
+            assert all(line.startswith(STOPPED) for line in lines[:first]), lines
+            assert all(line.startswith(FULL_AHEAD) for line in lines[first:]), lines
+            held = [line for _ in range(10) for line in ahead_for(0.05)]
+            assert held and all(line.startswith(FULL_AHEAD) for line in held), held
             # A command from another vessel is refused; then silence: the watchdog stops the thrusters.
             session.put("usv/1/cmd", encode(Cmd(stamp_ns=time.time_ns(), seq=99, sender="2", surge=3.0,
                                                 yaw_rate=0.0)))
-            fading = thrust_lines(thrusters, 0.8)                          # the 0.5 s timeout runs out
-            assert fading[0].startswith("$THR,+0.250") and fading[-1].startswith("$THR,+0.000"), fading
-            lines = thrust_lines(thrusters, 0.3)
-            assert lines and all(line.startswith("$THR,+0.000,+0.000*") for line in lines), lines
+            fading = thrusters.read_until(lambda line: line.startswith(STOPPED), what="the watchdog's stop")
+            # Full ahead until the 0.5 s timeout runs out, then stopped: never the refused 3 m/s.
+            assert fading[-1].startswith(STOPPED) and all(line.startswith(FULL_AHEAD) for line in fading[:-1])
+            lines = thrusters.read(0.3)
+            assert lines and all(line.startswith(STOPPED) for line in lines), lines
         driver.send_signal(signal.SIGTERM)
         output, _ = driver.communicate(timeout=15)
     finally:

@@ -11,7 +11,7 @@ import pytest
 from pydantic import ValidationError
 
 from driver_bridge.serial_port import open_serial, read_available, write_all
-from driver_bridge.thrusters import STOP, Thrust, ThrusterAdapter, ThrusterSettings, command_line
+from driver_bridge.thrusters import ZERO_THRUST, Thrust, ThrusterAdapter, ThrusterSettings, command_line
 
 # 50 N per thruster, thrusters 0.25 m off the centreline, d_u = 40 N/(m/s), d_r = 5 N m/(rad/s).
 HULL = ThrusterSettings(max_thrust=50.0, half_beam=0.25, surge_drag=40.0, yaw_drag=5.0, timeout=0.5)
@@ -54,11 +54,11 @@ def test_saturation_keeps_the_turn_and_gives_up_speed():
 
 def test_watchdog_stops_stale_commands_and_resumes():
     adapter = ThrusterAdapter(HULL)
-    assert adapter.output(0.0) == STOP                    # nothing commanded yet
+    assert adapter.output(0.0) == ZERO_THRUST                    # nothing commanded yet
     adapter.command(1.0, 0.5, now=10.0)
     assert adapter.output(10.3) == thrust(0.3, 0.5)
     assert adapter.output(10.5) == thrust(0.3, 0.5)       # exactly at the timeout: still fresh
-    assert adapter.output(10.51) == STOP and adapter.output(11.0) == STOP
+    assert adapter.output(10.51) == ZERO_THRUST and adapter.output(11.0) == ZERO_THRUST
     assert adapter.events["watchdog_stop"] == 1           # one stop event, not one per call
     adapter.command(1.0, 0.0, now=11.2)
     assert adapter.output(11.3) == thrust(0.4, 0.4)
@@ -67,11 +67,11 @@ def test_watchdog_stops_stale_commands_and_resumes():
 def test_non_finite_and_out_of_order_commands():
     adapter = ThrusterAdapter(HULL)
     adapter.command(1.0, 0.0, now=5.0)
-    assert adapter.command(math.nan, 0.0, now=5.1) == STOP and adapter.output(5.2) == STOP
+    assert adapter.command(math.nan, 0.0, now=5.1) == ZERO_THRUST and adapter.output(5.2) == ZERO_THRUST
     adapter.command(1.0, 0.0, now=5.3)
-    assert adapter.command(1.0, math.inf, now=5.4) == STOP
+    assert adapter.command(1.0, math.inf, now=5.4) == ZERO_THRUST
     adapter.command(1.0, 0.0, now=5.5)
-    assert adapter.command(1.0, 0.0, now=math.nan) == STOP and adapter.output(5.6) == STOP
+    assert adapter.command(1.0, 0.0, now=math.nan) == ZERO_THRUST and adapter.output(5.6) == ZERO_THRUST
     adapter.command(2.0, 0.0, now=5.7)
     assert adapter.command(0.5, 0.0, now=5.65) == thrust(0.8, 0.8)  # older than the last: ignored
     assert adapter.rejected == {"non_finite": 3, "out_of_order": 1}

@@ -4,12 +4,20 @@ from __future__ import annotations
 
 import json
 import math
+import socket
 import subprocess
 import sys
 
 import pytest
+import yaml
+from conftest import bridge_counts
 
-pytest.importorskip("zenoh")
+from agent.runtime.mcap_log import read_messages
+from sim_bridge.fleet import PORT_TAKEN, Fleet
+from sim_bridge.scenario import with_duration
+
+pytestmark = pytest.mark.slow   # the fleet's processes over Zenoh
+
 
 def test_fleet_run_leaves_a_run_folder_with_logs_plot_and_metrics(tmp_path, short_scenario):
     scenario = short_scenario
@@ -27,10 +35,10 @@ def test_fleet_run_leaves_a_run_folder_with_logs_plot_and_metrics(tmp_path, shor
     assert all(math.isfinite(metrics[k]) for k in ("mean_e_ij", "mean_e_io", "mean_e_c"))
     assert metrics["settling_time"] is not None        # the fleet formed the circle over Zenoh
     assert metrics["mean_e_io"] < 1.0 and metrics["mean_e_ij"] < 1.0
-    assert "missed commands" in (folder / "bridge.log").read_text()
+    # In lockstep the bridge waits for every command: none missed, no vessel stopped, nothing refused.
+    assert bridge_counts((folder / "bridge.log").read_text()) == {"ticks": 121, "missed": 0, "watchdog": 0,
+                                                                   "refused": 0}
     # Each process ends its log with what the run cost it: every tick counted, CPU time measured.
-    from agent.runtime.mcap_log import read_messages
-
     for name, topic in [("sim.mcap", "/bridge/summary"), *((f"agent-{i}.mcap", f"/{i}/summary") for i in "123")]:
         (summary,) = [m for t, _, m in read_messages(folder / name) if t == topic]
         assert summary["ticks"] == 121 and 0.0 < summary["cpu_seconds"] and 0.0 < summary["loop_seconds"]
@@ -41,3 +49,31 @@ def test_unknown_variant_is_a_clear_error(tmp_path, short_scenario):
     result = subprocess.run([sys.executable, "-m", "sim_bridge.fleet_cli", "run", str(scenario), "--variant", "x",
                              "--out", str(tmp_path / "runs")], capture_output=True, text=True, timeout=60)
     assert result.returncode == 2 and "no variant 'x'" in result.stderr
+
+
+def test_a_taken_bridge_port_is_given_up_for_a_fresh_one(tmp_path, short_scenario):
+    """Another process binds the sim bridge's port between the launcher drawing it and the bridge binding
+    it: the bridge exits at start-up, and the launcher starts it again on another port."""
+    (tmp_path / "short").mkdir()
+    fleet = Fleet(with_duration(short_scenario, tmp_path / "short", 2.0), None, tmp_path / "runs")
+    taken = fleet.bridge_port
+    with socket.socket() as thief:
+        thief.bind(("127.0.0.1", taken))
+        thief.listen()
+        folder = fleet.run(timeout=120)
+    assert fleet.bridge_port != taken
+    assert PORT_TAKEN in (folder / "bridge-attempt1.log").read_text()
+    assert bridge_counts((folder / "bridge.log").read_text())["missed"] == 0
+    for vessel in ("1", "2", "3"):   # every agent was told the new port
+        settings = yaml.safe_load((folder / f"agent-{vessel}.yaml").read_text())
+        assert settings["zenoh"]["connect"] == [f"tcp/127.0.0.1:{fleet.bridge_port}"]
+
+
+def test_an_agent_that_exits_on_its_own_fails_the_launch_and_is_named(tmp_path, short_scenario):
+    """The mission must not run on without a vessel's agent (the bridge would stop that vessel at every
+    tick, and the launch would end with exit code 0): the launcher fails it, naming the agent."""
+    fleet = Fleet(short_scenario, None, tmp_path / "runs")
+    (fleet.folder / "agent-2.yaml").write_text("clock: sundial\n")   # agent 2 refuses it and exits with 2
+    with pytest.raises(RuntimeError, match=r"agent of vessel 2 exited with code 2 during the mission.*clock"):
+        fleet.run(timeout=120)
+    assert fleet.bridge.poll() is not None and all(p.poll() is not None for p in fleet.agents.values())

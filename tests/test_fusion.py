@@ -8,11 +8,12 @@ import numpy as np
 import pytest
 
 from agent.config import deep_merge
+from agent.core.build import InitialEstimates, initial_state
 from agent.core.estimators import PLKF, make_relative_estimator
 from agent.core.fusion import covariance_intersection, covariance_intersection_many
 from agent.core.params import AgentParams, RelativeEstimationParams, TargetEstimationParams
-from agent.core.records import Odometry, Share, TickInputs
-from agent.core.vessel import VesselAgent
+from agent.core.records import OdometryReading, Share, TickInputs
+from agent.core.step import step
 from lab.runner import run
 from sim_bridge.scenario import Scenario, load_scenarios
 
@@ -59,19 +60,16 @@ def test_assimilate_refuses_a_bad_estimate():
 
 
 def test_a_faulty_neighbour_target_estimate_is_gated_out():
-    agent = VesselAgent("1", AgentParams(), np.array([5.0, 0.0, 0.0, 0.0]), 0.01 * np.eye(4),
-                        priors={})
-    liar = Share("2", Odometry(0.0, np.zeros(2), 0.0), np.zeros(2), 0.0,
-                 target=np.array([500.0, 300.0, 0.0, 0.0]), target_covariance=0.01 * np.eye(4))
-    from agent.core.neighbours import NeighbourPrior
-
-    agent.priors["2"] = NeighbourPrior(np.array([3.0, 0.0]), 0.04 * np.eye(2), 0.0)
+    params = AgentParams()
+    state = initial_state("1", params, InitialEstimates(target=(5.0, 0.0, 0.0, 0.0), target_variance=0.01,
+                                                        neighbours={"2": (3.0, 0.0)}, neighbour_variance=0.04))
     for k in range(3):
         t = 0.1 * k
-        liar = Share("2", Odometry(t, np.zeros(2), 0.0), np.zeros(2), 0.0,
+        liar = Share("2", OdometryReading(t, np.zeros(2), 0.0), np.zeros(2), 0.0,
                      target=np.array([500.0, 300.0, 0.0, 0.0]), target_covariance=0.01 * np.eye(4))
-        out = agent.tick(TickInputs(time=t, odometry=Odometry(t, np.zeros(2), 0.0), ranges={"2": 3.0},
-                                    shares={"2": liar}, bearing=np.array([1.0, 0.0])))
+        state, out = step(params, state, TickInputs(time=t, odometry=OdometryReading(t, np.zeros(2), 0.0),
+                                                    ranges={"2": 3.0}, shares={"2": liar},
+                                                    bearing=np.array([1.0, 0.0])))
     assert out.record.health["target_estimates_gated"] >= 1
     assert np.linalg.norm(out.record.target_state[:2] - [5.0, 0.0]) < 0.5
 
@@ -96,10 +94,11 @@ def test_cooperative_fusion_improves_the_fleet_over_the_paper_architecture():
     {"neighbours": {"1": (np.array([np.inf, 0.0]), np.eye(2))}},             # inf estimate
 ])
 def test_malformed_shares_are_counted_and_ignored(bad):
-    agent = VesselAgent("1", AgentParams(), np.array([5.0, 0.0, 0.0, 0.0]))
+    params = AgentParams()
+    state = initial_state("1", params, InitialEstimates(target=(5.0, 0.0, 0.0, 0.0)))
     fields = {"target": None, "target_covariance": None, "neighbours": {}} | bad
-    share = Share("2", Odometry(0.0, np.zeros(2), 0.0), np.zeros(2), 0.0, **fields)
-    out = agent.tick(TickInputs(time=0.0, odometry=Odometry(0.0, np.zeros(2), 0.0), shares={"2": share},
-                                bearing=np.array([1.0, 0.0])))
-    assert out.record.health["bad_shares"] == 1 and "2" not in agent.tracks
+    share = Share("2", OdometryReading(0.0, np.zeros(2), 0.0), np.zeros(2), 0.0, **fields)
+    state, out = step(params, state, TickInputs(time=0.0, odometry=OdometryReading(0.0, np.zeros(2), 0.0),
+                                                shares={"2": share}, bearing=np.array([1.0, 0.0])))
+    assert out.record.health["bad_shares"] == 1 and "2" not in state.tracks
     assert np.isfinite(out.command.surge) and np.isfinite(out.command.yaw_rate)

@@ -1,4 +1,5 @@
-"""MCAP logs: readable back with schemas, and an unfinished file (hard kill) read up to its last chunk."""
+"""MCAP logs: readable back with schemas, an unfinished file (hard kill) read up to its last chunk, and a log
+finished or at least closed however its writer ends."""
 
 from __future__ import annotations
 
@@ -9,8 +10,11 @@ import subprocess
 import sys
 import textwrap
 import time
+import warnings
+from pathlib import Path
 
 import pytest
+from mcap.reader import make_reader
 
 from agent.contract import Cmd
 from agent.runtime.mcap_log import McapLog, read_messages
@@ -26,8 +30,6 @@ def test_messages_and_schemas_round_trip(tmp_path):
     assert len(messages) == 51
     assert messages[10] == ("usv/1/cmd", 10, json.loads(Cmd(stamp_ns=10, seq=10, sender="1", surge=1.0,
                                                                  yaw_rate=0.0).model_dump_json()))
-    from mcap.reader import make_reader
-
     with path.open("rb") as handle:
         summary = make_reader(handle).get_summary()
     schemas = {s.name: json.loads(s.data) for s in summary.schemas.values()}
@@ -64,3 +66,39 @@ def test_a_process_killed_hard_loses_at_most_the_last_second(tmp_path):
     assert ks == list(range(len(ks)))          # in order, nothing corrupt
     assert written - len(ks) <= 25             # at most about one second (20 per second) lost
     assert len(ks) >= 20                       # and at least the first flushed second is there
+
+
+def test_a_block_that_raises_still_leaves_a_finished_log(tmp_path):
+    path = tmp_path / "crashed.mcap"
+    with pytest.raises(RuntimeError, match="the core failed"), McapLog(path) as log:
+        log.log("tick", {"k": 1}, log_time_ns=1)
+        raise RuntimeError("the core failed")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")          # an unfinished file would warn
+        assert list(read_messages(path)) == [("tick", 1, {"k": 1})]
+    with path.open("rb") as handle:
+        assert make_reader(handle).get_summary().statistics.message_count == 1   # the footer is there
+    log.close()                                 # closing again does nothing
+    log.log("tick", {"k": 2}, log_time_ns=2)    # nor does logging to a closed log
+    assert len(list(read_messages(path))) == 1
+
+
+@pytest.mark.skipif(not Path("/dev/full").exists(), reason="needs /dev/full to fail writes")
+def test_after_a_write_error_close_still_closes_the_file_once():
+    # /dev/full fails every write that reaches it, as a full disk does.
+    log = McapLog("/dev/full", flush_seconds=0.0)
+    with pytest.raises(OSError):
+        log.log("tick", {"k": 1}, log_time_ns=1)
+    with pytest.raises(OSError):
+        log.close()
+    assert log._file.closed
+    log.close()                                 # a second close neither raises nor writes
+
+
+@pytest.mark.skipif(not Path("/dev/full").exists(), reason="needs /dev/full to fail writes")
+def test_a_log_that_cannot_be_finished_does_not_hide_the_error_that_ended_the_block():
+    with pytest.raises(RuntimeError, match="the core failed") as raised, McapLog("/dev/full") as log:
+        log.log("tick", {"k": 1}, log_time_ns=1)
+        raise RuntimeError("the core failed")
+    assert any("closing the log /dev/full failed: OSError" in note for note in raised.value.__notes__)
+    assert log._file.closed

@@ -26,6 +26,8 @@ import yaml
 
 pytest.importorskip("zenoh")
 
+pytestmark = pytest.mark.slow   # network namespaces, a router, the bridge and agents as processes
+
 ROOT = Path(__file__).resolve().parents[1]
 PORT = 7447
 VESSELS = ("1", "2")

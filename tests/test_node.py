@@ -7,15 +7,17 @@ import signal
 import subprocess
 import sys
 import threading
-import time
+import warnings
 
 import numpy as np
 import pytest
 
 zenoh = pytest.importorskip("zenoh")
 
+from conftest import wait_until  # noqa: E402
+
 from agent.contract import Bearing, Clock, Cmd, Odometry, Ranges, Status, decode, encode, key  # noqa: E402
-from agent.core.vessel import VesselAgent
+from agent.core.build import InitialEstimates, initial_state
 from agent.runtime.mcap_log import read_messages
 from agent.runtime.zenoh_session import ZenohSettings
 from agent.shell.node import AgentNode
@@ -27,7 +29,7 @@ def test_node_ticks_on_sim_time_and_answers_each_tick(tmp_path):
     port = free_port()
     settings = NodeSettings(clock="sim", zenoh=ZenohSettings(listen=[f"tcp/127.0.0.1:{port}"]),
                             log=str(tmp_path / "agent-{vessel}.mcap"))
-    node = AgentNode("1", settings, VesselAgent("1", settings.agent, np.array([5.0, 0.0, 0.0, 0.0])))
+    node = AgentNode("1", settings, initial_state("1", settings.agent, InitialEstimates(target=(5.0, 0.0, 0.0, 0.0))))
     thread = threading.Thread(target=node.run, kwargs={"max_ticks": 20}, daemon=True)
     thread.start()
 
@@ -40,7 +42,8 @@ def test_node_ticks_on_sim_time_and_answers_each_tick(tmp_path):
         session.declare_subscriber(key("1", "cmd"), lambda s: commands.append(decode(Cmd, s.payload.to_bytes())[0]))
         session.declare_subscriber(key("1", "status"),
                                    lambda s: statuses.append(decode(Status, s.payload.to_bytes())[0]))
-        time.sleep(1.0)  # let the two sessions find each other
+        # The agent's heartbeat status before its first tick says the link is up both ways.
+        assert wait_until(lambda: statuses, timeout=20)
         session.put(key("1", "sensor/odom"), b"this is not json")
         for k in range(20):
             stamp = int(k * 0.1 * 1e9)
@@ -49,18 +52,18 @@ def test_node_ticks_on_sim_time_and_answers_each_tick(tmp_path):
             session.put(key("1", "sensor/uwb"), encode(Ranges(stamp_ns=stamp, seq=k, sender="1", ranges={})))
             session.put(key("1", "sensor/bearing"), encode(Bearing(stamp_ns=stamp, seq=k, sender="1",
                                                                    bearing=(1.0, 0.0))))
-            time.sleep(0.02)
+            # The tick's sensors are in before its clock, and each tick is answered before the next.
+            assert wait_until(lambda: node.gate.accepted["sensor/bearing"] == k + 1)
             session.put("sim/clock", encode(Clock(stamp_ns=stamp, seq=k)))
-            time.sleep(0.08)
+            assert wait_until(lambda: len(commands) == k + 1)
         thread.join(timeout=10)
-        time.sleep(0.3)
     assert not thread.is_alive()
     assert node.ticks == 20
-    assert len(commands) >= 15 and all(c is not None for c in commands)
+    assert len(commands) == 20 and all(c is not None for c in commands)
     assert all(np.isfinite(c.surge) and np.isfinite(c.yaw_rate) for c in commands)
     assert [c.seq for c in commands] == sorted(c.seq for c in commands)
     assert statuses[-1].health.get("rejected_malformed") == 1
-    assert node.gate.accepted["sensor/odom"] >= 15
+    assert node.gate.accepted["sensor/odom"] == 20
     logged = list(read_messages(tmp_path / "agent-1.mcap"))   # finished cleanly: no warning
     topics = [topic for topic, _, _ in logged]
     assert topics.count("usv/1/cmd") == 20 and topics.count("/1/estimates") == 20
@@ -69,11 +72,19 @@ def test_node_ticks_on_sim_time_and_answers_each_tick(tmp_path):
 
 def test_agent_process_stops_cleanly_on_sigterm(tmp_path):
     config = tmp_path / "node.yaml"
-    config.write_text(f"clock: wall\nzenoh:\n  listen: [tcp/127.0.0.1:{free_port()}]\n")
+    port = free_port()
+    config.write_text(f"clock: wall\nzenoh:\n  listen: [tcp/127.0.0.1:{port}]\n")
     process = subprocess.Popen([sys.executable, "-m", "agent", "--vessel", "7", "--config", str(config)],
                                stderr=subprocess.PIPE, text=True)
-    time.sleep(2.0)
-    assert process.poll() is None  # running, ticking on its wall timer
+    statuses = []
+    session_config = zenoh.Config()
+    session_config.insert_json5("scouting/multicast/enabled", "false")
+    session_config.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
+    with zenoh.open(session_config) as session:
+        session.declare_subscriber(key("7", "status"), lambda s: statuses.append(s))
+        # Ticking on its wall timer: without sensors it commands STOP, and says so every tick.
+        assert wait_until(lambda: len(statuses) >= 5 or process.poll() is not None, timeout=30)
+    assert process.poll() is None and len(statuses) >= 5
     process.send_signal(signal.SIGTERM)
     _, err = process.communicate(timeout=10)
     assert process.returncode == 0, err
@@ -92,7 +103,7 @@ def test_a_bad_vessel_id_or_config_is_a_clear_error(tmp_path):
 
 def test_a_failing_log_does_not_stop_the_ticks(tmp_path):
     settings = NodeSettings(clock="sim", log=str(tmp_path / "x.mcap"))
-    node = AgentNode("1", settings, VesselAgent("1", settings.agent, np.array([5.0, 0.0, 0.0, 0.0])))
+    node = AgentNode("1", settings, initial_state("1", settings.agent, InitialEstimates(target=(5.0, 0.0, 0.0, 0.0))))
 
     class Sink:
         def __init__(self):
@@ -111,3 +122,28 @@ def test_a_failing_log_does_not_stop_the_ticks(tmp_path):
     assert node.ticks == 3 and node.log_errors == 3 and len(publishers["cmd"].payloads) == 3
     status = decode(Status, publishers["status"].payloads[-1])[0]
     assert status.health["log_errors"] == 2  # counted before this tick's own attempt
+
+
+def test_an_exception_in_the_core_still_leaves_a_finished_log(tmp_path, monkeypatch):
+    """The core raising on its third tick ends the run with that exception, and the file is finished: it reads
+    without the 'unfinished' warning and holds the two ticks before the failure."""
+    import agent.shell.node as node_module
+
+    real_step = node_module.step
+    calls = []
+
+    def failing_step(params, state, inputs):
+        calls.append(inputs.time)
+        if len(calls) == 3:
+            raise RuntimeError("the core failed")
+        return real_step(params, state, inputs)
+
+    monkeypatch.setattr(node_module, "step", failing_step)
+    node = AgentNode("1", NodeSettings(clock="wall", log=str(tmp_path / "agent-{vessel}.mcap")))
+    with pytest.raises(RuntimeError, match="the core failed"):
+        node.run(max_ticks=10)
+    assert len(calls) == 3
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")           # an unfinished file would warn
+        logged = list(read_messages(tmp_path / "agent-1.mcap"))
+    assert [topic for topic, _, _ in logged].count("usv/1/cmd") == 2

@@ -10,8 +10,10 @@ import numpy as np
 import pytest
 
 from agent.config import deep_merge
+from agent.core.build import InitialEstimates, initial_state
+from agent.core.params import AgentParams
 from agent.core.records import TickInputs
-from agent.core.vessel import VesselAgent
+from agent.core.step import step
 from lab.runner import run
 from mission_log.metrics import spacing_error
 from sim_bridge.scenario import Scenario, load_scenarios
@@ -81,20 +83,19 @@ def test_occlusion_gives_prediction_only_steps():
         islands=[[(-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0)]],
     )
     world = World(config, np.random.default_rng(0))
-    from agent.core.params import AgentParams
-
-    agent = VesselAgent("1", AgentParams(), np.array([-12.0, 0.0, 0.0, 0.0]))
+    params = AgentParams()
+    state = initial_state("1", params, InitialEstimates(target=(-12.0, 0.0, 0.0, 0.0)))
     for k in range(20):
         reading = world.sense()["1"]
         assert reading.occluded and reading.bearing is None
-        before = agent.tracker.covariance.trace() if agent.tracker is not None else 0.0
-        out = agent.tick(TickInputs(time=world.time, odometry=reading.odometry, bearing=reading.bearing,
-                                    obstacle_points=reading.obstacle_points))
+        before = state.tracker.covariance.trace() if state.tracker is not None else 0.0
+        state, out = step(params, state, TickInputs(time=world.time, odometry=reading.odometry,
+                                                    bearing=reading.bearing, obstacle_points=reading.obstacle_points))
         assert not out.record.bearing_used
         if k > 0:
             assert out.record.target_covariance.trace() > before
         world.step({})  # the vessel stays where it is
-    assert agent.tracker.skipped == 20 and agent.tracker.updates == 0
+    assert state.tracker.skipped == 20 and state.tracker.updates == 0
 
 
 def test_vessels_keep_clear_of_the_islands():

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import json
 import select
-import socket
 import stat
 import subprocess
 import sys
@@ -20,37 +19,24 @@ import uuid
 from pathlib import Path
 
 import pytest
+import zenoh
+from conftest import wait_until
 
 pytest.importorskip("cryptography", reason="usv_deploy.certs needs the cryptography package")
-zenoh = pytest.importorskip("zenoh", reason="the transport tests need eclipse-zenoh")
 
-from cryptography import x509  # noqa: E402
-from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID  # noqa: E402
+from cryptography import x509
+from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
-from usv_deploy.certs import make_certificates  # noqa: E402
-from usv_deploy.security import access_control, secure_config, tls_settings  # noqa: E402
+from sim_bridge.fleet import free_port
+from usv_deploy.certs import make_certificates
+from usv_deploy.security import access_control, secure_config, tls_settings
 
 VESSELS = ["1", "2"]
 SILENCE = 1.0   # how long "nothing arrives" is watched for, once the control has arrived
 DEADLINE = 5.0  # the most any positive wait may take
-
-
-# ----- helpers -----
-def free_port() -> int:
-    """A TCP port free on loopback right now (the OS picks it)."""
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
-
-
-def wait_until(predicate, timeout: float = DEADLINE) -> bool:
-    """Poll `predicate` with short sleeps; True as soon as it holds, False at the deadline."""
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if predicate():
-            return True
-        time.sleep(0.02)
-    return predicate()
+# The tests that open Zenoh sessions (the module's router and clients, or their own) are `slow`; those of the
+# certificates and configurations alone are not.
+slow = pytest.mark.slow
 
 
 class Inbox:
@@ -116,9 +102,11 @@ def assert_held_back(inbox: Inbox, send_forbidden, control_sender, control_key: 
     put_until_received(control_sender, control_key, inbox, "control-before")
     send_forbidden()
     put_until_received(control_sender, control_key, inbox, "control-after")
-    time.sleep(SILENCE)
-    leaked = [item for item in inbox.received() if item[1].startswith(FORBIDDEN)]
-    assert leaked == [], leaked
+
+    def leaked() -> list:
+        return [item for item in inbox.received() if item[1].startswith(FORBIDDEN)]
+
+    assert not wait_until(leaked, timeout=SILENCE), leaked()
 
 
 # ----- fixtures -----
@@ -224,10 +212,11 @@ def test_configs_load_in_zenoh(certs):
 
 
 # ----- transport -----
+@slow
 def test_vessel_with_fleet_certificate_connects_and_is_heard(router, fleet, inboxes):
     router_session, _ = router
     for name, session in fleet.items():
-        assert wait_until(lambda s=session: len(s.info.routers_zid()) == 1), name
+        assert wait_until(lambda s=session: len(s.info.routers_zid()) == 1, DEADLINE), name
         assert [str(z) for z in session.info.routers_zid()] == [str(router_session.zid())]
     inbox = inboxes(fleet["vessel-2"], "usv/1/cmd")
     put_until_received(fleet["vessel-1"], "usv/1/cmd", inbox, "cmd-from-1")
@@ -245,6 +234,7 @@ def intruder_config(certs, foreign_certs, credentials: str, port: int) -> dict:
             "connect": {"endpoints": [f"tls/localhost:{port}"]}, "transport": {"link": {"tls": tls}}}
 
 
+@slow
 @pytest.mark.parametrize("credentials", ["valid", "none", "foreign-ca"])
 def test_only_a_fleet_certificate_gets_a_link(certs, foreign_certs, router, fleet, inboxes, credentials):
     _, port = router
@@ -252,17 +242,18 @@ def test_only_a_fleet_certificate_gets_a_link(certs, foreign_certs, router, flee
     peer = open_session(intruder_config(certs, foreign_certs, credentials, port))
     try:
         if credentials == "valid":
-            assert wait_until(lambda: len(peer.info.routers_zid()) == 1)
+            assert wait_until(lambda: len(peer.info.routers_zid()) == 1, DEADLINE)
             put_until_received(peer, "usv/1/cmd", inbox, "peer-valid")
             return
-        time.sleep(SILENCE)  # give a handshake every chance to complete
-        assert list(peer.info.routers_zid()) == [] and list(peer.info.peers_zid()) == []
+        # No link during a second, in which a handshake would have had every chance to complete.
+        assert not wait_until(lambda: list(peer.info.routers_zid()) or list(peer.info.peers_zid()), SILENCE)
         payload = stamp(f"{FORBIDDEN}-{credentials}")
         assert_held_back(inbox, lambda: peer.put("usv/1/cmd", payload), fleet["vessel-1"], "usv/1/cmd")
     finally:
         peer.close()
 
 
+@slow
 @pytest.mark.parametrize("credentials", ["none", "foreign-ca"])
 def test_client_without_fleet_certificate_cannot_open(certs, foreign_certs, router, credentials):
     _, port = router
@@ -273,6 +264,7 @@ def test_client_without_fleet_certificate_cannot_open(certs, foreign_certs, rout
 
 
 # ----- access control -----
+@slow
 def test_vessel_cannot_command_another_vessel(fleet, inboxes):
     vessel_2 = fleet["vessel-2"]
     # A declared publisher takes another path than session.put: it sends only where the router has told
@@ -291,21 +283,23 @@ def test_vessel_cannot_command_another_vessel(fleet, inboxes):
         publisher.undeclare()
 
 
+@slow
 def test_only_the_operator_publishes_the_mission(fleet, inboxes):
     watcher = inboxes(fleet["vessel-1"], "mission/**")
     assert_held_back(watcher, lambda: fleet["vessel-2"].put("mission/radius", stamp(FORBIDDEN)),
                      fleet["operator"], "mission/radius")
 
 
+@slow
 def test_vessel_declares_liveliness_only_for_itself(fleet, inboxes):
     # history: tokens declared before the subscription reached the router are reported too
     watcher = inboxes(fleet["vessel-1"], "usv/*/alive", liveliness=True, history=True)
     forged = fleet["vessel-2"].liveliness().declare_token("usv/1/alive")
     own = fleet["vessel-2"].liveliness().declare_token("usv/2/alive")
     try:
-        assert wait_until(lambda: "usv/2/alive" in watcher.seen_keys()), watcher.received()
-        time.sleep(SILENCE)
-        assert "usv/1/alive" not in watcher.seen_keys()
+        seen = watcher.seen_keys
+        assert wait_until(lambda: "usv/2/alive" in seen(), DEADLINE), watcher.received()
+        assert not wait_until(lambda: "usv/1/alive" in seen(), SILENCE), watcher.received()
         alive = [str(reply.ok.key_expr) for reply in fleet["operator"].liveliness().get("usv/*/alive", timeout=2)
                  if reply.ok is not None]
         assert alive == ["usv/2/alive"]
@@ -314,11 +308,13 @@ def test_vessel_declares_liveliness_only_for_itself(fleet, inboxes):
         own.undeclare()
 
 
+@slow
 def test_certificate_not_named_in_the_acl_gets_nothing_through(certs, router, fleet, inboxes):
     _, port = router
     stranger = client(certs, "vessel-3", port)  # signed by the fleet CA, but not in the router's list
     try:
-        assert wait_until(lambda: len(stranger.info.routers_zid()) == 1)  # TLS lets it in; the ACL does not
+        # TLS lets it in; the ACL does not
+        assert wait_until(lambda: len(stranger.info.routers_zid()) == 1, DEADLINE)
         inbox = inboxes(fleet["operator"], "usv/*/cmd")
         assert_held_back(inbox, lambda: stranger.put("usv/3/cmd", stamp(FORBIDDEN)), fleet["vessel-2"], "usv/2/cmd")
     finally:
@@ -326,6 +322,7 @@ def test_certificate_not_named_in_the_acl_gets_nothing_through(certs, router, fl
 
 
 # ----- deployment path -----
+@slow
 def test_usv_deploy_router_runs_the_secure_config(certs, tmp_path):
     """`python -m usv_deploy router --config FILE` with a file written from secure_config enforces it too."""
     port = free_port()

@@ -13,10 +13,13 @@ import pytest
 
 pytest.importorskip("zenoh")
 
+from conftest import wait_until
+
 from mission_log.metrics import agreement, innovation_statistics, run_metrics
 from mission_log.reader import LogError, RunLog, VesselLog, load_run, read_log
 from mission_log.replay import replay
 from mission_log.summary import run_summary, topic_statistics
+from sim_bridge.fleet import free_port
 
 TICKS = 121   # the short run of conftest.fleet_run: 12 s at 10 Hz
 
@@ -138,6 +141,31 @@ def test_replay_with_the_same_settings_reproduces_the_recording_exactly(fleet_ru
             assert before == after, topic
 
 
+def test_a_replay_started_mid_mission_gives_the_recorded_outputs_from_there(fleet_run, tmp_path):
+    """The agent saves its core's state every 50 ticks (after ticks 0, 50, 100); --start 7.3 resumes after
+    tick 50, 5.0 s after the first tick, and every tick from 51 on is the recorded one, bit for bit."""
+    folder, _ = fleet_run
+    recorded = read_log(folder / "agent-3.mcap")
+    saved = recorded.topic("state")
+    first = recorded.topic("inputs")[0][0]
+    assert [round((stamp - first) * 1e-9, 6) for stamp, _ in saved] == [0.0, 5.0, 10.0]
+    shown = usv_log("replay", str(folder / "agent-3.mcap"), "--out", str(tmp_path / "mid.mcap"), "--start", "7.3")
+    assert shown.returncode == 0, shown.stderr
+    assert f"{TICKS - 51} ticks from the state saved at 5.0 s" in shown.stdout
+    again = read_log(tmp_path / "mid.mcap")
+    for topic in ("/3/estimates", "/3/tf"):
+        assert again.messages(topic) == recorded.messages(topic)[51:], topic
+    after = [(t, m["surge"], m["yaw_rate"]) for t, m in again.messages("usv/3/cmd")]
+    assert after == [(t, m["surge"], m["yaw_rate"]) for t, m in recorded.messages("usv/3/cmd")[51:]]
+    result = replay(folder / "agent-3.mcap", tmp_path / "mid2.mcap", start=7.3)
+    assert result.ticks == result.commands_identical == result.estimates_identical == TICKS - 51
+    # Before the first saved state there is nothing to resume from but the beginning.
+    from_start = replay(folder / "agent-3.mcap", tmp_path / "start.mcap", start=0.0)
+    assert from_start.resumed_at is None and from_start.ticks == TICKS
+    wrong = usv_log("replay", str(folder / "agent-3.mcap"), "--out", str(tmp_path / "x.mcap"), "--start", "-1")
+    assert wrong.returncode == 2 and "--start" in wrong.stderr
+
+
 def test_replay_with_other_settings_changes_the_outputs(fleet_run, tmp_path):
     folder, _ = fleet_run
     shown = usv_log("replay", str(folder / "agent-1.mcap"), "--out", str(tmp_path / "kf.mcap"),
@@ -169,30 +197,40 @@ def test_bad_input_gets_a_clear_error(fleet_run, tmp_path):
 
 
 def test_the_log_of_an_agent_killed_with_sigkill_is_read_up_to_its_last_chunk(tmp_path):
+    """A wall-clock agent is killed after about 3 s of ticks. Its file is read up to its last chunk, and
+    that chunk is at most about a second older than the agent's last published tick (the writer flushes
+    at least once a second): judged against the agent's own stamps, not the test's clock."""
     import signal
-    import time
 
     import yaml
 
+    zenoh = pytest.importorskip("zenoh")
     log_path = tmp_path / "agent-7.mcap"
     config = tmp_path / "node.yaml"
-    config.write_text(yaml.safe_dump({"clock": "wall", "log": str(log_path)}))
+    port = free_port()
+    config.write_text(yaml.safe_dump({"clock": "wall", "log": str(log_path),
+                                      "zenoh": {"listen": [f"tcp/127.0.0.1:{port}"]}}))
     agent = subprocess.Popen([sys.executable, "-m", "agent", "--vessel", "7", "--config", str(config)],
                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    stamps = []
+    session_config = zenoh.Config()
+    session_config.insert_json5("scouting/multicast/enabled", "false")
+    session_config.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
     try:
-        deadline = time.monotonic() + 60
-        while time.monotonic() < deadline and (not log_path.exists() or log_path.stat().st_size < 4096):
-            time.sleep(0.1)
-        time.sleep(2.5)                 # a few flushes into the mission
+        with zenoh.open(session_config) as session:
+            session.declare_subscriber("usv/7/status",
+                                       lambda s: stamps.append(json.loads(s.payload.to_bytes())["stamp_ns"]))
+            assert wait_until(lambda: len(stamps) >= 30 or agent.poll() is not None, timeout=60)
+            agent.send_signal(signal.SIGKILL)
+            agent.wait()
     finally:
-        killed_at = time.time()
-        agent.send_signal(signal.SIGKILL)
-        agent.wait()
+        if agent.poll() is None:
+            agent.kill()
+            agent.wait()
     log = read_log(log_path)
     assert log.unfinished and log.vessel == "7"
     ticks = log.messages("/7/inputs")
-    assert len(ticks) >= 20                              # wall clock, 10 Hz: at least 2 s of ticks
-    # A chunk is written out at least once a second, so at most about that much is lost.
-    assert killed_at - ticks[-1][0] * 1e-9 < 1.5
+    assert len(ticks) >= 10
+    assert (stamps[-1] - ticks[-1][0]) * 1e-9 < 1.5
     shown = usv_log("summary", str(log_path))
     assert shown.returncode == 0 and "unfinished" in shown.stderr and "**unfinished**" in shown.stdout

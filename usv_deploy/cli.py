@@ -5,7 +5,7 @@
                                                                   a test CA and per-vessel certificates
     usv-deploy router [--config FILE] [--listen ENDPOINT ...]     the shore router (Zenoh, router mode)
 
-deploy/README.md (and the README's "Deploying on vessels") walk an operator through them.
+docs/deploy.md walks an operator through them.
 """
 
 from __future__ import annotations
@@ -13,6 +13,10 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
+
+from agent.config import ConfigError
+from usv_deploy.inventory import load_inventory, render, render_router
+from usv_deploy.router import run_router
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -40,8 +44,6 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _render(args) -> int:
-    from usv_deploy.inventory import load_inventory, render, render_router
-
     inventory = load_inventory(args.inventory)
     if args.vessel is not None:
         written = render(inventory, args.vessel, args.out)
@@ -55,12 +57,11 @@ def _render(args) -> int:
 
 
 def _certs(args) -> int:
+    # Deferred: certs needs cryptography (the optional 'deploy' extra), which only this command uses.
     from usv_deploy.certs import make_certificates
 
     hosts = list(args.host)
     if args.inventory is not None:
-        from usv_deploy.inventory import load_inventory
-
         inventory = load_inventory(args.inventory)
         vessels = [v.id for v in inventory.vessels]
         if inventory.router is not None:
@@ -75,8 +76,6 @@ def _certs(args) -> int:
 
 
 def _router(args) -> int:
-    from usv_deploy.router import run_router
-
     if args.config is None and not args.listen:
         print("usv-deploy router: give --config FILE or --listen ENDPOINT", file=sys.stderr)
         return 2
@@ -87,8 +86,6 @@ def _router(args) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from agent.config import ConfigError
-
     args = build_parser().parse_args(argv)
     try:
         return args.handler(args)

@@ -26,6 +26,7 @@ from agent.config import StrictModel, deep_merge, load_yaml, parse_mapping
 from agent.contract import VesselId
 from agent.shell.settings import NodeSettings
 from driver_bridge.node import DriverSettings
+from usv_deploy.security import secure_config
 
 CONFIG_ROOT = "/etc/usv"          # where the units look for a vessel's files: /etc/usv/<id>/
 LOG_ROOT = "/var/log/usv"         # where the agents write their MCAP logs (the units' LogsDirectory)
@@ -136,8 +137,6 @@ def render(inventory: Inventory, vessel_id: str, out: Path) -> list[Path]:
     }
     environment = [f"USV_VESSEL={vessel.id}", f"USV_FLEET={inventory.fleet}"]
     if inventory.tls:
-        from usv_deploy.security import secure_config
-
         certs = {name: {kind: f"{folder}/certs/{Path(path).name}" for kind, path in paths.items()}
                  for name, paths in _certificate_names(vessel.id).items()}
         connect = [f"tls/{inventory.router.address}:{inventory.router.port}"]
@@ -167,8 +166,6 @@ def render_router(inventory: Inventory, out: Path, certs_dir: str | None = None)
     listen = [f"{'tls' if inventory.tls else 'tcp'}/0.0.0.0:{inventory.router.port}"]
     vessels = [v.id for v in inventory.vessels]
     if inventory.tls:
-        from usv_deploy.security import secure_config
-
         folder = certs_dir or inventory.tls
         certs = {"ca": {"cert": f"{folder}/ca.pem"},
                  "router": {"cert": f"{folder}/router.pem", "key": f"{folder}/router-key.pem"}}

@@ -13,11 +13,11 @@ import sys
 import threading
 from pathlib import Path
 
+import zenoh
+
 
 def router_config(config_file: Path | None, listen: list[str]):
     """The router's zenoh.Config: the file if given, else plain TCP on `listen`; mode is always router."""
-    import zenoh
-
     config = zenoh.Config.from_file(str(config_file)) if config_file is not None else zenoh.Config()
     config.insert_json5("mode", json.dumps("router"))
     if listen:
@@ -30,8 +30,6 @@ def router_config(config_file: Path | None, listen: list[str]):
 def run_router(config_file: Path | None, listen: list[str], ready: threading.Event | None = None,
                stopping: threading.Event | None = None) -> int:
     """Run until SIGINT/SIGTERM (or until `stopping` is set); `ready` is set once the router is up."""
-    import zenoh
-
     stopping = stopping or threading.Event()
     if threading.current_thread() is threading.main_thread():
         for signum in (signal.SIGINT, signal.SIGTERM):

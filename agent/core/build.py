@@ -1,4 +1,5 @@
-"""A vessel's core as a mission starts it: its parameters and what it knows at deployment."""
+"""A vessel's core as a mission starts it: the one place its starting state is built (agent process,
+in-process runner, replay), from its parameters and what it knows at deployment."""
 
 from __future__ import annotations
 
@@ -6,9 +7,10 @@ import numpy as np
 from pydantic import Field
 
 from agent.config import PositiveFloat, StrictModel
-from agent.core.neighbours import NeighbourPrior
+from agent.core.estimators import PLKF
+from agent.core.neighbours import History, NeighbourPrior
 from agent.core.params import AgentParams
-from agent.core.vessel import VesselAgent
+from agent.core.state import Health, OwnMotion, VesselState
 
 
 class InitialEstimates(StrictModel):
@@ -21,10 +23,13 @@ class InitialEstimates(StrictModel):
     stamp: float = Field(0.0, description="time (s) the estimates refer to")
 
 
-def build_core(vessel_id: str, params: AgentParams, initial: InitialEstimates) -> VesselAgent:
-    """The vessel's core as a mission starts it; the one place a core is built (agent process, in-process
-    runner, replay)."""
+def initial_state(vessel_id: str, params: AgentParams, initial: InitialEstimates) -> VesselState:
+    """The state a vessel's core starts from: what it knows at deployment (`initial`, which may be empty:
+    then the target filter starts from the first bearing and the pair filters from the shares)."""
     priors = {j: NeighbourPrior(np.array(p), initial.neighbour_variance * np.eye(2), initial.stamp)
               for j, p in initial.neighbours.items()}
-    target = None if initial.target is None else np.array(initial.target)
-    return VesselAgent(vessel_id, params, target, initial.target_variance * np.eye(4), priors=priors)
+    tracker = None
+    if initial.target is not None:
+        tracker = PLKF(params.target, np.array(initial.target), initial.target_variance * np.eye(4), dt=params.dt)
+    return VesselState(vessel=vessel_id, own=History(params.fleet.history_ticks), motion=OwnMotion(), tracks={},
+                       priors=priors, tracker=tracker, phase=None, health=Health())

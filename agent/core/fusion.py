@@ -1,5 +1,9 @@
 """Covariance intersection of two estimates of the same quantity whose errors are correlated in an unknown way.
 
+Not in the paper, whose vessels exchange only displacements and phases: it fuses estimates of the pair
+position p_ij (10) and of the target state x_io of (24), (25) (agent/core/cooperation.py; docs/equations.md
+lists it among the departures, with the measurement).
+
 Two vessels estimate the same pair, p_ij and p_ji = -p_ij, from ranges they both measure and from priors
 that may share history, so the correlation of their errors is unknown and a plain Kalman fusion would be
 overconfident. Covariance intersection (Julier and Uhlmann, 1997; the fusion rule of the CKHCF reference

@@ -6,6 +6,9 @@ filter over every stamp at which both odometries are known, in order; the filter
 the last such stamp (`epoch`). Stamps whose share was lost are skipped, and the next usable stamp's
 displacement covers the whole interval, because odometry is cumulative. For control, the estimate is
 carried from the epoch to the current time with vessel i's own odometry and j's commanded velocity.
+
+The pair state is p_ij of (10); the odometry differences are (5) and (11), the range pairing (12), (13),
+(14), the prediction (15).
 """
 
 from __future__ import annotations
@@ -54,6 +57,13 @@ class History:
     def keys_after(self, key: int) -> list[int]:
         return sorted(k for k in self._values if k > key)
 
+    def items(self) -> list[tuple[int, object]]:
+        return sorted(self._values.items())
+
+    def restore(self, pairs) -> None:
+        """Take back what `items` gave (agent/core/snapshot.py)."""
+        self._values = dict(pairs)
+
 
 class NeighbourTrack:
     """Relative position of one neighbour j, estimated by one inter-vessel filter."""
@@ -87,7 +97,8 @@ class NeighbourTrack:
         """Start the filter from `prior` once both odometries are known at or after its stamp.
 
         When j's odometry at exactly the prior's stamp was lost, the prior is carried to the first stamp at
-        which both are known, moving j by its shared velocity (a small, rare approximation)."""
+        which both are known, moving j by its shared velocity (a small, rare approximation). The prior is
+        the initial estimate of (10)."""
         key = stamp_key(prior.stamp)
         candidates = [k for k in self.odometry.keys_after(key - 1) if own.get(k) is not None]
         if not candidates:
@@ -110,7 +121,8 @@ class NeighbourTrack:
         return True
 
     def advance(self, own: History) -> None:
-        """Run the filter over every stamp after the epoch at which both odometries are known."""
+        """Run the filter over every stamp after the epoch at which both odometries are known: the relative
+        displacement (5), (11) predicts (15), and each range paired with the previous one updates, (12), (13), (14)."""
         self.outcomes = []
         if self.estimator is None or self.epoch is None:
             return
@@ -140,7 +152,8 @@ class NeighbourTrack:
                 self.rejected += 1
 
     def estimate_at(self, own: History, now: float) -> np.ndarray | None:
-        """p^_ij at `now`: the filter's estimate carried forward by i's odometry and j's shared velocity."""
+        """p^_ij at `now`: the filter's estimate carried forward by i's odometry and j's shared velocity, (2),
+        as in (15)."""
         if self.estimator is None or self.epoch is None:
             return None
         key = stamp_key(now)

@@ -24,7 +24,7 @@ class MckfParams(StrictModel):
 
 
 class AkfParams(StrictModel):
-    """Sage-Husa noise estimation with a fading memory (see agent/estimators/akf.py)."""
+    """Sage-Husa noise estimation with a fading memory (see agent/core/estimators/akf.py)."""
 
     fading_factor: float = Field(0.98, gt=0, lt=1, description="b: weight of the past in the noise estimate")
     min_scale: PositiveFloat = Field(0.05, description="lower bound of the estimated noise scale")
@@ -119,7 +119,7 @@ class ControlParams(StrictModel):
         4.5,
         description=(
             "cap on the sum of kappa_ij over the neighbours (Table I's value for n = 4); keeps the sampled "
-            "loop damped for large fleets; null for (33) as written (agent/control/formation.py)"
+            "loop damped for large fleets; null for (33) as written (agent/core/control/formation.py)"
         ),
     )
     avoidance_gain: PositiveFloat = Field(1.7, description="k_1")
@@ -147,7 +147,7 @@ class FleetParams(StrictModel):
         True,
         description=(
             "fuse each neighbour's shared estimate of p_ji with our p_ij by covariance intersection, so the "
-            "two vessels of a pair agree (agent/fusion.py); false: each vessel keeps its own, as in the paper"
+            "two vessels of a pair agree (agent/core/fusion.py); false: each vessel keeps its own, as in the paper"
         ),
     )
     fuse_target_estimates: bool = Field(
@@ -155,6 +155,23 @@ class FleetParams(StrictModel):
         description=(
             "fuse the neighbours' target estimates, moved to this vessel through p_ij, with our own by "
             "covariance intersection (bearings from several angles triangulate); false: as in the paper"
+        ),
+    )
+    target_gate: PositiveFloat = Field(
+        18.47,
+        description=(
+            "a neighbour's target estimate whose squared Mahalanobis distance from ours exceeds this is left "
+            "out of the fusion (counted): the chi-square 99.9 % point for 4 degrees of freedom, so a good "
+            "estimate is dropped once in a thousand and a faulty one is more likely than noise beyond it"
+        ),
+    )
+    target_route_factor: PositiveFloat = Field(
+        1.0,
+        description=(
+            "a joiner's pair filter starts from both vessels' target estimates once the trace of their two "
+            "position covariances is at most this times P_io,0. Measured on the join scenario, 10 runs "
+            "(docs/fleet.md §7): 4 left 2 runs with pair errors of 3 m, 1 settles all 10 with half the error, "
+            "0.25 waits too long and falls back to the far worse range prior"
         ),
     )
 

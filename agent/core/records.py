@@ -1,9 +1,9 @@
-"""What one vessel's tick takes in and gives out: plain immutable records, no I/O.
+"""What one vessel's tick takes in and gives out: plain immutable records, no I/O, and their JSON forms.
 
 Frames. Every vessel keeps its own odometry frame: its origin is wherever the vessel started, and its axes
 are the common heading reference every vessel's IMU/compass gives (as in the paper, displacements of
-different vessels can be subtracted). Positions in `Odometry` are cumulative dead-reckoned positions in that
-frame, so the displacement over any interval is a difference of two of them and a lost message loses
+different vessels can be subtracted). Positions in `OdometryReading` are cumulative dead-reckoned positions in
+that frame, so the displacement over any interval is a difference of two of them and a lost message loses
 nothing (../shared/DESIGN.md, principle 5). Relative vectors (ranges' geometry, bearings, sonar points,
 estimates) are in the common orientation and need no origin.
 """
@@ -15,9 +15,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from agent.core.estimators.plkf import BearingOutcome
+
 
 @dataclass(frozen=True)
-class Odometry:
+class OdometryReading:
     """Cumulative dead-reckoned position (m) and heading (rad) of a vessel at `stamp` (s)."""
 
     stamp: float
@@ -38,7 +40,7 @@ class Share:
     """
 
     sender: str
-    odometry: Odometry
+    odometry: OdometryReading
     velocity: np.ndarray       # (2,)
     phase: float
     target: np.ndarray | None = None                 # (4,) [p_jo; v_o]
@@ -51,7 +53,7 @@ class TickInputs:
     """Everything one tick of vessel i sees. Missing sensors are None or empty, never NaN."""
 
     time: float                                   # this tick's time (s), the clock the agent runs on
-    odometry: Odometry | None                     # own odometry at `time` (None: no fresh odometry)
+    odometry: OdometryReading | None              # own odometry at `time` (None: no fresh odometry)
     ranges: Mapping[str, float] = field(default_factory=dict)   # neighbour id -> range (m) measured at `time`
     shares: Mapping[str, Share] = field(default_factory=dict)   # neighbour id -> latest share received
     bearing: np.ndarray | None = None             # (2,) measured unit vector from the target to the vessel
@@ -67,3 +69,104 @@ class Command:
 
 
 STOP = Command(0.0, 0.0)
+
+
+@dataclass(frozen=True)
+class NeighbourRecord:
+    position: np.ndarray          # p^_ij at the tick's time (m)
+    covariance: np.ndarray        # of the filter state at its epoch
+    epoch: float                  # time the filter state refers to (s)
+    updates: int
+    rejected: int
+    iterations: int               # MCKF iterations of the last update
+    outcomes: tuple = ()          # (stamp s, range m, UpdateOutcome) of each update this tick ran
+
+
+@dataclass(frozen=True)
+class TickRecord:
+    """Everything one tick estimated and decided, for logs and metrics."""
+
+    time: float
+    phase: float
+    neighbours: dict[str, NeighbourRecord]
+    target_state: np.ndarray      # x^_io = [p_io; v_io]
+    target_covariance: np.ndarray
+    bearing_used: bool
+    bearing_outcome: BearingOutcome | None   # the PLKF's update this tick (None before it has a target)
+    formation_velocity: np.ndarray
+    tracking_velocity: np.ndarray
+    avoidance_velocity: np.ndarray
+    safety_correction: np.ndarray  # what the safety filter added to (35)
+    velocity_command: np.ndarray
+    command: Command
+    saturated: dict[str, bool]
+    health: dict[str, int]
+
+
+@dataclass(frozen=True)
+class TickOutput:
+    command: Command
+    share: Share | None
+    record: TickRecord | None
+
+
+# ----- JSON forms (plain dicts). JSON writes a float as the shortest text that reads back to the same float,
+# so a record read back from a log or a snapshot is bit for bit the one written. -----
+def floats(values) -> list[float]:
+    return np.asarray(values, dtype=float).ravel().tolist()
+
+
+def odometry_to_json(odometry: OdometryReading) -> dict:
+    return {"stamp": float(odometry.stamp), "position": floats(odometry.position),
+            "heading": float(odometry.heading)}
+
+
+def odometry_from_json(data: dict) -> OdometryReading:
+    return OdometryReading(data["stamp"], np.array(data["position"], dtype=float), data["heading"])
+
+
+def share_to_json(share: Share) -> dict:
+    return {
+        "sender": share.sender, "odometry": odometry_to_json(share.odometry), "velocity": floats(share.velocity),
+        "phase": float(share.phase),
+        "target": None if share.target is None else floats(share.target),
+        "target_covariance": None if share.target_covariance is None else floats(share.target_covariance),
+        "neighbours": {j: {"position": floats(p), "covariance": floats(c)} for j, (p, c) in share.neighbours.items()},
+    }
+
+
+def share_from_json(data: dict) -> Share:
+    return Share(
+        sender=data["sender"], odometry=odometry_from_json(data["odometry"]),
+        velocity=np.array(data["velocity"], dtype=float), phase=data["phase"],
+        target=None if data["target"] is None else np.array(data["target"], dtype=float),
+        target_covariance=None if data["target_covariance"] is None
+        else np.array(data["target_covariance"], dtype=float).reshape(4, 4),
+        neighbours={j: (np.array(e["position"], dtype=float), np.array(e["covariance"], dtype=float).reshape(2, 2))
+                    for j, e in data["neighbours"].items()},
+    )
+
+
+def inputs_to_json(inputs: TickInputs) -> dict:
+    return {
+        "time": float(inputs.time),
+        "odometry": None if inputs.odometry is None else odometry_to_json(inputs.odometry),
+        "ranges": {j: float(r) for j, r in inputs.ranges.items()},
+        "bearing": None if inputs.bearing is None else floats(inputs.bearing),
+        "obstacle_points": None if inputs.obstacle_points is None
+        else np.asarray(inputs.obstacle_points, dtype=float).reshape(-1, 2).tolist(),
+        "shares": {j: share_to_json(share) for j, share in inputs.shares.items()},
+    }
+
+
+def inputs_from_json(data: dict) -> TickInputs:
+    points = data["obstacle_points"]
+    return TickInputs(
+        time=data["time"],
+        odometry=None if data["odometry"] is None else odometry_from_json(data["odometry"]),
+        ranges=dict(data["ranges"]),
+        shares={j: share_from_json(s) for j, s in data["shares"].items()},
+        bearing=None if data["bearing"] is None else np.array(data["bearing"], dtype=float),
+        obstacle_points=None if points is None else np.array(points, dtype=float).reshape(-1, 2),
+    )
+

@@ -4,6 +4,10 @@ Each topic gets a channel whose schema is the JSON schema of the pydantic model 
 so a file opens in Foxglove and every field can be plotted. The chunk in progress is written out at least
 every `flush_seconds` of wall time: a process killed hard loses at most about that much, and
 `read_messages` reads an unfinished file up to its last complete chunk.
+
+Every file records its log format in a metadata record `usv-log-format` (`version`), written first with
+the `run` metadata: a reader checks it before reading on (mission_log/reader.py). A message's JSON may gain
+fields within a version; a change an older reader would misread needs a new version.
 """
 
 from __future__ import annotations
@@ -13,23 +17,28 @@ import time
 import warnings
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Self
 
 import orjson
+from mcap.exceptions import McapError
+from mcap.stream_reader import Channel, Message, Metadata, StreamReader
+from mcap.writer import CompressionType, Writer
 from pydantic import BaseModel
 
 PROFILE = ""  # plain JSON messages, no ROS profile
 NUMPY = orjson.OPT_SERIALIZE_NUMPY
+FORMAT_RECORD = "usv-log-format"   # metadata record: {"version": FORMAT_VERSION}
+FORMAT_VERSION = "1"               # the channels of agent/runtime/log_schema.py, the `run` metadata
 
 
 class McapLog:
     def __init__(self, path: str | Path, flush_seconds: float = 1.0, metadata: dict[str, str] | None = None):
-        from mcap.writer import CompressionType, Writer
-
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._file = self.path.open("wb")
         self._writer = Writer(self._file, compression=CompressionType.ZSTD)
         self._writer.start(profile=PROFILE, library="usv-circumnav")
+        self._writer.add_metadata(FORMAT_RECORD, {"version": FORMAT_VERSION})
         if metadata:
             self._writer.add_metadata("run", {k: str(v) for k, v in metadata.items()})
         self._channels: dict[str, int] = {}
@@ -81,26 +90,33 @@ class McapLog:
             self._last_flush = now
 
     def close(self) -> None:
-        """Write the summary and footer; safe to call twice."""
+        """Write the summary and footer and close the file; safe to call twice. If writing fails (a full disk)
+        the file is closed all the same, as an unfinished log, and the error raised; a second call does
+        nothing."""
         if self._closed:
             return
         self._closed = True
-        self._writer.finish()
-        self._file.close()
+        try:
+            self._writer.finish()
+        finally:
+            self._file.close()
 
-    def __enter__(self) -> McapLog:
+    def __enter__(self) -> Self:
         return self
 
-    def __exit__(self, *exc) -> None:
-        self.close()
+    def __exit__(self, kind, error, traceback) -> None:
+        try:
+            self.close()
+        except Exception as failure:
+            if error is None:
+                raise
+            # The exception that ended the block is the one to see; the log's failure goes with it.
+            error.add_note(f"and closing the log {self.path} failed: {type(failure).__name__}: {failure}")
 
 
 def read_messages(path: str | Path) -> Iterator[tuple[str, int, dict]]:
     """(topic, log_time_ns, decoded JSON) of every message, in file order. A file cut short (a process killed
     hard) is read up to its last complete record, with a warning."""
-    from mcap.exceptions import McapError
-    from mcap.stream_reader import Channel, Message, StreamReader
-
     channels: dict[int, str] = {}
     with Path(path).open("rb") as handle:
         reader = StreamReader(handle, skip_magic=False)
@@ -118,9 +134,6 @@ def read_messages(path: str | Path) -> Iterator[tuple[str, int, dict]]:
 def read_metadata(path: str | Path) -> dict[str, dict[str, str]]:
     """The metadata records of a log (name -> key -> value); they are written first, so an unfinished file
     has them too."""
-    from mcap.exceptions import McapError
-    from mcap.stream_reader import Metadata, StreamReader
-
     found: dict[str, dict[str, str]] = {}
     with Path(path).open("rb") as handle:
         try:

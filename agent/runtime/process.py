@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 
 import yaml
@@ -11,15 +10,14 @@ from pydantic import TypeAdapter, ValidationError
 
 from agent.config import ConfigError, StrictModel, load_yaml, parse_mapping
 from agent.contract import VesselId
+from agent.runtime.zenoh_session import config_layers, zenoh_config
 
 
 def print_config(what: str, settings: StrictModel) -> None:
-    """The settings a process would run with, as YAML, and where its Zenoh configuration comes from."""
-
-    source = os.environ.get("ZENOH_CONFIG")
+    """The settings a process would run with, as YAML, and the layers its Zenoh configuration is made of."""
     print(f"# {what}: effective settings")
-    if source:
-        print(f"# Zenoh: ZENOH_CONFIG={source} is used instead of the 'zenoh' section below")
+    for layer in config_layers("the 'zenoh' section below"):
+        print(f"# Zenoh {layer}")
     print(yaml.safe_dump(settings.model_dump(mode="json"), sort_keys=False), end="")
 
 
@@ -44,6 +42,7 @@ def vessel_process(prog: str, description: str, model: type[StrictModel], argv: 
         return 2
     try:
         settings = load_yaml(model, args.config) if args.config else parse_mapping(model, {}, "<defaults>")
+        zenoh_config(settings.zenoh)   # a bad ZENOH_CONFIG file or override: one line now, not a traceback later
     except ConfigError as error:
         print(f"{prog}: {error}", file=sys.stderr)
         return 2

@@ -1,15 +1,31 @@
-"""The Zenoh session settings every process of the fleet shares (agents, bridges, launcher, operator tools)."""
+"""The Zenoh session settings every process of the fleet shares (agents, bridges, launcher, operator tools),
+and the session's configuration, made in two layers:
+
+1. the base: the json5 file named by `ZENOH_CONFIG` when it is set (on a boat, the file usv-deploy renders),
+   else our settings (the `zenoh` section of the process's YAML);
+2. on top, `ZENOH_CONFIG_OVERRIDE`, read as rmw_zenoh reads it: `key/path=json5value` pairs separated by `;`,
+   e.g. `mode="client";connect/endpoints=["tcp/10.0.0.2:7447"]`, to change a key or two without a file.
+   (A `;` inside a quoted string or brackets belongs to the value: an endpoint's configuration may hold one.)
+
+A bad file or override is a `ConfigError` of one line. Zenoh's own log goes to stderr: errors only, unless
+`RUST_LOG` asks for more (`RUST_LOG=zenoh=debug` to debug a boat's link).
+"""
 
 from __future__ import annotations
 
+import functools
 import json
 import os
+import re
 from typing import Literal
 
 import zenoh
 from pydantic import Field
 
-from agent.config import PositiveFloat, StrictModel
+from agent.config import ConfigError, PositiveFloat, StrictModel
+
+FILE_VARIABLE = "ZENOH_CONFIG"
+OVERRIDE_VARIABLE = "ZENOH_CONFIG_OVERRIDE"
 
 
 class ZenohSettings(StrictModel):
@@ -22,12 +38,87 @@ class ZenohSettings(StrictModel):
                           "boot before the shore router is up); then it exits and its service restarts it")
 
 
-def zenoh_config(settings: ZenohSettings):
-    """A zenoh.Config from our settings; ZENOH_CONFIG (a json5 file) takes precedence when set."""
+def open_session(settings: ZenohSettings) -> zenoh.Session:
+    """A Zenoh session configured by `zenoh_config`."""
+    return zenoh.open(zenoh_config(settings))
 
-    path = os.environ.get("ZENOH_CONFIG")
-    if path:
+
+def zenoh_config(settings: ZenohSettings) -> zenoh.Config:
+    """The session's zenoh.Config: the ZENOH_CONFIG file or `settings`, then ZENOH_CONFIG_OVERRIDE on top.
+    Also starts Zenoh's log, once per process (every session is configured here first)."""
+    init_zenoh_log()
+    path = os.environ.get(FILE_VARIABLE)
+    config = _from_file(path) if path else _from_settings(settings)
+    for key, value in override_pairs(os.environ.get(OVERRIDE_VARIABLE, "")):
+        try:
+            config.insert_json5(key, value)
+        except zenoh.ZError as error:
+            raise ConfigError(f"{OVERRIDE_VARIABLE}: {key}={value}: {_reason(error)}") from None
+    return config
+
+
+@functools.cache
+def init_zenoh_log() -> None:
+    """Zenoh's log to stderr: the levels RUST_LOG gives if it is set, else errors only. Zenoh sets its logger
+    up once per process, so this runs once (a second call is harmless anyway)."""
+    zenoh.init_log_from_env_or("error")
+
+
+def config_layers(settings_section: str = "the 'zenoh' section") -> list[str]:
+    """Where a session's configuration comes from, base first, in words (for --print-config)."""
+    path = os.environ.get(FILE_VARIABLE)
+    layers = [f"base: the file {FILE_VARIABLE}={path} ({settings_section} is not used)" if path
+              else f"base: {settings_section}"]
+    pairs = override_pairs(os.environ.get(OVERRIDE_VARIABLE, ""))
+    if pairs:
+        layers.append(f"then {OVERRIDE_VARIABLE}: " + "; ".join(f"{key}={value}" for key, value in pairs))
+    return layers
+
+
+def override_pairs(text: str) -> list[tuple[str, str]]:
+    """The (key path, json5 value) pairs of a ZENOH_CONFIG_OVERRIDE, in order; ConfigError on a part that is
+    not `key/path=value`."""
+    pairs = []
+    for part in _split_outside_values(text):
+        if not part.strip():
+            continue   # a trailing or doubled ';'
+        key, equals, value = part.partition("=")
+        if not equals or not key.strip() or not value.strip():
+            raise ConfigError(f"{OVERRIDE_VARIABLE}: {part.strip()!r} is not key/path=json5value "
+                              "(pairs are separated by ';', e.g. mode=\"client\";scouting/multicast/enabled=false)")
+        pairs.append((key.strip(), value.strip()))
+    return pairs
+
+
+def _split_outside_values(text: str) -> list[str]:
+    """`text` split at each `;` that is outside quotes and brackets."""
+    parts, start, depth, quote, escaped = [], 0, 0, "", False
+    for n, char in enumerate(text):
+        if escaped:
+            escaped = False
+        elif quote:
+            escaped = char == "\\"
+            quote = "" if char == quote else quote
+        elif char in "\"'":
+            quote = char
+        elif char in "[{":
+            depth += 1
+        elif char in "]}":
+            depth = max(0, depth - 1)
+        elif char == ";" and depth == 0:
+            parts.append(text[start:n])
+            start = n + 1
+    return [*parts, text[start:]]
+
+
+def _from_file(path: str) -> zenoh.Config:
+    try:
         return zenoh.Config.from_file(path)
+    except zenoh.ZError as error:
+        raise ConfigError(f"{FILE_VARIABLE}={path}: {_reason(error)}") from None
+
+
+def _from_settings(settings: ZenohSettings) -> zenoh.Config:
     config = zenoh.Config()
     config.insert_json5("mode", json.dumps(settings.mode))
     config.insert_json5("scouting/multicast/enabled", json.dumps(settings.multicast_scouting))
@@ -38,3 +129,16 @@ def zenoh_config(settings: ZenohSettings):
     if settings.mode == "client":
         config.insert_json5("connect/timeout_ms", json.dumps(int(settings.connect_timeout * 1000)))
     return config
+
+
+def _reason(error: Exception) -> str:
+    """Zenoh's error in one line: what is wrong and where in the json5, without Rust's debug wrapping and
+    source location."""
+    text = re.sub(r"\s+at \S+\.rs:\d+\.?\s*$", "", str(error))
+    inner = re.search(r'msg: "(.*?)", location', text, re.DOTALL) or re.search(r'Str\("(.*?)"\)', text, re.DOTALL)
+    if inner:
+        text = inner.group(1).replace("\\n", "\n").replace('\\"', '"')
+    lines = [line.strip() for line in text.splitlines() if line.strip()]
+    where = next((line[3:].strip() for line in lines if line.startswith("-->")), None)
+    what = next((line[1:].strip() for line in lines if line.startswith("=")), None) or (lines[0] if lines else "?")
+    return f"{what} (at {where})" if where else what

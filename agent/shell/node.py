@@ -1,4 +1,4 @@
-"""The agent process of one vessel: a thin Zenoh shell around `VesselAgent`.
+"""The agent process of one vessel: a thin Zenoh shell around the core's `step`.
 
 One Zenoh session (peer mode, explicit endpoints, multicast scouting off unless configured). Subscriber
 callbacks only hand payloads to the `InputGate` (no Zenoh calls, no blocking). The tick runs on sim time
@@ -12,6 +12,7 @@ SIGINT and SIGTERM stop it cleanly.
 
 from __future__ import annotations
 
+import contextlib
 import signal
 import sys
 import threading
@@ -34,21 +35,25 @@ from agent.contract import (
     seconds,
     vessel_of,
 )
-from agent.core.build import build_core
-from agent.core.vessel import VesselAgent
+from agent.core.build import initial_state
+from agent.core.snapshot import state_to_json
+from agent.core.state import VesselState
+from agent.core.step import step
+from agent.runtime.log_schema import CoreState
 from agent.runtime.mcap_log import McapLog
 from agent.runtime.process import vessel_process
-from agent.runtime.zenoh_session import zenoh_config
+from agent.runtime.zenoh_session import open_session
 from agent.shell.gate import OWN_TOPICS, InputGate
 from agent.shell.settings import NodeSettings
 from agent.shell.tick_log import TickLogger, log_topic
 
 
 class AgentNode:
-    def __init__(self, vessel_id: str, settings: NodeSettings, core: VesselAgent | None = None) -> None:
+    def __init__(self, vessel_id: str, settings: NodeSettings, state: VesselState | None = None) -> None:
         self.id = vessel_id
         self.settings = settings
-        self.core = core or build_core(vessel_id, settings.agent, settings.initial)
+        self.params = settings.agent
+        self.state = state or initial_state(vessel_id, settings.agent, settings.initial)
         self.live_peers: set[str] = set()
         self.gate = InputGate(vessel_id, max_age=settings.max_input_age, known_peers=lambda: set(self.live_peers),
                               hold_shares=settings.clock == "sim")
@@ -113,7 +118,13 @@ class AgentNode:
 
     # ----- the loop -----
     def run(self, max_ticks: int | None = None) -> None:
-        with zenoh.open(zenoh_config(self.settings.zenoh)) as session:
+        """Tick until stopped (or `max_ticks`); the log is finished however the loop ends, an exception
+        included, so that the file holds every tick up to the failure."""
+        with self.log if self.log is not None else contextlib.nullcontext():
+            self._run(max_ticks)
+
+    def _run(self, max_ticks: int | None) -> None:
+        with open_session(self.settings.zenoh) as session:
             subscribers = [session.declare_subscriber(key(self.id, t), self._on_input) for t in OWN_TOPICS]
             subscribers.append(session.declare_subscriber(every("share"), self._on_input))
             if self.settings.clock == "sim":
@@ -165,17 +176,14 @@ class AgentNode:
             watcher.undeclare()
             for subscriber in subscribers:
                 subscriber.undeclare()
-        if self.log is not None:
-            self.log.close()
 
     def _log_summary(self, wall_seconds: float, cpu_seconds: float) -> None:
         """The run as a whole: what the process cost (all its threads, Zenoh's included) and what it refused."""
         if self.log is None:
             return
         try:
-            self.log.log(log_topic(self.id, "summary"), {
-                "ticks": self.ticks, "overruns": self.overruns, "refused": dict(self.gate.rejected),
-                "loop_seconds": wall_seconds, "cpu_seconds": cpu_seconds}, nanoseconds(self.now()))
+            self.tick_log.summary(nanoseconds(self.now()), ticks=self.ticks, overruns=self.overruns,
+                                  refused=self.gate.rejected, loop_seconds=wall_seconds, cpu_seconds=cpu_seconds)
         except Exception:  # noqa: BLE001  (the summary must not stop a clean shutdown)
             self.log_errors += 1
 
@@ -202,7 +210,7 @@ class AgentNode:
             self._deliver_shares(clock)
         now = self.now() if clock is None else seconds(clock.stamp_ns)
         inputs = self.gate.snapshot(now)
-        output = self.core.tick(inputs)
+        self.state, output = step(self.params, self.state, inputs)
         stamp = nanoseconds(now)
         # The share goes first: once the bridge has this tick's status, the share is on its way.
         if output.share is not None:
@@ -230,6 +238,11 @@ class AgentNode:
         if self.log is not None:
             try:
                 self.tick_log.tick(stamp, inputs, output, command, status, wire)
+                every = self.settings.snapshot_every
+                if every and self.ticks % every == 0:
+                    # After this tick: replay can start at the next one (agent/core/snapshot.py).
+                    self.log.log(log_topic(self.id, "state"), state_to_json(self.state), stamp,
+                                 schema=CoreState)
             except Exception as error:  # a full disk or a bad value must not stop the vessel's control
                 self.log_errors += 1
                 if self.log_errors == 1:

@@ -7,7 +7,11 @@ Per tick, on topics under `/<id>/`:
 - `estimates`: every estimate with its covariance, each inter-vessel filter's updates of the tick
   (innovation, its predicted variance, the MCKF weight, accepted or not), the PLKF's bearing update, the
   velocity terms of the controller and which limits saturated;
-- `tf` (foxglove.FrameTransforms) and, once a second, `scene` (foxglove.SceneUpdate): see agent/foxglove.py.
+- `tf` (foxglove.FrameTransforms) and, once a second, `scene` (foxglove.SceneUpdate): see agent/runtime/foxglove.py;
+- at the end, `summary`: the run as a whole (`TickLogger.summary`).
+
+Each channel's JSON schema comes from a model of agent/runtime/log_schema.py; the messages themselves are plain
+dicts (a pydantic object per tick would cost about as much as the tick).
 
 JSON writes a float as the shortest text that reads back to the same float, so what is read back from a log
 is bit for bit what the core saw.
@@ -16,14 +20,12 @@ is bit for bit what the core saw.
 from __future__ import annotations
 
 import math
-
-import numpy as np
+from collections.abc import Mapping
 
 from agent.contract import key
-from agent.core.records import Odometry, Share, TickInputs
-from agent.core.vessel import TickOutput, TickRecord
+from agent.core.records import TickInputs, TickOutput, TickRecord, floats, inputs_to_json
 from agent.runtime import foxglove
-
+from agent.runtime.log_schema import AgentSummary, Estimates, Inputs
 
 
 def log_topic(vessel: str, name: str) -> str:
@@ -32,86 +34,27 @@ def log_topic(vessel: str, name: str) -> str:
     return key(vessel, name) if name in ("cmd", "status") else f"/{vessel}/{name}"
 
 
-def _floats(values) -> list[float]:
-    return np.asarray(values, dtype=float).ravel().tolist()
-
-
-def _odometry_to_json(odometry: Odometry) -> dict:
-    return {"stamp": float(odometry.stamp), "position": _floats(odometry.position),
-            "heading": float(odometry.heading)}
-
-
-def _odometry_from_json(data: dict) -> Odometry:
-    return Odometry(data["stamp"], np.array(data["position"], dtype=float), data["heading"])
-
-
-def share_to_json(share: Share) -> dict:
-    return {
-        "sender": share.sender, "odometry": _odometry_to_json(share.odometry), "velocity": _floats(share.velocity),
-        "phase": float(share.phase),
-        "target": None if share.target is None else _floats(share.target),
-        "target_covariance": None if share.target_covariance is None else _floats(share.target_covariance),
-        "neighbours": {j: {"position": _floats(p), "covariance": _floats(c)} for j, (p, c) in share.neighbours.items()},
-    }
-
-
-def share_from_json(data: dict) -> Share:
-    return Share(
-        sender=data["sender"], odometry=_odometry_from_json(data["odometry"]),
-        velocity=np.array(data["velocity"], dtype=float), phase=data["phase"],
-        target=None if data["target"] is None else np.array(data["target"], dtype=float),
-        target_covariance=None if data["target_covariance"] is None
-        else np.array(data["target_covariance"], dtype=float).reshape(4, 4),
-        neighbours={j: (np.array(e["position"], dtype=float), np.array(e["covariance"], dtype=float).reshape(2, 2))
-                    for j, e in data["neighbours"].items()},
-    )
-
-
-def inputs_to_json(inputs: TickInputs) -> dict:
-    return {
-        "time": float(inputs.time),
-        "odometry": None if inputs.odometry is None else _odometry_to_json(inputs.odometry),
-        "ranges": {j: float(r) for j, r in inputs.ranges.items()},
-        "bearing": None if inputs.bearing is None else _floats(inputs.bearing),
-        "obstacle_points": None if inputs.obstacle_points is None
-        else np.asarray(inputs.obstacle_points, dtype=float).reshape(-1, 2).tolist(),
-        "shares": {j: share_to_json(share) for j, share in inputs.shares.items()},
-    }
-
-
-def inputs_from_json(data: dict) -> TickInputs:
-    points = data["obstacle_points"]
-    return TickInputs(
-        time=data["time"],
-        odometry=None if data["odometry"] is None else _odometry_from_json(data["odometry"]),
-        ranges=dict(data["ranges"]),
-        shares={j: share_from_json(s) for j, s in data["shares"].items()},
-        bearing=None if data["bearing"] is None else np.array(data["bearing"], dtype=float),
-        obstacle_points=None if points is None else np.array(points, dtype=float).reshape(-1, 2),
-    )
-
-
 def estimates_to_json(record: TickRecord) -> dict:
     bearing = record.bearing_outcome
     return {
         "time": record.time, "phase": record.phase,
         "neighbours": {j: {
-            "position": _floats(n.position), "covariance": _floats(n.covariance), "epoch": n.epoch,
+            "position": floats(n.position), "covariance": floats(n.covariance), "epoch": n.epoch,
             "iterations": n.iterations, "updates": n.updates, "rejected": n.rejected,
             "outcomes": [{"stamp": stamp, "range": measured, "accepted": o.accepted, "reason": o.reason,
                           "iterations": o.iterations, "innovation": o.innovation,
                           "innovation_variance": o.innovation_variance, "weight": o.weight}
                          for stamp, measured, o in n.outcomes],
         } for j, n in record.neighbours.items()},
-        "target_state": None if record.target_state is None else _floats(record.target_state),
-        "target_covariance": None if record.target_covariance is None else _floats(record.target_covariance),
+        "target_state": None if record.target_state is None else floats(record.target_state),
+        "target_covariance": None if record.target_covariance is None else floats(record.target_covariance),
         "bearing": None if bearing is None else {
             "accepted": bearing.accepted, "reason": bearing.reason, "innovation": bearing.innovation,
             "innovation_variance": bearing.innovation_variance},
-        "velocity": {"formation": _floats(record.formation_velocity), "tracking": _floats(record.tracking_velocity),
-                     "avoidance": _floats(record.avoidance_velocity),
-                     "safety_correction": _floats(record.safety_correction),
-                     "command": _floats(record.velocity_command)},
+        "velocity": {"formation": floats(record.formation_velocity), "tracking": floats(record.tracking_velocity),
+                     "avoidance": floats(record.avoidance_velocity),
+                     "safety_correction": floats(record.safety_correction),
+                     "command": floats(record.velocity_command)},
         "saturated": {name: bool(flag) for name, flag in record.saturated.items()},
         "health": dict(record.health),
     }
@@ -131,15 +74,24 @@ class TickLogger:
         """Log one tick at time `stamp` (ns): `command` and `status` are the contract's messages (already
         encoded in `wire` when they went out)."""
         wire = wire or {}
-        self.log.log(log_topic(self.id, "inputs"), inputs_to_json(inputs), stamp)
+        self.log.log(log_topic(self.id, "inputs"), inputs_to_json(inputs), stamp, schema=Inputs)
         self.log.log(log_topic(self.id, "cmd"), command, stamp, data=wire.get("cmd"))
         if status is not None:
             self.log.log(log_topic(self.id, "status"), status, stamp, data=wire.get("status"))
         record = output.record
         if record is None:
             return
-        self.log.log(log_topic(self.id, "estimates"), estimates_to_json(record), stamp)
+        self.log.log(log_topic(self.id, "estimates"), estimates_to_json(record), stamp, schema=Estimates)
         self._log_frames(stamp, inputs, record)
+
+    def summary(self, stamp: int, *, ticks: int, overruns: int, refused: Mapping[str, int], loop_seconds: float,
+                cpu_seconds: float) -> None:
+        """Log the run as a whole at time `stamp` (ns), once at the end: ticks run, wall-clock overruns, inputs
+        refused by reason, and the wall and CPU seconds from the first tick. Built as the model (once a run),
+        so a wrong value fails here rather than in a reader."""
+        self.log.log(log_topic(self.id, "summary"), AgentSummary(
+            ticks=ticks, overruns=overruns, refused=dict(refused), loop_seconds=loop_seconds,
+            cpu_seconds=cpu_seconds), stamp)
 
     def _log_frames(self, stamp: int, inputs: TickInputs, record: TickRecord) -> None:
         me = foxglove.vessel_frame(self.id)

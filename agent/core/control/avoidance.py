@@ -1,4 +1,4 @@
-"""Vector-field obstacle avoidance (34)."""
+"""Vector-field obstacle avoidance (34), and a safety filter applied after (35) (not in the paper)."""
 
 from __future__ import annotations
 
@@ -25,7 +25,8 @@ def avoidance_velocity(points: np.ndarray | None, safety_distance: float, gain: 
 
 def safety_filter(velocity: np.ndarray, points: np.ndarray | None, min_clearance: float, rate: float
                   ) -> tuple[np.ndarray, bool]:
-    """Keep clear of land whatever the formation asks: a control-barrier-style limit on (35)'s command.
+    """Keep clear of land whatever the formation asks: a control-barrier-style limit on (35)'s command, not
+    in the paper ((35) bounds the push of (34) by U_vs, which the other terms of (35) can outweigh).
 
     With d the distance to the nearest obstacle point and n the unit vector from it to the vessel, the
     command may close on the point no faster than rate * (d - d_min): n^T v >= -rate (d - d_min). Inside

@@ -1,4 +1,9 @@
-"""Formation controller (27), (29)-(33) and the command of (31), with the paper's saturations.
+"""Formation controller (27), (29), (31), (33) and the command of (31), with the paper's saturations.
+
+The pieces of one vessel's command: desired offset (27), desired velocity (29), formation and tracking
+velocities (33), saturation sat(U, u) and the (surge, yaw rate) command of (31). The per-vessel sums, the
+desired pair offset (30) and the commanded velocity (32), or (35) with avoidance, are assembled from them in
+agent/core/command.py (`control_command`).
 
 Vectors are 2-D numpy arrays in the common heading reference; p_ij = p_i - p_j and p_io = p_i - p_o as in
 the paper, so p*_io is where vessel i should sit relative to the target.
@@ -14,7 +19,7 @@ from agent.angles import wrap_angle
 
 
 def saturate(bound: float, vector: np.ndarray) -> np.ndarray:
-    """sat(U, u) = min(U, |u|) / |u| u of (31), and 0 for u = 0."""
+    """sat(U, u) = min(U, |u|) / |u| u of (31), and 0 for u = 0; it bounds the terms of (32), (33), (35)."""
     norm = math.hypot(vector[0], vector[1])
     if norm <= bound:
         return vector
@@ -22,7 +27,8 @@ def saturate(bound: float, vector: np.ndarray) -> np.ndarray:
 
 
 def desired_offset(radius: float, phase: float) -> np.ndarray:
-    """(27): p*_io = r* [cos phi_i, sin phi_i]."""
+    """(27): p*_io = r* [cos phi_i, sin phi_i]. The desired pair offset (30) is the difference of two of
+    these, p*_ij = p*_io - p*_jo."""
     return np.array([radius * math.cos(phase), radius * math.sin(phase)])
 
 
@@ -32,7 +38,8 @@ def desired_velocity(radius: float, phase: float, next_phase: float, dt: float) 
 
 
 def neighbour_gain(count: int, gain: float, total_cap: float | None) -> float:
-    """kappa_ij for each of `count` neighbours, scaled down so that their sum stays within `total_cap`.
+    """kappa_ij of (33) for each of `count` neighbours, scaled down so that their sum stays within
+    `total_cap`.
 
     Summed over a complete graph, (33) moves vessel i with gain (n - 1) kappa_ij + kappa_io per metre of
     error, and the sampled loop is only well damped while dt times that stays well below 1; with Table I's

@@ -4,8 +4,8 @@ The paper leaves the gains K_m of (28) open. We take K_m = K > 0 for m = 1..floo
 With the sign of (28) (+ sin(m (phi_i - phi_j))) each harmonic m <= n/2 pushes the m-th phase order
 parameter |(1/n) sum_j exp(i m phi_j)| to zero, and the only arrangement that zeroes all of them is the
 splay state, phases 2 pi / n apart: it is the minimum of the potential sum_m K_m / m |p_m|^2, the all-to-all
-splay stabilisation of Sepulchre, Paley and Leonard (IEEE TAC 52(5), 2007). Harmonics above n/2 are left
-out because for them the splay state is not a minimum (n = 2, m = 2 would pull the pair together).
+splay stabilisation of Sepulchre, Paley and Leonard (IEEE TAC vol. 52 no. 5, 2007). Harmonics above n/2 are
+left out because for them the splay state is not a minimum (n = 2, m = 2 would pull the pair together).
 Because n is the current fleet size, a join or a leave changes the gains and the fleet re-spaces by itself.
 `tests/test_control.py` checks convergence for n = 2..12 from random phases and after joins and leaves.
 """
@@ -29,7 +29,8 @@ def oscillator_step(phase: float, neighbour_phases: Sequence[float], yaw_rate: f
     with n the fleet size including vessel i; the result is wrapped to (-pi, pi]."""
     n = len(neighbour_phases) + 1
     coupling = 0.0
-    for m in range(1, n // 2 + 1):
-        weight = gain / (m * n)
-        coupling += weight * sum(math.sin(m * (phase - other)) for other in neighbour_phases)
+    for m, k_m in enumerate(coupling_gains(n, gain), start=1):
+        if k_m == 0.0:
+            break  # K_m is zero for every m above n/2
+        coupling += k_m / (m * n) * sum(math.sin(m * (phase - other)) for other in neighbour_phases)
     return wrap_angle(phase + yaw_rate * dt + dt * coupling)

@@ -27,13 +27,20 @@ def sage_husa_scale(previous: float, count: int, fading: float, innovation: floa
 
 
 class AKF(RelativePositionEstimator):
-    """Kalman filter whose measurement-noise level is estimated online (Sage-Husa, fading memory)."""
+    """Kalman filter on (12) whose measurement-noise level (the scale on R_z of (14)) is estimated online
+    (Sage-Husa, fading memory); prediction (15) in the base class."""
 
     name = "akf"
 
     def _reset_extra(self) -> None:
         self._scale = 1.0
         self._count = 0
+
+    def _export_extra(self) -> dict:
+        return {"scale": self._scale, "count": self._count}
+
+    def _restore_extra(self, extra: dict) -> None:
+        self._scale, self._count = float(extra["scale"]), int(extra["count"])
 
     def _correct(self, z: float, dx: float, dy: float, rz: float) -> UpdateOutcome:
         p = self.params.akf

@@ -1,10 +1,11 @@
 """The one interface every inter-vessel relative position estimator offers.
 
-Life of an estimator for the pair (i, j), state p_ij in R^2:
+Life of an estimator for the pair (i, j), state p_ij = p_i - p_j in R^2, (10):
 
-- `predict(displacement)` each time the relative displacement delta~_ij = delta~_i - delta~_j over one
-  odometry interval is known; the state moves by it, (15).
-- `update(range_prev, range_now)` at a range epoch. `range_prev` is the range measured at the previous range
+- `predict(displacement)` each time the relative displacement delta~_ij = delta~_i - delta~_j of (13) over
+  one odometry interval is known; the state moves by it, (15).
+- `update(range_prev, range_now)` at a range epoch: z of (13), R_z from (14), and the subclass's correction
+  with the measurement model (12). `range_prev` is the range measured at the previous range
   epoch (the last accepted update, or `mark_range_epoch`), and the displacement used in (12) is the sum of
   every displacement predicted since then, so it covers exactly the interval between the two range epochs
   even when epochs are missed or irregular.
@@ -18,7 +19,7 @@ from __future__ import annotations
 
 import math
 from abc import ABC, abstractmethod
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
@@ -45,7 +46,6 @@ class UpdateOutcome:
     noise_scale: float = 1.0
 
 
-REJECTED_DISPLACEMENT = "displacement is not a finite 2-vector"
 REJECTED_RANGE = "range is not finite, is negative or exceeds max_range"
 REJECTED_NUMERICS = "update produced a non-finite or indefinite state"
 
@@ -72,7 +72,8 @@ class Diagnostics:
 
 
 class RelativePositionEstimator(ABC):
-    """Base of the five estimators; subclasses provide the correction step."""
+    """Base of the five estimators of p_ij (10): the prediction (15) is shared, subclasses provide the
+    correction step on (12)."""
 
     name: str = ""
 
@@ -138,10 +139,12 @@ class RelativePositionEstimator(ABC):
 
     # ----- prediction -----
     def predict(self, displacement: np.ndarray | tuple[float, float], intervals: float = 1.0) -> bool:
-        """Propagate by the measured relative displacement, (15).
+        """Propagate by the measured relative displacement, (15):
+        p^- = p^+ + delta~_ij, P^- = P^+ + R_delta_ij.
 
         `intervals` is the length of the odometry interval in sampling periods dt: the displacement noise
-        R_delta_ij = 2 R_delta_i is per period and grows linearly with it (a random walk).
+        R_delta_ij = R_delta_i + R_delta_j = 2 R_delta_i of (13) is per period and grows linearly with it
+        (a random walk), which (15) with one period per step leaves implicit.
         """
         try:
             dx, dy = (float(v) for v in np.asarray(displacement, dtype=float).reshape(2))
@@ -167,7 +170,8 @@ class RelativePositionEstimator(ABC):
 
     # ----- correction -----
     def update(self, range_prev: float, range_now: float) -> UpdateOutcome:
-        """Correct with the range pair (r~_{k-1}, r~_k) and the displacement accumulated since r~_{k-1}."""
+        """Correct with the range pair (r~_{k-1}, r~_k) and the displacement accumulated since r~_{k-1}:
+        z of (13), its noise variance R_z from (14), then `_correct` on the measurement model (12)."""
         range_prev, range_now = _as_range(range_prev, self.params.max_range), _as_range(
             range_now, self.params.max_range)
         if math.isnan(range_prev) or math.isnan(range_now):
@@ -199,7 +203,36 @@ class RelativePositionEstimator(ABC):
 
     @abstractmethod
     def _correct(self, z: float, dx: float, dy: float, rz: float) -> UpdateOutcome:
-        """Apply the measurement z = (dx, dy)^T p + mu_z, Var mu_z = rz, to the state in place."""
+        """Apply the measurement (12), z = (dx, dy)^T p + mu_z, Var mu_z = rz, to the state in place."""
 
     def _reset_extra(self) -> None:
         """Subclasses with extra state (AKF, Huber-RLS) clear it here."""
+
+    # ----- saving and restoring (agent/core/snapshot.py) -----
+    def export_state(self) -> dict:
+        """Everything that changes between calls, as JSON-ready data."""
+        diag = self._diag
+        return {
+            "name": self.name, "position": [self._px, self._py], "covariance": [self._p11, self._p12, self._p22],
+            "pair": [self._pair_dx, self._pair_dy, self._pair_steps],
+            "diagnostics": {"predictions": diag.predictions, "updates": diag.updates, "rejected": diag.rejected,
+                            "last": asdict(diag.last)},
+            "extra": self._export_extra(),
+        }
+
+    def restore_state(self, data: dict) -> None:
+        """Take back what `export_state` gave; the extra state only from an estimator of the same kind."""
+        self._px, self._py = (float(v) for v in data["position"])
+        self._p11, self._p12, self._p22 = (float(v) for v in data["covariance"])
+        self._pair_dx, self._pair_dy, self._pair_steps = (float(v) for v in data["pair"])
+        diag = data["diagnostics"]
+        self._diag = Diagnostics(diag["predictions"], diag["updates"], diag["rejected"], UpdateOutcome(**diag["last"]))
+        self._reset_extra()
+        if data["name"] == self.name:
+            self._restore_extra(data["extra"])
+
+    def _export_extra(self) -> dict:
+        return {}
+
+    def _restore_extra(self, extra: dict) -> None:
+        """Subclasses with extra state take it back here."""

@@ -1,4 +1,5 @@
-"""RLS with Huber-weighted residuals: the robust least-squares baseline (the paper's [43] uses Huber loss).
+"""RLS with Huber-weighted residuals on (12): the robust least-squares baseline (the paper's [43] uses
+Huber loss).
 
 Each equation gets the Huber weight w = min(1, c s / |e|) of its prior residual e, where s is a robust
 scale of recent residuals, 1.4826 * median |e| over the last `scale_window` updates (the MAD estimate of a
@@ -32,6 +33,12 @@ class HuberRLS(RLS):
 
     def _reset_extra(self) -> None:
         self._residuals: deque[float] = deque(maxlen=self.params.huber_rls.scale_window)
+
+    def _export_extra(self) -> dict:
+        return {"residuals": list(self._residuals)}
+
+    def _restore_extra(self, extra: dict) -> None:
+        self._residuals.extend(float(r) for r in extra["residuals"])
 
     def _correct(self, z: float, dx: float, dy: float, rz: float) -> UpdateOutcome:
         if dx == 0.0 and dy == 0.0:

@@ -9,7 +9,8 @@ from agent.core.estimators.pseudolinear import gain, joseph
 def kf_correct(
     px: float, py: float, p11: float, p12: float, p22: float, dx: float, dy: float, z: float, r: float
 ) -> tuple[float, float, float, float, float, float, float]:
-    """Standard Kalman correction for z = delta^T p + mu, Var mu = r, with the Joseph-form covariance.
+    """Standard Kalman correction for (12), z = delta^T p + mu, Var mu = r, with the Joseph-form covariance
+    of (21): the MCKF's (19) and (21) with every kernel weight 1.
 
     Returns (px+, py+, p11+, p12+, p22+, innovation, innovation variance).
     """
@@ -20,7 +21,7 @@ def kf_correct(
 
 
 class KF(RelativePositionEstimator):
-    """Kalman filter with the same R_z as the MCKF."""
+    """Kalman filter on (12) with the same R_z (14) as the MCKF; prediction (15) in the base class."""
 
     name = "kf"
 

@@ -1,4 +1,4 @@
-"""Pseudo-linear maximum-correntropy Kalman filter, Sec. III-A steps 3-6, (16)-(21).
+"""Pseudo-linear maximum-correntropy Kalman filter, Sec. III-A steps 3-6, (16), (17), (18), (19), (20), (21).
 
 Follows Chen et al., "Maximum correntropy Kalman filter" (Automatica 2017), the paper's [33], applied to the
 scalar pseudo-linear measurement (12).
@@ -24,6 +24,7 @@ def mckf_correct(
     """One MCKF correction of the prior (p^-, P^-) with z = delta^T p + mu_z, Var mu_z = rz.
 
     (16) B_p B_p^T = P^- (Cholesky, lower), B_z = sqrt(R_z).
+    (17) B = diag(B_p, B_z): block diagonal, so B^-1 is applied block by block and B is never formed.
     (18) D = B^-1 [p^-; z], W = B^-1 [I; delta^T], so w = D - W p^(s-1) is
          [B_p^-1 (p^- - p^(s-1)); (z - delta^T p^(s-1)) / B_z].
     (19) p^(s) = p^- + K-bar (z - delta^T p^-), with
@@ -76,7 +77,8 @@ def mckf_correct(
 
 
 class MCKF(RelativePositionEstimator):
-    """Maximum-correntropy Kalman filter on the pseudo-linear range measurement; the paper's method."""
+    """Maximum-correntropy Kalman filter on the pseudo-linear range measurement (12); the paper's method:
+    prediction (15) in the base class, correction (16), (17), (18), (19), (20), (21) in `mckf_correct`."""
 
     name = "mckf"
 

@@ -1,6 +1,7 @@
-"""Pseudo-linear Kalman filter of the target, Sec. III-B (22)-(26).
+"""Pseudo-linear Kalman filter of the target, Sec. III-B (22), (23), (24), (25), (26).
 
-State x_io = [p_io; v_io] (vessel relative to target), constant-velocity model (3)-(4).
+State x_io = [p_io; v_io] (vessel relative to target), constant-velocity model (3), (4); the measured
+bearing is the b~_io of (9).
 """
 
 from __future__ import annotations
@@ -36,7 +37,7 @@ def transition(dt: float) -> np.ndarray:
 
 def plkf_predict(x: np.ndarray, P: np.ndarray, A: np.ndarray, Q: np.ndarray,
                  own_velocity_change: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """(24): x^- = A x^+, P^- = A P^+ A^T + Q_o, with the vessel's own manoeuvre as a known input.
+    """(24): x^- = A x^+, P^- = A P^+ A^T + Q_o (A of (4)), with the vessel's own manoeuvre as a known input.
 
     `own_velocity_change` is dv_i, the change of the vessel's own velocity at the start of this interval
     (known from its odometry): the relative velocity over the interval is v_io + dv_i, so
@@ -52,8 +53,9 @@ def plkf_predict(x: np.ndarray, P: np.ndarray, A: np.ndarray, Q: np.ndarray,
 
 def plkf_update(x: np.ndarray, P: np.ndarray, bearing: np.ndarray, bearing_variance: float,
                 min_range: float, gain_bearing: str = "measured") -> tuple[np.ndarray, np.ndarray, float, float]:
-    """(22)-(25) with a unit measured bearing b~: z = 0, innovation -G(b~) p^-,
-    R_z = r^2 G R_b G^T with r = |p^-| (floored at min_range), K = P H^T (H P H^T + R_z)^+ (pseudo-inverse).
+    """(22), (23), (25) with a unit measured bearing b~ of (9): z = 0 (22), H = [G 0] (23), innovation
+    -G(b~) p^-, R_z = r^2 G R_b G^T with r = |p^-| (floored at min_range), K = P H^T (H P H^T + R_z)^+
+    (pseudo-inverse), (25).
     G = I - u u^T = q q^T for the unit bearing u and its unit normal q, so S = H P H^T + R_z = s q q^T with
     s = q^T (P_pp + r^2 R_b) q: S is rank one, and its pseudo-inverse is exactly q q^T / s.
     x^+ = x^- - K G(b~) p^-. The covariance uses the Joseph form (I - K H) P (I - K H)^T + K R_z K^T, equal to
@@ -64,7 +66,7 @@ def plkf_update(x: np.ndarray, P: np.ndarray, bearing: np.ndarray, bearing_varia
       innovation, and their product biases the range towards zero (the known pseudo-linear bias), strongly
       while the range is uncertain.
     - "predicted": H = [G(b^-) 0] with b^- = p^- / |p^-|, the instrumental-variable Kalman filter of
-      N. H. Nguyen and K. Dogancay (IEEE Signal Processing Letters 25(9), 2018), which removes that
+      N. H. Nguyen and K. Dogancay (IEEE Signal Processing Letters vol. 25 no. 9, 2018), which removes that
       correlation; the innovation still uses the measured bearing.
 
     Returns (x+, P+, innovation, innovation variance) with the innovation along q, the unit normal of the
@@ -89,7 +91,8 @@ def plkf_update(x: np.ndarray, P: np.ndarray, bearing: np.ndarray, bearing_varia
 
 
 class PLKF:
-    """Target tracker of one vessel: the relative state to the target from bearings alone."""
+    """Target tracker of one vessel: the relative state x_io to the target from bearings (9) alone;
+    `predict` is (24), `update` is (25), or (26) without a bearing."""
 
     def __init__(self, params: TargetEstimationParams, state: np.ndarray, covariance: np.ndarray | None = None,
                  dt: float = 0.1) -> None:
@@ -118,6 +121,17 @@ class PLKF:
         if not (np.isfinite(x).all() and np.isfinite(P).all()):
             raise ValueError("reset needs a finite state and covariance")
         self._x, self._P = x, 0.5 * (P + P.T)
+
+    def export_state(self) -> dict:
+        """Everything that changes between calls, as JSON-ready data (agent/core/snapshot.py)."""
+        return {"state": self._x.tolist(), "covariance": self._P.ravel().tolist(), "predictions": self.predictions,
+                "updates": self.updates, "skipped": self.skipped, "rejected": self.rejected}
+
+    def restore_state(self, data: dict) -> None:
+        self._x = np.array(data["state"], dtype=float).reshape(4)
+        self._P = np.array(data["covariance"], dtype=float).reshape(4, 4)
+        self.predictions, self.updates = data["predictions"], data["updates"]
+        self.skipped, self.rejected = data["skipped"], data["rejected"]
 
     def assimilate(self, state: np.ndarray, covariance: np.ndarray) -> bool:
         """Replace the estimate by a fused one (cooperative fusion with the neighbours' estimates).

@@ -1,4 +1,5 @@
-"""The pseudo-linear range-displacement measurement, Sec. III-A (11)-(14), and 2-D Kalman algebra.
+"""The pseudo-linear range-displacement measurement, Sec. III-A (11), (12), (13), (14), and 2-D Kalman
+algebra.
 
 Everything here works on plain floats: a relative position (px, py), a symmetric 2x2 covariance stored as
 (p11, p12, p22) and a relative displacement (dx, dy). Written out in closed form because a 2-D filter spends
@@ -15,7 +16,8 @@ def pseudo_measurement(range_prev: float, range_now: float, dx: float, dy: float
     """Equivalent measurement z_ij,k of (13): 0.5 (r~_k^2 - r~_{k-1}^2 + |delta~_ij,k|^2).
 
     By the cosine law (11), z = delta^T p_ij,k, where delta is the relative displacement over exactly the
-    interval between the two range epochs and p_ij,k the relative position at the later epoch.
+    interval between the two range epochs and p_ij,k the relative position at the later epoch: the
+    measurement model (12).
     """
     return 0.5 * (range_now * range_now - range_prev * range_prev + dx * dx + dy * dy)
 
@@ -24,7 +26,7 @@ def equivalent_noise_variance(
     px: float, py: float, dx: float, dy: float, range_variance: float, displacement_variance: float
 ) -> float:
     """R_z of (12) from (14) at the predicted ranges r_k = |p^-_k| and r_{k-1} = |p^-_k - delta~|, the
-    choice the paper makes for the PLKF and issue #2 prescribes. See `range_pair_noise_variance`."""
+    choice the paper makes for the PLKF and the default here. See `range_pair_noise_variance`."""
     return range_pair_noise_variance(
         math.hypot(px, py), math.hypot(px - dx, py - dy), range_variance, displacement_variance
     )
@@ -53,7 +55,10 @@ def range_pair_noise_variance(
 
 
 def gain(p11: float, p12: float, p22: float, dx: float, dy: float, r: float) -> tuple[float, float, float]:
-    """Kalman gain K = P delta / (delta^T P delta + r) for the scalar measurement z = delta^T p.
+    """Kalman gain K = P delta / (delta^T P delta + r) for the scalar measurement z = delta^T p of (12).
+
+    This is K-bar of (19) with every kernel weight equal to 1, the limit sigma -> infinity in which the
+    paper notes the MCKF becomes the Kalman filter.
 
     Returns (kx, ky, s) with s = delta^T P delta + r, the innovation variance.
     """

@@ -1,9 +1,9 @@
 """Recursive least squares on the pseudo-linear measurement (12), with exponential forgetting.
 
-The least-squares relative localisation of Nguyen et al. (IEEE T-RO 36(2), 2020, the paper's [26]): the
-relative position is carried forward by the measured displacement and corrected by exponentially weighted
-RLS on z = delta^T p. Unlike the Kalman filters it knows nothing of the noise level: every equation has unit
-weight, and the forgetting factor lambda discounts old equations. Its matrix P is the inverse of the
+The least-squares relative localisation of Nguyen et al. (IEEE T-RO vol. 36 no. 2, 2020, the paper's [26]):
+the relative position is carried forward by the measured displacement (15) and corrected by exponentially
+weighted RLS on z = delta^T p. Unlike the Kalman filters it knows nothing of the noise level: every equation
+has unit weight, and the forgetting factor lambda discounts old equations. Its matrix P is the inverse of the
 weighted information (not a covariance in m^2); it starts from the same P_ij,0 as the Kalman filters.
 """
 
@@ -45,7 +45,8 @@ class RLS(RelativePositionEstimator):
     name = "rls"
 
     def _inflate(self, variance: float) -> None:
-        """RLS has no process-noise model: its P only changes through forgetting."""
+        """RLS has no process-noise model: its P only changes through forgetting (the state still moves by
+        (15), the covariance step of (15) is left out)."""
 
     def _correct(self, z: float, dx: float, dy: float, rz: float) -> UpdateOutcome:
         if dx == 0.0 and dy == 0.0:

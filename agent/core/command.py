@@ -1,0 +1,72 @@
+"""The control law of one tick: formation, target tracking and avoidance velocities, (30), (31), (32), (33),
+(34), (35), to a command."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from agent.core.control.avoidance import avoidance_velocity, safety_filter
+from agent.core.control.formation import (
+    desired_offset,
+    desired_velocity,
+    formation_velocity,
+    neighbour_gain,
+    saturate,
+    surge_and_yaw_rate,
+    tracking_velocity,
+)
+from agent.core.params import ControlParams
+from agent.core.records import Command
+
+
+@dataclass(frozen=True)
+class VelocityTerms:
+    """The parts of the commanded velocity (35), for the record."""
+
+    formation: np.ndarray
+    tracking: np.ndarray
+    avoidance: np.ndarray
+    safety_correction: np.ndarray   # what the safety filter added to (35)
+    command: np.ndarray
+
+
+def control_command(c: ControlParams, dt: float, phase: float, next_phase: float, heading: float,
+                    target_state: np.ndarray | None, own_velocity: np.ndarray,
+                    estimates: dict[str, np.ndarray | None], neighbour_phases: dict[str, float],
+                    obstacles: np.ndarray | None) -> tuple[Command, VelocityTerms, dict[str, bool]]:
+    """The command for this tick: the desired offsets (27), (29) and their errors (30), (31), (32) pull
+    towards the neighbours and the target, (33) adds the target's estimated velocity, (34) the avoidance,
+    (35) sums and saturates; then the safety filter after (35), then (surge, yaw rate). Returns (command,
+    its velocity terms, which limits saturated)."""
+    offset = desired_offset(c.radius, phase)
+    usable = [j for j, estimate in estimates.items() if estimate is not None and j in neighbour_phases]
+    gain = neighbour_gain(len(usable), c.gain_neighbour, c.neighbour_gain_cap)
+    errors = [(gain, offset - desired_offset(c.radius, neighbour_phases[j]) - estimates[j])   # (30), (33)
+              for j in usable]
+    tracking = np.zeros(2)
+    if target_state is not None:
+        errors.append((c.gain_target, offset - target_state[:2]))
+        target_velocity = own_velocity - target_state[2:]                       # v^_o = v_i - v^_io
+        tracking = tracking_velocity(target_velocity, desired_velocity(c.radius, phase, next_phase, dt),
+                                     c.max_target_speed)
+    formation = formation_velocity(errors)
+    avoidance = avoidance_velocity(obstacles, c.safety_distance, c.avoidance_gain, c.avoidance_spread)
+    formation_bounded = saturate(c.max_formation_speed, formation)
+    avoidance_bounded = saturate(c.max_avoidance_speed, avoidance)
+    command_velocity = formation_bounded + tracking + avoidance_bounded        # (35)
+    filtered, unfiltered = False, command_velocity
+    if c.safety_filter:
+        command_velocity, filtered = safety_filter(command_velocity, obstacles, c.min_clearance, c.clearance_rate)
+    surge, yaw_rate, yaw_saturated = surge_and_yaw_rate(
+        command_velocity, heading, c.yaw_rate, dt, c.max_correction_yaw_rate, c.max_speed)
+    saturated = {
+        "formation": formation_bounded is not formation,
+        "avoidance": avoidance_bounded is not avoidance,
+        "yaw_rate": yaw_saturated,
+        "speed": abs(surge) >= c.max_speed,
+        "safety_filter": filtered,
+    }
+    terms = VelocityTerms(formation, tracking, avoidance, command_velocity - unfiltered, command_velocity)
+    return Command(surge, yaw_rate), terms, saturated

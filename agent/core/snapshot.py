@@ -1,0 +1,113 @@
+"""A vessel's core state as plain JSON-ready data, and back: what lets replay start at any saved tick.
+
+`state_to_json(state)` after tick k and `state_from_json(data, params)` give a state from which `step` on
+the inputs of tick k+1 onward gives the same outputs, bit for bit, as the original run (floats go through
+JSON as the shortest text that reads back to the same float). The agent logs a snapshot every
+`snapshot_every` ticks on `/<id>/state`.
+
+With other parameters than the recorded ones (replay with `--set`), each filter keeps its estimate and
+covariance; a pair filter of another kind than the recorded one starts its own extra state (adaptive noise
+scale and the like) afresh.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from agent.core.estimators import PLKF, make_relative_estimator
+from agent.core.neighbours import History, NeighbourPrior, NeighbourTrack
+from agent.core.params import AgentParams
+from agent.core.records import floats, share_from_json, share_to_json
+from agent.core.state import Health, OwnMotion, VesselState
+
+SNAPSHOT_VERSION = 1
+
+
+def state_to_json(state: VesselState) -> dict:
+    motion = state.motion
+    return {
+        "version": SNAPSHOT_VERSION,
+        "vessel": state.vessel,
+        "phase": state.phase,
+        "own": _history_to_json(state.own),
+        "motion": {"velocity": floats(motion.velocity), "stamp": motion.stamp,
+                   "position": None if motion.position is None else floats(motion.position)},
+        "tracks": {j: _track_to_json(track) for j, track in state.tracks.items()},
+        "priors": {j: {"position": floats(p.position), "covariance": floats(p.covariance), "stamp": p.stamp}
+                   for j, p in state.priors.items()},
+        "tracker": None if state.tracker is None else state.tracker.export_state(),
+        "health": state.health.as_dict(),
+    }
+
+
+def state_from_json(data: dict, params: AgentParams) -> VesselState:
+    """The state `state_to_json` wrote, for a core running with `params`; ValueError if it is not one."""
+    if data.get("version") != SNAPSHOT_VERSION:
+        raise ValueError(f"state snapshot version {data.get('version')!r}; this build reads {SNAPSHOT_VERSION}")
+    motion = data["motion"]
+    tracker = None
+    if data["tracker"] is not None:
+        tracker = PLKF(params.target, np.zeros(4), np.eye(4), dt=params.dt)
+        tracker.restore_state(data["tracker"])
+    return VesselState(
+        vessel=data["vessel"],
+        own=_history_from_json(data["own"], params.fleet.history_ticks, _vector),
+        motion=OwnMotion(velocity=np.array(motion["velocity"], dtype=float), stamp=motion["stamp"],
+                         position=None if motion["position"] is None else np.array(motion["position"], dtype=float)),
+        tracks={j: _track_from_json(j, t, params) for j, t in data["tracks"].items()},
+        priors={j: NeighbourPrior(np.array(p["position"], dtype=float),
+                                  np.array(p["covariance"], dtype=float).reshape(2, 2), p["stamp"])
+                for j, p in data["priors"].items()},
+        tracker=tracker,
+        phase=data["phase"],
+        health=Health(**data["health"]),
+    )
+
+
+def _vector(value) -> np.ndarray:
+    return np.array(value, dtype=float)
+
+
+def _history_to_json(history: History) -> list:
+    return [[key, floats(value) if isinstance(value, np.ndarray) else value] for key, value in history.items()]
+
+
+def _history_from_json(pairs: list, size: int, convert) -> History:
+    history = History(size)
+    history.restore((int(key), convert(value)) for key, value in pairs)
+    return history
+
+
+def _track_to_json(track: NeighbourTrack) -> dict:
+    return {
+        "odometry": _history_to_json(track.odometry),
+        "ranges": _history_to_json(track.ranges),
+        "estimator": None if track.estimator is None else track.estimator.export_state(),
+        "epoch": track.epoch,
+        "last_range": track.last_range,
+        "share": None if track.share is None else share_to_json(track.share),
+        "last_heard": track.last_heard,
+        "first_heard": track.first_heard,
+        "updates": track.updates,
+        "rejected": track.rejected,
+        "last_iterations": track.last_iterations,
+    }
+
+
+def _track_from_json(neighbour: str, data: dict, params: AgentParams) -> NeighbourTrack:
+    history = params.fleet.history_ticks
+    track = NeighbourTrack(neighbour, params.relative, params.dt, history)
+    track.odometry = _history_from_json(data["odometry"], history, _vector)
+    track.ranges = _history_from_json(data["ranges"], history, float)
+    if data["estimator"] is not None:
+        track.estimator = make_relative_estimator(params.relative, np.zeros(2), np.eye(2), dt=params.dt)
+        track.estimator.restore_state(data["estimator"])
+    track.epoch = data["epoch"]
+    track.last_range = data["last_range"]
+    track.share = None if data["share"] is None else share_from_json(data["share"])
+    track.last_heard = data["last_heard"]
+    track.first_heard = data["first_heard"]
+    track.updates = data["updates"]
+    track.rejected = data["rejected"]
+    track.last_iterations = data["last_iterations"]
+    return track

@@ -1,0 +1,55 @@
+"""Everything one vessel's core carries from one tick to the next.
+
+`step` reads and updates a `VesselState`; nothing else persists between ticks (no globals, no clock), so a
+state saved after tick k and the inputs of tick k+1 give exactly what the original run gave
+(`agent/core/snapshot.py` writes and reads it).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from agent.core.estimators import PLKF
+from agent.core.neighbours import History, NeighbourPrior, NeighbourTrack
+
+
+@dataclass
+class Health:
+    """What the core refused or did out of the ordinary, counted since the start (published in `status`)."""
+
+    bad_odometry: int = 0
+    bad_bearing: int = 0
+    bad_ranges: int = 0
+    bad_shares: int = 0
+    bad_obstacles: int = 0
+    stops: int = 0
+    neighbours_dropped: int = 0
+    neighbours_joined: int = 0
+    non_finite_commands: int = 0
+    target_estimates_gated: int = 0
+
+    def as_dict(self) -> dict[str, int]:
+        return dict(self.__dict__)
+
+
+@dataclass
+class OwnMotion:
+    """The vessel's own velocity over the last odometry interval, for (33) and the PLKF input of (24)."""
+
+    velocity: np.ndarray = field(default_factory=lambda: np.zeros(2))
+    stamp: float | None = None
+    position: np.ndarray | None = None
+
+
+@dataclass
+class VesselState:
+    vessel: str
+    own: History                                  # own cumulative odometry by stamp
+    motion: OwnMotion
+    tracks: dict[str, NeighbourTrack]             # one pair filter and its bookkeeping per neighbour
+    priors: dict[str, NeighbourPrior]             # initial estimates of neighbours not yet started
+    tracker: PLKF | None                          # the target filter, once there is a target estimate
+    phase: float | None                           # phi_i of (28); None until the first tick sets it
+    health: Health

@@ -1,0 +1,132 @@
+"""One vessel's tick: `step(params, state, inputs) -> (state, output)`.
+
+The whole per-vessel algorithm of one sampling period, as plain numpy with no clock, thread, file or
+network: the pair filters advance over the new odometry and ranges (`neighbours.py`: (11), (12), (13),
+(14), (15)), the neighbours' shared estimates are fused in (`cooperation.py`), the target filter runs
+(`target.py`: (24), (25), (26)), the oscillator moves the phase (28), and the control law gives the command
+(`command.py`: (30), (31), (32), (33), (34), (35)). The share carries the commanded velocity (2); the first
+phase is the target's bearing, as (27) places the vessel. The outputs are a function of (params, state, inputs) alone, which is why the agent process,
+the in-process runner and replay get the same numbers, and why replay can start from a saved state
+(`snapshot.py`).
+
+The state is updated in place and returned, not copied: a copy of every filter per tick would cost more
+than the tick's arithmetic. A caller that wants to keep the state before a tick saves a snapshot first.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from agent.core.checks import finite_vector, obstacle_array
+from agent.core.command import control_command
+from agent.core.control.oscillator import oscillator_step
+from agent.core.cooperation import SWAP_VELOCITY, fuse_reciprocal, fuse_targets
+from agent.core.membership import forget_silent, receive_shares, start_track, store_ranges
+from agent.core.neighbours import NeighbourTrack
+from agent.core.params import AgentParams
+from agent.core.records import STOP, NeighbourRecord, Share, TickInputs, TickOutput, TickRecord
+from agent.core.state import VesselState
+from agent.core.target import own_motion, track_target
+
+
+def step(params: AgentParams, state: VesselState, inputs: TickInputs) -> tuple[VesselState, TickOutput]:
+    """One tick of vessel `state.vessel` on `inputs`; returns the updated state and the tick's output."""
+    health = state.health
+    now = inputs.time
+    odometry = inputs.odometry
+    if odometry is None or not finite_vector(odometry.position, 2) or not math.isfinite(odometry.heading):
+        # Without own odometry nothing can be propagated: stop, as a driver's watchdog would.
+        if odometry is not None:
+            health.bad_odometry += 1
+        health.stops += 1
+        return state, TickOutput(STOP, None, None)
+    position = np.asarray(odometry.position, dtype=float).reshape(2)
+    state.own.put(now, position)
+    velocity_change = own_motion(state, now, position)
+
+    receive_shares(params, state, inputs.shares, now)
+    store_ranges(params, state, inputs.ranges, now)
+    forget_silent(params, state, now)
+    for track in state.tracks.values():
+        start_track(params, state, track)
+        track.advance(state.own)
+        if params.fleet.fuse_shared_estimates:
+            fuse_reciprocal(state, track)
+
+    estimates = {j: t.estimate_at(state.own, now) for j, t in state.tracks.items()}
+    bearing = _bearing(state, inputs.bearing)
+    target_state, target_cov, bearing_outcome = track_target(params, state, bearing, velocity_change)
+    if target_state is not None and params.fleet.fuse_target_estimates:
+        target_state, target_cov = fuse_targets(params, state, estimates, now)
+    if state.phase is None:
+        state.phase = math.atan2(target_state[1], target_state[0]) if target_state is not None else 0.0
+
+    control = params.control
+    neighbour_phases = {j: _phase_of(params, t, now) for j, t in state.tracks.items() if t.share is not None}
+    next_phase = oscillator_step(state.phase, list(neighbour_phases.values()), control.yaw_rate, params.dt,
+                                 control.oscillator_gain)
+    obstacles, malformed = obstacle_array(inputs.obstacle_points)
+    if malformed:
+        health.bad_obstacles += 1
+    command, terms, saturated = control_command(
+        control, params.dt, state.phase, next_phase, odometry.heading, target_state, state.motion.velocity,
+        estimates, neighbour_phases, obstacles)
+    if not (math.isfinite(command.surge) and math.isfinite(command.yaw_rate)):
+        # Never publish a non-finite command, whatever went wrong upstream.
+        health.non_finite_commands += 1
+        command = STOP
+    heading_vector = np.array([math.cos(odometry.heading), math.sin(odometry.heading)])
+    share = Share(
+        sender=state.vessel, odometry=odometry, velocity=command.surge * heading_vector, phase=state.phase,
+        target=None if target_state is None else _to_shared(target_state, state.motion.velocity),
+        target_covariance=None if target_cov is None else SWAP_VELOCITY @ target_cov @ SWAP_VELOCITY,
+        neighbours={j: (estimate, _symmetric(state.tracks[j].estimator.covariance))
+                    for j, estimate in estimates.items() if estimate is not None},
+    )
+    record = TickRecord(
+        time=now, phase=state.phase,
+        neighbours={j: _neighbour_record(t, estimates[j]) for j, t in state.tracks.items()
+                    if estimates[j] is not None},
+        target_state=target_state, target_covariance=target_cov,
+        bearing_used=bearing_outcome is not None and bearing_outcome.accepted, bearing_outcome=bearing_outcome,
+        formation_velocity=terms.formation, tracking_velocity=terms.tracking, avoidance_velocity=terms.avoidance,
+        safety_correction=terms.safety_correction, velocity_command=terms.command, command=command,
+        saturated=saturated, health=health.as_dict(),
+    )
+    state.phase = next_phase
+    return state, TickOutput(command, share, record)
+
+
+def _bearing(state: VesselState, bearing) -> np.ndarray | None:
+    if bearing is None:
+        return None
+    if not finite_vector(bearing, 2):
+        state.health.bad_bearing += 1
+        return None
+    return np.asarray(bearing, dtype=float).reshape(2)
+
+
+def _phase_of(params: AgentParams, track: NeighbourTrack, now: float) -> float:
+    """j's phase carried from its share's stamp to now at the nominal rate omega* of (28)."""
+    share = track.share
+    return share.phase + params.control.yaw_rate * (now - share.odometry.stamp)
+
+
+def _to_shared(state: np.ndarray, own_velocity: np.ndarray) -> np.ndarray:
+    return np.concatenate([state[:2], own_velocity - state[2:]])
+
+
+def _symmetric(matrix: np.ndarray) -> np.ndarray:
+    """The symmetric part: what a share can carry (three numbers), so a share means the same in process
+    and on the wire."""
+    return 0.5 * (matrix + matrix.T)
+
+
+def _neighbour_record(track: NeighbourTrack, estimate: np.ndarray) -> NeighbourRecord:
+    return NeighbourRecord(
+        position=estimate, covariance=track.estimator.covariance, epoch=track.epoch * 1e-6,
+        updates=track.updates, rejected=track.rejected, iterations=track.last_iterations,
+        outcomes=tuple(track.outcomes),
+    )

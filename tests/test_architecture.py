@@ -1,0 +1,188 @@
+"""The architecture as rules on imports, read from the source with `ast` (every import: at the top, inside a
+function, under `if TYPE_CHECKING`, relative ones, and `importlib.import_module` of a constant name).
+
+- `agent.core` is the pure per-vessel core: no transport, log format, plotting, threads, sockets or
+  processes (zenoh, mcap, matplotlib, threading, socket, subprocess), none of the agent process around it
+  (agent.shell, agent.runtime, agent.contract), and nothing of the packages built on it.
+- `driver_bridge` takes from `agent` only what every process of the fleet shares: the wire contract
+  (agent.contract), typed configuration (agent.config), angles (agent.angles) and the runtime
+  (agent.runtime: Zenoh session settings, the vessel-process command line, MCAP logs).
+- `sim_bridge` takes the same, plus the core's pure vocabulary that its scenario and world model share with
+  the in-process runner (lab.runner), so that both build a mission the same way: the parameters
+  (agent.core.params), the per-tick records (agent.core.records) and the builder of a vessel's core and
+  initial estimates (agent.core.build). Never the agent process (agent.shell).
+- Layers: `mission_log` and `sim_bridge` never import `lab`; `mission_log` never imports `sim_bridge`;
+  nothing outside `lab` imports `lab` (the tests may); `agent` imports none of sim_bridge, driver_bridge, lab,
+  mission_log, usv_deploy.
+
+A failure names each offending file, line and import statement.
+"""
+
+from __future__ import annotations
+
+import ast
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGES = ("agent", "sim_bridge", "driver_bridge", "lab", "mission_log", "usv_deploy")
+
+CORE_FORBIDDEN = ("zenoh", "mcap", "matplotlib", "threading", "socket", "subprocess",
+                  "agent.shell", "agent.runtime", "agent.contract",
+                  "sim_bridge", "driver_bridge", "lab", "mission_log", "usv_deploy")
+SHARED_FROM_AGENT = ("agent.contract", "agent.config", "agent.angles", "agent.runtime")
+CORE_VOCABULARY = ("agent.core.params", "agent.core.records", "agent.core.build")
+
+
+@dataclass(frozen=True)
+class Import:
+    module: str      # the importing module, e.g. sim_bridge.world
+    path: Path       # its file, relative to the repository
+    line: int
+    target: str      # the imported module, resolved: `from agent import contract` -> agent.contract
+    statement: str   # the source of the import, for the message
+
+    def __str__(self) -> str:
+        return f"{self.path}:{self.line} imports {self.target} (`{self.statement}`)"
+
+
+def within(name: str, prefix: str) -> bool:
+    """Is module `name` the module or package `prefix`, or inside it? Everything is within ""."""
+    return prefix == "" or name == prefix or name.startswith(prefix + ".")
+
+
+def module_name(path: Path) -> str:
+    parts = path.relative_to(ROOT).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def imports_of(source: str, module: str, is_package: bool, known: set[str],
+               path: Path = Path("<source>")) -> list[Import]:
+    """Every import in `source` (the code of `module`), with relative imports resolved and `from X import Y`
+    read as X.Y where X.Y is a module of `known`."""
+    lines = source.splitlines()
+    found = []
+
+    def add(node: ast.AST, target: str) -> None:
+        statement = " ".join(line.strip() for line in lines[node.lineno - 1:node.end_lineno])
+        found.append(Import(module, path, node.lineno, target, statement))
+
+    package = module if is_package else module.rpartition(".")[0]
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.Import):
+            for alias in node.names:
+                add(node, alias.name)
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = package.split(".")[:len(package.split(".")) - (node.level - 1)]
+                origin = ".".join(base + ([node.module] if node.module else []))
+            else:
+                origin = node.module or ""
+            for alias in node.names:
+                add(node, f"{origin}.{alias.name}" if f"{origin}.{alias.name}" in known else origin)
+        elif (isinstance(node, ast.Call) and node.args and isinstance(node.args[0], ast.Constant)
+              and isinstance(node.args[0].value, str) and _is_dynamic_import(node.func)):
+            add(node, node.args[0].value)
+    return sorted(found, key=lambda f: f.line)
+
+
+def _is_dynamic_import(func: ast.expr) -> bool:
+    """importlib.import_module(...), import_module(...) or __import__(...)."""
+    name = func.attr if isinstance(func, ast.Attribute) else func.id if isinstance(func, ast.Name) else ""
+    return name in ("import_module", "__import__")
+
+
+def scan() -> list[Import]:
+    files = sorted(path for package in PACKAGES for path in (ROOT / package).rglob("*.py")
+                   if "__pycache__" not in path.parts)
+    known = {module_name(path) for path in files}
+    return [found for path in files
+            for found in imports_of(path.read_text(encoding="utf-8"), module_name(path),
+                                    path.name == "__init__.py", known, path.relative_to(ROOT))]
+
+
+@pytest.fixture(scope="module")
+def imports() -> list[Import]:
+    return scan()
+
+
+def broken(imports: list[Import], importer: str, allowed, rule: str) -> None:
+    """Fail, naming each offender, unless each import of a module in `importer` passes `allowed(target)`."""
+    offending = [found for found in imports if within(found.module, importer) and not allowed(found.target)]
+    if offending:
+        pytest.fail(f"{rule}, but:\n" + "\n".join(f"  {found}" for found in offending), pytrace=False)
+
+
+# ----- the rules -----
+def test_the_core_is_pure(imports):
+    broken(imports, "agent.core", lambda target: not any(within(target, name) for name in CORE_FORBIDDEN),
+           f"agent.core imports none of {', '.join(CORE_FORBIDDEN)}")
+
+
+def test_the_driver_bridge_takes_only_the_shared_modules_from_agent(imports):
+    broken(imports, "driver_bridge",
+           lambda target: not within(target, "agent") or any(within(target, n) for n in SHARED_FROM_AGENT),
+           f"driver_bridge imports from agent only {', '.join(SHARED_FROM_AGENT)}")
+
+
+def test_the_sim_bridge_takes_the_shared_modules_and_the_core_vocabulary_from_agent(imports):
+    allowed = SHARED_FROM_AGENT + CORE_VOCABULARY
+    broken(imports, "sim_bridge",
+           lambda target: not within(target, "agent") or any(within(target, name) for name in allowed),
+           f"sim_bridge imports from agent only {', '.join(allowed)} (and never agent.shell)")
+
+
+@pytest.mark.parametrize("importer, forbidden", [
+    ("mission_log", ("lab", "sim_bridge")),
+    ("sim_bridge", ("lab",)),
+    ("agent", ("sim_bridge", "driver_bridge", "lab", "mission_log", "usv_deploy")),
+])
+def test_the_layers(imports, importer, forbidden):
+    broken(imports, importer, lambda target: not any(within(target, name) for name in forbidden),
+           f"{importer} imports none of {', '.join(forbidden)}")
+
+
+def test_only_the_lab_imports_the_lab(imports):
+    outside = [found for found in imports if not within(found.module, "lab")]
+    broken(outside, "", lambda target: not within(target, "lab"), "nothing outside lab imports lab")
+
+
+# ----- the scan itself -----
+def test_the_scan_reads_every_package(imports):
+    """Every package has modules with imports, and the imports the tree is known to have are seen: the
+    rules above cannot pass by reading nothing."""
+    assert {found.module.split(".")[0] for found in imports} == set(PACKAGES)
+    seen = {(found.module, found.target) for found in imports}
+    assert ("driver_bridge.node", "zenoh") in seen                    # a process imports its transport
+    assert ("sim_bridge.fleet", "mission_log.metrics") in seen        # the launcher computes the metrics
+    assert ("usv_deploy.cli", "usv_deploy.certs") in seen             # inside a function (cryptography)
+
+
+def test_the_scan_sees_every_kind_of_import():
+    source = '''
+import zenoh, numpy as np
+import agent.shell.node as node
+from agent import contract
+from agent.core import not_a_module
+from . import sibling
+from ..runtime import mcap_log
+from typing import TYPE_CHECKING
+if TYPE_CHECKING:
+    from matplotlib import pyplot
+def later():
+    import threading
+    importlib.import_module("subprocess")
+    __import__("socket")
+'''
+    known = {"agent.contract", "agent.core.sibling", "agent.runtime", "agent.runtime.mcap_log"}
+    found = imports_of(source, "agent.core.example", False, known)
+    assert [f.target for f in found] == [
+        "zenoh", "numpy", "agent.shell.node", "agent.contract", "agent.core", "agent.core.sibling",
+        "agent.runtime.mcap_log", "typing", "matplotlib", "threading", "subprocess", "socket"]
+    assert str(found[3]) == "<source>:4 imports agent.contract (`from agent import contract`)"
+    offender = r"agent.core imports none of.*but:\n  <source>:2 imports zenoh \(`import zenoh, numpy as np`\)"
+    with pytest.raises(pytest.fail.Exception, match=offender):
+        broken(found, "agent.core", lambda target: not any(within(target, n) for n in CORE_FORBIDDEN),
+               f"agent.core imports none of {', '.join(CORE_FORBIDDEN)}")
