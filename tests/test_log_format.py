@@ -202,12 +202,12 @@ def write_raw(path, format_version: str | None) -> None:
 
 def test_a_file_of_an_unknown_version_is_refused_in_one_line(tmp_path):
     path = tmp_path / "agent-1.mcap"
-    write_raw(path, "2")
+    write_raw(path, "99")
     with pytest.raises(LogError) as raised:
         read_log(path)
     message = str(raised.value)
     assert "\n" not in message
-    assert str(path) in message and "version 2" in message and f"reads version {', '.join(READS_FORMATS)}" in message
+    assert str(path) in message and "version 99" in message and f"reads version {', '.join(READS_FORMATS)}" in message
 
 
 def test_the_command_line_says_why_it_refuses_a_file(tmp_path, capsys):
@@ -222,3 +222,13 @@ def test_a_file_from_before_the_version_was_recorded_reads_as_version_1(tmp_path
     write_raw(path, None)
     log = read_log(path)
     assert log.format_version == "1" and log.last("/1/summary") == {"ticks": 3}
+
+
+def test_inputs_of_format_1_read_as_ranges_measured_at_the_tick():
+    """Format 1 had no range_stamp: its ranges were measured at the tick's time, which None says."""
+    from agent.core.records import inputs_from_json
+
+    old = {"time": 1.5, "odometry": None, "ranges": {"2": 3.0}, "bearing": None, "obstacle_points": None,
+           "shares": {}}
+    assert inputs_from_json(old).range_stamp is None
+    assert inputs_from_json({**old, "range_stamp": 1.47}).range_stamp == 1.47

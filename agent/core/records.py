@@ -54,10 +54,11 @@ class TickInputs:
 
     time: float                                   # this tick's time (s), the clock the agent runs on
     odometry: OdometryReading | None              # own odometry at `time` (None: no fresh odometry)
-    ranges: Mapping[str, float] = field(default_factory=dict)   # neighbour id -> range (m) measured at `time`
+    ranges: Mapping[str, float] = field(default_factory=dict)   # neighbour id -> range (m) at `range_stamp`
     shares: Mapping[str, Share] = field(default_factory=dict)   # neighbour id -> latest share received
     bearing: np.ndarray | None = None             # (2,) measured unit vector from the target to the vessel
     obstacle_points: np.ndarray | None = None     # (M, 2) obstacle points relative to the vessel (m)
+    range_stamp: float | None = None              # when the ranges were measured (s); None: at `time`
 
 
 @dataclass(frozen=True)
@@ -156,6 +157,7 @@ def inputs_to_json(inputs: TickInputs) -> dict:
         "obstacle_points": None if inputs.obstacle_points is None
         else np.asarray(inputs.obstacle_points, dtype=float).reshape(-1, 2).tolist(),
         "shares": {j: share_to_json(share) for j, share in inputs.shares.items()},
+        "range_stamp": inputs.range_stamp,
     }
 
 
@@ -168,5 +170,6 @@ def inputs_from_json(data: dict) -> TickInputs:
         shares={j: share_from_json(s) for j, s in data["shares"].items()},
         bearing=None if data["bearing"] is None else np.array(data["bearing"], dtype=float),
         obstacle_points=None if points is None else np.array(points, dtype=float).reshape(-1, 2),
+        range_stamp=data.get("range_stamp"),   # absent in format 1: the ranges were measured at `time`
     )
 

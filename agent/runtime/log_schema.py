@@ -72,6 +72,7 @@ class Inputs(StrictModel):
     bearing: Vector2 | None = Field(description="unit vector from the target to the vessel; None: no bearing")
     obstacle_points: list[Vector2] | None = Field(description="sonar points relative to the vessel (m)")
     shares: dict[str, LoggedShare] = Field(description="neighbour id -> its latest share")
+    range_stamp: float | None = Field(description="when the ranges were measured (s); None: at `time`")
 
 
 # ----- /<id>/estimates: the tick's TickRecord -----

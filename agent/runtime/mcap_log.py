@@ -28,7 +28,7 @@ from pydantic import BaseModel
 PROFILE = ""  # plain JSON messages, no ROS profile
 NUMPY = orjson.OPT_SERIALIZE_NUMPY
 FORMAT_RECORD = "usv-log-format"   # metadata record: {"version": FORMAT_VERSION}
-FORMAT_VERSION = "1"               # the channels of agent/runtime/log_schema.py, the `run` metadata
+FORMAT_VERSION = "2"               # 2: inputs carry range_stamp. The channels of agent/runtime/log_schema.py, the `run` metadata
 
 
 class McapLog:

@@ -196,14 +196,20 @@ class InputGate:
         fresh = lambda message: message is not None and now - seconds(message.stamp_ns) <= self.max_age  # noqa: E731
         reading = odometry_reading(odometry) if isinstance(odometry, Odometry) and fresh(odometry) else None
         tick_time = reading.stamp if reading is not None else now
-        ranges = latest.get("sensor/uwb")
-        ranges = self._known_ranges(ranges.ranges, shares) if isinstance(ranges, Ranges) and fresh(ranges) else {}
+        message = latest.get("sensor/uwb")
+        usable = isinstance(message, Ranges) and fresh(message)
+        ranges = self._known_ranges(message.ranges, shares) if usable else {}
+        # The measurement's own time; None when it is the tick's (lockstep sim): the core reads None as `time`.
+        range_stamp = seconds(message.stamp_ns) if usable and ranges else None
+        if range_stamp == tick_time:
+            range_stamp = None
         bearing = latest.get("sensor/bearing")
         sonar = latest.get("sensor/sonar")
         return TickInputs(
             time=tick_time,
             odometry=reading,
             ranges=ranges,
+            range_stamp=range_stamp,
             shares=shares,
             bearing=np.array(bearing.bearing) if isinstance(bearing, Bearing) and fresh(bearing)
             and bearing.bearing is not None else None,
