@@ -21,11 +21,14 @@ from agent.core.state import VesselState
 SWAP_VELOCITY = np.diag([1.0, 1.0, -1.0, -1.0])
 
 
-def fuse_reciprocal(state: VesselState, track: NeighbourTrack) -> None:
-    """Fuse j's shared estimate of p_ji (as -p_ji) into our p_ij of (10) when both refer to the same stamp.
-    Not in the paper (docs/equations.md, D1)."""
+def fuse_reciprocal(params: AgentParams, state: VesselState, track: NeighbourTrack) -> None:
+    """Fuse j's shared estimate of p_ji (as -p_ji) into our p_ij of (10). It refers to j's share stamp; when
+    that is not our filter's epoch (clocks that differ, a range that came at another time), it is carried to
+    the epoch by both vessels' odometry between the two times, its covariance grown by the displacement
+    noise of (15), if the two times are at most `fleet.max_odometry_gap` apart. Not in the paper
+    (docs/equations.md, D1)."""
     share = track.share
-    if track.estimator is None or share is None or track.epoch != stamp_key(share.odometry.stamp):
+    if track.estimator is None or share is None:
         return
     theirs = share.neighbours.get(state.vessel)
     if theirs is None:
@@ -34,10 +37,22 @@ def fuse_reciprocal(state: VesselState, track: NeighbourTrack) -> None:
     if not (finite_vector(position, 2) and finite_matrix(covariance)):
         state.health.bad_shares += 1
         return
+    their_position, their_covariance = -np.asarray(position, dtype=float), np.asarray(covariance, dtype=float)
+    key = stamp_key(share.odometry.stamp)
+    if key != track.epoch:
+        gap = stamp_key(params.fleet.max_odometry_gap)
+        if abs(key - track.epoch) > gap:
+            return
+        mine_then, _ = state.own.at(key, gap)
+        if mine_then is None:
+            return
+        theirs_then = np.asarray(share.odometry.position, dtype=float)
+        their_position = their_position + (track.epoch_own - mine_then) - (track.epoch_other - theirs_then)
+        intervals = abs(key - track.epoch) * 1e-6 / params.dt
+        their_covariance = their_covariance + 2.0 * params.relative.displacement_variance * intervals * np.eye(2)
     try:
         fused, fused_covariance = covariance_intersection(
-            track.estimator.position, track.estimator.covariance, -np.asarray(position, dtype=float),
-            np.asarray(covariance, dtype=float))
+            track.estimator.position, track.estimator.covariance, their_position, their_covariance)
     except np.linalg.LinAlgError:
         state.health.bad_shares += 1
         return

@@ -8,7 +8,7 @@ from collections.abc import Mapping
 import numpy as np
 
 from agent.core.checks import valid_range, valid_share
-from agent.core.neighbours import NeighbourPrior, NeighbourTrack, stamp_key
+from agent.core.neighbours import NeighbourPrior, NeighbourTrack, PairTiming, stamp_key
 from agent.core.params import AgentParams
 from agent.core.records import Share
 from agent.core.state import VesselState
@@ -26,21 +26,28 @@ def receive_shares(params: AgentParams, state: VesselState, shares: Mapping[str,
         if track is None:
             if now - share.odometry.stamp > params.fleet.neighbour_timeout:
                 continue  # a stale share from a vessel we have already forgotten
-            track = NeighbourTrack(sender, params.relative, params.dt, params.fleet.history_ticks)
+            track = NeighbourTrack(sender, params.relative, params.dt, params.fleet.history_ticks,
+                                   PairTiming.of(params.fleet))
             state.tracks[sender] = track
             state.health.neighbours_joined += 1
         track.receive(share, now)
 
 
-def store_ranges(params: AgentParams, state: VesselState, ranges: Mapping[str, float], now: float) -> None:
-    """Keep each valid range r~_ij of (6) at this tick's stamp, for the pair filter to pair with odometry (12)."""
+def store_ranges(params: AgentParams, state: VesselState, ranges: Mapping[str, float], stamp: float) -> None:
+    """Keep each valid range r~_ij of (6) at the time it was measured, for the pair filter to pair with both
+    vessels' odometry of that time (12). A range older than its filter's epoch comes too late to be used."""
+    key = stamp_key(stamp)
     for neighbour, value in ranges.items():
         if not valid_range(value, params.relative.max_range):
             state.health.bad_ranges += 1
             continue
         track = state.tracks.get(neighbour)
-        if track is not None:
-            track.ranges.put(now, float(value))
+        if track is None:
+            continue
+        if track.epoch is not None and key <= track.epoch:
+            state.health.ranges_late += 1
+            continue
+        track.ranges.put(stamp, float(value))
 
 
 def forget_silent(params: AgentParams, state: VesselState, now: float) -> None:
@@ -51,15 +58,51 @@ def forget_silent(params: AgentParams, state: VesselState, now: float) -> None:
         state.health.neighbours_dropped += 1
 
 
-def start_track(params: AgentParams, state: VesselState, track: NeighbourTrack) -> None:
-    """Start the pair filter of `track` from its deployment prior, else from the target estimates or a range."""
+def start_track(params: AgentParams, state: VesselState, track: NeighbourTrack, now: float) -> None:
+    """Start the pair filter of `track` from its deployment prior, else from the target estimates or a range.
+
+    A deployment prior must earn its place: one older than `fleet.prior_max_age`, or than the odometry
+    kept, is stale (a restarted vessel's config describes the fleet as it was at launch); one that the
+    measured range contradicts is refused. Either is counted and dropped, and the pair starts as a joiner's
+    does."""
     if track.estimator is not None or track.share is None:
         return
     prior = state.priors.pop(track.neighbour, None)
+    if prior is not None and prior.stamp is None:
+        prior = NeighbourPrior(prior.position, prior.covariance, state.own.keys()[0] * 1e-6)
+    if prior is not None and now - prior.stamp > params.fleet.prior_max_age:
+        state.health.priors_stale += 1
+        prior = None
+    if prior is not None and not _agrees_with_range(params, track, prior):
+        state.health.priors_refused += 1
+        prior = None
     if prior is None:
         prior = prior_from_target(params, state, track)
-    if prior is not None and not track.start(prior, state.own):
+    if prior is None:
+        return
+    started = track.start(prior, state.own)
+    if started == "wait":
         state.priors[track.neighbour] = prior
+    elif started == "stale":
+        state.health.priors_stale += 1
+
+
+def _agrees_with_range(params: AgentParams, track: NeighbourTrack, prior: NeighbourPrior) -> bool:
+    """Whether |p^_ij,0| is within four standard deviations (and a metre) of a range measured within
+    `max_odometry_gap` of the prior's time; True when there is no such range to judge by."""
+    key, window = stamp_key(prior.stamp), stamp_key(params.fleet.max_odometry_gap)
+    near = [k for k in track.ranges.keys() if abs(k - key) <= window]
+    if not near:
+        return True
+    measured = track.ranges.get(min(near, key=lambda k: abs(k - key)))
+    position = np.asarray(prior.position, dtype=float)
+    distance = float(np.hypot(*position))
+    if distance == 0.0:
+        return True
+    direction = position / distance
+    variance = float(direction @ np.asarray(prior.covariance, dtype=float) @ direction) + params.relative.range_variance
+    miss = abs(measured - distance)
+    return miss <= 1.0 or miss**2 <= 16.0 * variance
 
 
 def prior_from_target(params: AgentParams, state: VesselState, track: NeighbourTrack) -> NeighbourPrior | None:

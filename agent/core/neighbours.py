@@ -1,11 +1,15 @@
 """One neighbour as vessel i sees it: the relative position filter and the bookkeeping that feeds it.
 
-A range to j measured at time s can only be used once j's cumulative odometry at s has arrived (in its
-share, typically one tick later). The track therefore keeps short histories keyed by stamp and runs the
-filter over every stamp at which both odometries are known, in order; the filter state always refers to
-the last such stamp (`epoch`). Stamps whose share was lost are skipped, and the next usable stamp's
-displacement covers the whole interval, because odometry is cumulative. For control, the estimate is
-carried from the epoch to the current time with vessel i's own odometry and j's commanded velocity.
+A range to j measured at time s can only be used once j's cumulative odometry around s has arrived (in
+its share, typically one tick later). The track keeps short histories of both vessels' odometry and of the
+ranges, each at its own stamp, and runs the filter over the ranges in time order: each range's time gets
+both vessels' positions interpolated from the samples around it (at most `max_gap` apart), so the stamps
+of ranges, of i's odometry and of j's need not meet. A range waits (up to `wait`) for j's odometry of its
+time; one that comes after the filter has moved past its time, or whose time falls in a gap of an odometry
+history, cannot be used and is counted. The filter state refers to the last range used (`epoch`). For
+control, the estimate is carried from the epoch to the current time with i's odometry, j's odometry as far
+as it is known, and j's commanded velocity for the rest. In the lockstep simulation every stamp is a tick,
+the interpolation meets the samples exactly, and nothing is approximated.
 
 The pair state is p_ij of (10); the odometry differences are (5) and (11), the range pairing (12), (13),
 (14), the prediction (15).
@@ -13,14 +17,16 @@ The pair state is p_ij of (10); the odometry differences are (5) and (11), the r
 
 from __future__ import annotations
 
+import bisect
 import math
+from collections import Counter
 from dataclasses import dataclass
 
 import numpy as np
 
 from agent.core.estimators import RelativePositionEstimator, make_relative_estimator
 from agent.core.estimators.base import UpdateOutcome
-from agent.core.params import RelativeEstimationParams
+from agent.core.params import FleetParams, RelativeEstimationParams
 from agent.core.records import Share
 
 
@@ -35,47 +41,106 @@ class NeighbourPrior:
 
     position: np.ndarray
     covariance: np.ndarray
-    stamp: float = 0.0
+    stamp: float | None = 0.0     # None: at the vessel's first tick (deployment knowledge given at launch)
 
 
 class History:
-    """Values by stamp, keeping the most recent `size` stamps."""
+    """Values by stamp (keyed in microseconds), keeping the most recent `size` stamps."""
 
     def __init__(self, size: int) -> None:
         self.size = size
         self._values: dict[int, object] = {}
+        self._keys: list[int] | None = []      # sorted keys, rebuilt when a put comes out of order
 
     def put(self, stamp: float, value: object) -> None:
-        self._values[stamp_key(stamp)] = value
+        key = stamp_key(stamp)
+        if key not in self._values and self._keys is not None:
+            if self._keys and key < self._keys[-1]:
+                self._keys = None
+            else:
+                self._keys.append(key)
+        self._values[key] = value
         if len(self._values) > self.size:
-            for key in sorted(self._values)[: len(self._values) - self.size]:
-                del self._values[key]
+            for old in self.keys()[: len(self._values) - self.size]:
+                del self._values[old]
+            self._keys = None
 
     def get(self, key: int):
         return self._values.get(key)
 
+    def pop(self, key: int) -> None:
+        if self._values.pop(key, None) is not None:
+            self._keys = None
+
+    def keys(self) -> list[int]:
+        if self._keys is None:
+            self._keys = sorted(self._values)
+        return self._keys
+
     def keys_after(self, key: int) -> list[int]:
-        return sorted(k for k in self._values if k > key)
+        keys = self.keys()
+        return keys[bisect.bisect_right(keys, key):]
+
+    def latest(self) -> int | None:
+        keys = self.keys()
+        return keys[-1] if keys else None
+
+    def at(self, key: int, max_gap: int) -> tuple[np.ndarray | None, str]:
+        """The value at `key`: the sample itself, or the straight line between the samples around it when
+        they are at most `max_gap` apart. (None, why) otherwise: "later" (no sample at or after it yet),
+        "before" (older than every sample kept) or "gap" (the samples around it are too far apart)."""
+        value = self._values.get(key)
+        if value is not None:
+            return value, ""
+        keys = self.keys()
+        index = bisect.bisect_left(keys, key)
+        if index == len(keys):
+            return None, "later"
+        if index == 0:
+            return None, "before"
+        before, after = keys[index - 1], keys[index]
+        if after - before > max_gap:
+            return None, "gap"
+        fraction = (key - before) / (after - before)
+        low, high = self._values[before], self._values[after]
+        return low + fraction * (high - low), ""
 
     def items(self) -> list[tuple[int, object]]:
-        return sorted(self._values.items())
+        return [(key, self._values[key]) for key in self.keys()]
 
     def restore(self, pairs) -> None:
         """Take back what `items` gave (agent/core/snapshot.py)."""
         self._values = dict(pairs)
+        self._keys = None
+
+
+@dataclass(frozen=True)
+class PairTiming:
+    """How ranges and the two odometry histories are matched in time (FleetParams)."""
+
+    max_gap: float          # s: largest gap between two odometry samples a range's time may fall in
+    wait: float             # s: how long a range waits for the neighbour's odometry of its time
+
+    @classmethod
+    def of(cls, fleet: FleetParams) -> PairTiming:
+        return cls(fleet.max_odometry_gap, fleet.range_wait)
 
 
 class NeighbourTrack:
     """Relative position of one neighbour j, estimated by one inter-vessel filter."""
 
-    def __init__(self, neighbour: str, params: RelativeEstimationParams, dt: float, history: int) -> None:
+    def __init__(self, neighbour: str, params: RelativeEstimationParams, dt: float, history: int,
+                 timing: PairTiming) -> None:
         self.neighbour = neighbour
         self.params = params
         self.dt = dt
-        self.odometry = History(history)   # j's cumulative odometry by stamp
-        self.ranges = History(history)     # ranges to j measured by i, by stamp
+        self.timing = timing
+        self.odometry = History(history)   # j's cumulative odometry by its stamps
+        self.ranges = History(history)     # ranges to j measured by i, by their stamps
         self.estimator: RelativePositionEstimator | None = None
         self.epoch: int | None = None      # stamp key the filter state refers to
+        self.epoch_own: np.ndarray | None = None     # i's odometry at the epoch
+        self.epoch_other: np.ndarray | None = None   # j's odometry at the epoch
         self.last_range: float | None = None
         self.share: Share | None = None    # latest share received
         self.last_heard = -math.inf
@@ -93,51 +158,72 @@ class NeighbourTrack:
         self.last_heard = max(self.last_heard, share.odometry.stamp)
         self.first_heard = min(self.first_heard, share.odometry.stamp)
 
-    def start(self, prior: NeighbourPrior, own: History) -> bool:
-        """Start the filter from `prior` once both odometries are known at or after its stamp.
+    def positions_at(self, own: History, key: int) -> tuple[np.ndarray | None, np.ndarray | None, str]:
+        """(i's odometry, j's odometry, why not) at stamp `key`, interpolated where needed."""
+        gap = stamp_key(self.timing.max_gap)
+        mine, why_mine = own.at(key, gap)
+        theirs, why_theirs = self.odometry.at(key, gap)
+        if mine is None or theirs is None:
+            reasons = {why_mine, why_theirs}
+            return None, None, "later" if "later" in reasons else ("gap" if "gap" in reasons else "before")
+        return mine, theirs, ""
 
-        When j's odometry at exactly the prior's stamp was lost, the prior is carried to the first stamp at
-        which both are known, moving j by its shared velocity (a small, rare approximation). The prior is
-        the initial estimate of (10)."""
+    def start(self, prior: NeighbourPrior, own: History) -> str:
+        """Start the filter from `prior`, the initial estimate of (10), at its stamp: "started", "wait" (the
+        odometry of that time has not all arrived), or "stale" (the prior's time is outside the odometry
+        kept, so nothing can carry it to now)."""
         key = stamp_key(prior.stamp)
-        candidates = [k for k in self.odometry.keys_after(key - 1) if own.get(k) is not None]
-        if not candidates:
-            return False
-        start = candidates[0]
         position = np.asarray(prior.position, dtype=float)
-        if start != key:
-            seconds = (start - key) * 1e-6
-            own_before = own.get(key)
-            own_moved = own.get(start) - own_before if own_before is not None else np.zeros(2)
-            other_moved = np.asarray(self.share.velocity, dtype=float) * seconds if self.share else np.zeros(2)
-            position = position + own_moved - other_moved
+        mine, theirs, why = self.positions_at(own, key)
+        if why == "later":
+            return "wait"
+        if why:
+            # The prior's time is just before the neighbour's first odometry (it started a little later,
+            # or its clock runs ahead): carry the prior to the first time both are known, moving j by its
+            # shared velocity, if that is within `max_gap`.
+            gap = stamp_key(self.timing.max_gap)
+            first = next((k for k in self.odometry.keys_after(key) if k - key <= gap
+                          and self.positions_at(own, k)[2] == ""), None)
+            if first is None or self.share is None:
+                return "stale"
+            mine, theirs, _ = self.positions_at(own, first)
+            mine_then = own.at(key, gap)[0]
+            own_moved = np.zeros(2) if mine_then is None else mine - mine_then
+            position = position + own_moved - np.asarray(self.share.velocity, dtype=float) * ((first - key) * 1e-6)
+            key = first
         self.estimator = make_relative_estimator(self.params, position, prior.covariance, dt=self.dt)
-        self.epoch = start
+        self.epoch, self.epoch_own, self.epoch_other = key, mine, theirs
         self.last_range = None
-        range_now = self.ranges.get(start)
+        range_now = self.ranges.get(key)
         if range_now is not None:
             self.estimator.mark_range_epoch()
             self.last_range = range_now
-        return True
+        return "started"
 
-    def advance(self, own: History) -> None:
-        """Run the filter over every stamp after the epoch at which both odometries are known: the relative
-        displacement (5), (11) predicts (15), and each range paired with the previous one updates, (12), (13), (14)."""
+    def advance(self, own: History, now: float, unusable: Counter) -> None:
+        """Run the filter over the ranges after the epoch, in time order: the relative displacement (5), (11)
+        between the epoch and the range's time predicts (15), and each range paired with the previous one
+        updates, (12), (13), (14). Ranges that cannot be used are dropped and counted in `unusable` by
+        reason ("unpaired": j's odometry of their time never came; "gap": an odometry gap around them)."""
         self.outcomes = []
         if self.estimator is None or self.epoch is None:
             return
-        for key in self.odometry.keys_after(self.epoch):
-            own_now, own_then = own.get(key), own.get(self.epoch)
-            other_now, other_then = self.odometry.get(key), self.odometry.get(self.epoch)
-            if own_now is None or own_then is None or other_then is None:
+        for key in self.ranges.keys_after(self.epoch):
+            mine, theirs, why = self.positions_at(own, key)
+            if why == "later":
+                if stamp_key(now) - key <= stamp_key(self.timing.wait):
+                    break           # wait for the odometry of its time; later ranges wait behind it
+                why = "unpaired"
+            if why:
+                self.ranges.pop(key)
+                unusable["gap" if why == "before" else why] += 1
                 continue
-            displacement = (own_now - own_then) - (other_now - other_then)
-            if not self.estimator.predict(displacement, intervals=(key - self.epoch) * 1e-6 / self.dt):
-                continue
-            self.epoch = key
             range_now = self.ranges.get(key)
-            if range_now is None:
+            displacement = (mine - self.epoch_own) - (theirs - self.epoch_other)
+            if not self.estimator.predict(displacement, intervals=(key - self.epoch) * 1e-6 / self.dt):
+                self.ranges.pop(key)
                 continue
+            self.epoch, self.epoch_own, self.epoch_other = key, mine, theirs
             if self.last_range is None:
                 self.estimator.mark_range_epoch()
                 self.last_range = range_now
@@ -152,16 +238,20 @@ class NeighbourTrack:
                 self.rejected += 1
 
     def estimate_at(self, own: History, now: float) -> np.ndarray | None:
-        """p^_ij at `now`: the filter's estimate carried forward by i's odometry and j's shared velocity, (2),
-        as in (15)."""
+        """p^_ij at `now`: the filter's estimate carried forward by i's odometry, j's odometry as far as it is
+        known, and j's shared velocity (2) for the rest, as in (15)."""
         if self.estimator is None or self.epoch is None:
             return None
         key = stamp_key(now)
-        own_now, own_then = own.get(key), own.get(self.epoch)
+        own_now = own.get(key)
         position = self.estimator.position
-        if key == self.epoch or own_now is None or own_then is None:
+        if key == self.epoch or own_now is None:
             return position
         other_moved = np.zeros(2)
+        latest = self.odometry.latest()
+        known = latest if latest is not None and self.epoch < latest < key else self.epoch
+        if known != self.epoch:
+            other_moved = self.odometry.get(known) - self.epoch_other
         if self.share is not None:
-            other_moved = np.asarray(self.share.velocity, dtype=float) * ((key - self.epoch) * 1e-6)
-        return position + (own_now - own_then) - other_moved
+            other_moved = other_moved + np.asarray(self.share.velocity, dtype=float) * ((key - known) * 1e-6)
+        return position + (own_now - self.epoch_own) - other_moved

@@ -157,6 +157,16 @@ class FleetParams(StrictModel):
             "covariance intersection (bearings from several angles triangulate); false: as in the paper"
         ),
     )
+    max_odometry_gap: PositiveFloat = Field(
+        0.5, description="a range's time may fall between two odometry samples at most this far apart (s); "
+                         "the positions there are interpolated (a range in a longer gap is counted, not used)")
+    range_wait: PositiveFloat = Field(
+        1.0, description="how long a range waits for the neighbour's odometry of its time (s), which comes in "
+                         "the neighbour's share, typically a tick later; then it is counted as unpaired")
+    prior_max_age: PositiveFloat = Field(
+        5.0, description="an initial estimate whose stamp is older than the odometry kept, or older than this "
+                         "(s) at the first tick, is stale and not used: it would start the pair filter from a "
+                         "past position")
     target_gate: PositiveFloat = Field(
         18.47,
         description=(

@@ -15,12 +15,12 @@ from __future__ import annotations
 import numpy as np
 
 from agent.core.estimators import PLKF, make_relative_estimator
-from agent.core.neighbours import History, NeighbourPrior, NeighbourTrack
+from agent.core.neighbours import History, NeighbourPrior, NeighbourTrack, PairTiming
 from agent.core.params import AgentParams
 from agent.core.records import floats, share_from_json, share_to_json
 from agent.core.state import Health, OwnMotion, VesselState
 
-SNAPSHOT_VERSION = 1
+SNAPSHOT_VERSION = 2   # 2: pair filters keep both odometries at their epoch
 
 
 def state_to_json(state: VesselState) -> dict:
@@ -84,6 +84,8 @@ def _track_to_json(track: NeighbourTrack) -> dict:
         "ranges": _history_to_json(track.ranges),
         "estimator": None if track.estimator is None else track.estimator.export_state(),
         "epoch": track.epoch,
+        "epoch_own": None if track.epoch_own is None else floats(track.epoch_own),
+        "epoch_other": None if track.epoch_other is None else floats(track.epoch_other),
         "last_range": track.last_range,
         "share": None if track.share is None else share_to_json(track.share),
         "last_heard": track.last_heard,
@@ -96,13 +98,15 @@ def _track_to_json(track: NeighbourTrack) -> dict:
 
 def _track_from_json(neighbour: str, data: dict, params: AgentParams) -> NeighbourTrack:
     history = params.fleet.history_ticks
-    track = NeighbourTrack(neighbour, params.relative, params.dt, history)
+    track = NeighbourTrack(neighbour, params.relative, params.dt, history, PairTiming.of(params.fleet))
     track.odometry = _history_from_json(data["odometry"], history, _vector)
     track.ranges = _history_from_json(data["ranges"], history, float)
     if data["estimator"] is not None:
         track.estimator = make_relative_estimator(params.relative, np.zeros(2), np.eye(2), dt=params.dt)
         track.estimator.restore_state(data["estimator"])
     track.epoch = data["epoch"]
+    track.epoch_own = None if data["epoch_own"] is None else _vector(data["epoch_own"])
+    track.epoch_other = None if data["epoch_other"] is None else _vector(data["epoch_other"])
     track.last_range = data["last_range"]
     track.share = None if data["share"] is None else share_from_json(data["share"])
     track.last_heard = data["last_heard"]

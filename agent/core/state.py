@@ -29,6 +29,11 @@ class Health:
     neighbours_joined: int = 0
     non_finite_commands: int = 0
     target_estimates_gated: int = 0
+    ranges_late: int = 0          # came after the pair filter had moved past their time
+    ranges_unpaired: int = 0      # the neighbour's odometry of their time never came
+    ranges_gap: int = 0           # their time fell in a gap of an odometry history
+    priors_stale: int = 0         # initial estimates too old to carry to now
+    priors_refused: int = 0       # initial estimates the measured range contradicts
 
     def as_dict(self) -> dict[str, int]:
         return dict(self.__dict__)

@@ -16,6 +16,7 @@ than the tick's arithmetic. A caller that wants to keep the state before a tick 
 from __future__ import annotations
 
 import math
+from collections import Counter
 
 import numpy as np
 
@@ -47,13 +48,16 @@ def step(params: AgentParams, state: VesselState, inputs: TickInputs) -> tuple[V
     velocity_change = own_motion(state, now, position)
 
     receive_shares(params, state, inputs.shares, now)
-    store_ranges(params, state, inputs.ranges, now)
+    store_ranges(params, state, inputs.ranges, now if inputs.range_stamp is None else inputs.range_stamp)
     forget_silent(params, state, now)
+    unusable: Counter[str] = Counter()
     for track in state.tracks.values():
-        start_track(params, state, track)
-        track.advance(state.own)
+        start_track(params, state, track, now)
+        track.advance(state.own, now, unusable)
         if params.fleet.fuse_shared_estimates:
-            fuse_reciprocal(state, track)
+            fuse_reciprocal(params, state, track)
+    health.ranges_unpaired += unusable["unpaired"]
+    health.ranges_gap += unusable["gap"]
 
     estimates = {j: t.estimate_at(state.own, now) for j, t in state.tracks.items()}
     bearing = _bearing(state, inputs.bearing)

@@ -191,6 +191,8 @@ class TrackState(StrictModel):
     ranges: list[StampedRange] = Field(description="ranges to the neighbour by stamp")
     estimator: PairFilterState | None = Field(description="None until the pair filter has started")
     epoch: int | None = Field(description="stamp (microseconds) the filter state refers to")
+    epoch_own: Vector2 | None = Field(description="this vessel's odometry at the epoch (m)")
+    epoch_other: Vector2 | None = Field(description="the neighbour's odometry at the epoch (m)")
     last_range: float | None
     share: LoggedShare | None
     last_heard: float = Field(description="s")
@@ -203,7 +205,7 @@ class TrackState(StrictModel):
 class PendingPrior(StrictModel):
     position: Vector2
     covariance: Matrix2
-    stamp: float
+    stamp: float | None = Field(description="s; None: at the vessel's first tick")
 
 
 class OwnMotionState(StrictModel):
