@@ -176,3 +176,36 @@ def test_an_initial_estimate_at_launch_is_used_at_the_first_tick():
     health = out.record.health
     assert health["priors_stale"] == health["priors_refused"] == 0
     np.testing.assert_allclose(state.tracks["2"].estimator.position, [4.0, 3.0], atol=0.05)
+
+
+def _two_vessels(neighbour_prior, ranges):
+    """Vessel 1 with a target ahead of it and one neighbour that shares from standstill."""
+    params = AgentParams()
+    start = InitialEstimates(target=(-5.0, 0.0, 0.0, 0.0), neighbours=neighbour_prior, neighbour_variance=0.04,
+                             stamp=None)
+    state = initial_state("1", params, start)
+    out = None
+    for k, range_value in enumerate(ranges):
+        now = 10.0 + k * DT
+        state, out = step(params, state, TickInputs(
+            time=now, odometry=OdometryReading(now, np.zeros(2), 0.0), ranges={"2": range_value},
+            bearing=np.array([-1.0, 0.0]),
+            shares={"2": Share("2", OdometryReading(now - DT, np.zeros(2), 0.0), np.zeros(2), 0.0)} if k else {}))
+    return out
+
+
+def test_a_neighbour_closer_than_the_separation_by_range_alone_holds_the_vessel():
+    """No prior: the pair starts from the range (covariance r^2 I, not localised); 1.5 m < 2 m holds it."""
+    out = _two_vessels({}, [1.5] * 4)
+    assert out.command.surge == 0.0 and out.record.health["separation_stops"] >= 1
+    assert out.record.neighbours["2"].covariance.trace() > AgentParams().fleet.localised_trace
+
+
+def test_a_stray_range_does_not_stop_a_vessel_whose_neighbour_is_localised_far_away():
+    """A localised neighbour 6 m off: a range of 1 m is judged by the estimate, not obeyed."""
+    out = _two_vessels({"2": (6.0, 0.0)}, [6.0, 6.0, 6.0, 1.0])
+    assert out.record.neighbours["2"].covariance.trace() < AgentParams().fleet.localised_trace
+    assert out.record.health["separation_stops"] == 0 and out.command.surge != 0.0
+    # The same neighbour unlocalised (no prior: the range starts it) at 1 m: held.
+    held = _two_vessels({}, [6.0, 6.0, 6.0, 1.0])
+    assert held.record.health["separation_stops"] == 1

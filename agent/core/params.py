@@ -130,6 +130,9 @@ class ControlParams(StrictModel):
     clearance_rate: PositiveFloat = Field(
         1.0, description="safety filter: closing speed allowed per metre of clearance left (1/s)"
     )
+    min_separation: NonNegativeFloat = Field(
+        3.0, description="closer than this (m) to a neighbour, the vessel does not move "
+                         "unless the neighbour is localised (judged by its estimate) and the command leads away")
     safety_filter: bool = Field(True, description="apply the safety filter after (35); false: (35) alone")
     oscillator_gain: PositiveFloat = Field(
         1.0, description="K of (28): K_m = K for m <= n/2, 0 above (the paper leaves K_m open)"
@@ -167,6 +170,9 @@ class FleetParams(StrictModel):
         5.0, description="an initial estimate whose stamp is older than the odometry kept, or older than this "
                          "(s) at the first tick, is stale and not used: it would start the pair filter from a "
                          "past position")
+    localised_trace: PositiveFloat = Field(
+        2.0, description="a neighbour steers the formation and lends its target estimate only once the trace "
+                         "of its pair covariance P_ij is at most this (m^2): a range-only start (r^2 I) does not")
     target_gate: PositiveFloat = Field(
         18.47,
         description=(

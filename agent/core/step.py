@@ -20,16 +20,19 @@ from collections import Counter
 
 import numpy as np
 
-from agent.core.checks import finite_vector, obstacle_array
+from agent.core.checks import finite_vector, obstacle_array, valid_range
 from agent.core.command import control_command
 from agent.core.control.oscillator import oscillator_step
 from agent.core.cooperation import SWAP_VELOCITY, fuse_reciprocal, fuse_targets
 from agent.core.membership import forget_silent, receive_shares, start_track, store_ranges
 from agent.core.neighbours import NeighbourTrack
 from agent.core.params import AgentParams
-from agent.core.records import STOP, NeighbourRecord, Share, TickInputs, TickOutput, TickRecord
+from agent.core.records import STOP, Command, NeighbourRecord, Share, TickInputs, TickOutput, TickRecord
 from agent.core.state import VesselState
 from agent.core.target import own_motion, track_target
+
+
+SEPARATION_RANGES = 5   # the median of this many last ranges judges a localised neighbour, outliers aside
 
 
 def step(params: AgentParams, state: VesselState, inputs: TickInputs) -> tuple[VesselState, TickOutput]:
@@ -60,10 +63,13 @@ def step(params: AgentParams, state: VesselState, inputs: TickInputs) -> tuple[V
     health.ranges_gap += unusable["gap"]
 
     estimates = {j: t.estimate_at(state.own, now) for j, t in state.tracks.items()}
+    # Only a localised neighbour drives the formation and lends its target estimate: an unconverged pair
+    # estimate would pull the vessel, and move the neighbour's target estimate, to the wrong place.
+    localised = {j: e for j, e in estimates.items() if e is not None and _localised(params, state.tracks[j])}
     bearing = _bearing(state, inputs.bearing)
     target_state, target_cov, bearing_outcome = track_target(params, state, bearing, velocity_change)
     if target_state is not None and params.fleet.fuse_target_estimates:
-        target_state, target_cov = fuse_targets(params, state, estimates, now)
+        target_state, target_cov = fuse_targets(params, state, localised, now)
     if state.phase is None:
         state.phase = math.atan2(target_state[1], target_state[0]) if target_state is not None else 0.0
 
@@ -76,7 +82,8 @@ def step(params: AgentParams, state: VesselState, inputs: TickInputs) -> tuple[V
         health.bad_obstacles += 1
     command, terms, saturated = control_command(
         control, params.dt, state.phase, next_phase, odometry.heading, target_state, state.motion.velocity,
-        estimates, neighbour_phases, obstacles)
+        localised, neighbour_phases, obstacles)
+    command = _keep_apart(params, state, inputs.ranges, localised, terms.command, command)
     if not (math.isfinite(command.surge) and math.isfinite(command.yaw_rate)):
         # Never publish a non-finite command, whatever went wrong upstream.
         health.non_finite_commands += 1
@@ -101,6 +108,38 @@ def step(params: AgentParams, state: VesselState, inputs: TickInputs) -> tuple[V
     )
     state.phase = next_phase
     return state, TickOutput(command, share, record)
+
+
+def _localised(params: AgentParams, track: NeighbourTrack) -> bool:
+    """The pair filter has converged enough to steer by: trace(P_ij) at most `fleet.localised_trace`."""
+    covariance = track.estimator.covariance
+    return covariance[0, 0] + covariance[1, 1] <= params.fleet.localised_trace
+
+
+def _keep_apart(params: AgentParams, state: VesselState, ranges, localised: dict[str, np.ndarray],
+                velocity: np.ndarray, command: Command) -> Command:
+    """The last guard: closer to a neighbour than `control.min_separation`, the vessel does not move
+    (forward or astern), unless the command leads away from it. An unlocalised neighbour is judged by the
+    raw range, since that is all there is (and gives no direction to move away in); a localised one by its
+    estimate, or by the median of its last `SEPARATION_RANGES` ranges (a stray UWB range must not stop the
+    formation, but an estimate that has gone wrong must not hide a neighbour that is really close).
+    Counted in `separation_stops`."""
+    limit = params.control.min_separation
+    too_close = False
+    for j, value in ranges.items():
+        if j not in localised and valid_range(value, params.relative.max_range) and value < limit:
+            too_close = True
+    for j, estimate in localised.items():
+        recent = [value for _, value in state.tracks[j].ranges.items()[-SEPARATION_RANGES:]]
+        persistent = len(recent) == SEPARATION_RANGES and float(np.median(recent)) < limit
+        # p_ij = p_i - p_j points from j to i: a velocity along it leads away from j.
+        near = float(np.hypot(*estimate)) < limit
+        if (persistent and not near) or (near and float(velocity @ estimate) <= 0.0):
+            too_close = True    # short ranges the estimate does not explain: its direction is not to be trusted
+    if too_close and command.surge != 0.0:
+        state.health.separation_stops += 1
+        return Command(0.0, command.yaw_rate)
+    return command
 
 
 def _bearing(state: VesselState, bearing) -> np.ndarray | None:
