@@ -13,6 +13,14 @@ the ports and to Zenoh, so swapping a device means swapping an adapter.
 The watchdog is the adapter's: with no fresh command the thrusters get zero. Stamps are wall time (the
 clock the agents run on at sea). One thread reads the ports (select); the Zenoh callback only stores the
 latest command. SIGINT and SIGTERM stop it, with a last zero-thrust line.
+
+Which commands drive the thrusters: those whose `sender` is this vessel, stamped within the `commands`
+window of the driver's own wall clock (`thrusters.CommandGate`: not older than `max_age`, not more than
+`max_ahead` ahead) and after the command in force. The `seq` plays no part (a sender's number anyone on the
+network can set). The agent's liveliness token (`usv/<id>/alive`) is its session: when it goes away the
+thrusters stop at once, without waiting for the watchdog. The watchdog itself runs on the monotonic clock,
+so a step of the wall clock cannot hold a stale command in force. None of this authenticates a command:
+on a network without TLS and access control anyone may publish a fresh one (docs/reliability.md).
 """
 
 from __future__ import annotations
@@ -30,13 +38,20 @@ import zenoh
 from pydantic import Field
 
 from agent.config import PositiveFloat, StrictModel
-from agent.contract import Bearing, Cmd, Ranges, decode, encode, key, nanoseconds
+from agent.contract import LIVELINESS, Bearing, Cmd, Ranges, decode, encode, key, nanoseconds
 from agent.runtime.process import vessel_process
 from agent.runtime.zenoh_session import ZenohSettings, zenoh_config
 from driver_bridge.bearing import BearingAdapter, CameraSettings, parse_detection
 from driver_bridge.odometry import DeadReckoning, OdometrySettings, parse_vhw
 from driver_bridge.serial_port import LineReader, open_serial, write_all
-from driver_bridge.thrusters import ZERO_THRUST, ThrusterAdapter, ThrusterSettings, command_line
+from driver_bridge.thrusters import (
+    ZERO_THRUST,
+    CommandGate,
+    CommandWindow,
+    ThrusterAdapter,
+    ThrusterSettings,
+    command_line,
+)
 from driver_bridge.uwb import NLinkParser, UwbSettings
 
 
@@ -70,6 +85,7 @@ class DriverSettings(StrictModel):
     odometry: OdometryPort | None = None
     camera: CameraPort | None = None
     thrusters: ThrusterPort | None = None
+    commands: CommandWindow = CommandWindow()
 
 
 class DriverBridge:
@@ -86,8 +102,10 @@ class DriverBridge:
         self.lines = {"odometry": LineReader(), "camera": LineReader()}
         self._seq: Counter[str] = Counter()
         self._command_lock = threading.Lock()
+        self.command_gate = CommandGate(settings.commands)
         self._command: Cmd | None = None
-        self._applied_seq: int | None = None
+        self._applied: Cmd | None = None
+        self._agent_left = False
 
     # ----- Zenoh side -----
     def _on_command(self, sample) -> None:
@@ -96,8 +114,19 @@ class DriverBridge:
             self.refused["command"] += 1
             return
         with self._command_lock:
-            if self._command is None or message.seq > self._command.seq or message.seq == 0:
+            reason = self.command_gate.offer(message.stamp_ns, time.time_ns())
+            if reason:
+                self.refused[f"command_{reason}"] += 1
+            else:
                 self._command = message
+
+    def _on_agent_liveliness(self, sample) -> None:
+        """The agent's session ended (its token went away): the command in force goes with it."""
+        if sample.kind == zenoh.SampleKind.DELETE:
+            with self._command_lock:
+                self._command = None
+                self.command_gate.forget()
+                self._agent_left = True
 
     def _publish(self, publishers, topic: str, message) -> None:
         publishers[topic].put(encode(message))
@@ -144,11 +173,14 @@ class DriverBridge:
                 stamp_ns=nanoseconds(time.time()), seq=self._next("bearing"), sender=self.id, bearing=vector))
 
     def _drive(self, fd: int, now: float) -> None:
+        """One thrust line; `now` is the monotonic clock (the watchdog's)."""
         with self._command_lock:
-            command = self._command
-        if command is not None and command.seq != self._applied_seq:
-            self._applied_seq = command.seq
-            # The command's age is judged on arrival: its stamp is the agent's wall clock, ours may differ.
+            command, left, self._agent_left = self._command, self._agent_left, False
+        if left:
+            self.thrusters.stop("agent_left")
+        if command is not None and command is not self._applied:
+            self._applied = command
+            # Its stamp was judged on arrival (CommandGate); the watchdog counts from its application.
             self.thrusters.command(command.surge, command.yaw_rate, now)
         write_all(fd, command_line(self.thrusters.output(now)))
 
@@ -167,6 +199,8 @@ class DriverBridge:
                 publishers = {t: session.declare_publisher(key(self.id, t))
                               for t in ("sensor/uwb", "sensor/odom", "sensor/bearing")}
                 subscriber = session.declare_subscriber(key(self.id, "cmd"), self._on_command)
+                agent = session.liveliness().declare_subscriber(key(self.id, LIVELINESS), self._on_agent_liveliness,
+                                                                 history=True)
                 period = 1.0 / self.settings.thrusters.rate_hz if self.thrusters else 0.1
                 next_drive = time.monotonic()
                 while not self.stopping.is_set():
@@ -180,8 +214,9 @@ class DriverBridge:
                     if time.monotonic() >= next_drive:
                         next_drive += period
                         if self.thrusters:
-                            self._drive(ports["thrusters"], time.time())
+                            self._drive(ports["thrusters"], time.monotonic())
                 subscriber.undeclare()
+                agent.undeclare()
         finally:
             if "thrusters" in ports:
                 write_all(ports["thrusters"], command_line(ZERO_THRUST))   # leave the boat stopped
@@ -209,6 +244,8 @@ def main(argv: list[str] | None = None) -> int:
         adapter = getattr(bridge, name)
         if adapter is not None and adapter.rejected:
             counts[f"{name}_refused"] = dict(adapter.rejected)
+    if bridge.thrusters is not None and bridge.thrusters.events:
+        counts["thruster_events"] = dict(bridge.thrusters.events)
     for name, lines in bridge.lines.items():
         if lines.rejected:
             counts[f"{name}_lines_refused"] = dict(lines.rejected)

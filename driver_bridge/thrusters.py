@@ -20,6 +20,13 @@ counted, and taken as a stop.
 
 `command_line` writes the pair for a motor controller as `$THR,<left>,<right>*hh\\r\\n` (our format, NMEA
 framing, see serial_port), each value signed with three decimals in [-1, 1].
+
+Which commands are taken at all is `CommandGate`'s job, judged by the driver's own clock: a command stamped
+more than `max_age` ago (stale, or a replay) or more than `max_ahead` in the future is refused, and of the
+rest only one stamped after the command in force is taken. The `seq` a sender writes plays no part: a high-
+water mark of seqs is a number anyone who can publish moves wherever they like (an absurd seq locked the
+agent out; a seq of 0, taken as a restart, let a replay in at any time). The newest stamp taken can be at
+most `max_ahead` in the future, so a spoofed stamp holds the real agent off for at most that long.
 """
 
 from __future__ import annotations
@@ -42,6 +49,43 @@ class ThrusterSettings(StrictModel):
     timeout: PositiveFloat = Field(0.5, description="stop when the last valid command is older (s)")
 
 
+class CommandWindow(StrictModel):
+    """How fresh a command must be, by the driver's wall clock (which the agent on the same boat shares)."""
+
+    max_age: PositiveFloat = Field(0.5, description="refuse a command stamped longer ago than this (s): stale or "
+                                   "replayed")
+    max_ahead: PositiveFloat = Field(0.2, description="refuse a command stamped further ahead than this (s); also "
+                                     "the longest a spoofed stamp can hold the real agent's commands off")
+
+
+class CommandGate:
+    """`offer(stamp_ns, now_ns)` -> '' to take the command, else why not: `stale`, `future` or `out_of_order`
+    (stamped at or before the command in force). `forget()` drops the command in force's stamp (its
+    sender's session ended). Counts in `rejected`."""
+
+    def __init__(self, window: CommandWindow) -> None:
+        self.window = window
+        self.rejected: Counter[str] = Counter()
+        self.newest_ns: int | None = None
+
+    def offer(self, stamp_ns: int, now_ns: int) -> str:
+        age = (now_ns - stamp_ns) * 1e-9
+        if age > self.window.max_age:
+            reason = "stale"
+        elif -age > self.window.max_ahead:
+            reason = "future"
+        elif self.newest_ns is not None and stamp_ns <= self.newest_ns:
+            reason = "out_of_order"
+        else:
+            self.newest_ns = stamp_ns
+            return ""
+        self.rejected[reason] += 1
+        return reason
+
+    def forget(self) -> None:
+        self.newest_ns = None
+
+
 @dataclass(frozen=True)
 class Thrust:
     left: float     # normalised, -1..1 (x max_thrust = N)
@@ -60,7 +104,8 @@ class ThrusterAdapter:
 
     Counted in `rejected`: `non_finite` (command taken as a stop), `out_of_order` (a command stamped before
     the last one, ignored). Counted in `events`: `saturated` (a command the thrusters cannot follow
-    exactly), `watchdog_stop` (each time the output goes to zero because commands went stale).
+    exactly), `watchdog_stop` (each time the output goes to zero because commands went stale), and whatever
+    `stop(reason)` is told.
     """
 
     def __init__(self, settings: ThrusterSettings):
@@ -99,6 +144,11 @@ class ThrusterAdapter:
         else:
             self._thrust = self.mix(surge, yaw_rate)
         return self._thrust
+
+    def stop(self, reason: str) -> None:
+        """Zero thrust now, until the next command (the agent is gone: no need to wait for the watchdog)."""
+        self.events[reason] += 1
+        self._thrust = ZERO_THRUST
 
     def output(self, now: float) -> Thrust:
         stale = self._stamp is None or not math.isfinite(now) or now - self._stamp > self.settings.timeout

@@ -6,8 +6,9 @@
     usv-log replay LOG --out FILE [--set key=value ...] [--params FILE] [--start SECONDS]
                                       a vessel's recorded inputs through the core again
 
-RUN is a run folder (every *.mcap in it) or MCAP files. Reports are Markdown on standard output; --json
-writes the figures as JSON too.
+RUN is a run folder (every *.mcap in it) or MCAP files; the parts of a rotated log (agent-1.mcap,
+agent-1.part0001.mcap, ...) read as one log. Reports are Markdown on standard output, with times in seconds
+from the mission's start; --json writes the figures as JSON too.
 """
 
 from __future__ import annotations
@@ -33,8 +34,11 @@ def _run_arguments(parser: argparse.ArgumentParser) -> None:
 def _load(paths: list[Path]):
     run = load_run(paths if len(paths) > 1 else paths[0])
     for path in run.unfinished:
-        print(f"usv-log: warning: {path} is unfinished (its process was killed?); read up to its last "
-              "complete chunk", file=sys.stderr)
+        print(f"usv-log: warning: {path} is unfinished (its process was killed, or a write failed?); read up to "
+              "its last complete chunk", file=sys.stderr)
+    for path, missing in run.missing_parts.items():
+        print(f"usv-log: note: {path}: part(s) {', '.join(map(str, missing))} of this log are not among the files "
+              "(deleted by its size bound, or not copied); read without them", file=sys.stderr)
     return run
 
 

@@ -6,7 +6,8 @@ or the sim bridge's and agents' logs):
 - e_io^p(k) = max_i |p^_io - p_io|, e_io^v(k) = max_i |v^_io - v_io|: worst target estimate;
 - e_c(k) = |(1/n) sum_i p_i - p_o|: formation centre against the target;
 - settling time: the first time from which every vessel's distance to the target stays within +-10 % of r*
-  to the end of the run;
+  to the end of the run, in seconds from the mission's start (mission_log.reader.mission_start_ns: sim
+  time 0 in simulation; on the wall clock, the first tick logged, not the Unix epoch);
 - the mean tick compute time.
 "Mean" in the tables is the time average over the whole run, as in the paper's Tables II-IV.
 
@@ -29,7 +30,7 @@ from itertools import combinations
 import numpy as np
 from scipy.stats import chi2
 
-from mission_log.reader import RunLog, agent_radius
+from mission_log.reader import RunLog, agent_radius, mission_start_ns
 from mission_log.series import beliefs_of, centroid_error, estimate_errors, truth_of
 
 NIS_BOUND_95 = float(chi2.ppf(0.95, 1))
@@ -87,8 +88,9 @@ def summarise(time, e_ij, e_io, e_io_velocity, e_c, radii, radius, tick_seconds)
 
 def truth_metrics(run: RunLog, radius: float) -> dict:
     """The paper's metrics from the logs: worst e_ij and e_io over the vessels at each tick, e_c, settling
-    time, and their means. Needs the sim bridge's log."""
+    time (s from the mission's start), and their means. Needs the sim bridge's log."""
     truth = truth_of(run.sim)
+    start_ns = mission_start_ns(run)
     vessels = list(truth.vessels)
     n = len(truth.t_ns)
     e_ij, e_io = np.full(n, np.nan), np.full(n, np.nan)
@@ -100,9 +102,12 @@ def truth_metrics(run: RunLog, radius: float) -> dict:
         e_ij, e_io = np.fmax(e_ij, worst_ij), np.fmax(e_io, error_io)   # fmax: a vessel absent at a tick does not count
     positions = np.stack([truth.vessels[v] for v in vessels], axis=1)   # (T, n, 2)
     radii = np.linalg.norm(positions - truth.target[:, None, :], axis=-1)
-    metrics = summarise(truth.t_ns * 1e-9, e_ij, e_io, np.full(n, np.nan), centroid_error(truth), radii, radius, [])
+    # Subtract in integers first: an epoch time in ns does not fit a float's 53 bits.
+    time = (truth.t_ns - start_ns) * 1e-9
+    metrics = summarise(time, e_ij, e_io, np.full(n, np.nan), centroid_error(truth), radii, radius, [])
     return {"vessels": vessels, "ticks": n, "radius": radius, "mean_e_ij": metrics.mean_e_ij,
-            "mean_e_io": metrics.mean_e_io, "mean_e_c": metrics.mean_e_c, "settling_time": metrics.settling_time}
+            "mean_e_io": metrics.mean_e_io, "mean_e_c": metrics.mean_e_c, "settling_time": metrics.settling_time,
+            "start_ns": start_ns}
 
 
 def _nis(pairs: list[tuple[float, float]]) -> dict:
@@ -185,18 +190,18 @@ def metrics_markdown(result: dict, source: str) -> str:
     lines = [f"# Metrics of {source}", ""]
     truth = result["truth"]
     if truth is None:
-        lines += ["**No ground truth** (no sim bridge log with `/truth` among the files): the paper's metrics "
-                  "need it. What follows checks the estimates against each other instead.", ""]
+        lines += [("**No ground truth** (no sim bridge log with `/truth` among the files): the paper's metrics "
+                  "need it. What follows checks the estimates against each other instead."), ""]
     else:
-        settling = "never" if truth["settling_time"] is None else f"{truth['settling_time']:.1f} s"
+        settling = "never" if truth["settling_time"] is None else f"{truth['settling_time']:.1f} s after the start"
         lines += ["## Against the ground truth (the paper's metrics)", "",
                   f"{len(truth['vessels'])} vessels, {truth['ticks']} ticks, r* = {truth['radius']} m", "",
                   "| mean e_ij (m) | mean e_io (m) | mean e_c (m) | settling time |", "|---|---|---|---|",
-                  f"| {_cell(truth['mean_e_ij'])} | {_cell(truth['mean_e_io'])} | {_cell(truth['mean_e_c'])} | "
-                  f"{settling} |", ""]
+                  (f"| {_cell(truth['mean_e_ij'])} | {_cell(truth['mean_e_io'])} | {_cell(truth['mean_e_c'])} | "
+                  f"{settling} |"), ""]
     lines += ["## Normalised innovations (NIS)", "",
-              f"A consistent filter averages 1 with 95 % of updates under {NIS_BOUND_95:.2f}. The mean weight is "
-              "how much the MCKF trusted its range updates (1: fully; outliers get less).", "",
+              (f"A consistent filter averages 1 with 95 % of updates under {NIS_BOUND_95:.2f}. The mean weight is "
+              "how much the MCKF trusted its range updates (1: fully; outliers get less)."), "",
               "| vessel | filter | updates | mean NIS | within 95 % | mean weight |",
               "|---|---|---|---|---|---|"]
     for vessel, filters in result["innovations"].items():
@@ -207,8 +212,8 @@ def metrics_markdown(result: dict, source: str) -> str:
         lines.append(f"| {vessel} | target (bearings) | {s['updates']} | {_cell(s['mean_nis'], 2)} | "
                      f"{_cell(s['within_95'], 2)} | |")
     lines += ["", "## Agreement between vessels", "",
-              "Pair: |p^_ij + p^_ji| (each vessel's estimate of the other should be the exact opposite). Target: "
-              "|(p^_io - p^_jo) - p^_ij| (two target estimates and one inter-vessel estimate closing the triangle).",
+              ("Pair: |p^_ij + p^_ji| (each vessel's estimate of the other should be the exact opposite). Target: "
+              "|(p^_io - p^_jo) - p^_ij| (two target estimates and one inter-vessel estimate closing the triangle)."),
               "", "| pair | ticks | pair mean (m) | pair p95 (m) | pair max (m) | target mean (m) | target p95 (m) |",
               "|---|---|---|---|---|---|---|"]
     for name, p in result["agreement"]["pairs"].items():

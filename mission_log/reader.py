@@ -1,4 +1,4 @@
-"""A mission's logs, read into memory: one `VesselLog` per agent file and, in simulation, the sim bridge's.
+"""A mission's logs, read into memory: one `VesselLog` per agent and, in simulation, the sim bridge's.
 
 `load_run(paths)` takes a run folder (every `*.mcap` in it) or MCAP files. An agent's file is recognised by
 its `vessel` metadata, the sim bridge's by its `/truth` topic. A file cut short (its process was killed) is
@@ -6,6 +6,16 @@ read up to its last complete chunk and marked `unfinished`; a file that is not a
 that names it, and so is a file whose log format version (its `usv-log-format` metadata) this reader does not
 know. A file without that record was written before the version was recorded: it is read as version 1,
 which has the same messages.
+
+**Rotated logs.** A process whose log rotates (agent/runtime/mcap_log.py, `LogRotation`) writes a set of
+parts, `agent-1.mcap`, `agent-1.part0001.mcap`, ..., each with a `usv-log-part` record naming its set and
+its place. The parts of one set among the files given are joined, in part order, into one log of that
+process. A part that is not there (deleted by the log's size bound, or not copied) is fine: the log says
+which (`missing_parts`), and its messages are simply absent. `read_log_set(path)` reads a file together
+with the other parts of its set in the same folder.
+
+**Times.** Log times are the tick's time: sim time in simulation, Unix epoch on the wall clock. Reports give
+times in seconds from the mission's start, `mission_start_ns(run)`.
 """
 
 from __future__ import annotations
@@ -16,7 +26,7 @@ from collections import defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from agent.runtime.mcap_log import FORMAT_RECORD, read_messages, read_metadata
+from agent.runtime.mcap_log import FORMAT_RECORD, PART_RECORD, read_messages, read_metadata
 from agent.shell.tick_log import log_topic
 
 READS_FORMATS = ("1", "2")  # the log format versions this reader knows (agent/runtime/mcap_log.py writes them)
@@ -34,6 +44,10 @@ class Log:
     topics: dict[str, list[tuple[int, dict]]]     # topic -> [(log time ns, message)] in file order
     unfinished: bool = False
     format_version: str = UNRECORDED_FORMAT
+    parts: list[Path] = field(default_factory=list)       # the files read, in part order
+    missing_parts: list[int] = field(default_factory=list)  # parts of the set before or between those read, absent
+    set_id: str | None = None                             # the set of parts this log belongs to (None: unrecorded)
+    part: int = 0                                         # the (first) part read
 
     def messages(self, topic: str) -> list[tuple[int, dict]]:
         return self.topics.get(topic, [])
@@ -69,8 +83,17 @@ class RunLog:
         return self.sim is not None and bool(self.sim.messages("/truth"))
 
     @property
+    def logs(self) -> list[Log]:
+        return [log for log in [*self.vessels.values(), self.sim] if log is not None]
+
+    @property
     def unfinished(self) -> list[Path]:
-        return [log.path for log in [*self.vessels.values(), self.sim] if log is not None and log.unfinished]
+        return [log.path for log in self.logs if log.unfinished]
+
+    @property
+    def missing_parts(self) -> dict[Path, list[int]]:
+        """First file read -> the parts of its set that are not among the files (deleted by the size bound)."""
+        return {log.path: log.missing_parts for log in self.logs if log.missing_parts}
 
 
 def read_log(path: Path) -> Log:
@@ -89,10 +112,75 @@ def read_log(path: Path) -> Log:
             topics[topic].append((stamp, message))
     unfinished = any("unfinished MCAP" in str(w.message) for w in caught)
     run_metadata = metadata.get("run", {})
+    part_record = metadata.get(PART_RECORD, {})
+    try:
+        part = int(part_record.get("part", 0))
+    except ValueError:
+        raise LogError(f"{path}: bad {PART_RECORD} record {part_record}") from None
+    known = {"parts": [path], "set_id": part_record.get("set"), "part": part,
+             "missing_parts": list(range(part))}   # read alone, the parts before this one are not here
     vessel = run_metadata.get("vessel")
     if vessel is not None:
-        return VesselLog(path, run_metadata, dict(topics), unfinished, version, vessel=vessel)
-    return Log(path, run_metadata, dict(topics), unfinished, version)
+        return VesselLog(path, run_metadata, dict(topics), unfinished, version, vessel=vessel, **known)
+    return Log(path, run_metadata, dict(topics), unfinished, version, **known)
+
+
+def join_parts(logs: list[Log]) -> Log:
+    """The parts of one set (any order) as one log: messages in part order, unfinished if any part is, and
+    the parts not among them (before the last one read) in `missing_parts`."""
+    logs = sorted(logs, key=lambda log: log.part)
+    first = logs[0]
+    numbers = [log.part for log in logs]
+    if len(set(numbers)) != len(numbers):
+        twice = next(n for n in numbers if numbers.count(n) > 1)
+        raise LogError(f"part {twice} of the log {first.path} given twice: "
+                       f"{', '.join(str(log.path) for log in logs if log.part == twice)}")
+    if len(logs) == 1:
+        return first
+    versions = {log.format_version for log in logs}
+    if len(versions) > 1:
+        raise LogError(f"{first.path}: its parts have different log format versions ({', '.join(sorted(versions))})")
+    topics: dict[str, list[tuple[int, dict]]] = defaultdict(list)
+    for log in logs:
+        for topic, messages in log.topics.items():
+            topics[topic].extend(messages)
+    known = {"parts": [log.path for log in logs], "set_id": first.set_id, "part": first.part,
+             "missing_parts": sorted(set(range(numbers[-1] + 1)) - set(numbers))}
+    unfinished = any(log.unfinished for log in logs)
+    if isinstance(first, VesselLog):
+        return VesselLog(first.path, first.metadata, dict(topics), unfinished, first.format_version,
+                         vessel=first.vessel, **known)
+    return Log(first.path, first.metadata, dict(topics), unfinished, first.format_version, **known)
+
+
+def set_files(path: Path) -> list[Path]:
+    """The files in `path`'s folder that may be parts of the same set: the set's first file and its
+    `.partNNNN` files (by name; the `usv-log-part` records decide)."""
+    path = Path(path)
+    first = read_metadata(path).get(PART_RECORD, {}).get("first", path.name)
+    stem, suffix = Path(first).stem, Path(first).suffix
+    found = {path, *path.parent.glob(f"{glob_escape(stem)}.part[0-9]*{glob_escape(suffix)}")}
+    if (path.parent / first).is_file():
+        found.add(path.parent / first)
+    return sorted(found)
+
+
+def glob_escape(text: str) -> str:
+    return "".join(f"[{c}]" if c in "*?[" else c for c in text)
+
+
+def read_log_set(path: Path) -> Log:
+    """`path` together with the other parts of its set in the same folder, as one log."""
+    own = read_log(path)
+    if own.set_id is None:
+        return own
+    logs = [own]
+    for other in set_files(path):
+        if other != Path(path):
+            log = read_log(other)
+            if log.set_id == own.set_id:
+                logs.append(log)
+    return join_parts(logs)
 
 
 def format_version(path: Path, metadata: dict[str, dict[str, str]]) -> str:
@@ -106,7 +194,7 @@ def format_version(path: Path, metadata: dict[str, dict[str, str]]) -> str:
 
 
 def load_run(paths: list[Path] | Path) -> RunLog:
-    """Read a run folder or a list of MCAP files."""
+    """Read a run folder or a list of MCAP files; the parts of a rotated log are joined into one log."""
     paths = [Path(p) for p in (paths if isinstance(paths, list) else [paths])]
     files: list[Path] = []
     for path in paths:
@@ -120,8 +208,13 @@ def load_run(paths: list[Path] | Path) -> RunLog:
     if not files:
         raise LogError("no log given")
     run = RunLog(source=", ".join(str(p) for p in paths))
-    for path in files:
+    sets: dict[object, list[Log]] = {}
+    for path in dict.fromkeys(files):   # a file named twice (a folder and a file in it) is read once
         log = read_log(path)
+        sets.setdefault(log.set_id or path, []).append(log)
+    for parts in sets.values():
+        log = join_parts(parts)
+        path = log.path
         if isinstance(log, VesselLog):
             if log.vessel in run.vessels:
                 raise LogError(f"{path}: a second log of vessel {log.vessel} (the first is {run.vessels[log.vessel].path})")
@@ -131,6 +224,19 @@ def load_run(paths: list[Path] | Path) -> RunLog:
     if not run.vessels and run.sim is None:
         raise LogError(f"{run.source}: neither an agent's log nor the sim bridge's")
     return run
+
+
+def mission_start_ns(run: RunLog) -> int:
+    """The mission's time zero (log time, ns): the first tick any agent logged (its inputs or estimates) or
+    the sim bridge's first truth, whichever is earliest; failing those, the earliest message of any log.
+    0 in simulation; a Unix time on the wall clock."""
+    firsts = [min(t for t, _ in log.topic(name)) for log in run.vessels.values() for name in ("inputs", "estimates")
+              if log.topic(name)]
+    if run.sim is not None and run.sim.messages("/truth"):
+        firsts.append(min(t for t, _ in run.sim.messages("/truth")))
+    if not firsts:
+        firsts = [t for log in run.logs for messages in log.topics.values() for t, _ in messages[:1]]
+    return min(firsts, default=0)
 
 
 def agent_radius(run: RunLog, default: float = 5.0) -> float:

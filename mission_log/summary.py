@@ -2,17 +2,22 @@
 
 Per vessel: the span of its log, message counts, rates and gaps per topic, what its input gate refused, tick
 overruns, the time its commands spent at each limit, and its estimators' health in windows of time. For the
-sim bridge: ticks, missed commands, watchdog stops, command latency.
+sim bridge: ticks, missed commands, watchdog stops, command latency. Times are seconds from the mission's
+start (mission_log.reader.mission_start_ns), on either clock; the start itself is given once, as a UTC time
+on the wall clock. A log rotated into parts says how many were read and which are missing.
 """
 
 from __future__ import annotations
 
 import math
+from datetime import UTC, datetime
 
 import numpy as np
 
 from agent.shell.tick_log import log_topic
-from mission_log.reader import Log, RunLog
+from mission_log.reader import Log, RunLog, mission_start_ns
+
+WALL_CLOCK_NS = 10**17   # log times past this (1973) are Unix times: the wall clock, not sim time
 
 GAP_FACTOR = 2.5   # an interval this many times the topic's median interval is a gap
 
@@ -31,20 +36,23 @@ def topic_statistics(messages: list[tuple[int, dict]]) -> dict:
     return result
 
 
-def _span(log: Log) -> tuple[float, float] | None:
+def _span(log: Log, origin_ns: int = 0) -> tuple[float, float] | None:
+    """First and last log time of `log`, in seconds from `origin_ns`."""
     stamps = [t for messages in log.topics.values() for t, _ in messages]
-    return (min(stamps) * 1e-9, max(stamps) * 1e-9) if stamps else None
+    return ((min(stamps) - origin_ns) * 1e-9, (max(stamps) - origin_ns) * 1e-9) if stamps else None
 
 
-def health_windows(estimates: list[tuple[int, dict]], window: float) -> list[dict]:
-    """The inter-vessel filters' and the target filter's work in consecutive windows of `window` seconds."""
+def health_windows(estimates: list[tuple[int, dict]], window: float, origin_ns: int = 0) -> list[dict]:
+    """The inter-vessel filters' and the target filter's work in consecutive windows of `window` seconds,
+    from the first estimate on; the windows' times are seconds from `origin_ns`."""
     if not estimates:
         return []
-    start, end = estimates[0][0] * 1e-9, estimates[-1][0] * 1e-9
+    # Integers first: an epoch time in ns does not fit a float's 53 bits.
+    start, end = (estimates[0][0] - origin_ns) * 1e-9, (estimates[-1][0] - origin_ns) * 1e-9
     last = max(1, math.ceil((end - start) / window - 1e-9)) - 1   # a tick on the last boundary closes the last window
     rows: dict[int, dict] = {}
     for t, m in estimates:
-        k = min(int((t * 1e-9 - start) // window), last)
+        k = min(int(((t - origin_ns) * 1e-9 - start) // window), last)
         row = rows.setdefault(k, {"from_s": start + k * window, "to_s": start + (k + 1) * window, "ticks": 0,
                                   "relative_updates": 0, "relative_refused": 0, "iterations": [], "weights": [],
                                   "nis": [], "bearing_updates": 0, "bearing_refused": 0, "neighbours": 0})
@@ -73,8 +81,12 @@ def health_windows(estimates: list[tuple[int, dict]], window: float) -> list[dic
     return result
 
 
-def vessel_summary(log, window: float) -> dict:
-    span = _span(log)
+def _parts(log: Log) -> dict:
+    return {"parts": [str(path) for path in log.parts], "missing_parts": list(log.missing_parts)}
+
+
+def vessel_summary(log, window: float, origin_ns: int = 0) -> dict:
+    span = _span(log, origin_ns)
     status = log.last(log_topic(log.vessel, "status")) or {}
     final = log.last(log_topic(log.vessel, "summary")) or {}
     estimates = log.topic("estimates")
@@ -87,7 +99,7 @@ def vessel_summary(log, window: float) -> dict:
         for name, flag in m.get("saturated", {}).items():
             saturation[name] = saturation.get(name, 0.0) + (dt if flag else 0.0)
     return {
-        "file": str(log.path), "unfinished": log.unfinished,
+        "file": str(log.path), "unfinished": log.unfinished, **_parts(log),
         "from_s": None if span is None else span[0], "to_s": None if span is None else span[1],
         "duration_s": None if span is None else span[1] - span[0],
         "ticks": ticks, "ticks_with_estimates": len(estimates),
@@ -99,7 +111,7 @@ def vessel_summary(log, window: float) -> dict:
                         and k not in ("overruns", "log_errors")},
         "saturation_s": saturation,
         "cpu_ms_per_tick": 1e3 * final["cpu_seconds"] / final["ticks"] if final.get("ticks") else None,
-        "health_over_time": health_windows(estimates, window),
+        "health_over_time": health_windows(estimates, window, origin_ns),
     }
 
 
@@ -108,7 +120,7 @@ def sim_summary(log: Log) -> dict:
     final = log.last("/bridge/summary") or {}
     latencies = [v for _, m in log.messages("/bridge/command_latency") for v in m["milliseconds"].values()]
     return {
-        "file": str(log.path), "unfinished": log.unfinished,
+        "file": str(log.path), "unfinished": log.unfinished, **_parts(log),
         "duration_s": None if span is None else span[1] - span[0],
         "ticks": final.get("ticks", len(log.messages("/truth"))),
         "missed_commands": final.get("missed_commands"), "watchdog_stops": final.get("watchdog_stops"),
@@ -121,9 +133,28 @@ def sim_summary(log: Log) -> dict:
 
 
 def run_summary(run: RunLog, window: float = 10.0) -> dict:
-    return {"source": run.source,
-            "vessels": {v: vessel_summary(log, window) for v, log in sorted(run.vessels.items())},
+    origin = mission_start_ns(run)
+    return {"source": run.source, "start_ns": origin, "clock": "wall" if origin >= WALL_CLOCK_NS else "sim",
+            "vessels": {v: vessel_summary(log, window, origin) for v, log in sorted(run.vessels.items())},
             "sim": None if run.sim is None else sim_summary(run.sim)}
+
+
+def _start_line(summary: dict) -> str:
+    if summary.get("clock") == "wall":
+        when = datetime.fromtimestamp(summary["start_ns"] // 10**9, UTC).strftime("%Y-%m-%d %H:%M:%S UTC")
+        return f"Times are seconds from the mission's start, {when} (wall clock)."
+    return f"Times are seconds of sim time from the mission's start ({summary.get('start_ns', 0) * 1e-9:.1f} s)."
+
+
+def _missing(parts: list[int]) -> str:
+    """[0, 1, 2, 5] -> '0-2, 5'."""
+    runs: list[list[int]] = []
+    for n in parts:
+        if runs and n == runs[-1][-1] + 1:
+            runs[-1].append(n)
+        else:
+            runs.append([n])
+    return ", ".join(str(r[0]) if len(r) == 1 else f"{r[0]}-{r[-1]}" for r in runs)
 
 
 def _fmt(value, digits: int = 2) -> str:
@@ -141,11 +172,11 @@ def _topic_table(topics: dict) -> list[str]:
 
 
 def summary_markdown(summary: dict) -> str:
-    lines = [f"# Summary of {summary['source']}", ""]
+    lines = [f"# Summary of {summary['source']}", "", _start_line(summary), ""]
     vessels = summary["vessels"]
     if vessels:
-        lines += ["| vessel | from (s) | to (s) | ticks | with estimates | refused inputs | overruns | "
-                  "CPU per tick (ms) | log |", "|---|---|---|---|---|---|---|---|---|"]
+        lines += [("| vessel | from (s) | to (s) | ticks | with estimates | refused inputs | overruns | "
+                  "CPU per tick (ms) | log |"), "|---|---|---|---|---|---|---|---|---|"]
         for v, s in vessels.items():
             refused = ", ".join(f"{k} {n}" for k, n in s["refused"].items()) or "none"
             lines.append(f"| {v} | {_fmt(s['from_s'], 1)} | {_fmt(s['to_s'], 1)} | {s['ticks']} | "
@@ -165,15 +196,21 @@ def summary_markdown(summary: dict) -> str:
     for v, s in vessels.items():
         lines += [f"## Vessel {v}", ""]
         if s["unfinished"]:
-            lines += ["The log is unfinished (the process was killed): read up to its last complete chunk.", ""]
+            lines += [("The log is unfinished (the process was killed, or a write failed): read up to its last "
+                      "complete chunk."), ""]
+        if len(s.get("parts", [])) > 1 or s.get("missing_parts"):
+            lines += [f"The log was rotated: {len(s['parts'])} part(s) read"
+                      + (f"; part(s) {_missing(s['missing_parts'])} missing (deleted by the log's size bound, or "
+                         "not copied): their messages are not in these figures" if s["missing_parts"] else "")
+                      + ".", ""]
         lines += _topic_table(s["topics"]) + [""]
         if s["saturation_s"]:
             lines += ["Time at a limit: " + ", ".join(f"{k} {t:.1f} s" for k, t in s["saturation_s"].items()), ""]
         counters = {k: n for k, n in s["core_health"].items() if n}
         lines += ["Core health counters: " + (", ".join(f"{k} {n}" for k, n in counters.items()) or "all zero"), ""]
         if s["health_over_time"]:
-            lines += ["| from (s) | to (s) | neighbours | range updates | refused | mean MCKF iterations | "
-                      "mean weight | mean NIS | bearing updates | bearings refused |",
+            lines += [("| from (s) | to (s) | neighbours | range updates | refused | mean MCKF iterations | "
+                      "mean weight | mean NIS | bearing updates | bearings refused |"),
                       "|---|---|---|---|---|---|---|---|---|---|"]
             for row in s["health_over_time"]:
                 lines.append(f"| {row['from_s']:.0f} | {row['to_s']:.0f} | {row['neighbours']} | "

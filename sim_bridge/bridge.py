@@ -5,7 +5,18 @@ takes the commands, and steps the world. Lockstep mode waits for the command and
 from every live agent (a liveliness token), up to a timeout that counts as a missed command; a vessel that
 joins the world makes the tick wait for its agent as the first tick waits for everyone's. Real-time mode
 steps every dt of wall time. A command watchdog stops a vessel (zero surge, zero yaw rate) whose latest
-command is older than `watchdog` seconds of sim time, as a real driver bridge must.
+command arrived more than `watchdog` seconds ago by the bridge's own clock (sim time; wall time in the sea
+mode), whatever stamp the agent wrote, as a real driver bridge must. A command stamped more than
+`max_command_skew` from the bridge's clock (a status: ahead of it) is refused and counted.
+
+The sea mode (a scenario's `world.sea`, real-time mode only) behaves like boats at sea, for agents on the
+wall clock (`clock: wall`). Sim time 0 is the wall time `epoch_ns`. The world moves in short steps
+(`sea.step_ms`, 10 ms by default; `sea_world`): each takes the latest commands (so a command acts within a
+step of its arrival, as thrusters do), and `SeaSensors` gives every measurement of the step, each at its own
+time, from the world interpolated between the step's ends. A small scheduler (one heap, on the bridge's
+thread) publishes each message when its latency has passed, stamped in its vessel's own clock. The truth is
+logged and `sim/clock` goes out once per tick (dt), for the launcher; wall-clock agents do not read the
+clock, and the radio is not simulated (no packet loss).
 
 The bridge also plays the radio between the vessels: each clock message says which shares of the tick
 before each agent gets now (`lost_shares`: the scenario's packet loss, by a hash of the run's seed), so the
@@ -15,6 +26,8 @@ same messages are lost in every run with the same seed. Ground truth goes to an 
 from __future__ import annotations
 
 import argparse
+import heapq
+import itertools
 import signal
 import sys
 import threading
@@ -41,7 +54,6 @@ from agent.contract import (
     encode,
     every,
     key,
-    seconds,
     vessel_of,
 )
 from agent.core.records import STOP, Command
@@ -50,13 +62,20 @@ from agent.runtime.log_schema import BridgeSummary, CommandLatency, LoggedTruth
 from agent.runtime.mcap_log import McapLog
 from agent.runtime.zenoh_session import ZenohSettings, open_session, zenoh_config
 from sim_bridge.scenario import Scenario, select_scenario
-from sim_bridge.world import World, lost_shares, streams
+from sim_bridge.world import Frame, Measurement, SeaSensors, World, lost_shares, sea_steps, sea_world, streams
 
 
 class BridgeSettings(StrictModel):
     mode: Literal["lockstep", "realtime"] = "lockstep"
     command_timeout: PositiveFloat = Field(2.0, description="lockstep: wall seconds to wait for a tick's commands")
-    watchdog: PositiveFloat = Field(0.5, description="a vessel with no command this recent (sim s) stops")
+    watchdog: PositiveFloat = Field(
+        0.5, description="a vessel whose latest command arrived longer ago than this (s, the bridge's clock) stops")
+    max_command_skew: PositiveFloat = Field(
+        1.0, description="a command stamped further than this (s) from the bridge's clock, or a status stamped "
+                         "further ahead, is refused and counted (sim time; wall time in the sea mode)")
+    epoch_ns: int | None = Field(
+        None, ge=0, description="sea mode: the wall time (ns since 1970) of sim time 0, which the bridge waits "
+                                "for once the agents are ready; None: the moment they are")
     startup_timeout: PositiveFloat = Field(30.0, description="wall seconds to wait for the first agents")
     zenoh: ZenohSettings = ZenohSettings()
     log: str | None = Field(None, description="MCAP file of the ground truth")
@@ -67,8 +86,13 @@ class SimBridge:
         self.scenario = scenario
         self.settings = settings
         random = streams(scenario.seed if seed is None else seed)
-        self.world = World(scenario.world, random.world)
+        self.sea = None if scenario.world.sea is None else SeaSensors(scenario.world, random.sea)
+        self.world = World(scenario.world if self.sea is None else sea_world(scenario.world), random.world)
         self.loss_seed = random.loss_seed
+        if self.sea is not None and settings.mode != "realtime":
+            raise ConfigError(f"scenario {scenario.name!r} runs in the sea mode, which needs the real-time mode "
+                              "(bridge setting mode: realtime) and agents on the wall clock")
+        self.epoch_ns = 0                  # wall time of sim time 0 in the sea mode (set as the run starts)
         self.alive: set[str] = set()
         self.commands: dict[str, Cmd] = {}
         self.statuses: dict[str, Status] = {}
@@ -76,6 +100,8 @@ class SimBridge:
         self.startup_missing: set[str] = set()   # vessels whose agent was not ready when the bridge gave up waiting
         self.watchdog_stops = 0
         self.rejected = 0
+        self.refused_stamps = 0            # commands (and statuses) refused for a stamp out of bounds
+        self.arrivals: dict[str, float] = {}   # vessel -> when its kept command arrived, by _bridge_clock()
         self.ticks = 0
         self.loop_seconds = 0.0       # wall time from tick 0 to the end (after the agents' start-up)
         self.stopping = threading.Event()
@@ -109,13 +135,20 @@ class SimBridge:
     def _keep(self, sample, model, latest: dict):
         vessel = vessel_of(str(sample.key_expr))
         message, _ = decode(model, sample.payload.to_bytes())
+        arrived = self._bridge_clock()
         with self._arrived:
             if message is None or message.sender != vessel:
                 self.rejected += 1
                 return None
+            if not self._stamp_in_bounds(message):
+                self.rejected += 1
+                self.refused_stamps += 1
+                return None
             previous = latest.get(vessel)
             if previous is None or message.stamp_ns >= previous.stamp_ns:
                 latest[vessel] = message
+                if model is Cmd:
+                    self.arrivals[vessel] = arrived
             # While a tick waits for its answers, wake it once, when the last one is in (fewer context
             # switches per tick); otherwise on every message (start-up waits on heartbeats).
             if self._waiting is None:
@@ -125,6 +158,20 @@ class SimBridge:
                 if not self._waiting:
                     self._arrived.notify_all()
         return message
+
+    def _bridge_clock(self) -> float:
+        """The bridge's own time (s) that command arrivals are judged by: sim time, or in the sea mode the
+        monotonic wall clock."""
+        return time.monotonic() if self.sea is not None else self.world.time
+
+    def _stamp_in_bounds(self, message) -> bool:
+        """A command stamped within `max_command_skew` of the bridge's clock (its sim time, or the wall clock in
+        the sea mode, which the agents stamp with); a status not further ahead. An absurd stamp (2^62 from a
+        corrupt clock) would otherwise make a command look fresh forever, or hide every later one."""
+        now_ns = time.time_ns() if self.sea is not None else self.world.time_ns
+        skew = self.settings.max_command_skew * 1e9
+        ahead = message.stamp_ns - now_ns > skew
+        return not ahead and (not isinstance(message, Cmd) or now_ns - message.stamp_ns <= skew)
 
     def _on_liveliness(self, sample) -> None:
         vessel = vessel_of(str(sample.key_expr))
@@ -145,35 +192,121 @@ class SimBridge:
             subscribers = [session.declare_subscriber(every("cmd"), self._on_command),
                            session.declare_subscriber(every("status"), self._on_status)]
             watcher = session.liveliness().declare_subscriber(every(LIVELINESS), self._on_liveliness, history=True)
-            start, cpu_start = time.monotonic(), time.process_time()
-            previous_live: list[str] = []
-            previous_stamp: int | None = None
-            for k in range(steps):
-                if self.stopping.is_set():
-                    break
-                now, stamp, live = self.world.time, self.world.time_ns, self.world.live()
-                joined = set(live) - set(previous_live)
-                if joined and (k == 0 or self.settings.mode == "lockstep"):
-                    self._wait_for_agents(joined)
-                if k == 0:  # the clock of the loop starts once the agents are up
-                    start, cpu_start = time.monotonic(), time.process_time()
-                with self._lock:
-                    self._tick_stamp, self._tick_sent, self._latency = stamp, time.monotonic(), {}
-                self._publish_sensors(session, stamp)
-                self._publisher(session, CLOCK_KEY).put(encode(self._clock(k, stamp, previous_stamp, live, joined)))
-                if self.settings.mode == "lockstep":
-                    self._wait_for_answers(stamp)
-                else:
-                    self.stopping.wait(max(0.0, start + (k + 1) * self.scenario.world.dt - time.monotonic()))
-                self._log_tick(stamp)
-                self.world.step(self._commands_now(now))
-                self.ticks += 1
-                previous_live, previous_stamp = live, stamp
+            start, cpu_start = (self._run_sea if self.sea is not None else self._run_ticks)(session, steps)
             self.loop_seconds = time.monotonic() - start
             self._log_summary(time.process_time() - cpu_start)
             for entity in [*subscribers, watcher, *self._publishers.values()]:
                 entity.undeclare()
             self._publishers.clear()
+
+    def _run_ticks(self, session, steps: int) -> tuple[float, float]:
+        """Lockstep or real time on sim stamps; (monotonic, CPU) time of tick 0."""
+        start, cpu_start = time.monotonic(), time.process_time()
+        previous_live: list[str] = []
+        previous_stamp: int | None = None
+        for k in range(steps):
+            if self.stopping.is_set():
+                break
+            now, stamp, live = self.world.time, self.world.time_ns, self.world.live()
+            joined = set(live) - set(previous_live)
+            if joined and (k == 0 or self.settings.mode == "lockstep"):
+                self._wait_for_agents(joined)
+            if k == 0:  # the clock of the loop starts once the agents are up
+                start, cpu_start = time.monotonic(), time.process_time()
+            with self._lock:
+                self._tick_stamp, self._tick_sent, self._latency = stamp, time.monotonic(), {}
+            self._publish_sensors(session, stamp)
+            self._publisher(session, CLOCK_KEY).put(encode(self._clock(k, stamp, previous_stamp, live, joined)))
+            if self.settings.mode == "lockstep":
+                self._wait_for_answers(stamp)
+            else:
+                self.stopping.wait(max(0.0, start + (k + 1) * self.scenario.world.dt - time.monotonic()))
+            self._log_tick(stamp)
+            self.world.step(self._commands_now(now))
+            self.ticks += 1
+            previous_live, previous_stamp = live, stamp
+        return start, cpu_start
+
+    def _run_sea(self, session, steps: int) -> tuple[float, float]:
+        """The sea mode, `steps` ticks: sim time t is wall time epoch + t. Each step of the world takes the
+        latest commands and queues the step's measurements; until the next step the queue is published as they
+        arrive. (monotonic, CPU) time of tick 0."""
+        hold = self.scenario.world.sea.hold_ms * 1e-3
+        m, dt = sea_steps(self.scenario.world), self.world.config.dt   # m steps of dt make a tick
+        self._wait_for_agents(set(self.world.live()))
+        start = self._start_epoch()
+        cpu_start = time.process_time()
+        if self.log is not None:
+            self.log.log("/bridge/sea", {"epoch_ns": self.epoch_ns, "clocks": {
+                v: {"offset_s": c.offset, "drift_ppm": c.drift * 1e6} for v, c in self.sea.clocks.items()}},
+                self.epoch_ns)
+        queue: list[tuple[float, int, Measurement]] = []
+        order = itertools.count()     # ties in arrival keep the order of measurement
+        previous_stamp: int | None = None
+        for n in range(steps * m):
+            if self.stopping.is_set():
+                break
+            stamp, live = self.world.time_ns, self.world.live()
+            if n % m == 0:    # a tick
+                self._publisher(session, CLOCK_KEY).put(encode(Clock(
+                    stamp_ns=stamp, seq=n // m, previous_ns=previous_stamp, vessels=live)))
+                self._log_tick(self.epoch_ns + stamp)
+                self.ticks += 1
+                previous_stamp = stamp
+            if self.world.time < hold - 1e-9:
+                commands = {vessel: STOP for vessel in live}
+            else:
+                commands = self._commands_now(time.monotonic())
+            before = Frame.of(self.world)
+            self.world.step(commands)
+            for measurement in self.sea.measure(before, Frame.of(self.world)):
+                heapq.heappush(queue, (measurement.arrival, next(order), measurement))
+            # Until the next step: each message as its time comes (one wait per message, no thread).
+            end = (n + 1) * dt
+            while not self.stopping.is_set():
+                due = queue[0][0] if queue and queue[0][0] < end else end
+                self.stopping.wait(max(0.0, start + due - time.monotonic()))
+                if not queue or queue[0][0] >= end:
+                    break
+                self._publish_measurement(session, heapq.heappop(queue)[2])
+        return start, cpu_start
+
+    def _start_epoch(self) -> float:
+        """Set `epoch_ns`, waiting for the configured one if it is still to come; the monotonic time of it.
+        A configured epoch already past is replaced by now (deployment estimates stamped for it go stale)."""
+        now_ns, now = time.time_ns(), time.monotonic()
+        wanted = self.settings.epoch_ns
+        if wanted is not None and wanted < now_ns:
+            print(f"usv-sim: the agents were ready {(now_ns - wanted) * 1e-9:.2f} s after epoch_ns; sim time 0 is "
+                  "now instead", file=sys.stderr)
+            wanted = None
+        self.epoch_ns = now_ns if wanted is None else wanted
+        start = now + (self.epoch_ns - now_ns) * 1e-9
+        self.stopping.wait(max(0.0, start - time.monotonic()))
+        return start
+
+    def _publish_measurement(self, session, measurement: Measurement) -> None:
+        """One sea-mode message on its vessel's key, stamped in the vessel's clock; `seq` counts in the order of
+        publication, as a driver numbers what it sends."""
+        vessel, values = measurement.vessel, measurement.values
+        stamp = self.epoch_ns + measurement.stamp_ns
+        if measurement.sensor == "odometry":
+            self._put(session, vessel, Odometry(
+                stamp_ns=stamp, seq=self._next(vessel, "odom"), sender=vessel,
+                position=tuple(float(v) for v in values["position"]), heading=float(values["heading"])))
+            self._put(session, vessel, Sonar(stamp_ns=stamp, seq=self._next(vessel, "sonar"), sender=vessel,
+                                             points=[tuple(float(v) for v in p) for p in values["points"]]))
+        elif measurement.sensor == "uwb":
+            self._put(session, vessel, Ranges(stamp_ns=stamp, seq=self._next(vessel, "uwb"), sender=vessel,
+                                              ranges={peer: float(r) for peer, r in values["ranges"].items()}))
+        else:
+            bearing = values["bearing"]
+            self._put(session, vessel, Bearing(stamp_ns=stamp, seq=self._next(vessel, "bearing"), sender=vessel,
+                                               bearing=None if bearing is None else tuple(float(v) for v in bearing)))
+
+    def _put(self, session, vessel: str, message) -> None:
+        topic = {Odometry: "sensor/odom", Ranges: "sensor/uwb", Bearing: "sensor/bearing", Sonar: "sensor/sonar"}
+        self._publisher(session, key(vessel, topic[type(message)])).put(encode(message))
 
     def _clock(self, k: int, stamp: int, previous_stamp: int | None, live: list[str], joined: set[str]) -> Clock:
         """Tick k, and which shares of tick k - 1 reach whom now (the runner's rule, `lost_shares`)."""
@@ -258,11 +391,13 @@ class SimBridge:
                 and command.stamp_ns >= stamp and status.stamp_ns >= stamp)
 
     def _commands_now(self, now: float) -> dict[str, Command]:
+        """Each live vessel's latest command, or a stop when it arrived more than `watchdog` before `now`
+        (both by `_bridge_clock()`), or never."""
         commands = {}
         with self._lock:
             for vessel in self.world.live():
                 message = self.commands.get(vessel)
-                if message is None or now - seconds(message.stamp_ns) > self.settings.watchdog:
+                if message is None or now - self.arrivals[vessel] > self.settings.watchdog:
                     commands[vessel] = STOP
                     self.watchdog_stops += 1
                 else:
@@ -292,7 +427,7 @@ class SimBridge:
         self.log.log("/bridge/summary", BridgeSummary(
             ticks=self.ticks, loop_seconds=self.loop_seconds, cpu_seconds=cpu_seconds,
             missed_commands=self.missed_commands, startup_missing=sorted(self.startup_missing),
-            watchdog_stops=self.watchdog_stops, refused=self.rejected), self.world.time_ns)
+            watchdog_stops=self.watchdog_stops, refused=self.rejected), self.epoch_ns + self.world.time_ns)
 
     def _log_frames(self, stamp: int, truth) -> None:
         """Ground truth for Foxglove's 3D panel: the vessels and the target in the `world` frame and, once a
@@ -327,10 +462,10 @@ def main(argv: list[str] | None = None) -> int:
         _, scenario = select_scenario(args.scenario, args.variant)
         settings = load_yaml(BridgeSettings, args.config) if args.config else BridgeSettings()
         zenoh_config(settings.zenoh)   # a bad ZENOH_CONFIG file or override: one line now, not a traceback later
+        bridge = SimBridge(scenario, settings, args.seed)
     except ConfigError as error:
         print(f"usv-sim: {error}", file=sys.stderr)
         return 2
-    bridge = SimBridge(scenario, settings, args.seed)
 
     def stop(signum, frame):  # noqa: ARG001
         bridge.stopping.set()
@@ -341,7 +476,8 @@ def main(argv: list[str] | None = None) -> int:
     simulated = bridge.ticks * scenario.world.dt
     factor = simulated / bridge.loop_seconds if bridge.loop_seconds > 0 else float("nan")
     print(f"usv-sim: {bridge.ticks} ticks, {bridge.missed_commands} missed commands, "
-          f"{bridge.watchdog_stops} watchdog stops, {bridge.rejected} refused; "
+          f"{bridge.watchdog_stops} watchdog stops, {bridge.rejected} refused "
+          f"({bridge.refused_stamps} for their stamp); "
           f"{simulated:.1f} s simulated in {bridge.loop_seconds:.2f} s of wall time ({factor:.1f}x real time)"
           + (f"; no agent came for {', '.join(sorted(bridge.startup_missing))}" if bridge.startup_missing else ""),
           file=sys.stderr)

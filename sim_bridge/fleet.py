@@ -9,7 +9,19 @@ Ports: each agent listens on port 0, so the OS picks a free port as the agent bi
 from Zenoh's gossip). Only the sim bridge's port must be known in advance, by the launcher and the agents
 that connect to it; `free_port()` draws it, and if another process binds it before the bridge does (the
 bridge then exits at start-up with "Address already in use") the launcher starts the bridge again on
-another port. Any process that exits on its own during the mission fails the launch, naming it.
+another port. Any process that exits on its own during the mission fails the launch, naming it, and so
+does a sim bridge that ends before the scenario's last tick.
+
+Stopping. SIGTERM, SIGINT or SIGHUP to the launcher (`usv-fleet run` installs the handlers) stops the run:
+the bridge and every agent get SIGTERM, whatever has not exited `STOP_SECONDS` later gets SIGKILL (at once
+on a second signal), the launcher waits for all of them, and exits with 128 + the signal's number after a
+line saying it was interrupted. Each child also carries a parent-death signal (Linux prctl
+PR_SET_PDEATHSIG): should the launcher itself be killed with SIGKILL, the kernel sends its children SIGTERM,
+so no process of the run outlives it. `processes.json` in the run folder lists every child's pid.
+
+A run cut short (interrupted, a process failed, the bridge ended early, the time ran out) still gets its
+metrics and figures from the logs there are, and `summary.md` and `metrics.json` say plainly that it was cut
+short: the ticks done of the ticks planned, and why.
 """
 
 from __future__ import annotations
@@ -17,12 +29,14 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import random
 import signal
 import socket
 import subprocess
 import sys
 import time
+import warnings
 from datetime import UTC, datetime
 from pathlib import Path
 
@@ -31,18 +45,43 @@ import zenoh
 
 from agent.config import ConfigError
 from agent.contract import CLOCK_KEY, Clock, decode, seconds
+from agent.runtime.mcap_log import read_messages
 from agent.runtime.zenoh_session import ZenohSettings, zenoh_config
 from mission_log.metrics import truth_metrics
 from mission_log.plots import plot_run
-from mission_log.reader import load_run
+from mission_log.reader import LogError, load_run
 from sim_bridge.scenario import initial_estimates, select_scenario
-from sim_bridge.world import World, streams
+from sim_bridge.world import SeaSensors, World, streams
 
+SEA_LEAD = 10.0   # s from writing the settings to sim time 0 of a sea-mode run: time for every process to start
 AGENT_LISTEN = "tcp/127.0.0.1:0"   # port 0: the OS picks a free one as the agent binds it
 PORT_TAKEN = "Address already in use"
 BRIDGE_ATTEMPTS = 3                # starts of the sim bridge, each on a fresh port, before the launch fails
 FIRST_PORT = 20000                 # free_port() draws from [FIRST_PORT, the first port for outgoing connections)
 _PORTS = random.SystemRandom()     # not the `random` module's state, which a caller may have seeded
+STOP_SECONDS = 10.0                # after SIGTERM, how long the launcher waits for its children before SIGKILL
+STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT, signal.SIGHUP)
+
+# Run before each child's own program: set the parent-death signal (Linux prctl PR_SET_PDEATHSIG = 1), so the
+# kernel sends the child SIGTERM if the launcher dies, even by SIGKILL; then exec the program in the same
+# process. A launcher that died before the guard was set is seen by the parent pid having changed.
+ORPHAN_GUARD = """import ctypes, os, signal, sys
+try:
+    ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)
+except (OSError, AttributeError):
+    pass
+if os.getppid() != int(sys.argv[1]):
+    sys.exit(0)
+os.execv(sys.argv[2], sys.argv[2:])
+"""
+
+
+class Interrupted(RuntimeError):
+    """The launcher was told to stop (SIGTERM, SIGINT, SIGHUP); `signum` says by what."""
+
+    def __init__(self, signum: int, message: str) -> None:
+        super().__init__(message)
+        self.signum = signum
 
 
 def free_port() -> int:
@@ -102,23 +141,57 @@ class Fleet:
         self.agents: dict[str, subprocess.Popen] = {}
         self.killed: dict[str, float] = {}        # vessel -> sim time (s) when its agent was killed
         self.peak_memory: dict[str, float] = {}   # MB of resident memory at its highest, per process
+        self.pids: dict[str, int] = {}            # every child started, by name (processes.json)
+        self.planned_ticks = round(self.scenario.duration / self.scenario.world.dt) + 1
+        self.signals: list[int] = []              # stop signals received, in order (interrupt())
+        self.hard_killed: list[str] = []          # children that needed SIGKILL after SIGTERM
         self._logs: list = []
         self._sim_time = -math.inf
 
     def _write_settings(self, bridge_port: int) -> None:
-        """bridge.yaml and each agent-<id>.yaml, for a sim bridge listening on `bridge_port`."""
+        """bridge.yaml and each agent-<id>.yaml, for a sim bridge listening on `bridge_port`.
+
+        A scenario with a `sea` section runs as at sea: the bridge in real time from a wall-clock epoch a
+        few seconds ahead (time for every process to come up), the agents on the wall clock, and each
+        vessel's deployment estimates stamped in its own clock in the middle of the hold at the start,
+        when every vessel is still."""
         self.bridge_port = bridge_port
-        (self.folder / "bridge.yaml").write_text(yaml.safe_dump({
-            "mode": self.mode, "zenoh": {"listen": [f"tcp/127.0.0.1:{bridge_port}"]},
-            "log": str(self.folder / "sim.mcap")}))
-        for vessel, settings in agent_configs(self.scenario, self.seed, self.folder, lambda v: {
-                "listen": [AGENT_LISTEN], "connect": [f"tcp/127.0.0.1:{bridge_port}"]}).items():
+        bridge = {"mode": self.mode, "zenoh": {"listen": [f"tcp/127.0.0.1:{bridge_port}"]},
+                  "log": str(self.folder / "sim.mcap")}
+        sea = self.scenario.world.sea
+        configs = agent_configs(self.scenario, self.seed, self.folder, lambda v: {
+            "listen": [AGENT_LISTEN], "connect": [f"tcp/127.0.0.1:{bridge_port}"]})
+        if sea is not None:
+            epoch_ns = time.time_ns() + int(SEA_LEAD * 1e9)
+            bridge.update(mode="realtime", epoch_ns=epoch_ns)
+            clocks = SeaSensors(self.scenario.world, streams(
+                self.scenario.seed if self.seed is None else self.seed).sea).clocks
+            for vessel, settings in configs.items():
+                settings["clock"] = "wall"
+                if settings["initial"]:
+                    settings["initial"]["stamp"] = clocks[vessel].stamp_ns(sea.hold_ms * 1e-3 / 2, epoch_ns) * 1e-9
+        (self.folder / "bridge.yaml").write_text(yaml.safe_dump(bridge))
+        for vessel, settings in configs.items():
             (self.folder / f"agent-{vessel}.yaml").write_text(yaml.safe_dump(settings))
 
     def _start(self, name: str, command: list[str]) -> subprocess.Popen:
         handle = (self.folder / f"{name}.log").open("w")
         self._logs.append(handle)
-        return subprocess.Popen(command, stdout=handle, stderr=subprocess.STDOUT)
+        guarded = [sys.executable, "-c", ORPHAN_GUARD, str(os.getpid()), *command]
+        process = subprocess.Popen(guarded, stdout=handle, stderr=subprocess.STDOUT)
+        self.pids[name] = process.pid
+        (self.folder / "processes.json").write_text(json.dumps({"launcher": os.getpid(), **self.pids}, indent=2))
+        return process
+
+    def interrupt(self, signum: int) -> None:
+        """Stop the run (a signal handler's job; safe from any thread): the launcher's loop stops every
+        process and `run()` raises Interrupted. A second call makes the stop a SIGKILL at once."""
+        self.signals.append(signum)
+
+    def _check_interrupted(self) -> None:
+        if self.signals:
+            name = signal.Signals(self.signals[0]).name
+            raise Interrupted(self.signals[0], f"interrupted by {name} at sim time {max(self._sim_time, 0.0):.1f} s")
 
     def start_agent(self, vessel: str) -> None:
         self.agents[vessel] = self._start(f"agent-{vessel}", [
@@ -151,6 +224,7 @@ class Fleet:
                 print(f"usv-fleet: the sim bridge and {sum(v.join_time == 0 for v in pending.values())} agents "
                       f"starting; run folder {self.folder}", file=sys.stderr)
                 while self.bridge.poll() is None:
+                    self._check_interrupted()
                     if time.monotonic() > deadline:
                         raise TimeoutError(f"the mission did not end within {timeout:.0f} s")
                     self._check_agents()
@@ -163,9 +237,15 @@ class Fleet:
                         del leaving[vessel]
                     self._note_memory()
                     time.sleep(0.02)
+                self._check_interrupted()   # a SIGINT from the terminal reaches the bridge too: it stops early
                 if self.bridge.returncode != 0:
                     raise RuntimeError(self._exited("the sim bridge", "bridge", self.bridge.returncode))
                 self._check_agents()
+                done = self.ticks_done()
+                if done is None or done < self.planned_ticks:
+                    raise RuntimeError(self._exited(
+                        "the sim bridge", "bridge", 0,
+                        f"after {'an unknown number of' if done is None else done} of {self.planned_ticks} ticks"))
         finally:
             self._stop()
         for vessel, process in self.agents.items():
@@ -207,6 +287,7 @@ class Fleet:
         delay, and a launcher that connects late misses the sim clock of the mission's first seconds.
         False if the bridge exits first."""
         while not list(session.info.peers_zid()):
+            self._check_interrupted()
             if self.bridge.poll() is not None:
                 return False
             if time.monotonic() > deadline:
@@ -238,18 +319,47 @@ class Fleet:
                 if peak is not None:
                     self.peak_memory[name] = max(self.peak_memory.get(name, 0.0), peak)
 
+    def ticks_done(self) -> int | None:
+        """The ticks the sim bridge simulated, from its log (its closing summary, else its ground truth);
+        None without a readable log."""
+        path = self.folder / "sim.mcap"
+        if not path.is_file():
+            return None
+        truth = 0
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")      # a bridge killed hard leaves an unfinished file: read it
+                for topic, _, message in read_messages(path):
+                    if topic == "/bridge/summary" and isinstance(message.get("ticks"), int):
+                        return message["ticks"]
+                    truth += topic == "/truth"
+        except (OSError, ValueError):
+            return None
+        return truth
+
     def _stop(self) -> None:
+        """SIGTERM to every child still running; SIGKILL to those still running STOP_SECONDS later (or at
+        once on a second stop signal); wait for all of them."""
         self._note_memory()
-        processes = [p for p in [*self.agents.values(), self.bridge] if p is not None]
-        for process in processes:
+        processes = {name: p for name, p in [*((f"agent-{v}", p) for v, p in self.agents.items()),
+                                             ("bridge", self.bridge)] if p is not None}
+        for process in processes.values():
             if process.poll() is None:
                 process.send_signal(signal.SIGTERM)
-        for process in processes:
-            try:
-                process.wait(timeout=15)
-            except subprocess.TimeoutExpired:
-                process.kill()
-                process.wait()
+        signals = len(self.signals)
+        deadline = time.monotonic() + STOP_SECONDS
+        while any(p.poll() is None for p in processes.values()):
+            if time.monotonic() > deadline or len(self.signals) > signals:
+                for name, process in processes.items():
+                    if process.poll() is None:
+                        process.kill()
+                        self.hard_killed.append(name)
+                        print(f"usv-fleet: {name} had not stopped {STOP_SECONDS:.0f} s after SIGTERM (or a second "
+                              "signal came): killed", file=sys.stderr)
+                break
+            time.sleep(0.02)
+        for process in processes.values():
+            process.wait()
         for handle in self._logs:
             handle.close()
         (self.folder / "memory.json").write_text(json.dumps(
@@ -269,10 +379,16 @@ def _peak_resident_mb(pid: int) -> float | None:
 
 def launch(scenario_path: Path, variant: str | None, out: Path, seed: int | None,
            timeout: float = 600.0) -> Path:
-    """Run the fleet and analyse its logs; returns the run folder."""
+    """Run the fleet and analyse its logs; returns the run folder. A run that fails is analysed as cut short
+    (`summary.md` says so), then its error raised."""
     fleet = Fleet(scenario_path, variant, out, seed)
-    folder = fleet.run(timeout)
-    analyse(folder, fleet.scenario.agent_params().control.radius)
+    radius = fleet.scenario.agent_params().control.radius
+    try:
+        folder = fleet.run(timeout)
+    except (RuntimeError, TimeoutError) as error:
+        analyse_cut_short(fleet, radius, str(error))
+        raise
+    analyse(folder, radius, fleet.planned_ticks)
     return folder
 
 
@@ -296,16 +412,22 @@ def initial_settings(scenario, seed: int | None) -> dict[str, dict]:
             for v, start in initial_estimates(scenario, world.truth(), random.initial).items()}
 
 
-def analyse(folder: Path, radius: float) -> dict:
+def analyse(folder: Path, radius: float, planned: int | None = None, cut_short: str | None = None) -> dict:
     """The paper's metrics from the run folder's logs; writes metrics.json, summary.md and the figures of
-    `usv-log plot` (trajectories.png, errors.png, ranges.png)."""
+    `usv-log plot` (trajectories.png, errors.png, ranges.png). `planned`: the ticks the scenario has;
+    `cut_short`: why the run ended early (None: it did not), said first in the summary."""
     run = load_run(folder)
+    if not run.has_truth:
+        raise LogError(f"{folder}: no ground truth (the sim bridge's /truth) in the logs")
     result = truth_metrics(run, radius)
+    complete = cut_short is None and (planned is None or result["ticks"] >= planned)
+    result.update({"ticks_planned": planned, "complete": complete, "cut_short": cut_short})
     (folder / "metrics.json").write_text(json.dumps(result, indent=2))
     figures = plot_run(run, folder, radius)
     settling = result["settling_time"]
-    lines = [f"# Fleet run {folder.name}", "",
-             f"{len(result['vessels'])} vessels, {result['ticks']} ticks, r* = {radius} m", "",
+    lines = [f"# Fleet run {folder.name}", "", *_cut_short_lines(result["ticks"], planned, cut_short),
+             f"{len(result['vessels'])} vessels, {result['ticks']} ticks"
+             + (f" of {planned} planned" if planned is not None else "") + f", r* = {radius} m", "",
              "| mean e_ij (m) | mean e_io (m) | mean e_c (m) | settling time (s) |", "|---|---|---|---|",
              (f"| {result['mean_e_ij']:.3f} | {result['mean_e_io']:.3f} | {result['mean_e_c']:.3f} | "
              f"{'never' if settling is None else f'{settling:.1f}'} |"), "",
@@ -314,6 +436,36 @@ def analyse(folder: Path, radius: float) -> dict:
              *(f"![{path.stem}]({path.name})" for path in figures)]
     (folder / "summary.md").write_text("\n".join(lines) + "\n")
     return result
+
+
+def _cut_short_lines(done: int | None, planned: int | None, reason: str | None) -> list[str]:
+    """The summary's first words on a run that did not run to its end; none for one that did."""
+    if reason is None and (planned is None or done is None or done >= planned):
+        return []
+    share = f" ({100 * done / planned:.0f} %)" if done is not None and planned else ""
+    count = f"{'an unknown number of' if done is None else done} of {planned} ticks{share}"
+    return [f"**This run was cut short: {count}.** {reason or 'The sim bridge ended early.'}", "",
+            "Every figure below covers only the ticks done; it is not the scenario's result.", ""]
+
+
+def analyse_cut_short(fleet: Fleet, radius: float, reason: str) -> None:
+    """Analyse a run that failed or was interrupted, from whatever logs it left; where they cannot be
+    analysed, a summary.md and metrics.json that say so. Never raises for a bad or missing log."""
+    try:
+        analyse(fleet.folder, radius, fleet.planned_ticks, reason)
+    except Exception as error:  # noqa: BLE001  (a cut-short run's logs may be anything; the reason must get out)
+        done = fleet.ticks_done()
+        (fleet.folder / "metrics.json").write_text(json.dumps(
+            {"ticks": done, "ticks_planned": fleet.planned_ticks, "complete": False, "cut_short": reason},
+            indent=2))
+        (fleet.folder / "summary.md").write_text("\n".join([
+            f"# Fleet run {fleet.folder.name}", "", *_cut_short_lines(done, fleet.planned_ticks, reason),
+            f"No metrics: the logs could not be analysed ({type(error).__name__}: {error})."]) + "\n")
+
+
+def _ticks_said(fleet: Fleet) -> str:
+    done = fleet.ticks_done()
+    return f"{'an unknown number of' if done is None else done} of {fleet.planned_ticks} ticks"
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -327,13 +479,39 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     started = time.monotonic()
     try:
-        folder = launch(args.scenario, args.variant, args.out, args.seed)
+        fleet = Fleet(args.scenario, args.variant, args.out, args.seed)
     except ConfigError as error:
         print(f"usv-fleet: {error}", file=sys.stderr)
         return 2
+    radius = fleet.scenario.agent_params().control.radius
+    for signum in STOP_SIGNALS:
+        signal.signal(signum, lambda signum, frame: fleet.interrupt(signum))
+    try:
+        fleet.run()
     except (RuntimeError, TimeoutError) as error:
-        print(f"usv-fleet: {error}", file=sys.stderr)
-        return 1
-    print((folder / "summary.md").read_text())
-    print(f"usv-fleet: run folder {folder} ({time.monotonic() - started:.1f} s)", file=sys.stderr)
+        stopped = f"the sim bridge and {len(fleet.agents)} agent(s)" + (
+            f" ({', '.join(fleet.hard_killed)} with SIGKILL)" if fleet.hard_killed else "")
+        print(f"usv-fleet: {error}; stopped {stopped}", file=sys.stderr)
+        for signum in STOP_SIGNALS:   # the processes are gone: a stop signal now cuts the analysis short
+            signal.signal(signum, _raise_interrupted)
+        analyse_cut_short(fleet, radius, str(error))
+        print(f"usv-fleet: run folder {fleet.folder}: cut short after {_ticks_said(fleet)} "
+              f"({time.monotonic() - started:.1f} s)", file=sys.stderr)
+        return 128 + error.signum if isinstance(error, Interrupted) else 1
+    # From here the processes are gone: a stop signal ends the analysis at once.
+    for signum in STOP_SIGNALS:
+        signal.signal(signum, _raise_interrupted)
+    try:
+        analyse(fleet.folder, radius, fleet.planned_ticks)
+    except Interrupted as error:
+        print(f"usv-fleet: {error} during the analysis; run folder {fleet.folder} (all {fleet.planned_ticks} "
+              "ticks ran; `usv-log` analyses it)", file=sys.stderr)
+        return 128 + error.signum
+    print((fleet.folder / "summary.md").read_text())
+    print(f"usv-fleet: run folder {fleet.folder} ({time.monotonic() - started:.1f} s)", file=sys.stderr)
     return 0
+
+
+def _raise_interrupted(signum, frame) -> None:
+    raise Interrupted(signum, f"interrupted by {signal.Signals(signum).name}")
+

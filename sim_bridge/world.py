@@ -14,6 +14,12 @@ order every tick whatever the caller does, so a run is reproducible bit for bit 
 
 Readings are drawn eagerly when a tick begins and cached, so `sense()` is free of side effects: calling it
 twice, or not at all, changes nothing.
+
+The sea mode (`WorldConfig.sea`, off by default; `SeaSensors`) measures like vessels at sea instead: each
+vessel has its own clock (offset and drift), each sensor its own period, phase and latency, and the driver
+stamps a message when it arrives. The sim bridge then steps the world in short steps (`sea_world`), and the
+measurements are taken from its state interpolated between two steps (`Frame`), with their own random
+stream (`Streams.sea`). Without a `sea` section nothing here changes: the same seed gives the same world.
 """
 
 from __future__ import annotations
@@ -23,7 +29,7 @@ import json
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Annotated
+from typing import Annotated, Literal
 
 import numpy as np
 from pydantic import Field, field_validator, model_validator
@@ -57,6 +63,50 @@ class VesselSpec(StrictModel):
         return self
 
 
+class SensorTiming(StrictModel):
+    """When one kind of sensor measures, and how late its messages reach the vessel's driver (sea mode)."""
+
+    period_ms: PositiveFloat | None = Field(None, description="time between two measurements (ms); None: dt")
+    phase_ms: NonNegativeFloat | None = Field(
+        None, description="time of the first measurement after the start (ms), less than the period; None: "
+                          "drawn for each vessel, uniform in [0, period)")
+    latency_ms: NonNegativeFloat = Field(0.0, description="mean time from the measurement to the driver (ms)")
+    jitter_ms: NonNegativeFloat = Field(
+        0.0, description="each latency is uniform in [latency - jitter, latency + jitter] (ms)")
+
+    @model_validator(mode="after")
+    def _consistent(self) -> SensorTiming:
+        if self.jitter_ms > self.latency_ms:
+            raise ValueError("jitter_ms must not exceed latency_ms (a message cannot arrive before it is measured)")
+        if self.phase_ms is not None and self.period_ms is not None and self.phase_ms >= self.period_ms:
+            raise ValueError("phase_ms must be less than period_ms")
+        return self
+
+
+class SeaConfig(StrictModel):
+    """The sea mode: vessels with their own clocks, sensors with their own times and latencies, and drivers
+    that stamp what they receive. Its presence switches it on (the sim bridge's real-time mode only)."""
+
+    offset_ms: NonNegativeFloat = Field(
+        0.0, description="each vessel's clock offset is drawn uniform in [-offset_ms, offset_ms]")
+    drift_ppm: NonNegativeFloat = Field(
+        0.0, description="each vessel's clock drift is drawn uniform in [-drift_ppm, drift_ppm]")
+    offsets_ms: dict[str, FiniteFloat] = Field(default_factory=dict, description="vessel id -> offset, not drawn")
+    drifts_ppm: dict[str, FiniteFloat] = Field(default_factory=dict, description="vessel id -> drift, not drawn")
+    odometry: SensorTiming = Field(SensorTiming(), description="odometry (with the sonar, which rides along)")
+    uwb: SensorTiming = SensorTiming()
+    camera: SensorTiming = SensorTiming()
+    stamps: Literal["arrival", "measurement"] = Field(
+        "arrival", description="'arrival': the driver stamps a message when it receives it (its clock at "
+                               "measurement + latency); 'measurement': with the time it was measured")
+    hold_ms: NonNegativeFloat = Field(
+        0.0, description="the vessels are held still (zero command) for this long at the start, as boats wait "
+                         "for the go: deployment estimates stamped within it stay true")
+    step_ms: PositiveFloat = Field(
+        10.0, description="the world moves in steps this long, each with the latest command, so a command acts "
+                          "within step_ms of its arrival (dt must be a whole number of them)")
+
+
 class WorldConfig(StrictModel):
     dt: PositiveFloat = Field(0.1, description="sampling period (s)")
     vessels: list[VesselSpec] = Field(min_length=1)
@@ -78,6 +128,7 @@ class WorldConfig(StrictModel):
     max_yaw_rate: PositiveFloat = Field(
         math.pi / 3 + math.pi / 30, description="bound on the commanded yaw rate (rad/s)"
     )
+    sea: SeaConfig | None = Field(None, description="the sea mode (sim bridge, real time); None: ideal sensors")
 
     @field_validator("islands")
     @classmethod
@@ -93,6 +144,13 @@ class WorldConfig(StrictModel):
         repeated = sorted({i for i in ids if ids.count(i) > 1})
         if repeated:
             raise ValueError(f"vessel ids must be unique, repeated: {repeated}")
+        if self.sea is not None:
+            unknown = sorted((set(self.sea.offsets_ms) | set(self.sea.drifts_ppm)) - set(ids))
+            if unknown:
+                raise ValueError(f"sea: clocks of unknown vessels {unknown}")
+            steps = self.dt / (self.sea.step_ms * 1e-3)
+            if abs(steps - round(steps)) > 1e-9 or round(steps) < 1:
+                raise ValueError(f"sea: step_ms ({self.sea.step_ms}) must divide dt ({self.dt} s)")
         return self
 
 
@@ -150,9 +208,8 @@ class World:
         self._vessels: dict[str, _Vessel] = {}
         self._departed: set[str] = set()
         self._target = make_target(config.target)
-        self._islands = [np.array(polygon, dtype=float) for polygon in config.islands]
-        boundary = [sample_boundary(polygon, config.sonar_spacing) for polygon in self._islands]
-        self._boundary = np.concatenate(boundary, axis=0) if boundary else np.zeros((0, 2))
+        self._islands = _islands(config)
+        self._boundary = _boundary(config, self._islands)
         self._displacement_noise = IsotropicGaussianNoise(variance=config.displacement_variance)
         self._bearing_noise = IsotropicGaussianNoise(variance=config.bearing_variance)
         self._heading_std = math.sqrt(config.heading_variance)
@@ -254,17 +311,7 @@ class World:
         ranges = dict(zip(others, measured.tolist()))
         # (9): drawn even when unused, so the stream does not depend on the geometry.
         bearing_noise = self._bearing_noise.sample(self._rng)
-        target = self._target.position
-        offset = here - target
-        distance = float(np.linalg.norm(offset))
-        occluded = any(segment_intersects_polygon(here, target, island) for island in self._islands)
-        bearing = None
-        if not occluded and distance > 0.0:
-            # (9) is a direction plus noise; the camera reports it as a unit vector (the contract's form).
-            noisy = offset / distance + bearing_noise
-            bearing = _frozen(noisy / np.linalg.norm(noisy))
-        relative = self._boundary - here
-        near = np.einsum("ij,ij->i", relative, relative) <= self.config.sonar_range**2
+        bearing, occluded = _bearing(here, self._target.position, bearing_noise, self._islands)
         odometry = OdometryReading(
             stamp=self.time, position=_frozen(vessel.odometry_position), heading=vessel.odometry_heading
         )
@@ -272,9 +319,199 @@ class World:
             odometry=odometry,
             ranges=ranges,
             bearing=bearing,
-            obstacle_points=_frozen(relative[near].reshape(-1, 2)),
+            obstacle_points=_sonar(self._boundary, here, self.config.sonar_range),
             occluded=occluded,
         )
+
+
+def _islands(config: WorldConfig) -> list[np.ndarray]:
+    return [np.array(polygon, dtype=float) for polygon in config.islands]
+
+
+def _boundary(config: WorldConfig, islands: list[np.ndarray]) -> np.ndarray:
+    """Every island's outline sampled every `sonar_spacing` metres: what the sonar can see."""
+    boundary = [sample_boundary(polygon, config.sonar_spacing) for polygon in islands]
+    return np.concatenate(boundary, axis=0) if boundary else np.zeros((0, 2))
+
+
+def _bearing(here: np.ndarray, target: np.ndarray, noise: np.ndarray, islands: list[np.ndarray]
+             ) -> tuple[np.ndarray | None, bool]:
+    """(9): the noisy unit vector from the target to the vessel, None when an island blocks the line of sight
+    or the vessel is on the target; and whether it is blocked."""
+    offset = here - target
+    distance = float(np.linalg.norm(offset))
+    occluded = any(segment_intersects_polygon(here, target, island) for island in islands)
+    if occluded or distance == 0.0:
+        return None, occluded
+    # (9) is a direction plus noise; the camera reports it as a unit vector (the contract's form).
+    noisy = offset / distance + noise
+    return _frozen(noisy / np.linalg.norm(noisy)), occluded
+
+
+def _sonar(boundary: np.ndarray, here: np.ndarray, sonar_range: float) -> np.ndarray:
+    """The island points within `sonar_range` of the vessel, relative to it."""
+    relative = boundary - here
+    near = np.einsum("ij,ij->i", relative, relative) <= sonar_range**2
+    return _frozen(relative[near].reshape(-1, 2))
+
+
+# --- the sea mode ------------------------------------------------------------------------------------------
+
+SEA_SENSORS = ("odometry", "uwb", "camera")
+
+
+@dataclass(frozen=True)
+class VesselClock:
+    """One vessel's own clock: c(t) = t + offset + drift * t (s from the run's epoch) at true time t (s of sim
+    time). A driver's stamp is epoch_ns + c(t) in whole nanoseconds."""
+
+    offset: float   # s
+    drift: float    # s per s (1 ppm = 1e-6)
+
+    def read(self, t: float) -> float:
+        return t + self.offset + self.drift * t
+
+    def stamp_ns(self, t: float, epoch_ns: int = 0) -> int:
+        return epoch_ns + nanoseconds(self.read(t))
+
+
+@dataclass(frozen=True)
+class Frame:
+    """The world at one tick, as much as the sea mode's sensors need of it."""
+
+    time_ns: int
+    positions: dict[str, np.ndarray]       # true positions of the live vessels
+    target: np.ndarray
+    odometry: dict[str, OdometryReading]   # each live vessel's odometry reading of the tick
+
+    @classmethod
+    def of(cls, world: World) -> Frame:
+        truth = world.truth()
+        return cls(world.time_ns, truth.positions, truth.target_position,
+                   {vessel: reading.odometry for vessel, reading in world.sense().items()})
+
+
+@dataclass(frozen=True)
+class Measurement:
+    """One message of the sea mode's sensors, as the vessel's driver sends it on."""
+
+    vessel: str
+    sensor: str       # one of SEA_SENSORS; the odometry carries the sonar's points
+    measured: float   # true time of the measurement (s of sim time)
+    arrival: float    # true time it reaches the driver: measured + latency (s)
+    stamp_ns: int     # the driver's stamp in the vessel's clock, from the run's epoch (add the epoch's ns)
+    values: dict      # odometry: position, heading, points; uwb: ranges; camera: bearing (None: not seen)
+
+
+def sea_steps(config: WorldConfig) -> int:
+    """How many steps of the sea mode's world make one tick: m = dt / step."""
+    return round(config.dt / (config.sea.step_ms * 1e-3))
+
+
+def sea_world(config: WorldConfig) -> WorldConfig:
+    """The world of the sea mode: the same world stepped every step = dt / m, with its per-step noises scaled
+    so that their variance over a tick is as before: R_delta' = R_delta / m for the odometry's random walk
+    (5), q' = q / m for a random-walk target (3), (4). A heading reading's noise is per reading: unchanged."""
+    m = sea_steps(config)
+    changes: dict = {"dt": config.dt / m, "displacement_variance": config.displacement_variance / m}
+    if getattr(config.target, "kind", None) == "random_walk":
+        changes["target"] = config.target.model_copy(update={"process_noise": config.target.process_noise / m})
+    return config.model_copy(update=changes)
+
+
+class SeaSensors:
+    """The sensors of the sea mode (`WorldConfig.sea`): own clocks, own measurement times, latencies.
+
+    Construction draws from `rng`, for each vessel in config order: its clock offset o ~ U(-offset, offset),
+    its drift d ~ U(-drift, drift) (1e-6 per ppm), then one phase per sensor of SEA_SENSORS, U(0, period).
+    Each is drawn even where the config gives the value, so naming one vessel leaves the others as they were.
+
+    A sensor of period T and phase p measures at t_n = p + n T (n = 0, 1, ...). `measure(a, b)` gives every
+    measurement of the period [t_a, t_b) between two ticks, from the world interpolated on a straight line,
+    x(t) = x_a + (t - t_a) / (t_b - t_a) (x_b - x_a): exact for the vessels, which move straight over a period
+    ((1): the heading is held, then turns at the period's end), and for a constant-velocity target. The
+    heading reading is the tick's before (held, as the heading is). The latency of a message is
+    L = latency + jitter u, u ~ U(-1, 1); it reaches the driver at t + L, and is stamped c(t + L) when stamps
+    are taken at arrival, c(t) when at measurement.
+
+    Draws per period: for each vessel live at both ticks, in config order, each sensor in SEA_SENSORS order,
+    each measurement in time order: its latency u, then its noise (uwb: one range noise per peer, (6) with
+    (7) or (8); camera: the bearing noise of (9), drawn even when the target is hidden). The odometry draws no
+    noise: the world's odometry, noisy per step (5), is interpolated.
+    """
+
+    def __init__(self, config: WorldConfig, rng: np.random.Generator) -> None:
+        if config.sea is None:
+            raise ValueError("the world config has no sea section")
+        self.config = config
+        self.sea = sea = config.sea
+        self._rng = rng
+        self._islands = _islands(config)
+        self._boundary = _boundary(config, self._islands)
+        self._bearing_noise = IsotropicGaussianNoise(variance=config.bearing_variance)
+        self.clocks: dict[str, VesselClock] = {}
+        self.phases_ns: dict[tuple[str, str], int] = {}
+        for spec in config.vessels:
+            offset = rng.uniform(-1.0, 1.0) * sea.offset_ms
+            drift = rng.uniform(-1.0, 1.0) * sea.drift_ppm
+            self.clocks[spec.id] = VesselClock(sea.offsets_ms.get(spec.id, offset) * 1e-3,
+                                               sea.drifts_ppm.get(spec.id, drift) * 1e-6)
+            for sensor in SEA_SENSORS:
+                timing = self.timing(sensor)
+                drawn = rng.uniform(0.0, 1.0) * self.period_ns(sensor)
+                given = None if timing.phase_ms is None else nanoseconds(timing.phase_ms * 1e-3)
+                self.phases_ns[spec.id, sensor] = int(drawn) if given is None else given
+
+    def timing(self, sensor: str) -> SensorTiming:
+        return getattr(self.sea, sensor)
+
+    def period_ns(self, sensor: str) -> int:
+        period_ms = self.timing(sensor).period_ms
+        return nanoseconds(self.config.dt if period_ms is None else period_ms * 1e-3)
+
+    def times_ns(self, vessel: str, sensor: str, start_ns: int, end_ns: int) -> list[int]:
+        """The measurement times t_n = p + n T of `sensor` on `vessel` in [start_ns, end_ns), in whole ns."""
+        phase, period = self.phases_ns[vessel, sensor], self.period_ns(sensor)
+        first = max(0, -(-(start_ns - phase) // period))   # the smallest n with p + n T >= start
+        return list(range(phase + first * period, end_ns, period))
+
+    def measure(self, before: Frame, after: Frame) -> list[Measurement]:
+        """Every measurement made in [before.time, after.time), the period between two consecutive ticks."""
+        live = [v.id for v in self.config.vessels if v.id in before.positions and v.id in after.positions]
+        span = after.time_ns - before.time_ns
+        found = []
+        for vessel in live:
+            clock = self.clocks[vessel]
+            for sensor in SEA_SENSORS:
+                timing = self.timing(sensor)
+                for t_ns in self.times_ns(vessel, sensor, before.time_ns, after.time_ns):
+                    t = seconds(t_ns)
+                    latency = (timing.latency_ms + timing.jitter_ms * self._rng.uniform(-1.0, 1.0)) * 1e-3
+                    w = (t_ns - before.time_ns) / span
+                    here = _lerp(before.positions[vessel], after.positions[vessel], w)
+                    if sensor == "odometry":
+                        values = {"position": _lerp(before.odometry[vessel].position,
+                                                    after.odometry[vessel].position, w),
+                                  "heading": before.odometry[vessel].heading,
+                                  "points": _sonar(self._boundary, here, self.config.sonar_range)}
+                    elif sensor == "uwb":
+                        peers = [j for j in live if j != vessel]
+                        noise = self.config.range_noise.sample(self._rng, len(peers))
+                        there = np.array([_lerp(before.positions[j], after.positions[j], w) for j in peers])
+                        measured = np.maximum(np.linalg.norm(there.reshape(-1, 2) - here, axis=1) + noise, 0.0)
+                        values = {"ranges": dict(zip(peers, measured.tolist()))}
+                    else:
+                        noise = self._bearing_noise.sample(self._rng)
+                        bearing, _ = _bearing(here, _lerp(before.target, after.target, w), noise, self._islands)
+                        values = {"bearing": bearing}
+                    stamped = t + latency if self.sea.stamps == "arrival" else t
+                    found.append(Measurement(vessel, sensor, t, t + latency, clock.stamp_ns(stamped), values))
+        return found
+
+
+def _lerp(a: np.ndarray, b: np.ndarray, w: float) -> np.ndarray:
+    """The point a fraction w of the way from a to b: a + w (b - a)."""
+    return a + w * (b - a)
 
 
 def message_lost(seed: int, sender: str, receiver: str, tick: int, probability: float) -> bool:
@@ -306,17 +543,19 @@ def lost_shares(seed: int, senders: list[str], receivers: list[str], joined: set
 
 @dataclass(frozen=True)
 class Streams:
-    """The random streams of one run, all from its seed: the world's, the initial estimates', and the key
-    of the packet-loss hash. The in-process runner, the sim bridge and the fleet launcher derive them the
-    same way."""
+    """The random streams of one run, all from its seed: the world's, the initial estimates', the key of the
+    packet-loss hash, and the sea mode's (clocks, phases, latencies and the noise of its measurements). The
+    in-process runner, the sim bridge and the fleet launcher derive them the same way."""
 
     world: np.random.Generator
     initial: np.random.Generator
     loss_seed: int
+    sea: np.random.Generator
 
 
 def streams(seed: np.random.SeedSequence | int) -> Streams:
     sequence = seed if isinstance(seed, np.random.SeedSequence) else np.random.SeedSequence(seed)
-    world_seed, initial_seed = sequence.spawn(2)
+    # A third child leaves the first two as they were: spawned children depend only on their index.
+    world_seed, initial_seed, sea_seed = sequence.spawn(3)
     return Streams(np.random.default_rng(world_seed), np.random.default_rng(initial_seed),
-                   int(sequence.generate_state(1)[0]))
+                   int(sequence.generate_state(1)[0]), np.random.default_rng(sea_seed))

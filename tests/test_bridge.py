@@ -1,21 +1,27 @@
-"""The sim bridge and agent processes' shells over Zenoh on loopback (in one test process, threads)."""
+"""The sim bridge: how it judges commands (no Zenoh), and the bridge and agent shells over Zenoh on loopback (in
+one test process, threads; slow)."""
 
 from __future__ import annotations
 
 import threading
+import time
+from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
+from agent.contract import Cmd, Status, encode, key, nanoseconds
+from agent.core.records import STOP, Command
 from agent.runtime.mcap_log import read_messages
 from agent.runtime.zenoh_session import ZenohSettings
 from agent.shell.node import AgentNode
 from agent.shell.settings import NodeSettings
 from sim_bridge.bridge import BridgeSettings, SimBridge
 from sim_bridge.fleet import AGENT_LISTEN, free_port
-from sim_bridge.scenario import Scenario
+from sim_bridge.scenario import Scenario, select_scenario
 
-pytestmark = pytest.mark.slow   # Zenoh sessions on loopback, in real time
+SEA_TRIAL = Path(__file__).resolve().parents[1] / "configs" / "scenarios" / "sea_trial.yaml"
 
 
 def two_vessel_scenario(duration: float = 4.0) -> Scenario:
@@ -36,6 +42,60 @@ def start_agent(vessel: str, bridge_port: int) -> tuple[AgentNode, threading.Thr
     return node, thread
 
 
+def sample(vessel: str, topic: str, message) -> SimpleNamespace:
+    """What a Zenoh subscriber hands the bridge's callbacks."""
+    return SimpleNamespace(key_expr=key(vessel, topic), payload=SimpleNamespace(to_bytes=lambda: encode(message)))
+
+
+def command(vessel: str, stamp_ns: int, seq: int = 0, surge: float = 1.0) -> SimpleNamespace:
+    return sample(vessel, "cmd", Cmd(stamp_ns=stamp_ns, seq=seq, sender=vessel, surge=surge, yaw_rate=0.0))
+
+
+def advance_to(bridge: SimBridge, seconds: float) -> None:
+    while bridge.world.time < seconds - 1e-9:
+        bridge.world.step({v: STOP for v in bridge.world.live()})
+
+
+def test_a_command_is_fresh_by_when_it_arrived_not_by_the_stamp_its_agent_wrote():
+    bridge = SimBridge(two_vessel_scenario(), BridgeSettings())    # watchdog 0.5 s of the bridge's sim time
+    advance_to(bridge, 0.3)
+    bridge._on_command(command("1", stamp_ns=0))                   # stamped 0 s, arrives at 0.3 s
+    advance_to(bridge, 0.7)
+    # 0.7 - 0.3 = 0.4 s since it arrived: applied (by its stamp it would be 0.7 s old, and stopped).
+    assert bridge._commands_now(bridge.world.time) == {"1": Command(1.0, 0.0), "2": STOP}
+    assert bridge.watchdog_stops == 1                               # vessel 2 has never had a command
+    advance_to(bridge, 0.9)
+    assert bridge._commands_now(bridge.world.time)["1"] == STOP    # 0.6 s since it arrived
+    assert bridge.watchdog_stops == 3
+
+
+def test_a_command_with_an_absurd_stamp_is_refused_and_counted():
+    bridge = SimBridge(two_vessel_scenario(), BridgeSettings())    # max_command_skew 1 s
+    advance_to(bridge, 2.0)
+    bridge._on_command(command("1", stamp_ns=nanoseconds(2.0), seq=0))
+    for seq, stamp in enumerate((2**62, nanoseconds(3.5), nanoseconds(0.5)), start=1):   # ahead, ahead, behind
+        bridge._on_command(command("1", stamp_ns=stamp, seq=seq, surge=2.0))
+    assert (bridge.refused_stamps, bridge.rejected) == (3, 3)
+    assert bridge.commands["1"].stamp_ns == nanoseconds(2.0)        # the honest one is still the latest
+    advance_to(bridge, 2.6)                                         # and it goes stale: the vessel stops
+    assert bridge._commands_now(bridge.world.time)["1"] == STOP
+    # A status may come from the past (a joiner's heartbeat is stamped 0 before its first clock), not ahead.
+    bridge._on_status(sample("2", "status", Status(stamp_ns=0, seq=0, sender="2", phase=0.0, command=(0, 0))))
+    bridge._on_status(sample("2", "status", Status(stamp_ns=2**62, seq=1, sender="2", phase=0.0, command=(0, 0))))
+    assert bridge.statuses["2"].stamp_ns == 0 and bridge.refused_stamps == 4
+
+
+def test_in_the_sea_mode_command_stamps_are_judged_by_the_wall_clock():
+    _, scenario = select_scenario(SEA_TRIAL, "sea")
+    bridge = SimBridge(scenario, BridgeSettings(mode="realtime"))
+    bridge._on_command(command("1", stamp_ns=time.time_ns()))
+    bridge._on_command(command("2", stamp_ns=nanoseconds(0.1)))    # a sim stamp is 56 years behind the wall
+    assert "1" in bridge.commands and "2" not in bridge.commands and bridge.refused_stamps == 1
+    assert bridge._commands_now(time.monotonic())["1"] == Command(1.0, 0.0)
+    assert bridge._commands_now(time.monotonic() + 0.6)["1"] == STOP   # 0.6 s of wall time after it arrived
+
+
+@pytest.mark.slow   # Zenoh sessions on loopback, in real time
 def test_lockstep_run_every_agent_answers_every_tick(tmp_path):
     port = free_port()
     scenario = two_vessel_scenario()
@@ -59,9 +119,11 @@ def test_lockstep_run_every_agent_answers_every_tick(tmp_path):
     assert all(node.gate.accepted["share"] > 30 for node, _ in agents)
 
 
+@pytest.mark.slow   # Zenoh sessions on loopback, in real time
 def test_watchdog_stops_a_vessel_whose_agent_is_silent():
     port = free_port()
-    settings = BridgeSettings(zenoh=ZenohSettings(listen=[f"tcp/127.0.0.1:{port}"]), startup_timeout=1.0,
+    # 5 s for the agent of vessel 1 to come up (it first looks for another agent with its id, `id_check`).
+    settings = BridgeSettings(zenoh=ZenohSettings(listen=[f"tcp/127.0.0.1:{port}"]), startup_timeout=5.0,
                               command_timeout=0.2)
     bridge = SimBridge(two_vessel_scenario(duration=1.0), settings)
     start = bridge.world.truth().positions["2"].copy()

@@ -84,15 +84,35 @@ def test_a_block_that_raises_still_leaves_a_finished_log(tmp_path):
 
 
 @pytest.mark.skipif(not Path("/dev/full").exists(), reason="needs /dev/full to fail writes")
-def test_after_a_write_error_close_still_closes_the_file_once():
-    # /dev/full fails every write that reaches it, as a full disk does.
+def test_a_write_error_is_raised_once_then_messages_are_counted_and_close_says_one_line(capsys):
+    """/dev/full fails every write that reaches it, as a full disk does. The failing call raises (its caller
+    counts it); later messages are dropped and counted, not raised again; close() never raises, closes the
+    file once, and says in one line what the log lost."""
     log = McapLog("/dev/full", flush_seconds=0.0)
-    with pytest.raises(OSError):
+    with pytest.raises(OSError, match="No space left"):
         log.log("tick", {"k": 1}, log_time_ns=1)
-    with pytest.raises(OSError):
-        log.close()
+    for k in (2, 3):
+        log.log("tick", {"k": k}, log_time_ns=k)   # no exception: counted
+    assert log.errors == 1 and log.dropped == 3
+    log.close()
     assert log._file.closed
-    log.close()                                 # a second close neither raises nor writes
+    said = capsys.readouterr().err
+    assert said.count("\n") == 1 and "/dev/full: 1 write error(s)" in said and "3 message(s) not logged" in said
+    assert "unfinished" in said
+    log.close()                                 # a second close neither raises nor writes nor says more
+    log.log("tick", {"k": 4}, log_time_ns=4)
+    assert capsys.readouterr().err == "" and log.dropped == 3
+
+
+@pytest.mark.skipif(not Path("/dev/full").exists(), reason="needs /dev/full to fail writes")
+def test_a_log_whose_close_fails_does_not_raise(capsys):
+    """Nothing reached the disk before close (it was all buffered): the footer's write fails, and close
+    returns all the same, with the error kept and one line said (what SIGTERM on a full disk meets)."""
+    log = McapLog("/dev/full")
+    log.log("tick", {"k": 1}, log_time_ns=1)
+    log.close()
+    assert isinstance(log.close_error, OSError) and log._file.closed and log.errors >= 1
+    assert capsys.readouterr().err.count("\n") == 1
 
 
 @pytest.mark.skipif(not Path("/dev/full").exists(), reason="needs /dev/full to fail writes")

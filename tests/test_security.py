@@ -19,16 +19,19 @@ import uuid
 from pathlib import Path
 
 import pytest
+import yaml
 import zenoh
-from conftest import wait_until
+from conftest import free_ports, wait_until
 
 pytest.importorskip("cryptography", reason="usv_deploy.certs needs the cryptography package")
 
 from cryptography import x509
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
+from agent.runtime.zenoh_session import zenoh_config
 from sim_bridge.fleet import free_port
 from usv_deploy.certs import make_certificates
+from usv_deploy.inventory import Inventory, agent_settings
 from usv_deploy.security import access_control, secure_config, tls_settings
 
 VESSELS = ["1", "2"]
@@ -349,3 +352,32 @@ def test_usv_deploy_router_runs_the_secure_config(certs, tmp_path):
         except subprocess.TimeoutExpired:
             process.kill()
             process.wait()
+
+
+# ----- the peer LAN without TLS: what docs/reliability.md says an attacker there can do -----
+@slow
+def test_without_tls_a_stranger_on_the_boat_lan_publishes_as_any_vessel_and_as_the_operator():
+    """The peer topology as `usv-deploy render` writes it, plain TCP: a laptop that can reach one boat's
+    port joins the fleet's Zenoh and publishes under any key: a thruster command for vessel 1, a share and
+    a liveliness token in vessel 2's name, a mission command. Nothing tells these from the real ones but
+    what the payload says of itself; this is why the boats' default is the router with mTLS and the ACL."""
+    ports = free_ports(2)
+    data = yaml.safe_load((Path(__file__).parents[1] / "deploy" / "fleet.example.yaml").read_text())
+    data["vessels"] = [{"id": "1", "address": "127.0.0.1", "port": ports[0]},
+                       {"id": "2", "address": "127.0.0.1", "port": ports[1]}]
+    fleet_lan = Inventory.model_validate(data)
+    boat = agent_settings(fleet_lan, fleet_lan.vessel("1"))
+    stranger_config = {"mode": "peer", "scouting": {"multicast": {"enabled": False}},
+                       "connect": {"endpoints": [f"tcp/127.0.0.1:{ports[0]}"]}}
+    with zenoh.open(zenoh_config(boat.zenoh)) as vessel_1, open_session(stranger_config) as stranger:
+        data_inbox = Inbox(vessel_1, "**")
+        tokens = Inbox(vessel_1, "usv/*/alive", liveliness=True, history=True)
+        token = stranger.liveliness().declare_token("usv/2/alive")
+        try:
+            for key in ("usv/1/cmd", "usv/2/share", "usv/1/sensor/uwb", "mission/radius"):
+                put_until_received(stranger, key, data_inbox, "stranger")
+            assert wait_until(lambda: "usv/2/alive" in tokens.seen_keys(), timeout=DEADLINE)
+        finally:
+            token.undeclare()
+            data_inbox.close()
+            tokens.close()

@@ -209,3 +209,18 @@ def test_a_stray_range_does_not_stop_a_vessel_whose_neighbour_is_localised_far_a
     # The same neighbour unlocalised (no prior: the range starts it) at 1 m: held.
     held = _two_vessels({}, [6.0, 6.0, 6.0, 1.0])
     assert held.record.health["separation_stops"] == 1
+
+
+def test_the_phase_advances_by_the_time_between_ticks_not_by_their_count():
+    """A wall-clock tick whose odometry has not moved on repeats its time: the phase of (28) must not
+    advance then, and after a skipped period it advances by two (alone, with no coupling: omega* h)."""
+    params = AgentParams()
+    omega = params.control.yaw_rate
+    state = initial_state("1", params, InitialEstimates(target=(-5.0, 0.0, 0.0, 0.0)))
+    phases = []
+    for now in (10.0, 10.1, 10.1, 10.3, 10.4):
+        state, out = step(params, state, TickInputs(time=now, odometry=OdometryReading(now, np.zeros(2), 0.0)))
+        phases.append(out.record.phase)
+    # A record holds the phase at the start of its tick: the differences are the advances of ticks 1-4.
+    steps = np.angle(np.exp(1j * np.diff(phases))) / (omega * DT)
+    np.testing.assert_allclose(steps, [1.0, 1.0, 0.0, 2.0], atol=1e-9)

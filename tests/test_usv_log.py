@@ -25,7 +25,7 @@ TICKS = 121   # the short run of conftest.fleet_run: 12 s at 10 Hz
 
 
 def usv_log(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "mission_log", *args], capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "mission_log", *args], capture_output=True, text=True, check=False,
                           timeout=240)
 
 
@@ -234,3 +234,42 @@ def test_the_log_of_an_agent_killed_with_sigkill_is_read_up_to_its_last_chunk(tm
     assert (stamps[-1] - ticks[-1][0]) * 1e-9 < 1.5
     shown = usv_log("summary", str(log_path))
     assert shown.returncode == 0 and "unfinished" in shown.stderr and "**unfinished**" in shown.stdout
+
+
+WALL_START_NS = 1_700_000_000_123_456_789   # a wall-clock run: log times are Unix times in ns
+
+
+def _wall_clock_run(folder):
+    """A sim bridge's and one agent's logs stamped on the wall clock: vessel 1 is 8 m from the target for
+    3 s, then on the 5 m circle; its estimates are exact."""
+    from agent.runtime.mcap_log import McapLog
+
+    with McapLog(folder / "sim.mcap", metadata={"scenario": "wall"}) as sim, \
+            McapLog(folder / "agent-1.mcap", metadata={"vessel": "1"}) as agent:
+        for k in range(100):
+            t = WALL_START_NS + k * 100_000_000
+            radius = 8.0 if k < 30 else 5.0
+            sim.log("/truth", {"target": [0.0, 0.0], "vessels": {"1": {"position": [radius, 0.0]}}}, t)
+            agent.log("/1/inputs", {"time": k * 0.1}, t)
+            agent.log("/1/estimates", {"neighbours": {}, "target_state": [radius, 0.0, 0.0, 0.0]}, t)
+    return load_run(folder)
+
+
+def test_times_of_a_wall_clock_run_are_seconds_from_the_mission_start(tmp_path, capsys):
+    """On the wall clock log times are Unix times: the settling time, the spans and the health windows are
+    still seconds from the start (3.0 s here, not 1.7e9), and the start is given once as a UTC time."""
+    from mission_log import cli
+    from mission_log.summary import summary_markdown
+
+    run = _wall_clock_run(tmp_path)
+    truth = run_metrics(run, radius=5.0)["truth"]
+    assert truth["settling_time"] == pytest.approx(3.0) and truth["start_ns"] == WALL_START_NS
+    assert truth["mean_e_io"] == pytest.approx(0.0)
+    summary = run_summary(run)
+    vessel = summary["vessels"]["1"]
+    assert summary["clock"] == "wall"
+    assert vessel["from_s"] == pytest.approx(0.0) and vessel["to_s"] == pytest.approx(9.9)
+    assert [row["from_s"] for row in vessel["health_over_time"]] == pytest.approx([0.0])
+    assert "2023-11-14 22:13:20 UTC (wall clock)" in summary_markdown(summary)
+    assert cli.main(["metrics", str(tmp_path), "--radius", "5"]) == 0
+    assert "| 3.0 s after the start |" in capsys.readouterr().out

@@ -43,8 +43,16 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+UNPROTECTED = ("usv-deploy: warning: inventory {fleet!r} has no TLS: anyone who can reach the fleet network can "
+               "publish as any vessel (sensor data, shares, thruster commands on usv/<id>/cmd) and as the operator "
+               "(mission/**). Lab use only; on boats use topology 'router' with 'tls' (docs/deploy.md, "
+               "docs/reliability.md).")
+
+
 def _render(args) -> int:
     inventory = load_inventory(args.inventory)
+    if inventory.tls is None:
+        print(UNPROTECTED.format(fleet=inventory.fleet), file=sys.stderr)
     if args.vessel is not None:
         written = render(inventory, args.vessel, args.out)
     else:

@@ -88,13 +88,14 @@ def start_track(params: AgentParams, state: VesselState, track: NeighbourTrack, 
 
 
 def _agrees_with_range(params: AgentParams, track: NeighbourTrack, prior: NeighbourPrior) -> bool:
-    """Whether |p^_ij,0| is within four standard deviations (and a metre) of a range measured within
-    `max_odometry_gap` of the prior's time; True when there is no such range to judge by."""
+    """Whether |p^_ij,0| is within four standard deviations (and a metre) of the median of the ranges
+    measured within `max_odometry_gap` of the prior's time (a median, so that one stray UWB range does not
+    refuse a good estimate); True when there is no range to judge by."""
     key, window = stamp_key(prior.stamp), stamp_key(params.fleet.max_odometry_gap)
-    near = [k for k in track.ranges.keys() if abs(k - key) <= window]
+    near = [track.ranges.get(k) for k in track.ranges.keys() if abs(k - key) <= window]
     if not near:
         return True
-    measured = track.ranges.get(min(near, key=lambda k: abs(k - key)))
+    measured = float(np.median(near))
     position = np.asarray(prior.position, dtype=float)
     distance = float(np.hypot(*position))
     if distance == 0.0:

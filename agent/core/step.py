@@ -47,6 +47,7 @@ def step(params: AgentParams, state: VesselState, inputs: TickInputs) -> tuple[V
         health.stops += 1
         return state, TickOutput(STOP, None, None)
     position = np.asarray(odometry.position, dtype=float).reshape(2)
+    elapsed = _elapsed(params, state.motion.stamp, now)
     state.own.put(now, position)
     velocity_change = own_motion(state, now, position)
 
@@ -75,7 +76,7 @@ def step(params: AgentParams, state: VesselState, inputs: TickInputs) -> tuple[V
 
     control = params.control
     neighbour_phases = {j: _phase_of(params, t, now) for j, t in state.tracks.items() if t.share is not None}
-    next_phase = oscillator_step(state.phase, list(neighbour_phases.values()), control.yaw_rate, params.dt,
+    next_phase = oscillator_step(state.phase, list(neighbour_phases.values()), control.yaw_rate, elapsed,
                                  control.oscillator_gain)
     obstacles, malformed = obstacle_array(inputs.obstacle_points)
     if malformed:
@@ -108,6 +109,20 @@ def step(params: AgentParams, state: VesselState, inputs: TickInputs) -> tuple[V
     )
     state.phase = next_phase
     return state, TickOutput(command, share, record)
+
+
+def _elapsed(params: AgentParams, previous: float | None, now: float) -> float:
+    """The time the phase of (28) advances by this tick: the sampling period dt in the lockstep simulation
+    (and whenever the ticks are a period apart, to a microsecond), else the time since the last tick, kept
+    within [0, 3 dt]. On a wall clock the tick's time is its odometry's stamp, which can repeat or skip a
+    period; advancing by dt regardless would move the phase away from the neighbours' phases, which are
+    carried by time."""
+    if previous is None:
+        return params.dt
+    elapsed = now - previous
+    if abs(elapsed - params.dt) <= 1e-6:
+        return params.dt
+    return min(max(elapsed, 0.0), 3.0 * params.dt)
 
 
 def _localised(params: AgentParams, track: NeighbourTrack) -> bool:

@@ -6,14 +6,30 @@ every `flush_seconds` of wall time: a process killed hard loses at most about th
 `read_messages` reads an unfinished file up to its last complete chunk.
 
 Every file records its log format in a metadata record `usv-log-format` (`version`), written first with
-the `run` metadata: a reader checks it before reading on (mission_log/reader.py). A message's JSON may gain
+the `run` metadata and the `usv-log-part` record (which set of parts the file belongs to, and its place
+in it): a reader checks the version before reading on (mission_log/reader.py). A message's JSON may gain
 fields within a version; a change an older reader would misread needs a new version.
+
+**Rotation** (`rotation=LogRotation(...)`; none by default). The log is cut into parts by size and/or
+time: the first part is the path given (`agent-1.mcap`), the next ones `agent-1.part0001.mcap`,
+`agent-1.part0002.mcap`, ... (they sort in time order after the first). Each part is a complete MCAP file
+with the format, run and part records, so any part reads on its own; `mission_log.reader` joins the parts
+of a set into one log. Once the closed parts would leave no room for a full current part within
+`max_total_mb`, the oldest are deleted, so the set stays within the bound (plus at most one flush).
+
+**Write errors** (a full disk). Writing never stops the caller for good: the `log()` call whose write fails
+raises the OSError once (the caller counts it), the part is abandoned as an unfinished file (readable up to
+its last complete chunk), and later messages are dropped and counted (`dropped`) rather than raising again.
+With rotation, a new part is tried every `retry_seconds`, so logging resumes once there is room. `close()`
+never raises an OSError: it finishes what it can, and says in one line on stderr what the log lost.
 """
 
 from __future__ import annotations
 
 import json
+import sys
 import time
+import uuid
 import warnings
 from collections.abc import Iterator
 from pathlib import Path
@@ -23,38 +39,202 @@ import orjson
 from mcap.exceptions import McapError
 from mcap.stream_reader import Channel, Message, Metadata, StreamReader
 from mcap.writer import CompressionType, Writer
-from pydantic import BaseModel
+from pydantic import BaseModel, Field, model_validator
+
+from agent.config import PositiveFloat, StrictModel
 
 PROFILE = ""  # plain JSON messages, no ROS profile
 NUMPY = orjson.OPT_SERIALIZE_NUMPY
 FORMAT_RECORD = "usv-log-format"   # metadata record: {"version": FORMAT_VERSION}
 FORMAT_VERSION = "2"               # 2: inputs carry range_stamp. The channels of agent/runtime/log_schema.py, the `run` metadata
+PART_RECORD = "usv-log-part"       # metadata record: {"set": id shared by a log's parts, "part": "0", "first": file name}
+PART_WIDTH = 4                     # agent-1.part0001.mcap
+MB = 1_000_000
+
+
+class LogRotation(StrictModel):
+    """How a long run's log is cut into parts, and how much of it is kept (McapLog's `rotation`).
+
+    The defaults keep an agent (about 81 MB an hour) to 512 MB, the last six hours or so, in parts of 64 MB."""
+
+    max_file_mb: PositiveFloat | None = Field(64.0, description="start a new part once the current one has this "
+                                              "many MB (null: no size limit)")
+    max_file_seconds: PositiveFloat | None = Field(None, description="start a new part once the current one is "
+                                                   "this many seconds old (null: no time limit)")
+    max_total_mb: PositiveFloat | None = Field(512.0, description="delete the oldest parts so that the set, the "
+                                               "current part included, stays within this many MB (null: keep all)")
+
+    @model_validator(mode="after")
+    def _consistent(self) -> LogRotation:
+        if self.max_file_mb is None and self.max_file_seconds is None:
+            raise ValueError("give max_file_mb or max_file_seconds (or no rotation at all)")
+        if self.max_total_mb is not None and self.max_file_mb is not None and self.max_total_mb < self.max_file_mb:
+            raise ValueError(f"max_total_mb ({self.max_total_mb}) is less than one part (max_file_mb "
+                             f"{self.max_file_mb})")
+        return self
+
+
+def part_path(first: str | Path, part: int) -> Path:
+    """The file of part `part` of the log set whose first file is `first`: part 0 is `first` itself,
+    part n is `<stem>.part<nnnn><suffix>`."""
+    first = Path(first)
+    if part == 0:
+        return first
+    return first.with_name(f"{first.stem}.part{part:0{PART_WIDTH}d}{first.suffix}")
 
 
 class McapLog:
-    def __init__(self, path: str | Path, flush_seconds: float = 1.0, metadata: dict[str, str] | None = None):
+    """One process's log: `log()` messages, `close()` (or use it as a context manager).
+
+    Counters: `errors` (OSErrors met while writing or closing), `dropped` (messages not written because the
+    part they were for had failed), `deleted` (parts removed by `max_total_mb`). `parts` lists the files
+    of the set written so far (deleted ones included), in order."""
+
+    def __init__(self, path: str | Path, flush_seconds: float = 1.0, metadata: dict[str, str] | None = None,
+                 rotation: LogRotation | None = None, retry_seconds: float = 10.0):
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._file = self.path.open("wb")
-        self._writer = Writer(self._file, compression=CompressionType.ZSTD)
-        self._writer.start(profile=PROFILE, library="usv-circumnav")
-        self._writer.add_metadata(FORMAT_RECORD, {"version": FORMAT_VERSION})
-        if metadata:
-            self._writer.add_metadata("run", {k: str(v) for k, v in metadata.items()})
-        self._channels: dict[str, int] = {}
+        self.rotation = rotation
+        self.parts: list[Path] = []
+        self.errors = 0
+        self.dropped = 0
+        self.deleted: list[Path] = []
+        self.first_error: OSError | None = None
+        self.close_error: OSError | None = None
+        self._metadata = {k: str(v) for k, v in (metadata or {}).items()}
+        self._set = uuid.uuid4().hex
+        self._schemas: dict[str, tuple[str, dict]] = {}   # topic -> (schema name, JSON schema), for every part
         self._sequence: dict[str, int] = {}
+        self._closed_sizes: list[tuple[Path, int]] = []   # closed parts still on disk, oldest first
         self._flush_seconds = flush_seconds
-        self._last_flush = time.monotonic()
+        self._retry_seconds = retry_seconds
+        self._failed_at: float | None = None
+        self._failing = False        # since the last write that reached the file, writes have failed
+        self._open_error: OSError | None = None
         self._closed = False
+        self._writer: Writer | None = None
+        self._file = None
+        self._open_part(0, raise_errors=True)
 
+    # ----- parts -----
+    def _open_part(self, part: int, raise_errors: bool = False) -> bool:
+        """Start part `part`: its file, header and metadata records. False (counted) if that fails."""
+        path = part_path(self.path, part)
+        try:
+            handle = path.open("wb")
+        except OSError as error:
+            if raise_errors:
+                raise           # the first file: a path that cannot be opened at all is the caller's to see
+            self._count(error)
+            self._writer, self._failed_at, self._open_error = None, time.monotonic(), error
+            return False
+        self._file, self._part, self._channels = handle, part, {}
+        self._opened = time.monotonic()
+        self._last_flush = self._opened
+        self.parts.append(path)
+        try:
+            self._writer = Writer(handle, compression=CompressionType.ZSTD)
+            self._writer.start(profile=PROFILE, library="usv-circumnav")
+            self._writer.add_metadata(FORMAT_RECORD, {"version": FORMAT_VERSION})
+            if self._metadata:
+                self._writer.add_metadata("run", self._metadata)
+            self._writer.add_metadata(PART_RECORD, {"set": self._set, "part": str(part), "first": self.path.name})
+        except OSError as error:
+            self._abandon(error)
+            self._open_error = error
+            return False
+        return True
+
+    def _abandon(self, error: OSError) -> None:
+        """The current part failed: count it, close its file as an unfinished log, write nothing more to it."""
+        self._count(error)
+        self._writer = None
+        self._failed_at = time.monotonic()
+        try:
+            self._file.close()     # flushes what is buffered (which fails again on a full disk) and closes
+        except OSError:
+            pass
+        size = self._size_on_disk(self.parts[-1])
+        if self._part > 0 and size == 0:
+            # A part that failed before holding a byte (a retry on a still full disk) is no part at all: the
+            # next try takes its number.
+            self.parts[-1].unlink(missing_ok=True)
+            self.parts.pop()
+            self._part -= 1
+        else:
+            self._closed_sizes.append((self.parts[-1], size))   # kept, unfinished, and counted in the bound
+
+    def _count(self, error: OSError) -> None:
+        self.errors += 1
+        if self.first_error is None:
+            self.first_error = error
+
+    @staticmethod
+    def _size_on_disk(path: Path) -> int:
+        try:
+            return path.stat().st_size
+        except OSError:
+            return 0
+
+    def _due(self) -> bool:
+        """The current part has reached a limit of the rotation."""
+        rotation = self.rotation
+        if rotation is None or self._writer is None:
+            return False
+        if rotation.max_file_mb is not None and self._file.tell() >= rotation.max_file_mb * MB:
+            return True
+        return rotation.max_file_seconds is not None and time.monotonic() - self._opened >= rotation.max_file_seconds
+
+    def _rotate(self) -> None:
+        """Finish the current part and start the next; then keep the set within its bound. An OSError while
+        finishing is raised (log() abandons the part); one while starting the next leaves no writer."""
+        path = self.parts[-1]
+        self._writer.finish()
+        self._file.close()
+        self._closed_sizes.append((path, self._size_on_disk(path)))
+        if self._open_part(self._part + 1):
+            self._bound()
+
+    def _bound(self) -> None:
+        """Delete the oldest closed parts while they leave no room for a full current part in max_total_mb."""
+        rotation = self.rotation
+        if rotation is None or rotation.max_total_mb is None:
+            return
+        room = rotation.max_file_mb * MB if rotation.max_file_mb is not None else max(
+            (size for _, size in self._closed_sizes[-1:]), default=0)
+        while self._closed_sizes and sum(size for _, size in self._closed_sizes) + room > rotation.max_total_mb * MB:
+            oldest, _ = self._closed_sizes.pop(0)
+            try:
+                oldest.unlink()
+            except FileNotFoundError:
+                pass
+            except OSError as error:
+                self._count(error)
+                continue
+            self.deleted.append(oldest)
+
+    def _retry(self) -> bool:
+        """After a failure, with rotation: try a new part every retry_seconds. True if one is open now."""
+        if self.rotation is None or self._failed_at is None:
+            return False
+        if time.monotonic() - self._failed_at < self._retry_seconds:
+            return False
+        self._failed_at = time.monotonic()
+        if self._open_part(self._part + 1):
+            self._bound()
+            return True
+        return False
+
+    # ----- writing -----
     def channel(self, topic: str, schema_name: str, schema: dict) -> int:
-        """The channel of `topic`, registering it with `schema` the first time."""
+        """The channel of `topic` in the current part, registering it with `schema` the first time."""
+        self._schemas.setdefault(topic, (schema_name, schema))
+        self._sequence.setdefault(topic, 0)
         if topic not in self._channels:
-            schema_id = self._writer.register_schema(name=schema_name, encoding="jsonschema",
-                                                     data=json.dumps(schema).encode())
+            name, body = self._schemas[topic]
+            schema_id = self._writer.register_schema(name=name, encoding="jsonschema", data=json.dumps(body).encode())
             self._channels[topic] = self._writer.register_channel(topic=topic, message_encoding="json",
                                                                   schema_id=schema_id)
-            self._sequence[topic] = 0
         return self._channels[topic]
 
     def log(self, topic: str, message: BaseModel | dict, log_time_ns: int, publish_time_ns: int | None = None,
@@ -62,16 +242,18 @@ class McapLog:
             data: bytes | None = None) -> None:
         """Append one message; a pydantic message brings its own schema, a dict needs `schema` (a JSON schema,
         or the model whose dump the dict is). `data` is the message already encoded as JSON (what went on the
-        wire), to save encoding it twice."""
+        wire), to save encoding it twice. Raises the OSError of a failed write once (module docstring)."""
         if self._closed:
+            return
+        if self._writer is None and not self._retry():
+            self.dropped += 1
             return
         model = isinstance(message, BaseModel)
         if data is None:
             # orjson: several times faster than json on these float-heavy dicts (logging cost as much CPU
             # as the tick itself); it writes floats exactly as json does, and NaN or infinity as null.
             data = message.model_dump_json().encode() if model else orjson.dumps(message, option=NUMPY)
-        channel = self._channels.get(topic)
-        if channel is None:  # a schema is made once per topic: generating one costs milliseconds
+        if topic not in self._schemas:  # a schema is made once per topic: generating one costs milliseconds
             source = type(message) if model and schema is None else schema
             if isinstance(source, type) and issubclass(source, BaseModel):
                 # A model's title is its class name unless it sets one (the Foxglove models do).
@@ -79,38 +261,66 @@ class McapLog:
                 name = schema_name or body.get("title", source.__name__)
             else:
                 name, body = schema_name or topic, source or {"type": "object"}
-            channel = self.channel(topic, name, body)
-        self._writer.add_message(channel_id=channel, log_time=log_time_ns,
-                                 publish_time=publish_time_ns if publish_time_ns is not None else log_time_ns,
-                                 data=data, sequence=self._sequence[topic])
-        self._sequence[topic] += 1
-        now = time.monotonic()
-        if now - self._last_flush >= self._flush_seconds:
-            self._writer.flush()
-            self._last_flush = now
+            self._schemas[topic] = (name, body)
+        try:
+            if self._due():
+                self._rotate()
+                if self._writer is None:       # the next part could not be started
+                    raise self._open_error
+            channel = self.channel(topic, *self._schemas[topic])
+            self._writer.add_message(channel_id=channel, log_time=log_time_ns,
+                                     publish_time=publish_time_ns if publish_time_ns is not None else log_time_ns,
+                                     data=data, sequence=self._sequence[topic])
+            self._sequence[topic] += 1
+            now = time.monotonic()
+            if now - self._last_flush >= self._flush_seconds:
+                self._last_flush = now
+                self._writer.flush()
+                self._failing = False          # it reached the file: a later failure is news again
+        except OSError as error:
+            self.dropped += 1
+            if self._writer is not None:
+                self._abandon(error)
+            first, self._failing = not self._failing, True
+            if first:                          # once per failure, not once per message or per retry
+                raise
 
     def close(self) -> None:
-        """Write the summary and footer and close the file; safe to call twice. If writing fails (a full disk)
-        the file is closed all the same, as an unfinished log, and the error raised; a second call does
-        nothing."""
+        """Write the summary and footer and close the file; safe to call twice. An OSError (a full disk) is
+        not raised: the file is closed all the same, as an unfinished log, the error kept in `close_error`,
+        and one line on stderr says what the log lost (so does any earlier write error)."""
         if self._closed:
             return
         self._closed = True
-        try:
-            self._writer.finish()
-        finally:
-            self._file.close()
+        unfinished = self._writer is None     # its last part was abandoned after a write error
+        if self._writer is not None:
+            try:
+                self._writer.finish()
+            except OSError as error:
+                self.close_error = error
+                self._count(error)
+            try:
+                self._file.close()
+            except OSError as error:
+                self.close_error = self.close_error or error
+                self._count(error)
+            self._writer = None
+            unfinished = self.close_error is not None
+        if self.errors:
+            error = self.first_error
+            print(f"mcap log {self.path}: {self.errors} write error(s) ({type(error).__name__}: {error}); "
+                  f"{self.dropped} message(s) not logged; "
+                  + ("its last part is unfinished (read up to its last complete chunk)" if unfinished
+                     else "its last part is complete"), file=sys.stderr)
 
     def __enter__(self) -> Self:
         return self
 
     def __exit__(self, kind, error, traceback) -> None:
-        try:
-            self.close()
-        except Exception as failure:
-            if error is None:
-                raise
+        self.close()
+        if error is not None and self.close_error is not None:
             # The exception that ended the block is the one to see; the log's failure goes with it.
+            failure = self.close_error
             error.add_note(f"and closing the log {self.path} failed: {type(failure).__name__}: {failure}")
 
 
