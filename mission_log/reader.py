@@ -227,11 +227,15 @@ def load_run(paths: list[Path] | Path) -> RunLog:
 
 
 def mission_start_ns(run: RunLog) -> int:
-    """The mission's time zero (log time, ns): the first tick any agent logged (its inputs or estimates) or
-    the sim bridge's first truth, whichever is earliest; failing those, the earliest message of any log.
-    0 in simulation; a Unix time on the wall clock."""
-    firsts = [min(t for t, _ in log.topic(name)) for log in run.vessels.values() for name in ("inputs", "estimates")
-              if log.topic(name)]
+    """The mission's time zero (log time, ns). In the sim bridge's sea mode, its epoch (`/bridge/sea`);
+    otherwise the first tick at which any agent had its odometry, or the sim bridge's first truth,
+    whichever is earliest (an agent that ticks before its sensors come commands STOP: that wait is not the
+    mission); failing those, the earliest message of any log. 0 in simulation; a Unix time on the wall clock."""
+    if run.sim is not None and run.sim.messages("/bridge/sea"):
+        return int(run.sim.messages("/bridge/sea")[0][1]["epoch_ns"])
+    firsts = [min(t for t, data in log.topic("inputs") if data.get("odometry") is not None)
+              for log in run.vessels.values()
+              if any(data.get("odometry") is not None for _, data in log.topic("inputs"))]
     if run.sim is not None and run.sim.messages("/truth"):
         firsts.append(min(t for t, _ in run.sim.messages("/truth")))
     if not firsts:

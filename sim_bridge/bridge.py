@@ -59,7 +59,7 @@ from agent.contract import (
 from agent.core.records import STOP, Command
 from agent.runtime import foxglove
 from agent.runtime.log_schema import BridgeSummary, CommandLatency, LoggedTruth
-from agent.runtime.mcap_log import McapLog
+from agent.runtime.mcap_log import LogRotation, McapLog
 from agent.runtime.zenoh_session import ZenohSettings, open_session, zenoh_config
 from sim_bridge.scenario import Scenario, select_scenario
 from sim_bridge.world import Frame, Measurement, SeaSensors, World, lost_shares, sea_steps, sea_world, streams
@@ -79,6 +79,9 @@ class BridgeSettings(StrictModel):
     startup_timeout: PositiveFloat = Field(30.0, description="wall seconds to wait for the first agents")
     zenoh: ZenohSettings = ZenohSettings()
     log: str | None = Field(None, description="MCAP file of the ground truth")
+    log_rotation: LogRotation | None = Field(
+        LogRotation(), description="start a new part of the log by size or time, keep a bounded total; null: "
+                                   "one file")
 
 
 class SimBridge:
@@ -118,7 +121,8 @@ class SimBridge:
         self._waiting: set[str] | None = None   # vessels the tick in progress still waits for
         self.log = None
         if settings.log:
-            self.log = McapLog(settings.log, metadata={"scenario": scenario.name, "mode": settings.mode})
+            self.log = McapLog(settings.log, metadata={"scenario": scenario.name, "mode": settings.mode},
+                               rotation=settings.log_rotation)
 
     # ----- callbacks -----
     def _on_command(self, sample) -> None:
