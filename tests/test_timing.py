@@ -224,3 +224,12 @@ def test_the_phase_advances_by_the_time_between_ticks_not_by_their_count():
     # A record holds the phase at the start of its tick: the differences are the advances of ticks 1-4.
     steps = np.angle(np.exp(1j * np.diff(phases))) / (omega * DT)
     np.testing.assert_allclose(steps, [1.0, 1.0, 0.0, 2.0], atol=1e-9)
+
+
+def test_the_cold_start_table_measures_the_closest_approach_of_any_two_vessels():
+    from lab.cold_start import closest_approach
+
+    positions = np.array([[[0.0, 0.0], [3.0, 4.0], [np.nan, np.nan]],
+                          [[0.0, 0.0], [0.6, 0.8], [10.0, 0.0]],     # vessels 1 and 2 come within 1 m
+                          [[0.0, 0.0], [6.0, 8.0], [0.0, 2.0]]])     # vessel 3 comes within 2 m of vessel 1
+    assert closest_approach(positions) == pytest.approx(1.0, abs=1e-12)
