@@ -80,7 +80,11 @@ def start_track(params: AgentParams, state: VesselState, track: NeighbourTrack, 
         prior = prior_from_target(params, state, track)
     if prior is None:
         return
-    started = track.start(prior, state.own)
+    try:
+        started = track.start(prior, state.own)
+    except ValueError:      # a prior the filter cannot start from (not positive definite): earned nothing
+        state.health.priors_refused += 1
+        return
     if started == "wait":
         state.priors[track.neighbour] = prior
     elif started == "stale":

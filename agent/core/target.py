@@ -16,7 +16,8 @@ def own_motion(state: VesselState, now: float, position: np.ndarray) -> np.ndarr
     the first tick, when there is no interval yet and the initial target estimate already refers to now."""
     motion = state.motion
     change = None
-    if motion.stamp is not None and now > motion.stamp:
+    # Odometry samples closer than a millisecond would turn their noise into any velocity at all.
+    if motion.stamp is not None and now - motion.stamp >= 1e-3:
         velocity = (position - motion.position) / (now - motion.stamp)
         change = velocity - motion.velocity
         motion.velocity = velocity
