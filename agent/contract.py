@@ -1,8 +1,10 @@
 """The wire contract between an agent and whatever stands in for the hardware (sim bridge or driver bridge).
 
 Every message is a pydantic model encoded as JSON; every payload carries `stamp_ns` (its own time, in the
-clock the fleet runs on), `seq` (per sender and key, increasing by one) and `sender`. The same models give
-the wire format, the validation of bad input and the JSON schema written into logs. Keys:
+clock the fleet runs on), `seq` (per sender and key, increasing by one; informative: receivers judge freshness
+by stamps) and `sender`. The same models give the wire format, the validation of bad input (types, and values
+within the physical limits below: positions, speeds, angles, covariances that are symmetric positive
+semi-definite, int64 stamps) and the JSON schema written into logs. Keys:
 
     usv/<id>/sensor/odom     Odometry      bridge -> agent   cumulative position and heading, own frame
     usv/<id>/sensor/uwb      Ranges        bridge -> agent   ranges to named peers (m)
@@ -23,7 +25,7 @@ import math
 from typing import Annotated
 
 import numpy as np
-from pydantic import Field, ValidationError, field_validator
+from pydantic import Field, ValidationError, field_validator, model_validator
 
 from agent.config import StrictModel
 from agent.core.records import OdometryReading, Share
@@ -34,11 +36,45 @@ LIVELINESS = "alive"
 
 VESSEL_ID_PATTERN = r"^[A-Za-z0-9_-]{1,32}$"
 VesselId = Annotated[str, Field(pattern=VESSEL_ID_PATTERN)]
-Finite = Annotated[float, Field(allow_inf_nan=False)]
-NonNegative = Annotated[float, Field(ge=0, allow_inf_nan=False)]
-Vec2 = tuple[Finite, Finite]
 MAX_SONAR_POINTS = 4096
 MAX_PEERS = 256
+# Physical limits of what a payload may say. Each is far beyond any mission and far inside what float arithmetic
+# handles without overflow: a value beyond one is refused at the gate, so the core never sees it.
+MAX_POSITION = 1e5        # m: positions, ranges, pair offsets and obstacle points (100 km)
+MAX_SPEED = 1e3           # m/s: velocities in a share, the surge of a command
+MAX_ANGLE = 1e6           # rad: headings, phases and yaw rates, wrapped or not (finite, and precise to 1e-10 rad)
+MAX_VARIANCE = MAX_POSITION**2   # m^2 (or (m/s)^2, rad^2): every entry of a covariance
+MAX_STAMP_NS = 2**63 - 1  # stamps and sequence numbers are int64 on the wire
+MAX_PAYLOAD_BYTES = 1 << 21   # 2 MiB: more than the largest valid message (a Clock's full `lost` list, ~1 MB)
+COVARIANCE_TOLERANCE = 1e-9   # relative: asymmetry and negative eigenvalues allowed for rounding
+
+Finite = Annotated[float, Field(allow_inf_nan=False)]
+Coordinate = Annotated[float, Field(ge=-MAX_POSITION, le=MAX_POSITION, allow_inf_nan=False)]
+Distance = Annotated[float, Field(ge=0, le=MAX_POSITION, allow_inf_nan=False)]
+SpeedComponent = Annotated[float, Field(ge=-MAX_SPEED, le=MAX_SPEED, allow_inf_nan=False)]
+Angle = Annotated[float, Field(ge=-MAX_ANGLE, le=MAX_ANGLE, allow_inf_nan=False)]
+Variance = Annotated[float, Field(ge=-MAX_VARIANCE, le=MAX_VARIANCE, allow_inf_nan=False)]
+StampNs = Annotated[int, Field(ge=0, le=MAX_STAMP_NS)]
+Vec2 = tuple[Coordinate, Coordinate]
+Velocity = tuple[SpeedComponent, SpeedComponent]
+
+
+def covariance_problem(values, size: int) -> str | None:
+    """Why `values` (size x size, row-major) is not a covariance: not symmetric, or not positive semi-definite
+    (both up to COVARIANCE_TOLERANCE of its largest entry); None if it is one. The entries are already finite
+    and within +-MAX_VARIANCE."""
+    if len(values) != size * size:
+        return f"needs {size * size} numbers ({size}x{size}, row-major)"
+    matrix = np.array(values, dtype=float).reshape(size, size)
+    scale = float(np.abs(matrix).max())
+    if scale == 0.0:
+        return None
+    tolerance = COVARIANCE_TOLERANCE * scale
+    if np.abs(matrix - matrix.T).max() > tolerance:
+        return "is not symmetric"
+    if float(np.linalg.eigvalsh(0.5 * (matrix + matrix.T))[0]) < -tolerance:
+        return "is not positive semi-definite"
+    return None
 
 
 # ----- keys -----
@@ -62,29 +98,31 @@ def vessel_of(key_expr: str) -> str | None:
 
 # ----- messages -----
 class Header(StrictModel):
-    stamp_ns: int = Field(ge=0, description="time of the content, ns, in the fleet's clock")
-    seq: int = Field(ge=0, description="per sender and key, +1 per message")
+    stamp_ns: StampNs = Field(description="time of the content, ns, in the fleet's clock")
+    seq: int = Field(ge=0, le=MAX_STAMP_NS, description="per sender and key, +1 per message (informative only)")
     sender: VesselId
 
 
 class Odometry(Header):
     position: Vec2 = Field(description="cumulative dead-reckoned position in the vessel's own frame (m)")
-    heading: Finite = Field(description="yaw in the common heading reference (rad)")
-    covariance: tuple[Finite, ...] = Field(
-        (0.0,) * 9, description="3x3 covariance of (x, y, yaw), row-major")
+    heading: Angle = Field(description="yaw in the common heading reference (rad)")
+    covariance: tuple[Variance, ...] = Field(
+        (0.0,) * 9, max_length=9, description="3x3 covariance of (x, y, yaw), row-major: symmetric, positive "
+                                              "semi-definite")
 
     @field_validator("covariance")
     @classmethod
     def _three_by_three(cls, value: tuple[float, ...]) -> tuple[float, ...]:
-        if len(value) != 9:
-            raise ValueError("covariance needs 9 numbers (3x3, row-major)")
-        if any(value[i] < 0 for i in (0, 4, 8)):
+        if len(value) == 9 and any(value[i] < 0 for i in (0, 4, 8)):
             raise ValueError("covariance has a negative variance")
+        problem = covariance_problem(value, 3)
+        if problem:
+            raise ValueError(f"covariance {problem}")
         return value
 
 
 class Ranges(Header):
-    ranges: dict[VesselId, NonNegative] = Field(description="peer id -> measured range (m)")
+    ranges: dict[VesselId, Distance] = Field(description="peer id -> measured range (m)")
 
     @field_validator("ranges")
     @classmethod
@@ -111,32 +149,50 @@ class Sonar(Header):
 
 
 class Cmd(Header):
-    surge: Finite = Field(description="surge speed (m/s)")
-    yaw_rate: Finite = Field(description="yaw rate (rad/s)")
+    surge: SpeedComponent = Field(description="surge speed (m/s)")
+    yaw_rate: Angle = Field(description="yaw rate (rad/s)")
 
 
 class PairEstimate(StrictModel):
     position: Vec2
-    covariance: tuple[Finite, Finite, Finite] = Field(description="p11, p12, p22")
+    covariance: tuple[Variance, Variance, Variance] = Field(
+        description="p11, p12, p22 of a symmetric positive semi-definite 2x2")
+
+    @field_validator("covariance")
+    @classmethod
+    def _semi_definite(cls, value):
+        p11, p12, p22 = value
+        problem = covariance_problem((p11, p12, p12, p22), 2)
+        if problem:
+            raise ValueError(f"covariance {problem}")
+        return value
 
 
 class ShareMessage(Header):
     """Share of tick_io, on the wire: odometry at `stamp_ns`, commanded velocity, phase, estimates."""
 
     position: Vec2
-    heading: Finite
-    velocity: Vec2
-    phase: Finite
-    target: tuple[Finite, Finite, Finite, Finite] | None = None
-    target_covariance: tuple[Finite, ...] | None = Field(None, description="4x4, row-major")
+    heading: Angle
+    velocity: Velocity
+    phase: Angle
+    target: tuple[Coordinate, Coordinate, SpeedComponent, SpeedComponent] | None = None
+    target_covariance: tuple[Variance, ...] | None = Field(
+        None, max_length=16, description="4x4, row-major: symmetric, positive semi-definite")
     neighbours: dict[VesselId, PairEstimate] = Field(default_factory=dict, max_length=MAX_PEERS)
 
     @field_validator("target_covariance")
     @classmethod
     def _four_by_four(cls, value):
-        if value is not None and len(value) != 16:
-            raise ValueError("target_covariance needs 16 numbers (4x4, row-major)")
+        problem = None if value is None else covariance_problem(value, 4)
+        if problem:
+            raise ValueError(f"target_covariance {problem}")
         return value
+
+    @model_validator(mode="after")
+    def _target_with_covariance(self):
+        if (self.target is None) != (self.target_covariance is None):
+            raise ValueError("target and target_covariance come together")
+        return self
 
 
 class Status(Header):
@@ -155,10 +211,10 @@ class Clock(StrictModel):
     of them each agent gets now. That makes the fleet over Zenoh deliver exactly the shares the in-process
     runner delivers (packet loss included), whatever order the network brings them in."""
 
-    stamp_ns: int = Field(ge=0, description="sim time of this tick")
-    seq: int = Field(ge=0, description="tick number")
+    stamp_ns: StampNs = Field(description="sim time of this tick")
+    seq: int = Field(ge=0, le=MAX_STAMP_NS, description="tick number")
     sender: VesselId = "sim"
-    previous_ns: int | None = Field(None, ge=0, description="the tick before, whose shares are delivered now")
+    previous_ns: StampNs | None = Field(None, description="the tick before, whose shares are delivered now")
     vessels: list[VesselId] | None = Field(None, max_length=MAX_PEERS,
                                            description="vessels in the world now (their sensors were published)")
     senders: list[VesselId] | None = Field(
@@ -168,6 +224,12 @@ class Clock(StrictModel):
         default_factory=list, max_length=MAX_PEERS * MAX_PEERS,
         description="[sender, receiver]: shares of the previous tick the simulated radio loses")
     lockstep: bool = Field(False, description="receivers wait (bounded) for the delivered shares before ticking")
+
+    @model_validator(mode="after")
+    def _previous_before(self):
+        if self.previous_ns is not None and self.previous_ns >= self.stamp_ns:
+            raise ValueError("previous_ns must be before stamp_ns")
+        return self
 
     def delivered_to(self, receiver: str) -> set[str] | None:
         """Senders whose share of the previous tick `receiver` gets now; None: whatever has come."""
@@ -191,6 +253,8 @@ TOPICS: dict[str, type[StrictModel]] = {
 # ----- decoding: bytes in, a message or a reason out, never an exception -----
 def decode(model: type[StrictModel], payload: bytes | bytearray | memoryview) -> tuple[StrictModel | None, str]:
     """Parse and validate one payload. Returns (message, "") or (None, one-line reason)."""
+    if len(payload) > MAX_PAYLOAD_BYTES:
+        return None, f"{model.__name__}: payload of {len(payload)} bytes, more than {MAX_PAYLOAD_BYTES}"
     try:
         return model.model_validate_json(bytes(payload)), ""
     except ValidationError as error:
@@ -211,7 +275,7 @@ def seconds(stamp_ns: int) -> float:
 
 
 def nanoseconds(time_s: float) -> int:
-    return int(round(time_s * 1e9))
+    return round(time_s * 1e9)
 
 
 def odometry_reading(message: Odometry) -> OdometryReading:

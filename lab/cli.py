@@ -23,6 +23,7 @@ SUBCOMMANDS = {
     "fleet-bench": ("lab.fleet_bench", "Table II Monte Carlo wall time, tick cost by fleet size"),
     "runtime-bench": ("lab.runtime_bench",
                       "Zenoh runtime: sensor-to-command latency, lockstep real-time factor, memory"),
+    "fuzz": ("lab.fuzz_bench", "fuzz campaign over Zenoh: bad payloads on every key one agent reads"),
 }
 
 

@@ -11,12 +11,16 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from agent.contract import (
+    MAX_PAYLOAD_BYTES,
+    MAX_PEERS,
     TOPICS,
     Bearing,
+    Clock,
     Cmd,
     Odometry,
     Ranges,
     ShareMessage,
+    covariance_problem,
     decode,
     encode,
     every,
@@ -28,7 +32,7 @@ from agent.contract import (
 from agent.core.build import InitialEstimates, initial_state
 from agent.core.params import AgentParams
 from agent.core.step import step
-from agent.shell.gate import InputGate
+from agent.shell.gate import InputGate, SimClock
 
 NOW = 100.0
 NS = int(NOW * 1e9)
@@ -98,23 +102,272 @@ def test_negative_ranges_unknown_peers_and_non_unit_bearings():
     assert not g.offer("usv/1/sensor/bearing", json.dumps(bearing).encode(), NOW)
 
 
-def test_duplicated_and_reordered_seq_are_dropped():
+def test_duplicated_and_reordered_stamps_are_dropped_whatever_the_seq():
     g = gate()
-    assert g.offer("usv/1/sensor/odom", odom(seq=5, position=[5.0, 5.0]), NOW)
-    assert not g.offer("usv/1/sensor/odom", odom(seq=5), NOW)          # duplicate
-    assert not g.offer("usv/1/sensor/odom", odom(seq=3), NOW)          # reordered, older
-    assert g.offer("usv/1/sensor/odom", odom(seq=9, position=[9.0, 9.0]), NOW)   # a gap is fine
+    assert g.offer("usv/1/sensor/odom", odom(seq=5, stamp_ns=NS, position=[5.0, 5.0]), NOW)
+    assert not g.offer("usv/1/sensor/odom", odom(seq=6, stamp_ns=NS), NOW)              # same stamp: a repeat
+    assert not g.offer("usv/1/sensor/odom", odom(seq=7, stamp_ns=NS - 10**8), NOW)      # older: reordered
+    assert g.offer("usv/1/sensor/odom", odom(seq=1, stamp_ns=NS + 10**8, position=[9.0, 9.0]), NOW)  # seq is no judge
     assert g.rejected["duplicate_or_reordered"] == 2
     np.testing.assert_array_equal(g.snapshot(NOW).odometry.position, [9.0, 9.0])
 
 
-def test_a_sender_that_restarts_at_seq_zero_is_accepted_again():
+def test_a_poisoned_seq_does_not_lock_the_agent_out_of_its_odometry():
+    """Regression: one message with seq 10^9 made the agent refuse its own odometry for the rest of the run
+    (121/121 ticks STOP). Freshness is now judged by stamps; the seq is informative."""
     g = gate()
-    assert g.offer("usv/1/sensor/odom", odom(seq=500), NOW)
-    assert g.offer("usv/1/sensor/odom", odom(seq=0, position=[7.0, 7.0]), NOW)
-    assert g.accepted["sender_restarted"] == 1
-    assert not g.offer("usv/1/sensor/odom", odom(seq=0), NOW)   # a second 0 is a duplicate
-    np.testing.assert_array_equal(g.snapshot(NOW).odometry.position, [7.0, 7.0])
+    assert g.offer("usv/1/sensor/odom", odom(seq=10**9, stamp_ns=NS), NOW)
+    for k in range(1, 21):
+        now = NOW + 0.1 * k
+        assert g.offer("usv/1/sensor/odom", odom(seq=k, stamp_ns=NS + k * 10**8, position=[k, 0.0]), now)
+        assert g.snapshot(now).odometry is not None
+    assert g.rejected["duplicate_or_reordered"] == 0
+
+
+def test_seq_zero_is_not_a_restart_that_replays_old_stamps():
+    """A seq of 0 used to be accepted at any time as the sender's restart, so it let any replayed message in."""
+    g = gate()
+    assert g.offer("usv/1/sensor/odom", odom(seq=500, stamp_ns=NS), NOW)
+    assert not g.offer("usv/1/sensor/odom", odom(seq=0, stamp_ns=NS - 10**8, position=[7.0, 7.0]), NOW)
+    assert g.rejected["duplicate_or_reordered"] == 1
+    np.testing.assert_array_equal(g.snapshot(NOW).odometry.position, [1.0, 2.0])
+
+
+def test_a_stamp_ahead_blocks_genuine_messages_only_until_the_clock_passes_it():
+    g = gate()
+    assert not g.offer("usv/1/sensor/odom", odom(stamp_ns=2**62), NOW)          # far ahead: refused, no mark
+    assert g.rejected["future"] == 1
+    assert g.offer("usv/1/sensor/odom", odom(stamp_ns=NS), NOW)                 # the genuine one still gets in
+    assert g.offer("usv/1/sensor/odom", odom(stamp_ns=NS + 4 * 10**8), NOW)     # 0.4 s ahead: within the window
+    assert not g.offer("usv/1/sensor/odom", odom(stamp_ns=NS + 10**8), NOW + 0.1)
+    # Once the clock is past it, genuine stamps are newer again: at most max_future of lock-out.
+    assert g.offer("usv/1/sensor/odom", odom(stamp_ns=NS + 5 * 10**8), NOW + 0.5)
+
+
+def test_a_clock_stepped_back_is_not_locked_out_by_the_marks_of_before():
+    g = gate()
+    assert g.offer("usv/1/sensor/odom", odom(stamp_ns=NS), NOW)
+    earlier = NOW - 5.0       # the system clock stepped back 5 s (chrony): the old mark is 5 s ahead of it
+    assert g.offer("usv/1/sensor/odom", odom(stamp_ns=int(earlier * 1e9), position=[3.0, 3.0]), earlier)
+    np.testing.assert_array_equal(g.snapshot(earlier).odometry.position, [3.0, 3.0])
+
+
+def test_odometry_faster_than_a_kilometre_a_second_is_left_out_of_the_tick():
+    """Found by the fuzz campaign: odometry stamped a nanosecond after the one the last tick used, a quarter of
+    a metre away, gave the core an own velocity of 2.6e8 m/s and sent its target estimate to 1e7 m."""
+    g = gate()
+    assert g.offer("usv/1/sensor/odom", odom(stamp_ns=NS - 1, position=[0.0, 0.0]), NOW)
+    assert g.snapshot(NOW).odometry is not None
+    assert g.offer("usv/1/sensor/odom", odom(stamp_ns=NS, position=[0.26, 0.0]), NOW)
+    assert g.snapshot(NOW).odometry is None and g.rejected["implausible_motion"] == 1
+    assert g.offer("usv/1/sensor/odom", odom(stamp_ns=NS + 10**8, position=[5e4, 0.0]), NOW)   # 50 km in 0.1 s
+    assert g.snapshot(NOW).odometry is None and g.rejected["implausible_motion"] == 2
+    assert g.offer("usv/1/sensor/odom", odom(stamp_ns=NS + 2 * 10**8, position=[0.5, 0.0]), NOW)   # 2.5 m/s
+    np.testing.assert_array_equal(g.snapshot(NOW).odometry.position, [0.5, 0.0])
+    assert g.snapshot(NOW).odometry is not None          # the same odometry again: no motion, no refusal
+    # Odometry older than the one used (accepted while there was no clock to judge it by) is left out too.
+    assert g.offer("usv/1/sensor/odom", odom(stamp_ns=NS + 10**8, position=[0.4, 0.0]), None)
+    assert g.snapshot(NOW).odometry is None and g.rejected["implausible_motion"] == 3
+    # A clock stepped back 5 s: the odometry used before is then in the future, and no longer blocks.
+    assert g.offer("usv/1/sensor/odom", odom(stamp_ns=NS - 5 * 10**9, position=[0.0, 0.0]), NOW - 5.0)
+    assert g.snapshot(NOW - 5.0).odometry is not None
+
+
+def test_a_clock_whose_previous_tick_is_not_before_it_is_refused():
+    assert decode(Clock, json.dumps({"stamp_ns": 10, "seq": 1, "previous_ns": 9}).encode())[0] is not None
+    for previous in (10, 11, 2**62):
+        assert decode(Clock, json.dumps({"stamp_ns": 10, "seq": 1, "previous_ns": previous}).encode())[0] is None
+
+
+def test_without_a_clock_stamps_are_not_judged_and_move_no_mark():
+    g = gate()
+    assert g.offer("usv/1/sensor/odom", odom(stamp_ns=2**62), None)     # sim time before the first clock
+    assert g.snapshot(NOW).odometry is None                             # ... but never used: not fresh
+    assert g.offer("usv/1/sensor/odom", odom(stamp_ns=NS, position=[4.0, 4.0]), NOW)
+    np.testing.assert_array_equal(g.snapshot(NOW).odometry.position, [4.0, 4.0])
+
+
+EXTREME_ODOMETRY = [
+    {"position": [1e308, 1e308]},                     # regression: killed the agent in 0.19 s
+    {"position": [1e5 + 1.0, 0.0]},                   # beyond the physical limit of 100 km
+    {"heading": 1e300},
+    {"heading": -1e7},
+    {"covariance": [1, 2, 0, 0, 1, 0, 0, 0, 1]},      # not symmetric
+    {"covariance": [1, 0, 0, 0, -1, 0, 0, 0, 1]},     # a negative variance
+    {"covariance": [1, 2, 0, 2, 1, 0, 0, 0, 1]},      # symmetric, positive diagonal, but not semi-definite
+    {"covariance": [1e11, 0, 0, 0, 1, 0, 0, 0, 1]},   # an entry beyond 1e10
+    {"covariance": [1.0] * 8},                        # not 3x3
+    {"covariance": [1.0] * 10000},
+    {"stamp_ns": 10**400},
+    {"stamp_ns": 2**63},
+    {"seq": 10**400},
+    {"seq": -1},
+]
+
+
+@pytest.mark.parametrize("change", EXTREME_ODOMETRY, ids=lambda c: json.dumps(c)[:40])
+def test_extreme_odometry_is_refused_as_malformed(change):
+    g = gate()
+    body = {"stamp_ns": NS, "seq": 0, "sender": "1", "position": [1.0, 2.0], "heading": 0.5} | change
+    assert not g.offer("usv/1/sensor/odom", json.dumps(body).encode(), NOW)
+    assert g.rejected["malformed"] == 1 and g.snapshot(NOW).odometry is None
+
+
+def test_tiny_and_zero_values_are_fine():
+    g = gate()
+    assert g.offer("usv/1/sensor/odom", odom(position=[1e-308, -5e-324], heading=-0.0, covariance=[0.0] * 9), NOW)
+    assert g.snapshot(NOW).odometry is not None
+
+
+@pytest.mark.parametrize("topic, body", [
+    ("sensor/uwb", {"ranges": {"2": 1e6}}),
+    ("sensor/uwb", {"ranges": {"2": 1e308}}),
+    ("sensor/sonar", {"points": [[1e5 + 1.0, 0.0]]}),
+    ("sensor/bearing", {"bearing": [1e308, 1e308]}),
+])
+def test_extreme_sensor_values_are_refused(topic, body):
+    g = gate()
+    assert not g.offer(f"usv/1/{topic}", json.dumps({"stamp_ns": NS, "seq": 0, "sender": "1"} | body).encode(), NOW)
+    assert g.rejected["malformed"] == 1
+
+
+def test_a_payload_over_the_size_limit_is_refused_before_parsing():
+    g = gate()
+    assert not g.offer("usv/1/sensor/odom", b" " * (MAX_PAYLOAD_BYTES + 1), NOW)
+    assert g.rejected["malformed"] == 1 and "bytes" in g.recent_reasons[-1]
+
+
+def share_body(sender="2", stamp_ns=NS, **change) -> dict:
+    return {"stamp_ns": stamp_ns, "seq": 0, "sender": sender, "position": [1.0, 2.0], "heading": 0.1,
+            "velocity": [0.5, 0.0], "phase": 0.3, "target": [4.0, 1.0, 0.0, 0.0],
+            "target_covariance": np.eye(4).ravel().tolist(),
+            "neighbours": {"1": {"position": [-3.0, 1.0], "covariance": [0.04, 0.0, 0.04]}}} | change
+
+
+def share(**change) -> bytes:
+    return json.dumps(share_body(**change)).encode()
+
+
+@pytest.mark.parametrize("change", [
+    {"target_covariance": (-np.eye(4)).ravel().tolist()},           # regression: killed all 4 agents in 0.4 s
+    {"target_covariance": (np.eye(4) + np.diag([1.0] * 3, 1)).ravel().tolist()},   # not symmetric
+    {"target_covariance": [1.0] * 15},
+    {"target_covariance": None},                                      # a target without its covariance
+    {"neighbours": {"1": {"position": [0.0, 0.0], "covariance": [1.0, 2.0, 1.0]}}},   # not semi-definite
+    {"neighbours": {"1": {"position": [0.0, 0.0], "covariance": [-1.0, 0.0, 1.0]}}},
+    {"position": [1e308, 0.0]},
+    {"velocity": [1e4, 0.0]},
+    {"target": [0.0, 0.0, 1e308, 0.0]},
+    {"phase": 1e300},
+])
+def test_a_share_that_is_not_physical_is_refused(change):
+    g = gate()
+    assert not g.offer("usv/2/share", share(**change), NOW)
+    assert g.rejected["malformed"] == 1 and not g.snapshot(NOW).shares
+
+
+def test_a_share_needs_the_senders_liveliness_token():
+    """Regression: a share alone created a neighbour, and a phantom id moved the whole fleet."""
+    g = gate()
+    assert not g.offer("usv/9/share", share(sender="9"), NOW)      # 9 has no token
+    assert g.offer("usv/2/share", share(sender="2"), NOW)
+    assert g.rejected["unknown_sender"] == 1 and set(g.snapshot(NOW).shares) == {"2"}
+
+
+def test_a_new_liveliness_session_starts_the_senders_marks_again():
+    g = gate()
+    assert g.offer("usv/2/share", share(stamp_ns=NS), NOW)
+    assert not g.offer("usv/2/share", share(stamp_ns=NS - 10**8), NOW)
+    g.forget("2")                     # its token went away (or came back): its share and marks go
+    assert not g.snapshot(NOW).shares
+    assert g.offer("usv/2/share", share(stamp_ns=NS - 10**8), NOW)
+
+
+def test_per_sender_state_is_bounded():
+    g = InputGate("1", hold_shares=True)       # no liveliness to ask (a test harness): the bound still holds
+    for n in range(MAX_PEERS + 50):
+        g.offer(f"usv/p{n}/share", share(sender=f"p{n}"), NOW)
+    assert g.rejected["too_many_peers"] == 50 and len(g._senders) == MAX_PEERS
+    held = InputGate("1", known_peers=lambda: {"2"}, hold_shares=True, max_held=4)
+    for k in range(10):
+        held.offer("usv/2/share", share(stamp_ns=NS + k * 10**7), NOW)
+    assert held.accepted["share"] == 4 and held.rejected["held_full"] == 6 and len(held._held) == 4
+
+
+def test_a_share_keeps_only_the_senders_estimate_of_this_vessel():
+    g = gate()
+    many = {f"k{n}": {"position": [1.0, 1.0], "covariance": [0.04, 0.0, 0.04]} for n in range(MAX_PEERS - 1)}
+    assert g.offer("usv/2/share", share(neighbours=many | {"1": {"position": [-3.0, 1.0],
+                                                                  "covariance": [0.04, 0.01, 0.05]}}), NOW)
+    (position, covariance), = g.snapshot(NOW).shares["2"].neighbours.values()
+    np.testing.assert_array_equal(position, [-3.0, 1.0])
+    np.testing.assert_array_equal(covariance, [[0.04, 0.01], [0.01, 0.05]])
+    assert list(g.snapshot(NOW).shares["2"].neighbours) == ["1"]
+
+
+def test_input_rates_are_limited_per_key_before_decoding():
+    clock = [0.0]
+    g = InputGate("1", max_rate=10.0, burst=5.0, monotonic=lambda: clock[0])
+    sent = [g.offer("usv/1/sensor/odom", odom(stamp_ns=NS + k), NOW) for k in range(20)]
+    assert sum(sent) == 5 and g.rejected["rate_limited"] == 15
+    assert g.offer("usv/1/sensor/uwb", json.dumps({"stamp_ns": NS, "seq": 0, "sender": "1",
+                                                   "ranges": {}}).encode(), NOW)   # another key: its own bucket
+    clock[0] = 0.5                                                                # 5 more tokens
+    assert sum(g.offer("usv/1/sensor/odom", odom(stamp_ns=NS + 100 + k), NOW) for k in range(10)) == 5
+
+
+def test_a_sim_restart_forgets_the_old_timeline_and_keeps_the_new():
+    g = InputGate("1", known_peers=lambda: {"2"}, hold_shares=True)
+    assert g.offer("usv/1/sensor/odom", odom(stamp_ns=NS), NOW)
+    assert g.offer("usv/2/share", share(stamp_ns=NS), NOW)
+    g.deliver_shares(NS, None)
+    assert g.snapshot(NOW).shares
+    # The new bridge's first sensors come before its first clock (no clock to judge them by) ...
+    assert g.offer("usv/1/sensor/uwb", json.dumps({"stamp_ns": 0, "seq": 0, "sender": "1", "ranges": {}}).encode(),
+                   None)
+    g.reset(0)   # ... and its clock at 0 says the simulation restarted
+    inputs = g.snapshot(0.0)
+    assert not inputs.shares and inputs.odometry is None and g._latest.keys() == {"sensor/uwb"}
+    assert g.offer("usv/1/sensor/odom", odom(stamp_ns=10**8), 0.0)     # no mark of the old timeline is left
+    assert g.offer("usv/2/share", share(stamp_ns=0), 0.0)              # nor the delivered-through stamp
+
+
+def test_the_sim_clock_is_bounded_and_follows_a_restart():
+    wall = [0.0]
+    clock = SimClock(dt=0.1, max_jump=1.0, confirm=3, silence=1.0, monotonic=lambda: wall[0])
+
+    def offer(stamp_s: float, after: float = 0.01) -> str:
+        wall[0] += after
+        return clock.offer(Clock(stamp_ns=round(stamp_s * 1e9), seq=0))
+
+    assert offer(30.0) == "first" and offer(30.1) == "tick"
+    assert offer(30.1) == "clock_reordered" and offer(30.0) == "clock_reordered"
+    # Regression: a clock of 2^62 ns froze every agent. Now it is refused, and the genuine clock goes on.
+    assert clock.offer(Clock(stamp_ns=2**62, seq=0)) == "clock_jump"
+    assert offer(30.2) == "tick"
+    # One clock a little ahead (within max_jump) is taken; the genuine clock catches up with it, no restart.
+    assert offer(30.8) == "tick"
+    assert [offer(30.3), offer(30.4), offer(30.9)] == ["clock_reordered", "clock_reordered", "tick"]
+    # One stray clock at 0 in the middle of a run is no restart ...
+    assert offer(0.0) == "clock_jump" and offer(31.0) == "tick"
+    # ... but a clock at 0 after a silence is (the sim bridge was restarted) ...
+    assert offer(0.0, after=2.0) == "restart" and offer(0.1) == "tick"
+    # ... and so is a new timeline that keeps going, without a silence, even with other clocks in between.
+    assert [offer(50.0), offer(2.0**62 / 1e9), offer(50.1), offer(9.0), offer(50.2)] == ["clock_jump"] * 4 + ["restart"]
+    assert clock.latest.stamp_ns == 50_200_000_000
+    assert not clock.silent() and (offer(50.3, after=1.5) == "tick")
+    # A clock far ahead after a silence is no restart on its own (a restarted simulation starts again from 0).
+    assert offer(2.0**62 / 1e9, after=2.0) == "clock_jump" and offer(50.4) == "tick"
+
+
+def test_the_contract_accepts_what_the_core_shares():
+    """The bounds must never refuse a genuine share: a covariance of a filter passes, with rounding."""
+    rng = np.random.default_rng(3)
+    for _ in range(200):
+        a = rng.normal(size=(4, 4)) * 10 ** rng.uniform(-6, 4)
+        covariance = a @ a.T
+        covariance[0, 1] += 1e-13 * abs(covariance).max()        # the asymmetry of a Kalman update's rounding
+        assert covariance_problem(covariance.ravel().tolist(), 4) is None
 
 
 def test_a_range_is_used_by_one_tick_only():

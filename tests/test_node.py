@@ -104,6 +104,7 @@ def test_a_bad_vessel_id_or_config_is_a_clear_error(tmp_path):
 def test_a_failing_log_does_not_stop_the_ticks(tmp_path):
     settings = NodeSettings(clock="sim", log=str(tmp_path / "x.mcap"))
     node = AgentNode("1", settings, initial_state("1", settings.agent, InitialEstimates(target=(5.0, 0.0, 0.0, 0.0))))
+    node.open_log()
 
     class Sink:
         def __init__(self):
@@ -124,9 +125,9 @@ def test_a_failing_log_does_not_stop_the_ticks(tmp_path):
     assert status.health["log_errors"] == 2  # counted before this tick's own attempt
 
 
-def test_an_exception_in_the_core_still_leaves_a_finished_log(tmp_path, monkeypatch):
-    """The core raising on its third tick ends the run with that exception, and the file is finished: it reads
-    without the 'unfinished' warning and holds the two ticks before the failure."""
+def test_an_exception_in_the_core_is_survived_and_logged_with_its_inputs(tmp_path, monkeypatch, capsys):
+    """The core raising on its third tick costs that tick only: it commands STOP, is counted and told once,
+    its inputs go to the log's `errors` topic, and the run goes on to its end with a finished file."""
     import agent.shell.node as node_module
 
     real_step = node_module.step
@@ -139,11 +140,17 @@ def test_an_exception_in_the_core_still_leaves_a_finished_log(tmp_path, monkeypa
         return real_step(params, state, inputs)
 
     monkeypatch.setattr(node_module, "step", failing_step)
-    node = AgentNode("1", NodeSettings(clock="wall", log=str(tmp_path / "agent-{vessel}.mcap")))
-    with pytest.raises(RuntimeError, match="the core failed"):
-        node.run(max_ticks=10)
-    assert len(calls) == 3
+    node = AgentNode("1", NodeSettings(clock="wall", id_check=0, log=str(tmp_path / "agent-{vessel}.mcap")))
+    node.run(max_ticks=10)
+    assert len(calls) == 10 and node.ticks == 10 and node.tick_errors == 1 and node.core_rebuilds == 0
+    err = capsys.readouterr().err
+    assert err.count("failed (RuntimeError@") == 1 and "commanding STOP" in err
     with warnings.catch_warnings():
         warnings.simplefilter("error")           # an unfinished file would warn
         logged = list(read_messages(tmp_path / "agent-1.mcap"))
-    assert [topic for topic, _, _ in logged].count("usv/1/cmd") == 2
+    assert [topic for topic, _, _ in logged].count("usv/1/cmd") == 10
+    errors = [message for topic, _, message in logged if topic == "/1/errors"]
+    assert len(errors) == 1 and errors[0]["message"] == "RuntimeError: the core failed"
+    assert errors[0]["inputs"]["time"] == pytest.approx(calls[2]) and errors[0]["count"] == 1
+    statuses = [message for topic, _, message in logged if topic == "usv/1/status"]
+    assert statuses[-1]["health"]["tick_errors"] == 1

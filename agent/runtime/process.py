@@ -1,4 +1,5 @@
-"""The command line every vessel process shares (the agent and the driver bridge): --vessel, --config, --print-config."""
+"""The command line every vessel process shares (the agent and the driver bridge): --vessel, --config, --print-config;
+and `startup_error`, the one line a process says when it cannot start."""
 
 from __future__ import annotations
 
@@ -50,3 +51,11 @@ def vessel_process(prog: str, description: str, model: type[StrictModel], argv: 
         print_config(f"{prog} --vessel {args.vessel}", settings)
         return 0
     return args, settings
+
+
+def startup_error(prog: str, vessel: str, error: BaseException) -> int:
+    """What a vessel's process met while starting (a log it cannot write, a Zenoh session it cannot open, a
+    vessel id already taken), in one line as the configuration errors are told; the exit code, 2."""
+    text = " ".join(str(error).split()) or type(error).__name__
+    print(f"{prog} {vessel}: {text}", file=sys.stderr)
+    return 2

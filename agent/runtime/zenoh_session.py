@@ -38,9 +38,18 @@ class ZenohSettings(StrictModel):
                           "boot before the shore router is up); then it exits and its service restarts it")
 
 
+class SessionError(zenoh.ZError):
+    """The session could not be opened (an address that cannot be listened on, a router that cannot be
+    reached in client mode): one line that says why, without Rust's source locations."""
+
+
 def open_session(settings: ZenohSettings) -> zenoh.Session:
-    """A Zenoh session configured by `zenoh_config`."""
-    return zenoh.open(zenoh_config(settings))
+    """A Zenoh session configured by `zenoh_config`; SessionError (one line) if Zenoh cannot open it."""
+    config = zenoh_config(settings)
+    try:
+        return zenoh.open(config)
+    except zenoh.ZError as error:
+        raise SessionError(f"cannot open the Zenoh session: {_reason(error)}") from None
 
 
 def zenoh_config(settings: ZenohSettings) -> zenoh.Config:
@@ -122,22 +131,29 @@ def _from_settings(settings: ZenohSettings) -> zenoh.Config:
     config = zenoh.Config()
     config.insert_json5("mode", json.dumps(settings.mode))
     config.insert_json5("scouting/multicast/enabled", json.dumps(settings.multicast_scouting))
-    if settings.connect:
-        config.insert_json5("connect/endpoints", json.dumps(settings.connect))
-    if settings.listen:
-        config.insert_json5("listen/endpoints", json.dumps(settings.listen))
+    for field, path, endpoints in (("connect", "connect/endpoints", settings.connect),
+                                   ("listen", "listen/endpoints", settings.listen)):
+        if endpoints:
+            try:
+                config.insert_json5(path, json.dumps(endpoints))
+            except zenoh.ZError as error:   # a malformed endpoint: one line naming the field, not a traceback
+                raise ConfigError(f"zenoh.{field}: {_reason(error)}") from None
     if settings.mode == "client":
         config.insert_json5("connect/timeout_ms", json.dumps(int(settings.connect_timeout * 1000)))
     return config
 
 
+RUST_LOCATION = re.compile(r"\s+at \S+\.rs:\d+\.?")   # " at /root/.cargo/.../endpoint.rs:615."
+
+
 def _reason(error: Exception) -> str:
     """Zenoh's error in one line: what is wrong and where in the json5, without Rust's debug wrapping and
     source location."""
-    text = re.sub(r"\s+at \S+\.rs:\d+\.?\s*$", "", str(error))
+    text = RUST_LOCATION.sub("", str(error))
     inner = re.search(r'msg: "(.*?)", location', text, re.DOTALL) or re.search(r'Str\("(.*?)"\)', text, re.DOTALL)
     if inner:
         text = inner.group(1).replace("\\n", "\n").replace('\\"', '"')
+        text = RUST_LOCATION.sub("", text)
     lines = [line.strip() for line in text.splitlines() if line.strip()]
     where = next((line[3:].strip() for line in lines if line.startswith("-->")), None)
     what = next((line[1:].strip() for line in lines if line.startswith("=")), None) or (lines[0] if lines else "?")

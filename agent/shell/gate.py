@@ -4,10 +4,32 @@
 newest value per key, never blocks on I/O and never raises; every refusal is counted by reason (and the
 last few reasons kept for the log). `snapshot(now)` turns what is fresh into the tick's `TickInputs`.
 
-What is refused: undecodable or invalid payloads (wrong types, NaN, inf, negative ranges, non-unit
-bearings, ...), a sender that is not the vessel of the key, a `seq` not newer than the last accepted one
-from that sender on that key (duplicates and reordered messages), stamps further than `max_age` in the
-past or `max_future` ahead of the agent's clock, and ranges to peers the agent does not know.
+What is refused, in the order it is checked (the cheap checks come before decoding):
+- a key the agent does not read (`unexpected_key`), a share from a vessel whose liveliness token is not
+  live (`unknown_sender`: a share alone never makes a neighbour), a new sender beyond MAX_PEERS
+  (`too_many_peers`);
+- more than `max_rate` messages per second on one key, with bursts of `burst` (`rate_limited`, a token
+  bucket per key, so a flood costs a dictionary look-up per message and no decoding);
+- an undecodable or invalid payload (`malformed`: wrong types, NaN, inf, values beyond the contract's
+  physical limits, covariances that are not symmetric positive semi-definite, more than 2 MiB, ...), and a
+  sender that is not the vessel of the key (`sender_mismatch`);
+- a stamp further than `max_age` in the past (`stale`) or `max_future` ahead (`future`) of the agent's clock;
+- a stamp not newer than the last one accepted from that sender on that key (`duplicate_or_reordered`).
+
+When a tick reads its inputs (`snapshot`), own odometry older than the one the last tick used, or that moved
+faster than MAX_SPEED (1 km/s) from it, is left out of that tick (`implausible_motion`): the core's own
+velocity is the difference of the two.
+
+Freshness is judged by stamps, never by `seq`, which is informative only: a high-water mark an attacker could
+move (one `seq` of 10^9) would lock the agent out of its own sensors. The mark per (key, sender) moves only
+with stamps inside the window, so it is never more than `max_future` ahead of the clock, and a mark that the
+clock has left behind by more than that no longer blocks anything. The marks of a sender start again when
+its liveliness session does (`forget`, on the token's undeclaration and declaration), and every mark when
+the simulation restarts (`reset`). Without a clock to judge by (sim time before the first clock, or while
+the clock is silent) stamps are not judged and no mark moves.
+
+Every per-sender map is bounded by MAX_PEERS senders (the node admits at most that many live tokens), held
+shares by `max_held` per sender, and a share keeps of the sender's estimates only the one of this vessel.
 
 On sim time the gate holds each share until the sim clock says whether the simulated radio delivers it
 (`deliver_shares`), so a fleet over Zenoh uses exactly the shares the in-process runner uses.
@@ -23,6 +45,8 @@ from collections.abc import Callable
 import numpy as np
 
 from agent.contract import (
+    MAX_PEERS,
+    MAX_SPEED,
     TOPICS,
     Bearing,
     Odometry,
@@ -38,36 +62,63 @@ from agent.contract import (
 from agent.core.records import Share, TickInputs
 
 OWN_TOPICS = ("sensor/odom", "sensor/uwb", "sensor/bearing", "sensor/sonar")
+DETAIL_CHARS = 200   # of a refusal's detail kept in `recent_reasons` (a key or a reason may be long)
+
+
+class TokenBucket:
+    """At most `rate` events per second on average and `burst` at once."""
+
+    __slots__ = ("burst", "last", "rate", "tokens")
+
+    def __init__(self, rate: float, burst: float, now: float) -> None:
+        self.rate, self.burst, self.tokens, self.last = rate, burst, burst, now
+
+    def take(self, now: float) -> bool:
+        self.tokens = min(self.burst, self.tokens + (now - self.last) * self.rate)
+        self.last = now
+        if self.tokens >= 1.0:
+            self.tokens -= 1.0
+            return True
+        return False
 
 
 class InputGate:
     def __init__(self, vessel_id: str, max_age: float = 1.0, max_future: float = 0.5,
-                 known_peers: Callable[[], set[str]] | None = None, keep_reasons: int = 20,
-                 hold_shares: bool = False) -> None:
+                 known_peers: Callable[[], set[str] | frozenset[str]] | None = None, keep_reasons: int = 20,
+                 hold_shares: bool = False, max_rate: float | None = 1000.0, burst: float | None = None,
+                 max_held: int = 16, monotonic: Callable[[], float] = time.monotonic) -> None:
         self.id = vessel_id
         self.hold_shares = hold_shares
         self.max_age = max_age
         self.max_future = max_future
         self.known_peers = known_peers
+        self.max_rate = max_rate
+        self.burst = burst if burst is not None else (max_rate if max_rate is not None else None)
+        self.max_held = max_held
+        self._monotonic = monotonic
         self.rejected: Counter[str] = Counter()
         self.accepted: Counter[str] = Counter()
         self.recent_reasons: deque[str] = deque(maxlen=keep_reasons)
         self._lock = threading.Lock()
         self._arrival = threading.Condition(self._lock)
         self._held: dict[tuple[str, int], Share] = {}   # (sender, stamp_ns) -> share awaiting the clock
+        self._held_count: Counter[str] = Counter()       # sender -> shares held
         self._delivered_through: int | None = None
         self._latest: dict[str, object] = {}
         self._shares: dict[str, Share] = {}
-        self._last_seq: dict[tuple[str, str], int] = {}
+        self._last_stamp: dict[tuple[str, str], int] = {}   # (topic, sender) -> stamp_ns of the last accepted
+        self._senders: set[str] = set()                    # share senders with any state here
+        self._buckets: dict[str, TokenBucket] = {}
         self._consumed: dict[str, int] = {}   # topic -> stamp_ns of the range/bearing message last used
+        self._used_odometry = None            # the OdometryReading the last snapshot gave the tick
 
     # ----- the callback side -----
     def offer(self, key: str, payload: bytes | bytearray | memoryview, now: float | None) -> bool:
-        """Decode and keep one payload received on `key` at agent time `now` (None: no clock yet, so stamps
-        are not judged); False if refused."""
+        """Decode and keep one payload received on `key` at agent time `now` (None: no clock to judge stamps
+        by); False if refused."""
         try:
             return self._offer(str(key), payload, now)
-        except Exception as error:  # the gate must never take the agent down, whatever arrives
+        except Exception as error:  # noqa: BLE001  (the gate must never take the agent down, whatever arrives)
             return self._refuse("internal", f"{key}: {type(error).__name__}: {error}")
 
     def _offer(self, key: str, payload, now: float | None) -> bool:
@@ -76,8 +127,22 @@ class InputGate:
         model = TOPICS.get(topic)
         if topic == "share" and vessel == self.id:
             return False  # our own share, echoed by a subscription to every vessel's
-        if model is None or topic in OWN_TOPICS and vessel != self.id:
+        if model is None or topic not in (*OWN_TOPICS, "share") or topic in OWN_TOPICS and vessel != self.id:
             return self._refuse("unexpected_key", key)
+        if topic == "share":
+            if self.known_peers is not None and vessel not in self.known_peers():
+                return self._refuse("unknown_sender", f"{key}: no liveliness token")
+            if vessel not in self._senders:
+                with self._lock:
+                    if len(self._senders) >= MAX_PEERS:
+                        return self._refuse("too_many_peers", key, locked=True)
+                    self._senders.add(vessel)
+        if self.max_rate is not None:
+            bucket = self._buckets.get(key)
+            if bucket is None:
+                bucket = self._buckets.setdefault(key, TokenBucket(self.max_rate, self.burst, self._monotonic()))
+            if not bucket.take(self._monotonic()):
+                return self._refuse("rate_limited", key)
         message, reason = decode(model, payload)
         if message is None:
             return self._refuse("malformed", f"{key}: {reason}")
@@ -89,34 +154,65 @@ class InputGate:
         if now is not None and stamp > now + self.max_future:
             return self._refuse("future", f"{key}: {stamp - now:.3f} s ahead")
         with self._lock:
-            last = self._last_seq.get((key, message.sender))
-            if last is not None and message.seq == 0 and last > 0:
-                self.accepted["sender_restarted"] += 1  # a sender that restarts counts from 0 again
-            elif last is not None and message.seq <= last:
-                return self._refuse("duplicate_or_reordered", f"{key}: seq {message.seq} after {last}",
-                                    locked=True)
-            self._last_seq[(key, message.sender)] = message.seq
+            mark = (topic, message.sender)
+            last = self._last_stamp.get(mark)
+            # A mark the clock has left behind by more than max_future (a clock stepped back) blocks nothing.
+            if (now is not None and last is not None and message.stamp_ns <= last
+                    and seconds(last) <= now + self.max_future):
+                return self._refuse("duplicate_or_reordered",
+                                    f"{key}: stamp {message.stamp_ns} not after {last}", locked=True)
+            if now is not None:
+                self._last_stamp[mark] = message.stamp_ns
             if isinstance(message, ShareMessage) and self.hold_shares:
                 if self._delivered_through is not None and message.stamp_ns <= self._delivered_through:
                     return self._refuse("late_share", f"{key}: stamp {message.stamp_ns} already delivered",
                                         locked=True)
-                # One share per sender and stamp: a second one for the same odometry stamp is a repeat.
-                self._held.setdefault((message.sender, message.stamp_ns), share_from_message(message))
+                held = (message.sender, message.stamp_ns)
+                if held not in self._held:   # one share per sender and stamp: a second one is a repeat
+                    if self._held_count[message.sender] >= self.max_held:
+                        return self._refuse("held_full", f"{key}: {self.max_held} shares held already",
+                                            locked=True)
+                    self._held[held] = self._share(message)
+                    self._held_count[message.sender] += 1
                 self._arrival.notify_all()
             elif isinstance(message, ShareMessage):
-                self._shares[message.sender] = share_from_message(message)
+                self._shares[message.sender] = self._share(message)
             else:
                 self._latest[topic] = message
                 self._arrival.notify_all()
             self.accepted[topic] += 1
         return True
 
+    def _plausible(self, reading, now: float) -> bool:
+        """Own odometry the tick may use: not older than the one the last tick used, and no faster than
+        MAX_SPEED from it (within `max_age`). The core differences successive odometry into its own velocity:
+        a position a metre away stamped a nanosecond after the last (a forged stamp just inside the window)
+        would make that 1e9 m/s and send the target estimate to 1e7 m. A last one now further ahead than
+        `max_future` (the clock stepped back) no longer counts."""
+        last = self._used_odometry
+        if last is None or last.stamp > now + self.max_future:
+            return True
+        interval = reading.stamp - last.stamp
+        if interval < 0:
+            return False
+        if interval == 0 or interval > self.max_age:
+            return True
+        jump = np.hypot(*(np.asarray(reading.position) - np.asarray(last.position)))
+        return bool(jump <= MAX_SPEED * interval)
+
+    def _share(self, message: ShareMessage) -> Share:
+        """The share as the tick reads it: of the sender's estimates of its neighbours, only its estimate of
+        this vessel (the only one the core uses: reciprocal fusion), so a held share costs a few hundred bytes
+        whatever the sender put in it (up to MAX_PEERS entries)."""
+        mine = message.neighbours.get(self.id)
+        return share_from_message(message.model_copy(update={"neighbours": {} if mine is None else {self.id: mine}}))
+
     def _known_ranges(self, ranges: dict[str, float], shares: dict[str, Share]) -> dict[str, float]:
         """Ranges to peers alive (liveliness) or heard from (a share); a UWB module may still range to a
         vessel whose agent is gone, and such a range has no odometry to pair with."""
         if self.known_peers is None:
             return dict(ranges)
-        known = self.known_peers() | set(shares)
+        known = set(self.known_peers()) | set(shares)
         unknown = [peer for peer in ranges if peer not in known]
         if unknown:
             with self._lock:
@@ -127,21 +223,49 @@ class InputGate:
     def _refuse(self, reason: str, detail: str, locked: bool = False) -> bool:
         if locked:
             self.rejected[reason] += 1
-            self.recent_reasons.append(f"{reason}: {detail}")
+            self.recent_reasons.append(f"{reason}: {detail[:DETAIL_CHARS]}")
         else:
             with self._lock:
                 self.rejected[reason] += 1
-                self.recent_reasons.append(f"{reason}: {detail}")
+                self.recent_reasons.append(f"{reason}: {detail[:DETAIL_CHARS]}")
         return False
 
-    # ----- the tick side -----
+    def count(self, reason: str, detail: str) -> None:
+        """Count a refusal decided elsewhere (the node's judgement of the sim clock)."""
+        self._refuse(reason, detail)
+
+    # ----- sessions and restarts -----
     def forget(self, vessel: str) -> None:
-        """A neighbour left (its liveliness token went away): drop its share."""
+        """A neighbour's liveliness session ended (its token went away) or a new one began (a token declared
+        again): drop its share, what is held of it, its freshness marks and its rate bucket."""
         with self._lock:
             self._shares.pop(vessel, None)
-            for seq_key in [k for k in self._last_seq if k[1] == vessel]:
-                del self._last_seq[seq_key]
+            for held in [k for k in self._held if k[0] == vessel]:
+                del self._held[held]
+            self._held_count.pop(vessel, None)
+            for mark in [k for k in self._last_stamp if k[1] == vessel]:
+                del self._last_stamp[mark]
+            self._buckets.pop(f"usv/{vessel}/share", None)
+            self._senders.discard(vessel)
 
+    def reset(self, now_ns: int) -> None:
+        """The simulation restarted and its clock is now at `now_ns`: every freshness mark goes, and so does
+        whatever belongs to the old timeline (shares delivered or held, sensors stamped outside the window
+        around `now_ns`); what already belongs to the new one (a tick's sensors that came before its clock)
+        stays."""
+        low, high = now_ns - int(self.max_age * 1e9), now_ns + int(self.max_future * 1e9)
+        with self._arrival:
+            self._last_stamp.clear()
+            self._held = {k: share for k, share in self._held.items() if low <= k[1] <= high}
+            self._held_count = Counter(sender for sender, _ in self._held)
+            self._shares.clear()
+            self._latest = {t: m for t, m in self._latest.items() if low <= m.stamp_ns <= high}
+            self._consumed.clear()
+            self._used_odometry = None
+            self._delivered_through = None
+            self._arrival.notify_all()
+
+    # ----- the tick side -----
     def deliver_shares(self, stamp_ns: int | None, senders: set[str] | None, wait: float = 0.0,
                        sensors_ns: int | None = None, wait_for_shares: bool = True) -> set[str]:
         """Make the held shares stamped `stamp_ns` from `senders` (None: from anyone) this agent's latest, and
@@ -176,12 +300,15 @@ class InputGate:
                     self._shares[sender] = share
                 if stamp <= stamp_ns:
                     del self._held[(sender, stamp)]
+                    self._held_count[sender] -= 1
+                    if self._held_count[sender] <= 0:
+                        del self._held_count[sender]
             self._delivered_through = max(stamp_ns, self._delivered_through or 0)
         return missing
 
     def snapshot(self, now: float) -> TickInputs:
         """This tick's inputs: the freshest odometry and sonar, ranges and bearing not used before, and the
-        latest shares."""
+        latest shares. Only what is stamped within [now - max_age, now + max_future] is used."""
         with self._lock:
             latest = dict(self._latest)
             shares = dict(self._shares)
@@ -193,8 +320,17 @@ class InputGate:
                 elif message is not None:
                     self._consumed[topic] = message.stamp_ns
         odometry = latest.get("sensor/odom")
-        fresh = lambda message: message is not None and now - seconds(message.stamp_ns) <= self.max_age  # noqa: E731
+
+        def fresh(message) -> bool:
+            return message is not None and -self.max_future <= now - seconds(message.stamp_ns) <= self.max_age
+
         reading = odometry_reading(odometry) if isinstance(odometry, Odometry) and fresh(odometry) else None
+        if reading is not None and not self._plausible(reading, now):
+            self._refuse("implausible_motion", f"odometry at {reading.stamp:.9f} s: older than the last used, or "
+                         f"faster than {MAX_SPEED:g} m/s from it")
+            reading = None
+        if reading is not None:
+            self._used_odometry = reading
         tick_time = reading.stamp if reading is not None else now
         message = latest.get("sensor/uwb")
         usable = isinstance(message, Ranges) and fresh(message)
@@ -216,3 +352,71 @@ class InputGate:
             obstacle_points=np.array(sonar.points, dtype=float).reshape(-1, 2)
             if isinstance(sonar, Sonar) and fresh(sonar) else None,
         )
+
+
+class SimClock:
+    """The sim/clock an agent on sim time runs on, judged message by message (`offer`).
+
+    The sim bridge's clock advances by one tick per message. So a clock ahead of the last one by at most
+    `max_jump` seconds is the next tick; one behind by at most that much is a duplicate, a reordered message,
+    or the genuine clock catching up with a forged one a little ahead (`clock_reordered`: refused, and the
+    agent waits until the clock passes its last tick). A clock further away either way is a discontinuity:
+    the simulation restarted (its clock starts again from 0), or a stray or forged clock. It is taken as a
+    restart
+    - at once, when it goes back and the clock had been silent for `silence` wall seconds before it (a
+      restarted sim bridge takes seconds to come back, and starts again from 0);
+    - or when `confirm` discontinuous clocks continue each other (a new timeline that keeps going; up to
+      MAX_CHAINS such timelines are followed at once, so clocks of other kinds in between do not hide it);
+    otherwise it is refused (`clock_jump`). So one clock of 2^62 ns can neither freeze the agent (the next
+    genuine clock continues the old timeline) nor restart it, one a little ahead holds it back for at most
+    `max_jump`, and a restarted simulation is always followed."""
+
+    MAX_CHAINS = 8
+
+    def __init__(self, dt: float, max_jump: float = 1.0, confirm: int = 3, silence: float = 1.0,
+                 monotonic: Callable[[], float] = time.monotonic) -> None:
+        self.tick_ns = round(dt * 1e9)
+        self.max_jump_ns = max(round(max_jump * 1e9), 2 * self.tick_ns)   # a tick is never a jump
+        self.confirm = confirm
+        self.silence = silence
+        self._monotonic = monotonic
+        self._lock = threading.Lock()
+        self.latest = None          # the newest accepted Clock
+        self._heard = 0.0           # monotonic time it was accepted
+        self._chains: list[list] = []   # [last discontinuous clock of a timeline, clocks in it], newest last
+
+    def offer(self, message) -> str:
+        """'first', 'tick' or 'restart' when `message` becomes the clock; else the reason it is refused."""
+        with self._lock:
+            now = self._monotonic()
+            if self.latest is None:
+                return self._accept(message, now, "first")
+            step = message.stamp_ns - self.latest.stamp_ns
+            if 0 < step <= self.max_jump_ns:
+                return self._accept(message, now, "tick")
+            if step < -self.tick_ns and now - self._heard >= self.silence:
+                return self._accept(message, now, "restart")
+            if -self.max_jump_ns <= step <= 0:
+                return "clock_reordered"
+            for chain in self._chains:
+                if 0 < message.stamp_ns - chain[0].stamp_ns <= self.max_jump_ns:
+                    chain[0], chain[1] = message, chain[1] + 1
+                    self._chains.remove(chain)
+                    self._chains.append(chain)
+                    break
+            else:
+                self._chains.append([message, 1])
+                del self._chains[:-self.MAX_CHAINS]
+            if self._chains[-1][1] >= self.confirm:
+                return self._accept(message, now, "restart")
+            return "clock_jump"
+
+    def _accept(self, message, now: float, verdict: str) -> str:
+        self.latest, self._heard = message, now
+        self._chains.clear()
+        return verdict
+
+    def silent(self) -> bool:
+        """No clock yet, or none for `silence` wall seconds."""
+        with self._lock:
+            return self.latest is None or self._monotonic() - self._heard >= self.silence

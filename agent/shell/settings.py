@@ -6,9 +6,10 @@ from typing import Literal
 
 from pydantic import Field
 
-from agent.config import PositiveFloat, StrictModel
+from agent.config import NonNegativeFloat, PositiveFloat, StrictModel
 from agent.core.build import InitialEstimates
 from agent.core.params import AgentParams
+from agent.runtime.mcap_log import LogRotation
 from agent.runtime.zenoh_session import ZenohSettings
 
 
@@ -19,8 +20,32 @@ class NodeSettings(StrictModel):
     zenoh: ZenohSettings = ZenohSettings()
     max_input_age: PositiveFloat = Field(1.0, description="inputs older than this (s) are ignored")
     share_wait: PositiveFloat = Field(2.0, description="sim lockstep: wall seconds to wait for neighbours' shares")
+    # ----- robustness: what arrives is bounded, a failed tick is survived (agent/shell/gate.py, node.py) -----
+    max_input_future: PositiveFloat = Field(0.5, description="inputs stamped further ahead of the clock (s) are "
+                                            "refused")
+    max_input_rate: PositiveFloat = Field(
+        1000.0, description="messages per second on one key, beyond which they are refused before decoding "
+                            "(a token bucket per key; lockstep at 100x real time sends 1000/s)")
+    clock_timeout: PositiveFloat = Field(
+        1.0, description="sim: wall seconds without a clock after which the agent sends heartbeat statuses, "
+                         "judges no stamps, and takes a clock that goes back as a restart of the simulation")
+    max_clock_jump: PositiveFloat = Field(
+        1.0, description="sim: a clock further than this (sim s) from the last one, either way, is refused "
+                         "unless the clock was silent or `clock_confirm` such clocks in a row continue each other "
+                         "(then the simulation restarted); the sim bridge's clock advances a tick at a time")
+    clock_confirm: int = Field(3, ge=1, description="sim: clocks beyond `max_clock_jump` that continue each "
+                               "other and make a restart without a silence")
+    rebuild_after: int = Field(
+        5, ge=1, description="failed ticks in a row after which the core is rebuilt (with no initial estimates)")
+    id_check: NonNegativeFloat = Field(
+        1.0, description="seconds to look for another agent with this vessel id at start-up (0: do not look)")
+    no_sensor_warning: PositiveFloat = Field(5.0, description="seconds without any own sensor message after "
+                                             "which the agent says so on stderr")
     log: str | None = Field(None, description="MCAP file to write; '{vessel}' is replaced by the vessel id and "
                             "'{start}' by the UTC start time (so a restarted agent starts a new file)")
+    log_rotation: LogRotation | None = Field(
+        LogRotation(), description="start a new part of the log by size or time and keep a bounded total "
+                                   "(about 6 h of an agent's log by default); null: one file")
     snapshot_every: int = Field(
         50, ge=0, description="log the core's state every this many ticks (0: never), so that `usv-log replay "
                               "--start` can begin mid-mission; one costs about 8 kB compressed with 3 neighbours")

@@ -8,7 +8,9 @@ Per tick, on topics under `/<id>/`:
   (innovation, its predicted variance, the MCKF weight, accepted or not), the PLKF's bearing update, the
   velocity terms of the controller and which limits saturated;
 - `tf` (foxglove.FrameTransforms) and, once a second, `scene` (foxglove.SceneUpdate): see agent/runtime/foxglove.py;
-- at the end, `summary`: the run as a whole (`TickLogger.summary`).
+- at the end, `summary`: the run as a whole (`TickLogger.summary`);
+- `errors`, when a tick fails: the exception and the inputs that caused it (`TickLogger.error`; the first of
+  each kind, then at most one every few seconds).
 
 Each channel's JSON schema comes from a model of agent/runtime/log_schema.py; the messages themselves are plain
 dicts (a pydantic object per tick would cost about as much as the tick).
@@ -22,10 +24,24 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 
+from pydantic import ConfigDict, Field
+
+from agent.config import StrictModel
 from agent.contract import key
 from agent.core.records import TickInputs, TickOutput, TickRecord, floats, inputs_to_json
 from agent.runtime import foxglove
 from agent.runtime.log_schema import AgentSummary, Estimates, Inputs
+
+
+class TickError(StrictModel):
+    """A tick that failed (agent/shell/node.py), on `/<id>/errors`: the exception and the tick's inputs."""
+
+    model_config = ConfigDict(title="usv.TickError")
+
+    kind: str = Field(description="exception type and where it was raised (file:line)")
+    message: str
+    count: int = Field(ge=1, description="failures of this kind so far")
+    inputs: Inputs | None = Field(description="the tick's inputs; None when reading them failed")
 
 
 def log_topic(vessel: str, name: str) -> str:
@@ -83,6 +99,12 @@ class TickLogger:
             return
         self.log.log(log_topic(self.id, "estimates"), estimates_to_json(record), stamp, schema=Estimates)
         self._log_frames(stamp, inputs, record)
+
+    def error(self, stamp: int, kind: str, message: str, count: int, inputs: TickInputs | None) -> None:
+        """Log a failed tick at time `stamp` (ns): what was raised and the inputs that raised it."""
+        self.log.log(log_topic(self.id, "errors"), {
+            "kind": kind, "message": message, "count": count,
+            "inputs": None if inputs is None else inputs_to_json(inputs)}, stamp, schema=TickError)
 
     def summary(self, stamp: int, *, ticks: int, overruns: int, refused: Mapping[str, int], loop_seconds: float,
                 cpu_seconds: float) -> None:
