@@ -204,6 +204,16 @@ def peak_memory_mb(pid: int, field: str = "VmHWM") -> float:
     raise AssertionError(f"no {field} for {pid}")
 
 
+STARTED: list[AgentProcess] = []
+
+
+@pytest.fixture(autouse=True)
+def _close_agents():
+    yield
+    while STARTED:
+        STARTED.pop().close()
+
+
 class AgentProcess:
     """One `usv-agent` process listening on a free port, a session connected to it, and what it publishes."""
 
@@ -221,6 +231,7 @@ class AgentProcess:
         self.commands: list[dict] = []
         self.statuses: list[Status] = []
         self.session = session_to(self.port)
+        STARTED.append(self)
         self.session.declare_subscriber(key(vessel, "cmd"),
                                         lambda s: self.commands.append(json.loads(s.payload.to_bytes())))
         self.session.declare_subscriber(key(vessel, "status"),
@@ -262,13 +273,23 @@ class AgentProcess:
         if not wait:
             return None
         stamp = round(k * DT * 1e9)
-        assert wait_until(lambda: any(c["stamp_ns"] == stamp for c in self.commands), timeout=10), (
-            f"no command for tick {k}: {self.stderr()[-2000:]}")
+        # The status follows the command: wait for both, so that `health` is this tick's.
+        assert wait_until(lambda: any(c["stamp_ns"] == stamp for c in self.commands)
+                          and any(s.stamp_ns == stamp for s in self.statuses), timeout=10), (
+            f"no command and status for tick {k}: {self.stderr()[-2000:]}")
         return next(c for c in self.commands if c["stamp_ns"] == stamp)
 
     def health(self) -> Counter[str]:
         """The counters of the latest status (0 for one not there)."""
         return Counter(self.statuses[-1].health)
+
+    def close(self) -> None:
+        """Whatever a test left running: a failed test must not leave a process or a session (whose
+        threads would keep pytest from exiting)."""
+        if self.process.poll() is None:
+            self.process.kill()
+            self.process.wait(timeout=10)
+        self.session.close()
 
     def stop(self) -> str:
         """SIGTERM, then the agent's stderr; the agent must have been alive and must exit cleanly."""

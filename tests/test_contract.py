@@ -332,6 +332,24 @@ def test_a_sim_restart_forgets_the_old_timeline_and_keeps_the_new():
     assert g.offer("usv/2/share", share(stamp_ns=0), 0.0)              # nor the delivered-through stamp
 
 
+def test_a_new_timelines_share_that_comes_before_its_clock_is_kept():
+    """Regression (a lockstep tick missed after a sim bridge restart): a neighbour that saw the new clock
+    first shares for tick 0 before this agent's clock 0 arrives. Refused then as already delivered (the
+    old timeline had delivered through NS), it left this agent waiting `share_wait` for it at tick 1."""
+    g = InputGate("1", known_peers=lambda: {"2"}, hold_shares=True)
+    assert g.offer("usv/2/share", share(stamp_ns=NS), NOW)
+    g.deliver_shares(NS, None)
+    assert g.offer("usv/2/share", share(stamp_ns=0), None)     # the clock is silent: nothing to judge by
+    g.reset(0)
+    assert g.deliver_shares(0, {"2"}) == set() and "2" in g.snapshot(0.0).shares
+    # With a clock, the same share is late (the old timeline delivered through NS) and refused.
+    late = InputGate("1", known_peers=lambda: {"2", "3"}, hold_shares=True)
+    assert late.offer("usv/2/share", share(stamp_ns=NS), NOW)
+    late.deliver_shares(NS, None)
+    assert not late.offer("usv/3/share", share(sender="3", stamp_ns=NS - 10**8), NOW)
+    assert late.rejected["late_share"] == 1
+
+
 def test_the_sim_clock_is_bounded_and_follows_a_restart():
     wall = [0.0]
     clock = SimClock(dt=0.1, max_jump=1.0, confirm=3, silence=1.0, monotonic=lambda: wall[0])

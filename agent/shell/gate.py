@@ -164,7 +164,10 @@ class InputGate:
             if now is not None:
                 self._last_stamp[mark] = message.stamp_ns
             if isinstance(message, ShareMessage) and self.hold_shares:
-                if self._delivered_through is not None and message.stamp_ns <= self._delivered_through:
+                # Without a clock to judge by (a restarted simulation's first shares can come before its
+                # clock) a share is held: `reset` keeps it if it belongs to the new timeline.
+                if (now is not None and self._delivered_through is not None
+                        and message.stamp_ns <= self._delivered_through):
                     return self._refuse("late_share", f"{key}: stamp {message.stamp_ns} already delivered",
                                         locked=True)
                 held = (message.sender, message.stamp_ns)

@@ -273,6 +273,10 @@ class AgentNode:
                     self._tick_failed(error, None, 0)
                     self.stopping.wait(HEARTBEAT)
             self._log_summary(time.monotonic() - started, time.process_time() - cpu_started)
+            # Finished before Zenoh is: whatever happens to the process while its session closes, the log
+            # is whole.
+            if self.log is not None:
+                self.log.close()
             token.undeclare()
             watcher.undeclare()
             for subscriber in subscribers:
