@@ -396,6 +396,39 @@ def test_a_range_is_used_by_one_tick_only():
     assert g.snapshot(NOW + 0.1).ranges == {}
 
 
+def test_every_range_set_since_the_last_tick_is_given_once_at_its_own_stamp():
+    """A UWB module ranges at its own rate: at 8 Hz against 10 Hz ticks, some ticks see two sets. Keeping
+    only the newest threw a quarter of the ranges away."""
+    g = gate()
+
+    def uwb(k: int, stamp_ns: int, ranges: dict) -> bytes:
+        return json.dumps({"stamp_ns": stamp_ns, "seq": k, "sender": "1", "ranges": ranges}).encode()
+
+    assert g.offer("usv/1/sensor/uwb", uwb(0, NS - 150_000_000, {"2": 4.0}), NOW)
+    assert g.offer("usv/1/sensor/uwb", uwb(1, NS - 25_000_000, {"2": 4.1, "3": 6.0}), NOW)
+    first = g.snapshot(NOW)
+    assert first.ranges == {"2": 4.1, "3": 6.0} and first.range_stamp == pytest.approx(NOW - 0.025, abs=1e-9)
+    assert first.earlier_ranges == ((pytest.approx(NOW - 0.15, abs=1e-9), {"2": 4.0}),)
+    again = g.snapshot(NOW + 0.1)                            # nothing new: nothing given twice
+    assert again.ranges == {} and again.range_stamp is None and again.earlier_ranges == ()
+    # A set too old for the tick (max_age 1 s) is dropped, not carried to a later one.
+    assert g.offer("usv/1/sensor/uwb", uwb(2, NS + 50_000_000, {"2": 4.2}), NOW + 0.1)
+    assert g.snapshot(NOW + 1.2).ranges == {} and g.snapshot(NOW + 1.3).ranges == {}
+
+
+def test_range_sets_beyond_the_bound_drop_the_oldest_and_are_counted():
+    from agent.shell.gate import MAX_RANGE_SETS
+
+    g = gate()
+    for k in range(MAX_RANGE_SETS + 3):
+        stamp = NS - 500_000_000 + k * 10_000_000
+        assert g.offer("usv/1/sensor/uwb", json.dumps({"stamp_ns": stamp, "seq": k, "sender": "1",
+                                                       "ranges": {"2": 4.0 + k}}).encode(), NOW)
+    inputs = g.snapshot(NOW)
+    assert g.rejected["range_sets_dropped"] == 3 and len(inputs.earlier_ranges) == MAX_RANGE_SETS - 1
+    assert inputs.earlier_ranges[0][1] == {"2": 7.0} and inputs.ranges == {"2": 4.0 + MAX_RANGE_SETS + 2}
+
+
 def test_keys_the_agent_does_not_own_are_refused():
     g = gate()
     assert not g.offer("usv/2/sensor/odom", odom(sender="2"), NOW)     # another vessel's sensor

@@ -232,3 +232,14 @@ def test_inputs_of_format_1_read_as_ranges_measured_at_the_tick():
            "shares": {}}
     assert inputs_from_json(old).range_stamp is None
     assert inputs_from_json({**old, "range_stamp": 1.47}).range_stamp == 1.47
+    assert inputs_from_json(old).earlier_ranges == ()       # formats 1 and 2: one range set per tick
+
+
+def test_earlier_range_sets_go_through_the_log_codec():
+    from agent.core.records import TickInputs, inputs_from_json, inputs_to_json
+
+    inputs = TickInputs(time=2.0, odometry=None, ranges={"2": 4.0}, range_stamp=1.98,
+                        earlier_ranges=((1.855, {"2": 3.9, "3": 7.25}), (1.93, {"3": 7.5})))
+    back = inputs_from_json(json.loads(json.dumps(inputs_to_json(inputs))))
+    assert back.earlier_ranges == ((1.855, {"2": 3.9, "3": 7.25}), (1.93, {"3": 7.5}))
+    assert back.ranges == {"2": 4.0} and back.range_stamp == 1.98

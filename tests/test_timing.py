@@ -116,6 +116,38 @@ def test_late_unpaired_and_gapped_ranges_are_counted_not_used():
     assert out.record.health["ranges_late"] == 1
 
 
+def test_range_sets_measured_between_two_ticks_are_all_used_at_their_stamps():
+    """Two range sets in one tick (earlier_ranges and the newest): the pair filter updates with both, each
+    paired with the odometry of its own time. The same ranges given one per tick give the same estimate."""
+    params = AgentParams()
+    velocity = np.array([0.2, -0.1])
+
+    def run(batched: bool):
+        state = initial_state("1", params, InitialEstimates(neighbours={"2": (4.5, 1.0)}, neighbour_variance=0.25))
+        out = None
+        for k in range(40):
+            now = k * DT
+            share = Share("2", OdometryReading(now, velocity * now, 0.0), velocity, 0.0)
+            stamps = [now - 0.075, now - 0.025]            # ranges at 20 Hz, between the ticks
+            truth = [float(np.hypot(*(np.array([-5.0, 0.0]) + velocity * t))) for t in stamps]   # |p_i - p_j|
+            if batched:
+                inputs = [TickInputs(time=now, odometry=OdometryReading(now, np.zeros(2), 0.0), shares={"2": share},
+                                     ranges={"2": truth[1]}, range_stamp=stamps[1],
+                                     earlier_ranges=((stamps[0], {"2": truth[0]}),) if k else ())]
+            else:   # the same two sets, one per call, the first without a tick of its own time
+                inputs = [TickInputs(time=now, odometry=OdometryReading(now, np.zeros(2), 0.0), shares={"2": share},
+                                     ranges={"2": r}, range_stamp=t) for t, r in zip(stamps, truth)][1 if not k else 0:]
+            for tick_inputs in inputs:
+                state, out = step(params, state, tick_inputs)
+        return state.tracks["2"], out
+
+    batched, out = run(True)
+    assert batched.updates >= 2 * 39 - 2 and out.record.health["ranges_late"] == 0
+    one_by_one, _ = run(False)
+    assert batched.updates == one_by_one.updates
+    np.testing.assert_allclose(batched.estimator.position, one_by_one.estimator.position, rtol=0, atol=1e-12)
+
+
 def test_ranges_that_wait_too_long_are_counted_as_unpaired():
     track = NeighbourTrack("2", RelativeEstimationParams(), DT, 50, PairTiming(max_gap=0.5, wait=0.3))
     own = History(50)

@@ -59,6 +59,9 @@ class TickInputs:
     bearing: np.ndarray | None = None             # (2,) measured unit vector from the target to the vessel
     obstacle_points: np.ndarray | None = None     # (M, 2) obstacle points relative to the vessel (m)
     range_stamp: float | None = None              # when the ranges were measured (s); None: at `time`
+    # Range sets measured before `range_stamp` and not yet used, oldest first: (stamp s, neighbour id -> m).
+    # A UWB module ranges at its own rate, not the tick's, so one tick may bring more than one set.
+    earlier_ranges: tuple[tuple[float, Mapping[str, float]], ...] = ()
 
 
 @dataclass(frozen=True)
@@ -158,6 +161,8 @@ def inputs_to_json(inputs: TickInputs) -> dict:
         else np.asarray(inputs.obstacle_points, dtype=float).reshape(-1, 2).tolist(),
         "shares": {j: share_to_json(share) for j, share in inputs.shares.items()},
         "range_stamp": inputs.range_stamp,
+        "earlier_ranges": [[float(stamp), {j: float(r) for j, r in ranges.items()}]
+                           for stamp, ranges in inputs.earlier_ranges],
     }
 
 
@@ -171,5 +176,6 @@ def inputs_from_json(data: dict) -> TickInputs:
         bearing=None if data["bearing"] is None else np.array(data["bearing"], dtype=float),
         obstacle_points=None if points is None else np.array(points, dtype=float).reshape(-1, 2),
         range_stamp=data.get("range_stamp"),   # absent in format 1: the ranges were measured at `time`
+        earlier_ranges=tuple((float(stamp), dict(ranges)) for stamp, ranges in data.get("earlier_ranges", ())),
     )
 

@@ -52,6 +52,8 @@ def step(params: AgentParams, state: VesselState, inputs: TickInputs) -> tuple[V
     velocity_change = own_motion(state, now, position)
 
     receive_shares(params, state, inputs.shares, now)
+    for stamp, ranges in inputs.earlier_ranges:
+        store_ranges(params, state, ranges, stamp)
     store_ranges(params, state, inputs.ranges, now if inputs.range_stamp is None else inputs.range_stamp)
     forget_silent(params, state, now)
     unusable: Counter[str] = Counter()

@@ -73,6 +73,9 @@ class Inputs(StrictModel):
     obstacle_points: list[Vector2] | None = Field(description="sonar points relative to the vessel (m)")
     shares: dict[str, LoggedShare] = Field(description="neighbour id -> its latest share")
     range_stamp: float | None = Field(description="when the ranges were measured (s); None: at `time`")
+    earlier_ranges: list[tuple[float, dict[str, float]]] = Field(
+        default_factory=list, description="range sets measured before `range_stamp` since the last tick, oldest "
+                                          "first: [stamp (s), neighbour id -> range (m)]")
 
 
 # ----- /<id>/estimates: the tick's TickRecord -----

@@ -1,7 +1,8 @@
 """Latest-value inputs of one agent, filled from raw payloads and read once per tick.
 
 `InputGate.offer(key, payload, now)` is what a Zenoh callback calls: it decodes, checks and keeps the
-newest value per key, never blocks on I/O and never raises; every refusal is counted by reason (and the
+newest value per key (and every UWB range set since the last tick, up to MAX_RANGE_SETS: a module ranges at
+its own rate, and each set is a measurement at its own time), never blocks on I/O and never raises; every refusal is counted by reason (and the
 last few reasons kept for the log). `snapshot(now)` turns what is fresh into the tick's `TickInputs`.
 
 What is refused, in the order it is checked (the cheap checks come before decoding):
@@ -63,6 +64,7 @@ from agent.core.records import Share, TickInputs
 
 OWN_TOPICS = ("sensor/odom", "sensor/uwb", "sensor/bearing", "sensor/sonar")
 DETAIL_CHARS = 200   # of a refusal's detail kept in `recent_reasons` (a key or a reason may be long)
+MAX_RANGE_SETS = 32  # UWB range sets kept between two ticks (a module ranging at up to 300 Hz), the oldest dropped
 
 
 class TokenBucket:
@@ -109,7 +111,8 @@ class InputGate:
         self._last_stamp: dict[tuple[str, str], int] = {}   # (topic, sender) -> stamp_ns of the last accepted
         self._senders: set[str] = set()                    # share senders with any state here
         self._buckets: dict[str, TokenBucket] = {}
-        self._consumed: dict[str, int] = {}   # topic -> stamp_ns of the range/bearing message last used
+        self._consumed: dict[str, int] = {}   # topic -> stamp_ns of the bearing message last used
+        self._range_sets: deque[Ranges] = deque(maxlen=MAX_RANGE_SETS)   # UWB messages since the last tick
         self._used_odometry = None            # the OdometryReading the last snapshot gave the tick
 
     # ----- the callback side -----
@@ -182,6 +185,10 @@ class InputGate:
                 self._shares[message.sender] = self._share(message)
             else:
                 self._latest[topic] = message
+                if isinstance(message, Ranges):
+                    if len(self._range_sets) == MAX_RANGE_SETS:
+                        self.rejected["range_sets_dropped"] += 1   # the oldest, which the deque drops
+                    self._range_sets.append(message)
                 self._arrival.notify_all()
             self.accepted[topic] += 1
         return True
@@ -263,6 +270,7 @@ class InputGate:
             self._held_count = Counter(sender for sender, _ in self._held)
             self._shares.clear()
             self._latest = {t: m for t, m in self._latest.items() if low <= m.stamp_ns <= high}
+            self._range_sets = deque((m for m in self._range_sets if low <= m.stamp_ns <= high), maxlen=MAX_RANGE_SETS)
             self._consumed.clear()
             self._used_odometry = None
             self._delivered_through = None
@@ -310,18 +318,20 @@ class InputGate:
         return missing
 
     def snapshot(self, now: float) -> TickInputs:
-        """This tick's inputs: the freshest odometry and sonar, ranges and bearing not used before, and the
-        latest shares. Only what is stamped within [now - max_age, now + max_future] is used."""
+        """This tick's inputs: the freshest odometry and sonar, the bearing if not used before, every range set
+        received since the last tick, and the latest shares. Only what is stamped within
+        [now - max_age, now + max_future] is used."""
         with self._lock:
             latest = dict(self._latest)
             shares = dict(self._shares)
-            # A range pair or a bearing is a measurement at its stamp: each is used by one tick only.
-            for topic in ("sensor/uwb", "sensor/bearing"):
-                message = latest.get(topic)
-                if message is not None and self._consumed.get(topic) == message.stamp_ns:
-                    latest[topic] = None
-                elif message is not None:
-                    self._consumed[topic] = message.stamp_ns
+            range_sets = list(self._range_sets)
+            self._range_sets.clear()
+            # A bearing is a measurement at its stamp: it is used by one tick only (so is each range set).
+            message = latest.get("sensor/bearing")
+            if message is not None and self._consumed.get("sensor/bearing") == message.stamp_ns:
+                latest["sensor/bearing"] = None
+            elif message is not None:
+                self._consumed["sensor/bearing"] = message.stamp_ns
         odometry = latest.get("sensor/odom")
 
         def fresh(message) -> bool:
@@ -335,12 +345,11 @@ class InputGate:
         if reading is not None:
             self._used_odometry = reading
         tick_time = reading.stamp if reading is not None else now
-        message = latest.get("sensor/uwb")
-        usable = isinstance(message, Ranges) and fresh(message)
-        ranges = self._known_ranges(message.ranges, shares) if usable else {}
-        # The measurement's own time; None when it is the tick's (lockstep sim): the core reads None as `time`.
-        range_stamp = seconds(message.stamp_ns) if usable and ranges else None
-        if range_stamp == tick_time:
+        # Each set at its own time, oldest first (a sender's stamps only go up: the marks see to it).
+        sets = [(seconds(m.stamp_ns), known) for m in range_sets
+                if fresh(m) and (known := self._known_ranges(m.ranges, shares))]
+        range_stamp, ranges = sets.pop() if sets else (None, {})
+        if range_stamp == tick_time:   # measured at the tick (lockstep sim): the core reads None as `time`
             range_stamp = None
         bearing = latest.get("sensor/bearing")
         sonar = latest.get("sensor/sonar")
@@ -349,6 +358,7 @@ class InputGate:
             odometry=reading,
             ranges=ranges,
             range_stamp=range_stamp,
+            earlier_ranges=tuple(sets),
             shares=shares,
             bearing=np.array(bearing.bearing) if isinstance(bearing, Bearing) and fresh(bearing)
             and bearing.bearing is not None else None,
