@@ -1,12 +1,20 @@
 """A run's logs as arrays: each vessel's beliefs and the ground truth on their ticks, and the errors of the
 one against the other. `usv-log metrics` and `usv-log plot` both read a run through these, so a figure shows
 exactly what a metric averages. The readers are lenient: a missing or malformed field becomes NaN.
+
+**Times.** An estimate is compared with the truth at the true time it refers to. A vessel's estimates refer
+to its tick's time, which is its odometry's stamp in its own clock. In the sim bridge's sea mode each vessel's
+clock is off by its own offset and drift (`/bridge/sea`, `ClockModel`); `true_time_ns` undoes that, and the
+truth is interpolated to the result (`TruthSeries.at`). Comparing with the nearest truth tick instead would
+compare positions up to a tick apart (100 ms, a few cm at 0.5 m/s): an error of the metric, not of the
+estimator. In lockstep the clocks are the sim's, every estimate falls on a truth tick, and nothing is
+interpolated.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -19,6 +27,58 @@ class Beliefs:
     t_ns: np.ndarray                    # (K,) log time
     target: np.ndarray                  # (K, 2) p^_io = estimated p_i - p_o
     neighbours: dict[str, np.ndarray]   # j -> (K, 2) p^_ij = estimated p_i - p_j
+    # (K,) the time the estimates refer to, in the vessel's own clock (ns): the tick's time, which is its
+    # odometry's stamp. None: the log times (on a wall clock the log time is when the tick ran, not this).
+    stamp_ns: np.ndarray | None = None
+
+    @property
+    def stamps(self) -> np.ndarray:
+        return self.t_ns if self.stamp_ns is None else self.stamp_ns
+
+
+@dataclass(frozen=True)
+class ClockModel:
+    """One vessel's clock as the sim bridge's sea mode ran it (`/bridge/sea`; sim_bridge/world.py,
+    `VesselClock`): at true time t (s from the run's epoch) it reads c(t) = t + offset + drift * t, and a stamp
+    is epoch_ns + c(t) in ns. The bridge logs the truth at epoch_ns + t, so undoing c puts a vessel's stamp on
+    the truth's time line."""
+    epoch_ns: int
+    offset_s: float
+    drift: float        # s per s (1 ppm = 1e-6)
+
+
+def true_time_ns(stamp_ns, clock: ClockModel | None) -> np.ndarray:
+    """The true time (ns, on the truth's time line: epoch_ns + t) of stamps taken on a vessel's clock, by
+    inverting c: t = (x - offset) / (1 + drift), with x = stamp - epoch. Without a clock model (lockstep and
+    ideal runs, where every process stamps with the sim's time) the stamps are the true times, unchanged.
+
+    The epoch is subtracted in integers first: an epoch time in ns (~1.8e18) does not fit a float's 53 bits,
+    but a mission's span does (to well under a ns). The result is rounded to whole ns, as a stamp is."""
+    stamps = np.asarray(stamp_ns, dtype=np.int64)
+    if clock is None:
+        return stamps.copy()
+    since = (stamps - np.int64(clock.epoch_ns)).astype(float)
+    true = (since - clock.offset_s * 1e9) / (1.0 + clock.drift)
+    return np.int64(clock.epoch_ns) + np.rint(true).astype(np.int64)
+
+
+def clocks_of(sim: Log | None) -> dict[str, ClockModel]:
+    """Each vessel's clock from the sim bridge's `/bridge/sea` record; empty without one (no sea mode). A
+    vessel whose entry is malformed is left out, so its stamps are taken as true times."""
+    found = sim.messages("/bridge/sea") if sim is not None else []
+    if not found:
+        return {}
+    record = found[0][1]
+    try:
+        epoch_ns = int(get(record, "epoch_ns"))
+    except (TypeError, ValueError):
+        return {}
+    clocks = {}
+    for vessel, clock in (get(record, "clocks") or {}).items():
+        offset, drift_ppm = number(get(clock, "offset_s")), number(get(clock, "drift_ppm"))
+        if offset is not None and drift_ppm is not None:
+            clocks[str(vessel)] = ClockModel(epoch_ns, offset, drift_ppm * 1e-6)
+    return clocks
 
 
 @dataclass
@@ -26,6 +86,7 @@ class TruthSeries:
     t_ns: np.ndarray                    # (T,) log time, sorted
     target: np.ndarray                  # (T, 2)
     vessels: dict[str, np.ndarray]      # id -> (T, 2), NaN while the vessel is not in the run
+    clocks: dict[str, ClockModel] = field(default_factory=dict)   # sea mode: each vessel's clock (else empty)
 
     def index(self, t_ns: np.ndarray) -> np.ndarray:
         """Index of the truth sample at each log time; -1 where none is within half a tick (in real runs
@@ -39,6 +100,27 @@ class TruthSeries:
         left = np.clip(right - 1, 0, n - 1)
         nearest = np.where(np.abs(self.t_ns[left] - t) <= np.abs(self.t_ns[right] - t), left, right)
         return np.where(np.abs(self.t_ns[nearest] - t) <= tolerance, nearest, -1)
+
+    def at(self, rows: np.ndarray, t_ns) -> np.ndarray:
+        """`rows` (T, 2; the target or a vessel) at each time, interpolated on a straight line between the two
+        samples around it: the bridge logs the truth once a tick, but an estimate may refer to any time in
+        between. A time that is a sample's takes that sample as it is (lockstep: bit for bit the tick's).
+        NaN outside the truth's span, and where the row is NaN (vessel absent) at either sample around."""
+        t = np.asarray(t_ns, dtype=np.int64).reshape(-1)
+        out = np.full((len(t), rows.shape[1]), np.nan)
+        n = len(self.t_ns)
+        if n == 0:
+            return out
+        right = np.searchsorted(self.t_ns, t)                   # the first sample at or after t
+        exact = (right < n) & (self.t_ns[np.minimum(right, n - 1)] == t)
+        out[exact] = rows[right[exact]]
+        between = ~exact & (right > 0) & (right < n)
+        after = right[between]
+        before = after - 1
+        # Integers first: on the wall clock the times are Unix times in ns, too large for a float.
+        weight = ((t[between] - self.t_ns[before]) / (self.t_ns[after] - self.t_ns[before]))[:, None]
+        out[between] = rows[before] + weight * (rows[after] - rows[before])
+        return out
 
 
 def get(message, *keys):
@@ -92,7 +174,18 @@ def beliefs_of(vessel: VesselLog) -> Beliefs | None:
         t_ns=np.array([t for t, _ in messages], dtype=np.int64),
         target=_points([get(m, "target_state") for _, m in messages]),
         neighbours={j: _points([get(m, "neighbours", j, "position") for _, m in messages]) for j in ids},
+        stamp_ns=np.array([_stamp_ns(get(m, "time"), t) for t, m in messages], dtype=np.int64),
     )
+
+
+def _stamp_ns(seconds, log_ns: int) -> int:
+    """A record's `time` (s, the vessel's clock) in ns; the log time where it has none. The whole seconds
+    are taken apart from the fraction: a Unix time times 1e9 in one float would be off by up to 128 ns."""
+    seconds = number(seconds)
+    if seconds is None or abs(seconds) >= 9e9:     # none, or beyond int64 ns (about 292 years)
+        return int(log_ns)
+    whole = math.floor(seconds)
+    return whole * 1_000_000_000 + round((seconds - whole) * 1e9)
 
 
 def truth_of(sim: Log) -> TruthSeries:
@@ -102,6 +195,7 @@ def truth_of(sim: Log) -> TruthSeries:
         t_ns=np.array([t for t, _ in messages], dtype=np.int64),
         target=_points([get(m, "target") for _, m in messages]),
         vessels={v: _points([get(m, "vessels", v, "position") for _, m in messages]) for v in ids},
+        clocks=clocks_of(sim),
     )
 
 
@@ -129,14 +223,21 @@ def take(rows: np.ndarray, index: np.ndarray) -> np.ndarray:
 
 
 def estimate_errors(vid: str, beliefs: Beliefs, truth: TruthSeries) -> tuple[np.ndarray, np.ndarray]:
-    """e_ij (worst over i's neighbours) and e_io of vessel i, on the truth's ticks; NaN where unknown."""
-    index = truth.index(beliefs.t_ns)
-    p_i = take(truth.vessels[vid], index)
-    e_io = np.linalg.norm(beliefs.target - (p_i - take(truth.target, index)), axis=1)
+    """e_ij (worst over i's neighbours) and e_io of vessel i, on the truth's ticks; NaN where unknown.
+
+    Each estimate is compared with the truth at the true time it refers to (its stamp through the vessel's
+    clock model, then the truth interpolated there), so that a clock offset or a tick that does not fall on
+    the bridge's does not count as an estimation error. It is then placed on the truth tick nearest that time
+    (none beyond half a tick), so that the vessels' errors line up tick by tick for the worst over vessels;
+    of two estimates placed on one tick the later counts."""
+    when = true_time_ns(beliefs.stamps, truth.clocks.get(vid))
+    index = truth.index(when)
+    p_i = truth.at(truth.vessels[vid], when)
+    e_io = np.linalg.norm(beliefs.target - (p_i - truth.at(truth.target, when)), axis=1)
     worst = np.full(len(index), np.nan)
     for j, estimate in beliefs.neighbours.items():
         if j in truth.vessels:
-            error = np.linalg.norm(estimate - (p_i - take(truth.vessels[j], index)), axis=1)
+            error = np.linalg.norm(estimate - (p_i - truth.at(truth.vessels[j], when)), axis=1)
             worst = np.fmax(worst, error)    # fmax skips NaN: a neighbour absent at a tick does not count
     on_truth = np.full((2, len(truth.t_ns)), np.nan)
     present = index >= 0
