@@ -157,6 +157,9 @@ class PairEstimate(StrictModel):
     position: Vec2
     covariance: tuple[Variance, Variance, Variance] = Field(
         description="p11, p12, p22 of a symmetric positive semi-definite 2x2")
+    stamp_ns: StampNs | None = Field(
+        None, description="the time the estimate refers to, in the sender's clock, not after the share's stamp; "
+                          "None: the share's stamp")
 
     @field_validator("covariance")
     @classmethod
@@ -192,6 +195,9 @@ class ShareMessage(Header):
     def _target_with_covariance(self):
         if (self.target is None) != (self.target_covariance is None):
             raise ValueError("target and target_covariance come together")
+        later = [j for j, e in self.neighbours.items() if e.stamp_ns is not None and e.stamp_ns > self.stamp_ns]
+        if later:
+            raise ValueError(f"estimates of {later[:3]} refer to a time after the share's stamp")
         return self
 
 
@@ -292,7 +298,8 @@ def share_from_message(message: ShareMessage) -> Share:
         target=None if message.target is None else np.array(message.target, dtype=float),
         target_covariance=None if message.target_covariance is None
         else np.array(message.target_covariance, dtype=float).reshape(4, 4),
-        neighbours={j: (np.array(e.position, dtype=float), _unpack2(e.covariance))
+        neighbours={j: (np.array(e.position, dtype=float), _unpack2(e.covariance),
+                        seconds(message.stamp_ns if e.stamp_ns is None else e.stamp_ns))
                     for j, e in message.neighbours.items()},
     )
 
@@ -305,8 +312,9 @@ def message_from_share(share: Share, seq: int) -> ShareMessage:
         target=None if share.target is None else tuple(float(v) for v in share.target),
         target_covariance=None if share.target_covariance is None
         else tuple(float(v) for v in np.asarray(share.target_covariance).ravel()),
-        neighbours={j: PairEstimate(position=tuple(float(v) for v in p), covariance=_pack2(c))
-                    for j, (p, c) in share.neighbours.items()},
+        neighbours={j: PairEstimate(position=tuple(float(v) for v in p), covariance=_pack2(c),
+                                    stamp_ns=nanoseconds(t))
+                    for j, (p, c, t) in share.neighbours.items()},
     )
 
 

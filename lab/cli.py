@@ -24,6 +24,7 @@ SUBCOMMANDS = {
     "runtime-bench": ("lab.runtime_bench",
                       "Zenoh runtime: sensor-to-command latency, lockstep real-time factor, memory"),
     "fuzz": ("lab.fuzz_bench", "fuzz campaign over Zenoh: bad payloads on every key one agent reads"),
+    "sea-bench": ("lab.sea_bench", "the fleet in the sea mode against the ideal simulation, seed by seed"),
 }
 
 

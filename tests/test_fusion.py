@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -17,6 +18,7 @@ from agent.core.step import step
 from lab.runner import run
 from sim_bridge.scenario import Scenario, load_scenarios
 
+DT = AgentParams().dt
 SCENARIOS = Path(__file__).resolve().parents[1] / "configs" / "scenarios"
 
 
@@ -91,7 +93,8 @@ def test_cooperative_fusion_improves_the_fleet_over_the_paper_architecture():
 @pytest.mark.parametrize("bad", [
     {"target": np.array([1.0, 2.0])},                                         # wrong shape
     {"target": np.zeros(4), "target_covariance": np.full((4, 4), np.nan)},    # NaN covariance
-    {"neighbours": {"1": (np.array([np.inf, 0.0]), np.eye(2))}},             # inf estimate
+    {"neighbours": {"1": (np.array([np.inf, 0.0]), np.eye(2), 0.0)}},        # inf estimate
+    {"neighbours": {"1": (np.zeros(2), np.eye(2), math.nan)}},               # NaN stamp
 ])
 def test_malformed_shares_are_counted_and_ignored(bad):
     params = AgentParams()
@@ -102,3 +105,46 @@ def test_malformed_shares_are_counted_and_ignored(bad):
                                                 shares={"2": share}, bearing=np.array([1.0, 0.0])))
     assert out.record.health["bad_shares"] == 1 and "2" not in state.tracks
     assert np.isfinite(out.command.surge) and np.isfinite(out.command.yaw_rate)
+
+
+@pytest.mark.parametrize("delay_to_2", [1, 3])
+def test_two_held_vessels_that_command_motion_keep_their_pair_estimates(delay_to_2):
+    """Regression (the sea mode's hold at the start): the vessels are still, but their agents command motion
+    and share that velocity. A shared estimate carried on with the neighbour's commanded velocity was fused
+    into the receiver's filter, which shared it back: the pair estimates walked off by ~0.1 m a tick while
+    nothing moved. A shared estimate now refers to the sender's filter epoch, where both vessels' odometry
+    was measured, and the fusion is not fed back: with nothing moving each filter keeps its prior and the two
+    vessels' fused estimates are the same (CI of the two priors: their mean, the covariances being equal)."""
+    params = AgentParams()
+    truth = np.array([-12.0, -13.0])                          # p_12 = p_1 - p_2, constant
+    starts = {"1": InitialEstimates(target=(8.0, 3.0, 0.0, 0.0), neighbours={"2": tuple(truth + [0.1, 0.0])},
+                                    neighbour_variance=0.04),
+              "2": InitialEstimates(target=(-4.0, -10.0, 0.0, 0.0), neighbours={"1": tuple(-truth + [0.0, 0.1])},
+                                    neighbour_variance=0.04)}
+    states = {v: initial_state(v, params, s) for v, s in starts.items()}
+    sent: dict[str, Share] = {}
+    outbox: list[Share] = []    # vessel 1's shares on their way to vessel 2, which get there `delay_to_2` ticks late
+    worst, speeds = 0.0, []
+    for k in range(40):
+        now = k * DT
+        outputs = {}
+        for v, other in (("1", "2"), ("2", "1")):
+            held = OdometryReading(now, np.zeros(2), 0.0)         # never moves
+            states[v], outputs[v] = step(params, states[v], TickInputs(
+                time=now, odometry=held, ranges={other: float(np.hypot(*truth))},
+                shares={other: sent[other]} if other in sent else {}))
+        outbox.append(outputs["1"].share)
+        sent = {"2": outputs["2"].share}                          # delivered at the next tick ...
+        if len(outbox) >= delay_to_2:
+            sent["1"] = outbox[-delay_to_2]                       # ... or later: the order must not matter
+        speeds.append(np.hypot(*outputs["1"].share.velocity))
+        for v, sign in (("1", 1.0), ("2", -1.0)):
+            track = states[v].tracks.get("1" if v == "2" else "2")
+            if track is not None and track.estimator is not None:
+                worst = max(worst, float(np.hypot(*(track.best()[0] - sign * truth))))
+    assert np.mean(speeds) > 0.1             # the agents do command motion (turning towards the circle)
+    assert worst <= 0.1 + 1e-9              # never further from the truth than the worse prior
+    p12 = states["1"].tracks["2"].best()[0]
+    p21 = states["2"].tracks["1"].best()[0]
+    np.testing.assert_allclose(p12, -p21, atol=1e-9)             # the two vessels agree ...
+    np.testing.assert_allclose(p12, truth + [0.05, -0.05], atol=1e-9)   # ... on the mean of the two priors

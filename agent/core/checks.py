@@ -58,10 +58,10 @@ def valid_pair_entry(entry) -> bool:
     if entry is None:
         return True
     try:
-        position, covariance = entry
+        position, covariance, stamp = entry
     except (TypeError, ValueError):
         return False
-    return finite_vector(position, 2) and finite_matrix(covariance)
+    return finite_vector(position, 2) and finite_matrix(covariance) and isinstance(stamp, float) and math.isfinite(stamp)
 
 
 def obstacle_array(points) -> tuple[np.ndarray | None, bool]:

@@ -22,31 +22,39 @@ SWAP_VELOCITY = np.diag([1.0, 1.0, -1.0, -1.0])
 
 
 def fuse_reciprocal(params: AgentParams, state: VesselState, track: NeighbourTrack) -> None:
-    """Fuse j's shared estimate of p_ji (as -p_ji) into our p_ij of (10). It refers to j's share stamp; when
-    that is not our filter's epoch (clocks that differ, a range that came at another time), it is carried to
-    the epoch by both vessels' odometry between the two times, its covariance grown by the displacement
-    noise of (15), if the two times are at most `fleet.max_odometry_gap` apart. Not in the paper
-    (docs/equations.md, D1)."""
+    """This tick's p^_ij (`track.fused`): covariance intersection of our pair filter's estimate with j's own
+    estimate of p_ji (as -p_ji), both at our filter's epoch. Not in the paper (docs/equations.md, D1).
+
+    Each vessel shares its own filter's estimate, never a fused one, and neither filter takes the fusion in:
+    the two vessels compute the same fused estimate (as p_ij and p_ji) from the same two independent ones,
+    whoever ticks first. Fed back into the filters, as the paper-like design did, the result depended on the
+    order of the ticks (the vessel whose tick came later kept most of its own prior), and at sea, where the
+    vessels tick at their own times, pairs ended up with one vessel's prior instead of the mean of both.
+
+    j's estimate refers to the time j gave with it (its filter's epoch, in j's clock). It is carried to our
+    epoch by both vessels' measured odometry between the two times (j's from its shares), its covariance
+    grown by the displacement noise of (15), if the two times are at most `fleet.max_odometry_gap` apart.
+    Only measured motion enters: a commanded velocity the vessel did not follow (a boat held at the start, a
+    thruster lagging) would otherwise be taken as truth."""
     share = track.share
     if track.estimator is None or share is None:
         return
     theirs = share.neighbours.get(state.vessel)
     if theirs is None:
         return
-    position, covariance = theirs
-    if not (finite_vector(position, 2) and finite_matrix(covariance)):
+    position, covariance, stamp = theirs
+    if not (finite_vector(position, 2) and finite_matrix(covariance) and math.isfinite(stamp)):
         state.health.bad_shares += 1
         return
     their_position, their_covariance = -np.asarray(position, dtype=float), np.asarray(covariance, dtype=float)
-    key = stamp_key(share.odometry.stamp)
+    key = stamp_key(stamp)
     if key != track.epoch:
         gap = stamp_key(params.fleet.max_odometry_gap)
         if abs(key - track.epoch) > gap:
             return
-        mine_then, _ = state.own.at(key, gap)
-        if mine_then is None:
+        mine_then, theirs_then, why = track.positions_at(state.own, key)
+        if why:
             return
-        theirs_then = np.asarray(share.odometry.position, dtype=float)
         their_position = their_position + (track.epoch_own - mine_then) - (track.epoch_other - theirs_then)
         intervals = abs(key - track.epoch) * 1e-6 / params.dt
         their_covariance = their_covariance + 2.0 * params.relative.displacement_variance * intervals * np.eye(2)
@@ -56,7 +64,9 @@ def fuse_reciprocal(params: AgentParams, state: VesselState, track: NeighbourTra
     except np.linalg.LinAlgError:
         state.health.bad_shares += 1
         return
-    if not track.estimator.assimilate(fused, fused_covariance):
+    if finite_vector(fused, 2) and finite_matrix(fused_covariance):
+        track.fused = (fused, fused_covariance)
+    else:
         state.health.bad_shares += 1
 
 
@@ -82,7 +92,7 @@ def fuse_targets(params: AgentParams, state: VesselState, estimates: dict[str, n
         P_shared = carry @ np.asarray(share.target_covariance, dtype=float) @ carry.T
         x = np.concatenate([relative + x_shared[:2], state.motion.velocity - x_shared[2:]])
         P = SWAP_VELOCITY @ P_shared @ SWAP_VELOCITY
-        P[:2, :2] += track.estimator.covariance
+        P[:2, :2] += track.best()[1]
         difference = x - own[0]
         try:
             distance = float(difference @ np.linalg.solve(own[1] + P, difference))

@@ -149,6 +149,15 @@ class NeighbourTrack:
         self.rejected = 0
         self.last_iterations = 0
         self.outcomes: list[tuple[float, float, UpdateOutcome]] = []   # (stamp s, range m, outcome) of the last advance
+        # This tick's p^_ij and covariance at the epoch, our filter's fused with j's own (cooperation.py); None:
+        # not fused this tick. Derived afresh every tick, never fed back into the filter.
+        self.fused: tuple[np.ndarray, np.ndarray] | None = None
+
+    def best(self) -> tuple[np.ndarray, np.ndarray]:
+        """p^_ij and its covariance at the epoch: fused with j's estimate if this tick could, else our filter's."""
+        if self.fused is not None:
+            return self.fused
+        return self.estimator.position, self.estimator.covariance
 
     def receive(self, share: Share, now: float) -> None:
         """Keep j's odometry and what it shares; shares may repeat or arrive out of order."""
@@ -244,7 +253,7 @@ class NeighbourTrack:
             return None
         key = stamp_key(now)
         own_now = own.get(key)
-        position = self.estimator.position
+        position = self.best()[0]
         if key == self.epoch or own_now is None:
             return position
         other_moved = np.zeros(2)

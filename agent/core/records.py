@@ -36,7 +36,10 @@ class Share:
     `phase` is its oscillator phase at that stamp; `target` its estimate [p_jo; v_o] of its own position
     relative to the target and of the target's velocity (None before it has one), with `target_covariance`
     (4x4), used to initialise a newcomer and for cooperative target estimation; `neighbours` its estimates
-    of p_jk for each neighbour k, at that stamp, with their covariances.
+    of p_jk for each neighbour k with their covariances and the time (s, the sender's clock) each refers to:
+    its pair filter's epoch, the last range it used, where both vessels' odometry was measured. An estimate
+    carried on to the share's stamp would carry k with k's commanded velocity, and a receiver that fuses it
+    would take that guess into its filter, tick after tick.
     """
 
     sender: str
@@ -45,7 +48,7 @@ class Share:
     phase: float
     target: np.ndarray | None = None                 # (4,) [p_jo; v_o]
     target_covariance: np.ndarray | None = None      # (4, 4)
-    neighbours: Mapping[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
+    neighbours: Mapping[str, tuple[np.ndarray, np.ndarray, float]] = field(default_factory=dict)  # (p, P, stamp)
 
 
 @dataclass(frozen=True)
@@ -135,7 +138,8 @@ def share_to_json(share: Share) -> dict:
         "phase": float(share.phase),
         "target": None if share.target is None else floats(share.target),
         "target_covariance": None if share.target_covariance is None else floats(share.target_covariance),
-        "neighbours": {j: {"position": floats(p), "covariance": floats(c)} for j, (p, c) in share.neighbours.items()},
+        "neighbours": {j: {"position": floats(p), "covariance": floats(c), "stamp": float(t)}
+                       for j, (p, c, t) in share.neighbours.items()},
     }
 
 
@@ -146,7 +150,9 @@ def share_from_json(data: dict) -> Share:
         target=None if data["target"] is None else np.array(data["target"], dtype=float),
         target_covariance=None if data["target_covariance"] is None
         else np.array(data["target_covariance"], dtype=float).reshape(4, 4),
-        neighbours={j: (np.array(e["position"], dtype=float), np.array(e["covariance"], dtype=float).reshape(2, 2))
+        # Before log format 4 an estimate referred to the share's own stamp.
+        neighbours={j: (np.array(e["position"], dtype=float), np.array(e["covariance"], dtype=float).reshape(2, 2),
+                        float(e.get("stamp", data["odometry"]["stamp"])))
                     for j, e in data["neighbours"].items()},
     )
 

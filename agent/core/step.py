@@ -60,6 +60,7 @@ def step(params: AgentParams, state: VesselState, inputs: TickInputs) -> tuple[V
     for track in state.tracks.values():
         start_track(params, state, track, now)
         track.advance(state.own, now, unusable)
+        track.fused = None
         if params.fleet.fuse_shared_estimates:
             fuse_reciprocal(params, state, track)
     health.ranges_unpaired += unusable["unpaired"]
@@ -96,8 +97,8 @@ def step(params: AgentParams, state: VesselState, inputs: TickInputs) -> tuple[V
         sender=state.vessel, odometry=odometry, velocity=command.surge * heading_vector, phase=state.phase,
         target=None if target_state is None else _to_shared(target_state, state.motion.velocity),
         target_covariance=None if target_cov is None else SWAP_VELOCITY @ target_cov @ SWAP_VELOCITY,
-        neighbours={j: (estimate, _symmetric(state.tracks[j].estimator.covariance))
-                    for j, estimate in estimates.items() if estimate is not None},
+        neighbours={j: (t.estimator.position.copy(), _symmetric(t.estimator.covariance), t.epoch * 1e-6)
+                    for j, t in state.tracks.items() if t.estimator is not None and t.epoch is not None},
     )
     record = TickRecord(
         time=now, phase=state.phase,
@@ -129,7 +130,7 @@ def _elapsed(params: AgentParams, previous: float | None, now: float) -> float:
 
 def _localised(params: AgentParams, track: NeighbourTrack) -> bool:
     """The pair filter has converged enough to steer by: trace(P_ij) at most `fleet.localised_trace`."""
-    covariance = track.estimator.covariance
+    covariance = track.best()[1]
     return covariance[0, 0] + covariance[1, 1] <= params.fleet.localised_trace
 
 
@@ -186,7 +187,7 @@ def _symmetric(matrix: np.ndarray) -> np.ndarray:
 
 def _neighbour_record(track: NeighbourTrack, estimate: np.ndarray) -> NeighbourRecord:
     return NeighbourRecord(
-        position=estimate, covariance=track.estimator.covariance, epoch=track.epoch * 1e-6,
+        position=estimate, covariance=track.best()[1], epoch=track.epoch * 1e-6,
         updates=track.updates, rejected=track.rejected, iterations=track.last_iterations,
         outcomes=tuple(track.outcomes),
     )

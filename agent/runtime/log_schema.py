@@ -51,6 +51,7 @@ class LoggedOdometry(StrictModel):
 class SharedEstimate(StrictModel):
     position: Vector2 = Field(description="p_jk, the sender's estimate of neighbour k (m)")
     covariance: Matrix2
+    stamp: float = Field(description="the time the estimate refers to, the sender's clock (s)")
 
 
 class LoggedShare(StrictModel):
