@@ -18,6 +18,7 @@ from pydantic import Field
 from agent.config import PositiveFloat, StrictModel, updated
 from agent.core.estimators import make_relative_estimator
 from agent.core.params import ESTIMATOR_NAMES, AgentParams
+from lab.bound import fisher_information, rms_bound
 from lab.errors import ErrorHistory
 from lab.parallel import map_in_order
 from sim_bridge.noise import GaussianMixtureNoise, IsotropicGaussianNoise, LogNormalNoise, RangeNoise
@@ -61,6 +62,16 @@ class ComparisonResult(ErrorHistory):
     range_bias: float                 # mean of the range noise model
     filter_range_variance: float
     least_squares: np.ndarray         # (runs, len(LS_TIMES)) batch least-squares error at LS_TIMES
+    fisher: float                     # Fisher information of the range noise as a location family (m^-2)
+    bound: np.ndarray                 # (K+1,) posterior Cramér–Rao bound on the RMSE over runs (m)
+
+    def bound_at(self, t: float) -> float:
+        """The bound at the epoch nearest to time t (s)."""
+        return float(self.bound[int(np.argmin(np.abs(self.time - t)))])
+
+    def rmse_at(self, name: str, t: float) -> float:
+        """The RMSE over runs of one estimator at the epoch nearest to time t (s)."""
+        return float(self.rmse(name)[int(np.argmin(np.abs(self.time - t)))])
 
 
 def relative_trajectory(config: ComparisonConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -72,6 +83,19 @@ def relative_trajectory(config: ComparisonConfig) -> tuple[np.ndarray, np.ndarra
     own = config.radius * np.column_stack([np.cos(phase), np.sin(phase)])
     other = config.radius * np.column_stack([np.cos(phase + math.pi), np.sin(phase + math.pi)])
     return t, own, other
+
+
+def position_bound(config: ComparisonConfig, noise: RangeNoise, paths: list[np.ndarray]) -> tuple[float, np.ndarray]:
+    """The noise model's Fisher information, and the posterior Cramér–Rao bound (lab/bound.py) on the RMSE
+    over runs along the runs' true paths p_ij = p_i - p_j: sqrt(mean over runs of trace(J_k^{-1})), the floor
+    of the mean squared error the RMSE curves square-average. Process noise Q = 2 R_delta I (both vessels'
+    odometry, (15)); J_0 = P_0^{-1} (the initial estimate); one range per epoch, counting the one at epoch 0,
+    which the pair filters use in their first update."""
+    relative = config.agent.relative
+    fisher = fisher_information(noise)
+    bound = rms_bound(paths, relative.displacement_variance, fisher, relative.initial_covariance,
+                      first_range=True)
+    return fisher, bound
 
 
 def filter_variance(noise: RangeNoise, config: ComparisonConfig) -> float:
@@ -151,8 +175,11 @@ def run_comparison(config: ComparisonConfig, noise_name: str, workers: int = 1, 
     root = np.random.SeedSequence([config.seed, _stable_id(noise_name)])
     jobs = [(config, noise, child) for child in root.spawn(config.runs)]
     outputs = map_in_order(_run_job, jobs, workers, progress)
-    t, _, _ = relative_trajectory(config)
+    t, own, other = relative_trajectory(config)
     errors = np.stack([o[0] for o in outputs])  # (runs, estimators, K+1)
+    # Every run follows the same true path (the seed draws only the noise and the initial estimate), so the
+    # RMS over runs of the per-run bound is the bound of that one path: computed once.
+    fisher, bound = position_bound(config, noise, [own - other])
     return ComparisonResult(
         noise_name=noise_name,
         time=t,
@@ -161,6 +188,8 @@ def run_comparison(config: ComparisonConfig, noise_name: str, workers: int = 1, 
         range_bias=noise.mean,
         filter_range_variance=filter_variance(noise, config),
         least_squares=np.stack([o[2] for o in outputs]),
+        fisher=fisher,
+        bound=bound,
     )
 
 
