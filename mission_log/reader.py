@@ -24,6 +24,7 @@ import json
 import warnings
 from collections import defaultdict
 from dataclasses import dataclass, field
+from itertools import pairwise
 from pathlib import Path
 
 from agent.runtime.mcap_log import FORMAT_RECORD, PART_RECORD, read_messages, read_metadata
@@ -60,6 +61,7 @@ class Log:
 @dataclass
 class VesselLog(Log):
     vessel: str = ""
+    sessions: list[Path] = field(default_factory=list)   # the first file of each run of the agent, in time order
 
     @property
     def settings(self) -> dict | None:
@@ -153,6 +155,39 @@ def join_parts(logs: list[Log]) -> Log:
     return Log(first.path, first.metadata, dict(topics), unfinished, first.format_version, **known)
 
 
+def _span(log: Log) -> tuple[int, int] | None:
+    times = [t for messages in log.topics.values() for t, _ in messages]
+    return (min(times), max(times)) if times else None
+
+
+def join_sessions(logs: list[VesselLog]) -> VesselLog:
+    """The logs of one vessel's agent run after run (restarted by systemd or the launcher: each run writes
+    its own log) as one log in time order, its files in `parts`. Logs that overlap in time are two agents
+    with one vessel id at once, or one log given twice: an error that names both."""
+    if len(logs) == 1:
+        return logs[0]
+    spans = {id(log): _span(log) for log in logs}
+    logs = sorted(logs, key=lambda log: (spans[id(log)] or (0, 0))[0])
+    for before, after in pairwise(logs):
+        first, second = spans[id(before)], spans[id(after)]
+        if first is not None and second is not None and second[0] <= first[1]:
+            raise LogError(f"{after.path}: a second log of vessel {after.vessel} that overlaps in time with "
+                           f"{before.path} (two agents with one id, or one log given twice)")
+    versions = {log.format_version for log in logs}
+    if len(versions) > 1:
+        raise LogError(f"{logs[0].path}: the logs of vessel {logs[0].vessel} have different log format versions "
+                       f"({', '.join(sorted(versions))})")
+    topics: dict[str, list[tuple[int, dict]]] = defaultdict(list)
+    for log in logs:
+        for topic, messages in log.topics.items():
+            topics[topic].extend(messages)
+    first = logs[0]
+    return VesselLog(first.path, first.metadata, dict(topics), any(log.unfinished for log in logs),
+                     first.format_version, parts=[path for log in logs for path in (log.parts or [log.path])],
+                     missing_parts=first.missing_parts, set_id=first.set_id, part=first.part, vessel=first.vessel,
+                     sessions=[log.path for log in logs])
+
+
 def set_files(path: Path) -> list[Path]:
     """The files in `path`'s folder that may be parts of the same set: the set's first file and its
     `.partNNNN` files (by name; the `usv-log-part` records decide)."""
@@ -212,15 +247,15 @@ def load_run(paths: list[Path] | Path) -> RunLog:
     for path in dict.fromkeys(files):   # a file named twice (a folder and a file in it) is read once
         log = read_log(path)
         sets.setdefault(log.set_id or path, []).append(log)
+    sessions: dict[str, list[VesselLog]] = defaultdict(list)
     for parts in sets.values():
         log = join_parts(parts)
-        path = log.path
         if isinstance(log, VesselLog):
-            if log.vessel in run.vessels:
-                raise LogError(f"{path}: a second log of vessel {log.vessel} (the first is {run.vessels[log.vessel].path})")
-            run.vessels[log.vessel] = log
+            sessions[log.vessel].append(log)
         elif log.messages("/truth"):
             run.sim = log
+    for vessel, logs in sessions.items():
+        run.vessels[vessel] = join_sessions(logs)
     if not run.vessels and run.sim is None:
         raise LogError(f"{run.source}: neither an agent's log nor the sim bridge's")
     return run

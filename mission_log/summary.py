@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 from datetime import UTC, datetime
+from pathlib import Path
 
 import numpy as np
 
@@ -82,7 +83,8 @@ def health_windows(estimates: list[tuple[int, dict]], window: float, origin_ns: 
 
 
 def _parts(log: Log) -> dict:
-    return {"parts": [str(path) for path in log.parts], "missing_parts": list(log.missing_parts)}
+    return {"parts": [str(path) for path in log.parts], "missing_parts": list(log.missing_parts),
+            "sessions": [str(path) for path in getattr(log, "sessions", [])]}
 
 
 def vessel_summary(log, window: float, origin_ns: int = 0) -> dict:
@@ -198,6 +200,10 @@ def summary_markdown(summary: dict) -> str:
         if s["unfinished"]:
             lines += [("The log is unfinished (the process was killed, or a write failed): read up to its last "
                       "complete chunk."), ""]
+        if len(s.get("sessions", [])) > 1:
+            lines += [f"The agent ran {len(s['sessions'])} times (restarted), one log each, read in time order: "
+                      + ", ".join(f"`{Path(path).name}`" for path in s["sessions"]) + ".", ""]
+            s = s | {"parts": [path for path in s["parts"] if path not in s["sessions"][1:]]}
         if len(s.get("parts", [])) > 1 or s.get("missing_parts"):
             lines += [f"The log was rotated: {len(s['parts'])} part(s) read"
                       + (f"; part(s) {_missing(s['missing_parts'])} missing (deleted by the log's size bound, or "

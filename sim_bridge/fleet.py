@@ -44,7 +44,7 @@ import yaml
 import zenoh
 
 from agent.config import ConfigError
-from agent.contract import CLOCK_KEY, Clock, decode, seconds
+from agent.contract import CLOCK_KEY, LIVELINESS, Clock, decode, key, seconds
 from agent.runtime.mcap_log import read_messages
 from agent.runtime.zenoh_session import ZenohSettings, zenoh_config
 from mission_log.metrics import truth_metrics
@@ -120,7 +120,8 @@ class Fleet:
 
     `run()` starts the bridge and the agents of the vessels there at the start, then follows the sim clock:
     it starts a joining vessel's agent when the sim reaches its `join_time` (the bridge waits for it), and
-    kills a leaving vessel's agent with SIGKILL at its `leave_time`, as a vessel lost at sea. When the
+    kills a leaving vessel's agent with SIGKILL at its `leave_time`, as a vessel lost at sea; `run(restarts=)`
+    restarts a vessel's agent without initial estimates (`stop_for_restart`, `start_again`). When the
     bridge has finished, the agents get SIGTERM and finish their logs. `on_time(fleet, sim_seconds)` lets a
     caller act during the mission (tests kill an agent with it); it is called on each sim clock message, from
     Zenoh's thread, so it must be quick and must not call Zenoh.
@@ -140,6 +141,9 @@ class Fleet:
         self.bridge: subprocess.Popen | None = None
         self.agents: dict[str, subprocess.Popen] = {}
         self.killed: dict[str, float] = {}        # vessel -> sim time (s) when its agent was killed
+        self.restarted: dict[str, list[tuple[float, float]]] = {}   # vessel -> (stopped, started again) sim times (s)
+        self.down: set[str] = set()               # vessels whose agent is stopped for a restart, not yet started again
+        self.names: dict[str, str] = {}           # vessel -> its current agent's process name, once restarted
         self.peak_memory: dict[str, float] = {}   # MB of resident memory at its highest, per process
         self.pids: dict[str, int] = {}            # every child started, by name (processes.json)
         self.planned_ticks = round(self.scenario.duration / self.scenario.world.dt) + 1
@@ -194,8 +198,59 @@ class Fleet:
             raise Interrupted(self.signals[0], f"interrupted by {name} at sim time {max(self._sim_time, 0.0):.1f} s")
 
     def start_agent(self, vessel: str) -> None:
-        self.agents[vessel] = self._start(f"agent-{vessel}", [
-            sys.executable, "-m", "agent", "--vessel", vessel, "--config", str(self.folder / f"agent-{vessel}.yaml")])
+        name = self._name(vessel)
+        self.agents[vessel] = self._start(name, [
+            sys.executable, "-m", "agent", "--vessel", vessel, "--config", str(self.folder / f"{name}.yaml")])
+
+    def _name(self, vessel: str) -> str:
+        """The name of a vessel's agent process, of its settings and console log: `agent-<id>`, and
+        `agent-<id>-restart<n>` after its n-th restart."""
+        return self.names.get(vessel, f"agent-{vessel}")
+
+    def stop_for_restart(self, vessel: str, session) -> None:
+        """Stop a vessel's agent for a restart (`start_again` starts the new one), as a boat whose computer
+        restarts mid-mission; the bridge's watchdog stops the vessel meanwhile, as a driver's would.
+
+        SIGTERM, not SIGKILL: the agent finishes its log and its liveliness token goes with it at once, so the
+        new agent's start-up check that its id is free passes (after SIGKILL the token would last until its
+        Zenoh session times out, about 10 s, and the new agent would refuse to start). An agent that has not
+        stopped STOP_SECONDS after SIGTERM gets SIGKILL, and this waits until `session` no longer sees its
+        token."""
+        old, name = self.agents[vessel], self._name(vessel)
+        self.down.add(vessel)      # first: the polling loop must not take its exit for a failure
+        self.restarted.setdefault(vessel, []).append((self._sim_time, math.nan))
+        old.send_signal(signal.SIGTERM)
+        try:
+            old.wait(timeout=STOP_SECONDS)
+        except subprocess.TimeoutExpired:
+            old.kill()
+            old.wait()
+            self.hard_killed.append(name)
+            alive = key(vessel, LIVELINESS)
+            deadline = time.monotonic() + 3 * STOP_SECONDS
+            while any(reply.ok is not None for reply in session.liveliness().get(alive, timeout=0.2)):
+                if time.monotonic() > deadline:
+                    raise RuntimeError(f"the liveliness token of {name}, killed for its restart, never lapsed")
+                time.sleep(0.1)
+        else:
+            if old.returncode != 0:
+                raise RuntimeError(self._exited(f"the agent of vessel {vessel}", name, old.returncode,
+                                                "when told to stop for its restart"))
+
+    def start_again(self, vessel: str) -> None:
+        """Start a new agent for a vessel whose agent `stop_for_restart` stopped, without initial estimates:
+        its settings, `agent-<id>-restart<n>.yaml`, are the vessel's without the `initial` section (a restarted
+        boat knows nothing of the fleet as it was at launch, and the deploy tooling writes none), and it logs
+        to `agent-<id>-restart<n>.mcap`, so the first log stays whole."""
+        restarts = self.restarted[vessel]
+        restarts[-1] = (restarts[-1][0], self._sim_time)
+        settings = yaml.safe_load((self.folder / f"agent-{vessel}.yaml").read_text())
+        settings.pop("initial", None)
+        self.names[vessel] = name = f"agent-{vessel}-restart{len(restarts)}"
+        settings["log"] = str(self.folder / f"{name}.mcap")
+        (self.folder / f"{name}.yaml").write_text(yaml.safe_dump(settings))
+        self.start_agent(vessel)
+        self.down.discard(vessel)
 
     def kill(self, vessel: str) -> None:
         """SIGKILL a vessel's agent: no goodbye, its liveliness token vanishes with its session."""
@@ -203,9 +258,15 @@ class Fleet:
         self.killed[vessel] = self._sim_time   # first: the polling loop must never see it dead and not killed
         self.agents[vessel].kill()
 
-    def run(self, timeout: float = 600.0, on_time=None) -> Path:
+    def run(self, timeout: float = 600.0, on_time=None,
+            restarts: dict[str, tuple[float, float]] | None = None) -> Path:
         """Run the mission; the run folder. RuntimeError (saying which process and where its log is) when a
-        process fails: the sim bridge cannot start or exits with an error, or an agent exits on its own."""
+        process fails: the sim bridge cannot start or exits with an error, or an agent exits on its own.
+
+        `restarts`: vessel -> (stop, start) sim times (s): its agent is stopped at `stop` and a new one without
+        initial estimates started at `start` (or as soon as the old one has stopped, if that is later). In
+        lockstep the sim runs on while the new process starts (about 1.5 s of wall time, tens of seconds of
+        sim time), so the vessel is without an agent for at least `start` - `stop`, never exactly that."""
 
         def on_clock(sample) -> None:
             message, _ = decode(Clock, sample.payload.to_bytes())
@@ -217,10 +278,11 @@ class Fleet:
 
         deadline = time.monotonic() + timeout
         try:
-            with self._start_bridge(on_clock, deadline):
+            with self._start_bridge(on_clock, deadline) as session:
                 dt = self.scenario.world.dt
                 pending = {v.id: v for v in self.scenario.world.vessels}
                 leaving = {v.id: v.leave_time for v in self.scenario.world.vessels if v.leave_time is not None}
+                restarting = dict(restarts or {})
                 print(f"usv-fleet: the sim bridge and {sum(v.join_time == 0 for v in pending.values())} agents "
                       f"starting; run folder {self.folder}", file=sys.stderr)
                 while self.bridge.poll() is None:
@@ -235,6 +297,15 @@ class Fleet:
                     for vessel in [v for v, t in leaving.items() if now >= t - 1e-9 and v in self.agents]:
                         self.kill(vessel)
                         del leaving[vessel]
+                    for vessel, (stop, start) in list(restarting.items()):
+                        if vessel in self.killed:
+                            del restarting[vessel]
+                        elif vessel in self.down:
+                            if now >= start - 1e-9:
+                                self.start_again(vessel)
+                                del restarting[vessel]
+                        elif vessel in self.agents and now >= stop - 1e-9:
+                            self.stop_for_restart(vessel, session)
                     self._note_memory()
                     time.sleep(0.02)
                 self._check_interrupted()   # a SIGINT from the terminal reaches the bridge too: it stops early
@@ -249,8 +320,8 @@ class Fleet:
         finally:
             self._stop()
         for vessel, process in self.agents.items():
-            if vessel not in self.killed and process.returncode != 0:
-                raise RuntimeError(self._exited(f"the agent of vessel {vessel}", f"agent-{vessel}",
+            if vessel not in self.killed and vessel not in self.down and process.returncode != 0:
+                raise RuntimeError(self._exited(f"the agent of vessel {vessel}", self._name(vessel),
                                                 process.returncode, "when told to stop"))
         return self.folder
 
@@ -298,8 +369,8 @@ class Fleet:
     def _check_agents(self) -> None:
         """An agent runs until the launcher stops or kills it: one that exits on its own fails the launch."""
         for vessel, process in self.agents.items():
-            if vessel not in self.killed and process.poll() is not None:
-                raise RuntimeError(self._exited(f"the agent of vessel {vessel}", f"agent-{vessel}",
+            if vessel not in self.killed and vessel not in self.down and process.poll() is not None:
+                raise RuntimeError(self._exited(f"the agent of vessel {vessel}", self._name(vessel),
                                                 process.returncode, "during the mission"))
 
     def _exited(self, who: str, name: str, code: int | None, when: str = "") -> str:
@@ -313,7 +384,7 @@ class Fleet:
         return f"{who} exited with code {code}{' ' + when if when else ''}{last} (see {log})"
 
     def _note_memory(self) -> None:
-        for name, process in [("bridge", self.bridge), *((f"agent-{v}", p) for v, p in self.agents.items())]:
+        for name, process in [("bridge", self.bridge), *((self._name(v), p) for v, p in self.agents.items())]:
             if process is not None and process.poll() is None:
                 peak = _peak_resident_mb(process.pid)
                 if peak is not None:
@@ -341,7 +412,7 @@ class Fleet:
         """SIGTERM to every child still running; SIGKILL to those still running STOP_SECONDS later (or at
         once on a second stop signal); wait for all of them."""
         self._note_memory()
-        processes = {name: p for name, p in [*((f"agent-{v}", p) for v, p in self.agents.items()),
+        processes = {name: p for name, p in [*((self._name(v), p) for v, p in self.agents.items()),
                                              ("bridge", self.bridge)] if p is not None}
         for process in processes.values():
             if process.poll() is None:

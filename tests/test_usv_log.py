@@ -273,3 +273,29 @@ def test_times_of_a_wall_clock_run_are_seconds_from_the_mission_start(tmp_path, 
     assert "2023-11-14 22:13:20 UTC (wall clock)" in summary_markdown(summary)
     assert cli.main(["metrics", str(tmp_path), "--radius", "5"]) == 0
     assert "| 3.0 s after the start |" in capsys.readouterr().out
+
+
+def test_the_logs_of_a_restarted_agent_are_read_as_one_vessel_in_time_order(tmp_path):
+    """A restarted agent writes a second log (systemd, or the launcher's restart): usv-log joins the runs of
+    one vessel in time order, and refuses two logs of one vessel that overlap in time."""
+    from agent.runtime.mcap_log import McapLog
+
+    def agent_log(name: str, ticks: range) -> None:
+        with McapLog(tmp_path / name, metadata={"vessel": "1"}) as agent:
+            for k in ticks:
+                agent.log("/1/estimates", {"neighbours": {}, "target_state": [5.0, 0.0, 0.0, 0.0], "k": k},
+                          WALL_START_NS + k * 100_000_000)
+
+    agent_log("agent-1-restart1.mcap", range(50, 80))       # named to sort first: time decides, not names
+    agent_log("agent-1.mcap", range(0, 30))
+    run = load_run(tmp_path)
+    vessel = run.vessels["1"]
+    assert [m["k"] for _, m in vessel.topic("estimates")] == [*range(30), *range(50, 80)]
+    assert [p.name for p in vessel.sessions] == ["agent-1.mcap", "agent-1-restart1.mcap"]
+    from mission_log.summary import run_summary, summary_markdown
+    page = summary_markdown(run_summary(run))
+    assert "The agent ran 2 times (restarted), one log each, read in time order: `agent-1.mcap`, " \
+           "`agent-1-restart1.mcap`." in page and "rotated" not in page
+    agent_log("agent-1-again.mcap", range(70, 90))         # a second agent with id 1, at the same time
+    with pytest.raises(LogError, match="a second log of vessel 1 that overlaps in time"):
+        load_run(tmp_path)

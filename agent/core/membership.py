@@ -117,18 +117,17 @@ def prior_from_target(params: AgentParams, state: VesselState, track: NeighbourT
 
     The target route waits until the trace of the two position covariances together is at most
     `fleet.target_route_factor` * P_io,0: a poor prior stays, because the range pairs barely observe some
-    directions while the fleet holds formation (docs/fleet.md §7, the join). After `history_ticks` of
-    waiting it takes the range instead."""
+    directions while the fleet holds formation (docs/fleet.md §7, the join). It also waits while our target
+    estimate disagrees with the ranges (`_target_agrees_with_ranges`; counted in `priors_refused`). After
+    `history_ticks` of waiting it takes the range instead."""
     share = track.share
     stamp = share.odometry.stamp
-    if state.tracker is not None and share.target is not None:
-        own_then, own_now = state.own.get(stamp_key(stamp)), state.own.get(stamp_key(state.motion.stamp))
-        shift = own_now - own_then if own_then is not None and own_now is not None else np.zeros(2)
-        mine = state.tracker.state[:2] - shift
-        theirs = np.asarray(share.target, dtype=float)[:2]
-        covariance = state.tracker.covariance[:2, :2] + np.asarray(share.target_covariance, dtype=float)[:2, :2]
-        if np.trace(covariance) <= params.fleet.target_route_factor * params.target.initial_covariance:
-            return NeighbourPrior(mine - theirs, covariance, stamp)
+    route = _route(state, track)
+    if route is not None:
+        if np.trace(route.covariance) <= params.fleet.target_route_factor * params.target.initial_covariance:
+            if _target_agrees_with_ranges(params, state, track, route):
+                return route
+            state.health.priors_refused += 1
         if stamp - track.first_heard < params.fleet.history_ticks * params.dt:
             return None
     spread = params.relative.initial_covariance
@@ -136,3 +135,66 @@ def prior_from_target(params: AgentParams, state: VesselState, track: NeighbourT
     if range_then is None:
         return None
     return NeighbourPrior(np.array([range_then, 0.0]), np.eye(2) * max(range_then**2, spread), stamp)
+
+
+def _route(state: VesselState, track: NeighbourTrack) -> NeighbourPrior | None:
+    """p_ij = p_io - p_jo from both vessels' target estimates at j's share stamp, with the sum of their
+    covariances; None without them."""
+    share = track.share
+    if state.tracker is None or share is None or share.target is None:
+        return None
+    stamp = share.odometry.stamp
+    own_then, own_now = state.own.get(stamp_key(stamp)), state.own.get(stamp_key(state.motion.stamp))
+    shift = own_now - own_then if own_then is not None and own_now is not None else np.zeros(2)
+    mine = state.tracker.state[:2] - shift
+    theirs = np.asarray(share.target, dtype=float)[:2]
+    covariance = state.tracker.covariance[:2, :2] + np.asarray(share.target_covariance, dtype=float)[:2, :2]
+    return NeighbourPrior(mine - theirs, covariance, stamp)
+
+
+def _target_agrees_with_ranges(params: AgentParams, state: VesselState, track: NeighbourTrack,
+                               route: NeighbourPrior) -> bool:
+    """Whether the target route of `track` agrees with the ranges kept to its neighbour, and our target
+    estimate, placed among the shared one of the neighbour whose line of sight lies closest to our bearing,
+    with the ranges to that one (`_agrees_with_ranges_kept`).
+
+    A vessel (re)started without initial estimates starts its target filter at a guessed range, and the
+    filter can come to believe it long before it is right (a boat restarted 25 m from the target: a position
+    trace of 0.4 m^2 with 20 m of error; under 1 m^2 with 6 m). A pair filter started from it is localised at
+    once and wrong, on both sides of the pair, and so confident that the ranges barely move it: in the
+    restart tests such pairs steered vessels to within 1.6 m of each other. That error lies along our
+    bearing, and ranges see an error along their line of sight: the pair's own may not see it, the
+    neighbour's closest to our bearing does. (One neighbour, not all: asking all of them for each pair
+    waiting to start costs a 50-vessel joiner a third of a second a tick.)"""
+    if not _agrees_with_ranges_kept(params, state, track, route):
+        return False
+    bearing = state.tracker.state[:2]
+    across, alignment = None, -1.0
+    for other in state.tracks.values():
+        other_route = _route(state, other) if other is not track else None
+        if other_route is not None:
+            norm = float(np.hypot(*other_route.position) * np.hypot(*bearing))
+            aligned = abs(float(other_route.position @ bearing)) / norm if norm > 0.0 else 0.0
+            if aligned > alignment:
+                across, alignment = (other, other_route), aligned
+    return across is None or _agrees_with_ranges_kept(params, state, *across)
+
+
+def _agrees_with_ranges_kept(params: AgentParams, state: VesselState, track: NeighbourTrack,
+                             prior: NeighbourPrior) -> bool:
+    """Whether `prior`, carried to the time of each range kept by both vessels' odometry, agrees with those
+    ranges: the median of measured minus predicted |p_ij| within four standard deviations of a median of n
+    ranges (range_variance / n; some 0.9 m with a full history). The prior's own covariance is left out: it
+    is what is in doubt. True when no range can be paired with both odometries yet."""
+    mine_then, theirs_then, why = track.positions_at(state.own, stamp_key(prior.stamp))
+    if why:
+        return True
+    position = np.asarray(prior.position, dtype=float)
+    misses = []
+    for key, measured in track.ranges.items():
+        mine, theirs, why = track.positions_at(state.own, key)
+        if not why:
+            misses.append(measured - float(np.hypot(*(position + (mine - mine_then) - (theirs - theirs_then)))))
+    if not misses:
+        return True
+    return float(np.median(misses)) ** 2 <= 16.0 * params.relative.range_variance / len(misses)
