@@ -10,10 +10,11 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import lru_cache
 from typing import Literal
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, TypeAdapter
 
 from agent.config import PositiveFloat, StrictModel, updated
 from agent.core.estimators import make_relative_estimator
@@ -21,7 +22,15 @@ from agent.core.params import ESTIMATOR_NAMES, AgentParams
 from lab.bound import fisher_information, rms_bound
 from lab.errors import ErrorHistory
 from lab.parallel import map_in_order
-from sim_bridge.noise import GaussianMixtureNoise, IsotropicGaussianNoise, LogNormalNoise, RangeNoise
+from sim_bridge.noise import (
+    GaussianMixtureNoise,
+    GaussianNoise,
+    IsotropicGaussianNoise,
+    LogNormalNoise,
+    RangeNoise,
+)
+
+_NOISE_ADAPTER = TypeAdapter(RangeNoise)
 
 
 class ComparisonConfig(StrictModel):
@@ -49,7 +58,15 @@ class ComparisonConfig(StrictModel):
     variance_scale: PositiveFloat = Field(
         1.0, description="multiplies the filters' range variance; 1 is the derivation, others diagnose"
     )
-    estimators: tuple[str, ...] = ESTIMATOR_NAMES
+    estimators: tuple[str, ...] = (*ESTIMATOR_NAMES, "raw_range")
+    raw_range_noise: Literal["model", "params"] = Field(
+        "model",
+        description=(
+            "range-noise density the raw-range estimator assumes: the run's noise model ('model': a mixture "
+            "exactly, otherwise a Gaussian mixture fitted to it), as the Cramér–Rao bound does, or "
+            "agent.relative.raw_range.noise_components as configured ('params')"
+        ),
+    )
     agent: AgentParams = AgentParams()
 
 
@@ -107,6 +124,37 @@ def filter_variance(noise: RangeNoise, config: ComparisonConfig) -> float:
     return base * config.variance_scale
 
 
+def noise_components(noise: RangeNoise) -> tuple[tuple[float, float, float], ...]:
+    """The range-noise density as (weight, mean, variance) Gaussian components for the raw-range estimator:
+    exact for a Gaussian (variance floored at 1e-8) or a Gaussian mixture, else a 4-component mixture fitted to it by EM."""
+    if isinstance(noise, GaussianMixtureNoise):
+        eps = noise.outlier_fraction
+        return ((1.0 - eps, 0.0, noise.variance), (eps, 0.0, noise.outlier_variance))
+    if isinstance(noise, GaussianNoise):
+        return ((1.0, 0.0, max(noise.variance, 1e-8)),)
+    return _fitted_mixture(noise.model_dump_json())
+
+
+@lru_cache(maxsize=16)
+def _fitted_mixture(noise_json: str, components: int = 4, samples: int = 50_000, iterations: int = 200
+                    ) -> tuple[tuple[float, float, float], ...]:
+    """EM fit of a Gaussian mixture to samples of the noise model (fixed seed: the same fit every time)."""
+    noise = _NOISE_ADAPTER.validate_json(noise_json)
+    x = np.sort(noise.sample(np.random.default_rng(0), samples))
+    weight = np.full(components, 1.0 / components)
+    mean = np.quantile(x, (np.arange(components) + 0.5) / components)
+    variance = np.full(components, x.var() / components)
+    for _ in range(iterations):
+        log_p = np.log(weight)[:, None] - 0.5 * (np.log(2 * np.pi * variance)[:, None]
+                                                 + (x[None] - mean[:, None]) ** 2 / variance[:, None])
+        g = np.exp(log_p - log_p.max(axis=0))
+        g /= g.sum(axis=0)
+        n = g.sum(axis=1)
+        weight, mean = n / len(x), (g * x).sum(axis=1) / n
+        variance = np.maximum((g * (x - mean[:, None]) ** 2).sum(axis=1) / n, 1e-4)
+    return tuple((float(w), float(m), float(v)) for w, m, v in zip(weight, mean, variance))
+
+
 def run_once(config: ComparisonConfig, noise: RangeNoise, seed_sequence: np.random.SeedSequence
              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """One Monte Carlo run: errors (estimators, K+1), MCKF iterations (K,), batch LS errors at LS_TIMES."""
@@ -123,6 +171,8 @@ def run_once(config: ComparisonConfig, noise: RangeNoise, seed_sequence: np.rand
     initial = truth[0] + rng.normal(0.0, math.sqrt(relative.initial_covariance), size=2)
 
     params = updated(relative, range_variance=filter_variance(noise, config))
+    if config.raw_range_noise == "model":
+        params = updated(params, raw_range=updated(params.raw_range, noise_components=noise_components(noise)))
     errors = np.empty((len(config.estimators), steps + 1))
     iterations = np.zeros(steps, dtype=np.int16)
     for e, name in enumerate(config.estimators):

@@ -9,7 +9,7 @@ from pydantic import Field, model_validator
 
 from agent.config import NonNegativeFloat, PositiveFloat, StrictModel, commented_yaml
 
-EstimatorName = Literal["mckf", "kf", "akf", "rls", "huber_rls"]
+EstimatorName = Literal["mckf", "kf", "akf", "rls", "huber_rls", "raw_range"]
 ESTIMATOR_NAMES: tuple[str, ...] = ("rls", "huber_rls", "kf", "akf", "mckf")
 
 
@@ -46,6 +46,45 @@ class HuberParams(StrictModel):
     scale_window: int = Field(50, ge=5, le=10_000, description="residuals kept for the MAD scale estimate")
 
 
+class RawRangeParams(StrictModel):
+    """Raw-range estimator (agent/core/estimators/raw_range.py): a batch fix over a window of ranges, then a
+    robust iterated EKF on each range r = |p| + noise."""
+
+    noise_components: tuple[tuple[PositiveFloat, float, PositiveFloat], ...] = Field(
+        ((0.8, 0.0, 0.4), (0.2, 0.0, 10.0)),
+        min_length=1, max_length=8,
+        description=(
+            "range-noise density the estimator assumes, a Gaussian mixture given as (weight, mean m, variance "
+            "m^2) per component; weights are normalised. Default: the Table II mixture 0.8 N(0, 0.4) + "
+            "0.2 N(0, 10). A biased or skewed noise (the log-normal (8)) is approximated by components with "
+            "non-zero means"
+        ),
+    )
+    gross_error_fraction: NonNegativeFloat = Field(
+        1e-3, lt=1, description="weight of one more, very wide, zero-mean component added to noise_components "
+                                "(the others scaled by 1 - this), so that a gross error (multipath, a wrong "
+                                "reply) has a bounded effect: its weight falls once it is beyond the modelled tails")
+    gross_error_variance: PositiveFloat = Field(1e4, description="variance of that component (m^2)")
+    window: int = Field(300, ge=5, le=100_000,
+                        description="most ranges kept for the batch fix while the position is not yet fixed")
+    min_ranges: int = Field(20, ge=3, le=100_000, description="ranges needed before the first batch solve")
+    solve_every: int = Field(5, ge=1, le=10_000,
+                             description="while not fixed, the batch is solved every this many ranges")
+    ambiguity_threshold: PositiveFloat = Field(
+        9.2, description="the fix is declared unique once the mirror solution's negative log-likelihood exceeds "
+                         "the best one's by this much (nats; 9.2: a likelihood ratio of 10^4)")
+    fix_max_variance: PositiveFloat = Field(
+        4.0, description="and once the largest eigenvalue of the batch covariance is at most this (m^2)")
+    batch_iterations: int = Field(20, ge=1, le=1000, description="Gauss-Newton/EM iterations of a batch solve")
+    iterations: int = Field(3, ge=1, le=100, description="iterations of the robust iterated EKF per range")
+    tolerance: PositiveFloat = Field(1e-6, description="stop iterating when the step is below this (m)")
+    monitor_length: int = Field(100, ge=10, le=100_000,
+                                description="ranges the tracking monitor averages the residuals' fit over")
+    monitor_sigmas: PositiveFloat = Field(
+        5.0, description="the fix is dropped (phase 1 again, from no prior) once the monitor's mean negative "
+                         "log-likelihood exceeds the density's entropy by this many standard errors + 0.2 nats")
+
+
 class RelativeEstimationParams(StrictModel):
     """Inter-vessel relative position estimation, Sec. III-A."""
 
@@ -73,6 +112,7 @@ class RelativeEstimationParams(StrictModel):
     akf: AkfParams = AkfParams()
     rls: RlsParams = RlsParams()
     huber_rls: HuberParams = HuberParams()
+    raw_range: RawRangeParams = RawRangeParams()
 
 
 class TargetEstimationParams(StrictModel):

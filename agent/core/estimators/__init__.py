@@ -10,11 +10,12 @@ from agent.core.estimators.huber_rls import HuberRLS
 from agent.core.estimators.kf import KF
 from agent.core.estimators.mckf import MCKF
 from agent.core.estimators.plkf import PLKF, BearingOutcome
+from agent.core.estimators.raw_range import RawRange
 from agent.core.estimators.rls import RLS
 from agent.core.params import RelativeEstimationParams
 
 ESTIMATORS: dict[str, type[RelativePositionEstimator]] = {
-    cls.name: cls for cls in (RLS, HuberRLS, KF, AKF, MCKF)
+    cls.name: cls for cls in (RLS, HuberRLS, KF, AKF, MCKF, RawRange)
 }
 
 
@@ -30,6 +31,17 @@ def make_relative_estimator(
 
 
 __all__ = [
-    "AKF", "BearingOutcome", "Diagnostics", "ESTIMATORS", "HuberRLS", "KF", "MCKF", "PLKF", "RLS",
-    "RelativePositionEstimator", "UpdateOutcome", "make_relative_estimator",
+    "AKF",
+    "ESTIMATORS",
+    "KF",
+    "MCKF",
+    "PLKF",
+    "RLS",
+    "BearingOutcome",
+    "Diagnostics",
+    "HuberRLS",
+    "RawRange",
+    "RelativePositionEstimator",
+    "UpdateOutcome",
+    "make_relative_estimator",
 ]

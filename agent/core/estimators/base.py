@@ -188,6 +188,11 @@ class RelativePositionEstimator(ABC):
                                            displacement_variance)
         saved = (self._px, self._py, self._p11, self._p12, self._p22)
         outcome = self._correct(z, dx, dy, rz)
+        return self._settle(saved, outcome)
+
+    def _settle(self, saved: tuple[float, ...], outcome: UpdateOutcome) -> UpdateOutcome:
+        """After a correction: keep it if the state is finite and its covariance SPD, else put `saved` back
+        and refuse the update; either way the update is counted and recorded."""
         if not (math.isfinite(self._px) and math.isfinite(self._py)
                 and is_positive_definite(self._p11, self._p12, self._p22)):
             self._px, self._py, self._p11, self._p12, self._p22 = saved

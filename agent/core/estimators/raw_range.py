@@ -1,0 +1,561 @@
+"""Raw-range relative position estimator: the ranges r_k = |p_k| + mu_k themselves, not the pseudo-linear
+differences (12), (13).
+
+Why. The pseudo-linear measurement z = delta^T p_k pairs consecutive ranges: with delta ~ 5 cm per epoch and
+noise on r_k^2 - r_(k-1)^2 of about 2 r sigma, each update carries almost no information, and the five
+pseudo-linear filters stay 40-280 times above the Cramér–Rao bound (lab/bound.py). A range r_k constrains p_k
+directly with the full Fisher information I_f of the noise, radially; the odometry carries every past range to
+the present (p_m = p_k - (D_k - D_m), D the cumulative relative displacement), so the ranges of a window are a
+multilateration of p_k from anchors on the relative path.
+
+Two phases.
+
+1. Fix (no usable linearisation point yet). Every range is kept with D at its epoch (at most `window`). Every
+   `solve_every` ranges, the negative log-likelihood of the window under the assumed noise density (a
+   Gaussian mixture, `noise_components`, plus a very wide gross-error component) plus the prior (p_0, P_0)
+   carried by odometry (P grows by 2 R_delta per period, (15)) is minimised for p_k by Gauss-Newton with EM
+   weights (each range's component responsibilities give it a precision and a mean shift), with step halving.
+   Cold starting points: the anchors' principal line, along which the range model is linear in
+   (alpha, alpha^2 + beta^2), gives two points at +-beta from the line; the two points at the mean range
+   straight across the anchors' centroid; the prior's mean. Later solves are warm-started.
+   Mirror ambiguity: while the anchors lie on a straight line (the relative motion has not turned), p and its
+   reflection across that line (the line through the other vessel parallel to the relative motion) explain
+   the ranges equally well. The solver refines the best point, reflects it across the anchors' line and
+   refines the reflection: only if that lands back on the best point is the minimum unique; otherwise the fix
+   is unique once the other minimum's cost exceeds the best's by `ambiguity_threshold` nats (curvature of the
+   path, or an informative prior, decides). Until then `ambiguous` is True, `mirror` gives the other
+   candidate, the position is the better one and the covariance includes the spread towards the other,
+   weighted by its likelihood share. The fix also needs the covariance's largest eigenvalue
+   <= `fix_max_variance`, and the best point must pass a goodness-of-fit test (mean negative log-likelihood
+   per range against the density's entropy), which a point that explains the ranges as gross errors fails.
+   The covariance of the fix is (P^-1 + I sum_m u_m u_m^T)^-1, u_m the unit vector of range m: the
+   Cramér–Rao form, consistent for an efficient estimate (the EM weights would overstate the information of
+   the good ranges). I is the information per range: I_f of the assumed density when that density is the
+   noise's, less when it is only an approximation (a fitted mixture, an unmodelled bias). It is measured as
+   the sandwich (mean psi')^2 / mean psi^2 of the residuals' score psi = -(ln f)' (both means are I_f when the
+   density is right), shrunk towards I_f and kept within [I_f / 20, I_f].
+2. Tracking: each range updates the state by a robust iterated EKF on h(p) = |p| (H = p^T/|p|). The EM
+   weights of the range (responsibilities with each component's variance plus H P^- H^T) give the gain's
+   measurement variance and mean shift; the covariance is updated with the information per range I, for the
+   reason above, its score means running over the last ~200 ranges. A few plain-float operations per iteration: no numpy in the loop.
+   The mean negative log-likelihood of the recent residuals is watched (`monitor`): if it leaves the
+   density's entropy by far, the fix is dropped and phase 1 starts again from no prior (a wrong fix, or a
+   jump in the relative position the odometry did not see).
+
+`range_prev` of `update` is used once, for the first range of the sequence (the one `mark_range_epoch`
+declared); after that each update uses only `range_now`, at the state already moved by `predict`.
+
+`assimilate` while not fixed replaces the prior the window is solved with (and the estimate); when fixed it
+replaces the state, as in the base.
+"""
+
+from __future__ import annotations
+
+import math
+from functools import lru_cache
+
+import numpy as np
+
+from agent.core.estimators.base import (
+    REJECTED_RANGE,
+    RelativePositionEstimator,
+    UpdateOutcome,
+    _as_range,
+)
+from agent.core.params import RelativeEstimationParams
+
+LOG_2PI = math.log(2.0 * math.pi)
+_trapezoid = getattr(np, "trapezoid", None) or np.trapz
+# Smallest distance from an anchor at which a range is used; closer, its direction is undefined.
+MIN_DISTANCE = 1e-9
+# Sandwich covariance: pseudo-ranges at I_f a batch's score moments are shrunk towards, and the length of
+# the tracking phase's running means (ranges).
+SANDWICH_PRIOR = 20
+SANDWICH_LENGTH = 200
+# Step halvings of one Gauss-Newton step before the solve stops where it is (a step of 2^-8).
+MAX_HALVINGS = 8
+# The covariance a dropped fix starts phase 1 again with: no prior.
+NO_PRIOR_VARIANCE = 1e12
+
+
+def _components(params: RelativeEstimationParams) -> tuple[tuple[float, float, float], ...]:
+    """(weight, mean, variance) per mixture component, weights normalised to 1, the gross-error component
+    last."""
+    p = params.raw_range
+    total = sum(c[0] for c in p.noise_components)
+    scale = (1.0 - p.gross_error_fraction) / total
+    components = tuple((float(w) * scale, float(m), float(v)) for w, m, v in p.noise_components)
+    if p.gross_error_fraction > 0.0:
+        components += ((float(p.gross_error_fraction), 0.0, float(p.gross_error_variance)),)
+    return components
+
+
+@lru_cache(maxsize=64)
+def mixture_statistics(components: tuple[tuple[float, float, float], ...]) -> tuple[float, float, float]:
+    """(I_f, H, S) of the mixture density f, integrated numerically once per noise model: the Fisher
+    information as a location family I_f = ∫ f'^2 / f dx (m^-2), the entropy H = E[-ln f(mu)] and the
+    standard deviation S of -ln f(mu), mu ~ f (nats; the goodness-of-fit tests)."""
+    # One fine grid per component (+-12 of its standard deviations), merged: the components' widths may
+    # differ by orders of magnitude.
+    x = np.unique(np.concatenate([m + math.sqrt(v) * np.linspace(-12.0, 12.0, 40_001) for _, m, v in components]))
+    f = np.zeros_like(x)
+    df = np.zeros_like(x)
+    for w, m, v in components:
+        g = w * np.exp(-0.5 * (x - m) ** 2 / v) / math.sqrt(2 * math.pi * v)
+        f += g
+        df += -g * (x - m) / v
+    mask = f > 1e-300
+    x, f, df = x[mask], f[mask], df[mask]
+    nll = -np.log(f)
+    entropy = float(_trapezoid(f * nll, x))
+    spread = float(_trapezoid(f * (nll - entropy) ** 2, x))
+    return float(_trapezoid(df ** 2 / f, x)), entropy, math.sqrt(max(spread, 0.0))
+
+
+def mixture_fisher_information(components: tuple[tuple[float, float, float], ...]) -> float:
+    """Fisher information of the mixture density as a location family (m^-2)."""
+    return mixture_statistics(components)[0]
+
+
+def em_weight(e: float, h: float, components: tuple[tuple[float, float, float], ...]
+              ) -> tuple[float, float, float, float, float]:
+    """EM weights of one range residual e = r - |p|: (precision w, mean shift m, negative log-likelihood of e,
+    score psi, its derivative psi') with the components' responsibilities gamma_c and the density evaluated at
+    variance v_c = sigma_c^2 + h (h: the state's uncertainty along the range). w = sum gamma_c / sigma_c^2,
+    m = sum gamma_c mu_c / sigma_c^2 / w; psi = -(ln f)'(e) = sum gamma_c s_c with s_c = (e - mu_c) / v_c, and
+    psi' = sum gamma_c / v_c - sum gamma_c s_c^2 + psi^2."""
+    best = -math.inf
+    logs = []
+    for weight, mean, variance in components:
+        s = variance + h
+        d = e - mean
+        lp = math.log(weight) - 0.5 * (math.log(s) + d * d / s)
+        logs.append(lp)
+        best = max(best, lp)
+    total = precision = shift = psi = curvature = 0.0
+    for (_, mean, variance), lp in zip(components, logs):
+        g = math.exp(lp - best)
+        total += g
+        precision += g / variance
+        shift += g * mean / variance
+        v = variance + h
+        sc = (e - mean) / v
+        psi += g * sc
+        curvature += g * (1.0 / v - sc * sc)
+    psi /= total
+    return (precision / total, shift / precision, 0.5 * LOG_2PI - best - math.log(total), psi,
+            curvature / total + psi * psi)
+
+
+def _inverse(a11: float, a12: float, a22: float) -> tuple[float, float, float]:
+    det = a11 * a22 - a12 * a12
+    return a22 / det, -a12 / det, a11 / det
+
+
+def _largest_eigenvalue(a11: float, a12: float, a22: float) -> float:
+    half = 0.5 * (a11 + a22)
+    return half + math.sqrt(max(0.25 * (a11 - a22) ** 2 + a12 * a12, 0.0))
+
+
+class BatchWindow:
+    """Negative log-likelihood of the window's ranges plus a Gaussian prior, and its minimiser (numpy)."""
+
+    def __init__(self, ranges: np.ndarray, anchors: np.ndarray, components, prior: tuple[float, ...]) -> None:
+        self.r = ranges                       # (N,)
+        self.a = anchors                      # (N, 2): p_m = p - a_m
+        self.mean = np.array([c[1] for c in components])[:, None]
+        self.var = np.array([c[2] for c in components])[:, None]
+        self.log_norm = np.log(np.array([c[0] for c in components]))[:, None] - 0.5 * (LOG_2PI + np.log(self.var))
+        qx, qy, q11, q12, q22 = prior
+        self.q = (qx, qy)
+        self.i11, self.i12, self.i22 = _inverse(q11, q12, q22)
+
+    def prior_term(self, px: float, py: float) -> float:
+        ex, ey = px - self.q[0], py - self.q[1]
+        return 0.5 * (self.i11 * ex * ex + 2 * self.i12 * ex * ey + self.i22 * ey * ey)
+
+    def evaluate(self, px: float, py: float) -> tuple[float, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(cost, u (N, 2) unit vectors, residuals e, EM precision w, EM mean shift m) at p."""
+        dx = px - self.a[:, 0]
+        dy = py - self.a[:, 1]
+        d = np.maximum(np.hypot(dx, dy), MIN_DISTANCE)
+        e = self.r - d
+        logs = self.log_norm - 0.5 * (e - self.mean) ** 2 / self.var      # (K, N)
+        top = logs.max(axis=0)
+        g = np.exp(logs - top)
+        total = g.sum(axis=0)
+        cost = float(-(top + np.log(total)).sum()) + self.prior_term(px, py)
+        g /= total
+        w = (g / self.var).sum(axis=0)
+        m = (g * self.mean / self.var).sum(axis=0) / w
+        u = np.column_stack([dx / d, dy / d])
+        return cost, u, e, w, m
+
+    def solve(self, px: float, py: float, iterations: int, tolerance: float) -> tuple[float, float, float]:
+        """Gauss-Newton with EM weights from p, with step halving; (px, py, cost) at the end."""
+        cost, u, e, w, m = self.evaluate(px, py)
+        for _ in range(iterations):
+            ux, uy = u[:, 0], u[:, 1]
+            wr = w * (e - m)
+            a11 = float((w * ux * ux).sum()) + self.i11
+            a12 = float((w * ux * uy).sum()) + self.i12
+            a22 = float((w * uy * uy).sum()) + self.i22
+            g1 = float((wr * ux).sum()) + self.i11 * (self.q[0] - px) + self.i12 * (self.q[1] - py)
+            g2 = float((wr * uy).sum()) + self.i12 * (self.q[0] - px) + self.i22 * (self.q[1] - py)
+            det = a11 * a22 - a12 * a12
+            if not det > 1e-12 * max(a11 * a22, 1e-300):
+                damping = 1e-6 * max(a11, a22, 1e-12)
+                a11 += damping
+                a22 += damping
+                det = a11 * a22 - a12 * a12
+            sx = (a22 * g1 - a12 * g2) / det
+            sy = (a11 * g2 - a12 * g1) / det
+            step = 1.0
+            for _ in range(MAX_HALVINGS):
+                trial = self.evaluate(px + step * sx, py + step * sy)
+                if trial[0] <= cost + 1e-12 * abs(cost):
+                    break
+                step *= 0.5
+            else:
+                break
+            px, py = px + step * sx, py + step * sy
+            cost, u, e, w, m = trial
+            if step * math.hypot(sx, sy) <= tolerance:
+                break
+        return px, py, cost
+
+    def score_moments(self, px: float, py: float) -> tuple[float, float, int]:
+        """(sum of psi^2, sum of psi', N) of the ranges' residuals at p under the assumed density: the two
+        estimates of the Fisher information the sandwich compares (module docstring)."""
+        _, _, e, _, _ = self.evaluate(px, py)
+        logs = self.log_norm - 0.5 * (e - self.mean) ** 2 / self.var
+        g = np.exp(logs - logs.max(axis=0))
+        g /= g.sum(axis=0)
+        sc = (e - self.mean) / self.var
+        psi = (g * sc).sum(axis=0)
+        curvature = (g * (1.0 / self.var - sc * sc)).sum(axis=0) + psi * psi
+        return float((psi * psi).sum()), float(curvature.sum()), len(e)
+
+    def covariance(self, px: float, py: float, fisher: float) -> tuple[float, float, float]:
+        """(P^-1 + I_f sum u u^T)^-1 at p."""
+        dx = px - self.a[:, 0]
+        dy = py - self.a[:, 1]
+        d = np.maximum(np.hypot(dx, dy), MIN_DISTANCE)
+        ux, uy = dx / d, dy / d
+        return _inverse(fisher * float((ux * ux).sum()) + self.i11, fisher * float((ux * uy).sum()) + self.i12,
+                        fisher * float((uy * uy).sum()) + self.i22)
+
+    def line(self) -> tuple[float, float, float, float]:
+        """Centroid (cx, cy) and unit direction (tx, ty) of the anchors' principal line."""
+        cx, cy = (float(v) for v in self.a.mean(axis=0))
+        x = self.a[:, 0] - cx
+        y = self.a[:, 1] - cy
+        sxx, sxy, syy = float((x * x).sum()), float((x * y).sum()), float((y * y).sum())
+        angle = 0.5 * math.atan2(2 * sxy, sxx - syy)
+        return cx, cy, math.cos(angle), math.sin(angle)
+
+    def line_candidates(self) -> tuple[tuple[float, float], tuple[float, float]]:
+        """The two points at +-beta from the anchors' line: r_m^2 - s_m^2 = -2 alpha s_m + (alpha^2 + beta^2),
+        s_m the anchors' coordinate along the line, fitted by least squares (beta = 0 if the fit says less)."""
+        cx, cy, tx, ty = self.line()
+        s = (self.a[:, 0] - cx) * tx + (self.a[:, 1] - cy) * ty
+        y = self.r * self.r - s * s
+        s_mean, y_mean = float(s.mean()), float(y.mean())
+        spread = float(((s - s_mean) ** 2).sum())
+        alpha = -0.5 * float(((s - s_mean) * (y - y_mean)).sum()) / spread if spread > 1e-12 else 0.0
+        c = y_mean + 2 * alpha * s_mean
+        beta = math.sqrt(max(c - alpha * alpha, 0.0))
+        bx, by = cx + alpha * tx, cy + alpha * ty
+        return (bx - beta * ty, by + beta * tx), (bx + beta * ty, by - beta * tx)
+
+    def centroid_candidates(self) -> tuple[tuple[float, float], tuple[float, float]]:
+        """The two points at the mean range straight across the anchors' line from their centroid."""
+        cx, cy, tx, ty = self.line()
+        reach = math.sqrt(float((self.r * self.r).mean()))
+        return (cx - reach * ty, cy + reach * tx), (cx + reach * ty, cy - reach * tx)
+
+    def mirror(self, px: float, py: float) -> tuple[float, float]:
+        """The reflection of p across the anchors' line."""
+        cx, cy, tx, ty = self.line()
+        vx, vy = px - cx, py - cy
+        along = vx * tx + vy * ty
+        return cx + 2 * along * tx - vx, cy + 2 * along * ty - vy
+
+
+class RawRange(RelativePositionEstimator):
+    """Batch fix over a window of raw ranges, mirror ambiguity explicit, then a robust iterated EKF on
+    r = |p| (module docstring)."""
+
+    name = "raw_range"
+
+    # ----- reading -----
+    @property
+    def ambiguous(self) -> bool:
+        """True until the position is fixed: before the first batch solve, and while p and its mirror
+        across the line of the relative motion explain the ranges nearly equally well."""
+        return not self._fixed
+
+    @property
+    def fixed(self) -> bool:
+        return self._fixed
+
+    @property
+    def mirror(self) -> np.ndarray | None:
+        """The other candidate while ambiguous (None before the first solve, when there is none, and once
+        fixed)."""
+        return None if self._alt is None or self._fixed else np.array(self._alt)
+
+    @property
+    def refixes(self) -> int:
+        """How many times a fix was dropped by the tracking monitor."""
+        return self._refixes
+
+    # ----- life cycle -----
+    def _reset_extra(self) -> None:
+        self._components = _components(self.params)
+        self._fisher, self._entropy, self._nll_spread = mixture_statistics(self._components)
+        # Sandwich: running means of psi^2 and psi' of the residuals (both I_f when the density is right), and
+        # the information per range the covariance uses, (mean psi')^2 / mean psi^2 within [I_f / 20, I_f].
+        self._psi2 = self._dpsi = self._info = self._fisher
+        self._fixed = False
+        self._cx = self._cy = 0.0                      # cumulative relative displacement D
+        self._window: list[tuple[float, float, float]] = []   # (range, Dx, Dy) per range epoch
+        self._prior = (self._px, self._py, self._p11, self._p12, self._p22)   # carried to now by odometry
+        self._alt: tuple[float, float] | None = None
+        self._unsolved = 0                             # ranges since the last batch solve
+        self._solves = 0
+        self._evidence = 0.0                           # other minimum's cost minus the best's (nats)
+        self._consistent = False                       # the last batch solution passed the goodness-of-fit test
+        self._monitor = 0.0                            # running mean of the tracking residuals' NLL (nats)
+        self._tracked = 0                              # ranges since the fix
+        self._refixes = 0
+
+    def assimilate(self, position: np.ndarray, covariance: np.ndarray) -> bool:
+        if not super().assimilate(position, covariance):
+            return False
+        if not self._fixed:
+            self._prior = (self._px, self._py, self._p11, self._p12, self._p22)
+            self._alt = None
+        return True
+
+    # ----- prediction -----
+    def predict(self, displacement, intervals: float = 1.0) -> bool:
+        before_x, before_y, before_steps = self._pair_dx, self._pair_dy, self._pair_steps
+        if not super().predict(displacement, intervals):
+            return False
+        dx, dy = self._pair_dx - before_x, self._pair_dy - before_y
+        if not self._fixed:
+            self._cx += dx
+            self._cy += dy
+            qx, qy, q11, q12, q22 = self._prior
+            inflation = 2.0 * self.params.displacement_variance * (self._pair_steps - before_steps)
+            self._prior = (qx + dx, qy + dy, q11 + inflation, q12, q22 + inflation)
+            if self._alt is not None:
+                self._alt = (self._alt[0] + dx, self._alt[1] + dy)
+        return True
+
+    # ----- correction -----
+    def update(self, range_prev: float, range_now: float) -> UpdateOutcome:
+        # Both ranges are checked, as in every estimator, though only the first pair uses range_prev.
+        r = _as_range(range_now, self.params.max_range)
+        if math.isnan(r) or math.isnan(_as_range(range_prev, self.params.max_range)):
+            self._diag.rejected += 1
+            return self._record(UpdateOutcome(accepted=False, reason=REJECTED_RANGE))
+        saved = (self._px, self._py, self._p11, self._p12, self._p22)
+        if self._fixed:
+            outcome = self._track(r)
+        else:
+            outcome = self._collect(range_prev, r)
+        return self._settle(saved, outcome)
+
+    def _correct(self, z: float, dx: float, dy: float, rz: float) -> UpdateOutcome:  # pragma: no cover
+        raise NotImplementedError("RawRange uses the ranges themselves, not the pseudo-linear measurement")
+
+    def _collect(self, range_prev: float, r: float) -> UpdateOutcome:
+        """Phase 1: keep the range, and solve the window every `solve_every` ranges."""
+        p = self.params.raw_range
+        if not self._window and self._solves == 0:
+            first = _as_range(range_prev, self.params.max_range)
+            if not math.isnan(first) and self._pair_steps > 0:
+                # The range of the epoch `mark_range_epoch` declared, before this pair's displacement.
+                self._window.append((first, self._cx - self._pair_dx, self._cy - self._pair_dy))
+        self._window.append((r, self._cx, self._cy))
+        if len(self._window) > p.window:
+            del self._window[: len(self._window) - p.window]
+        self._unsolved += 1
+        if len(self._window) < p.min_ranges or (self._unsolved < p.solve_every and self._solves > 0):
+            return UpdateOutcome(accepted=True, reason="collecting")
+        self._unsolved = 0
+        return self._solve()
+
+    def _solve(self) -> UpdateOutcome:
+        p = self.params.raw_range
+        data = np.array(self._window)
+        anchors = np.column_stack([self._cx - data[:, 1], self._cy - data[:, 2]])
+        batch = BatchWindow(data[:, 0], anchors, self._components, self._prior)
+        starts = []
+        if self._solves > 0:
+            starts.append((self._px, self._py))
+            if self._alt is not None:
+                starts.append(self._alt)
+        if self._solves == 0 or not self._consistent:
+            # Cold: both line candidates, the points straight across the anchors' centroid, the prior's mean.
+            starts += [*batch.line_candidates(), *batch.centroid_candidates(), self._prior[:2]]
+        solutions = [batch.solve(x, y, p.batch_iterations, p.tolerance) for x, y in starts]
+        bx, by, best = min(solutions, key=lambda s: s[2])
+        mx, my = batch.mirror(bx, by)
+        mirror = batch.solve(mx, my, p.batch_iterations, p.tolerance)
+        psi2, dpsi, n = batch.score_moments(bx, by)
+        self._psi2 = (SANDWICH_PRIOR * self._fisher + psi2) / (SANDWICH_PRIOR + n)
+        self._dpsi = (SANDWICH_PRIOR * self._fisher + dpsi) / (SANDWICH_PRIOR + n)
+        self._info = self._sandwich()
+        c11, c12, c22 = batch.covariance(bx, by, self._info)
+        largest = _largest_eigenvalue(c11, c12, c22)
+        smallest = c11 + c22 - largest
+        # Another local minimum, however near: one the solver from the mirror point did not leave. Only when
+        # it converged back onto the best point is the minimum unique (the path has turned enough).
+        same = max(1e-3, 0.25 * math.sqrt(max(smallest, 0.0)))
+        separate = [s for s in (*solutions, mirror) if math.hypot(s[0] - bx, s[1] - by) > same]
+        self._solves += 1
+        # Goodness of fit: the mean negative log-likelihood per range of the best point against the density's
+        # entropy, with 4 standard errors and 0.2 nats of slack for a density that is only approximate. A
+        # point that explains the ranges only as gross errors (a wrong basin) fails it.
+        n = len(data)
+        nll = (best - batch.prior_term(bx, by)) / n
+        self._consistent = nll <= self._entropy + 0.2 + 4.0 * self._nll_spread / math.sqrt(n)
+        if separate:
+            ax, ay, alt_cost = min(separate, key=lambda s: s[2])
+            evidence = alt_cost - best
+        else:
+            ax = ay = None
+            evidence = math.inf
+        self._evidence = evidence
+        self._px, self._py = bx, by
+        if evidence >= p.ambiguity_threshold and largest <= p.fix_max_variance and self._consistent:
+            self._fixed = True
+            self._alt = None
+            self._window = []
+            self._monitor = self._entropy
+            self._tracked = 0
+            self._p11, self._p12, self._p22 = c11, c12, c22
+            return UpdateOutcome(accepted=True, reason="fixed", iterations=self._solves, weight=1.0)
+        if ax is None:
+            self._alt = None
+            self._p11, self._p12, self._p22 = c11, c12, c22
+        else:
+            self._alt = (ax, ay)
+            share = 1.0 / (1.0 + math.exp(min(evidence, 700.0)))
+            vx, vy = ax - bx, ay - by
+            self._p11, self._p12, self._p22 = c11 + share * vx * vx, c12 + share * vx * vy, c22 + share * vy * vy
+        return UpdateOutcome(accepted=True, reason="ambiguous", iterations=self._solves,
+                             weight=1.0 if ax is None else 1.0 / (1.0 + math.exp(-min(evidence, 700.0))))
+
+    def _track(self, r: float) -> UpdateOutcome:
+        """Phase 2: robust iterated EKF on r = |p| + mu."""
+        p = self.params.raw_range
+        components = self._components
+        px, py, p11, p12, p22 = self._px, self._py, self._p11, self._p12, self._p22
+        d = math.hypot(px, py)
+        if d < MIN_DISTANCE:
+            return UpdateOutcome(accepted=True, reason="at the origin: range direction undefined")
+        ux, uy = px / d, py / d
+        h = ux * (p11 * ux + p12 * uy) + uy * (p12 * ux + p22 * uy)
+        innovation = r - d
+        _, _, nll, psi, dpsi = em_weight(innovation, h, components)
+        self._psi2 += (psi * psi - self._psi2) / SANDWICH_LENGTH
+        self._dpsi += (dpsi - self._dpsi) / SANDWICH_LENGTH
+        self._info = info = self._sandwich()
+        qx, qy = px, py
+        iterations = 0
+        w = 1.0
+        while iterations < p.iterations:
+            iterations += 1
+            d = math.hypot(qx, qy)
+            if d < MIN_DISTANCE:
+                break
+            ux, uy = qx / d, qy / d
+            w, shift, _, _, _ = em_weight(r - d, h, components)
+            hx = p11 * ux + p12 * uy
+            hy = p12 * ux + p22 * uy
+            s = ux * hx + uy * hy + 1.0 / w
+            # IEKF: p = p^- + K (r - m - |q| - u^T (p^- - q))
+            y = r - shift - d - (ux * (px - qx) + uy * (py - qy))
+            nx, ny = px + hx * y / s, py + hy * y / s
+            change = math.hypot(nx - qx, ny - qy)
+            qx, qy = nx, ny
+            if change <= p.tolerance:
+                break
+        d = math.hypot(qx, qy)
+        if d >= MIN_DISTANCE:
+            ux, uy = qx / d, qy / d
+        hx = p11 * ux + p12 * uy
+        hy = p12 * ux + p22 * uy
+        s = ux * hx + uy * hy + 1.0 / info
+        self._px, self._py = qx, qy
+        self._p11, self._p12, self._p22 = p11 - hx * hx / s, p12 - hx * hy / s, p22 - hy * hy / s
+        self._tracked += 1
+        if self._watch(nll):
+            return UpdateOutcome(accepted=True, reason="fix dropped: the ranges no longer fit", iterations=iterations,
+                                 innovation=innovation, innovation_variance=h + 1.0 / info, weight=w)
+        return UpdateOutcome(accepted=True, iterations=iterations, innovation=innovation,
+                             innovation_variance=h + 1.0 / info, weight=w)
+
+    def _sandwich(self) -> float:
+        """Information per range for the covariance: the sandwich (mean psi')^2 / mean psi^2, which is I_f when
+        the assumed density is the noise's and less when it is only an approximation (a fitted mixture, a
+        bias), kept within [I_f / 20, I_f]."""
+        if self._dpsi <= 0.0 or self._psi2 <= 0.0:
+            return self._fisher / 20.0
+        return min(max(self._dpsi * self._dpsi / self._psi2, self._fisher / 20.0), self._fisher)
+
+    def _watch(self, nll: float) -> bool:
+        """Tracking monitor: an exponential mean over about `monitor_length` ranges of the predicted residuals'
+        negative log-likelihood; once it exceeds the density's entropy by `monitor_sigmas` of its standard
+        error (plus 0.2 nats for a density that is only approximate), drop the fix and start phase 1 again
+        from no prior at the current estimate. True if it did."""
+        p = self.params.raw_range
+        length = p.monitor_length
+        self._monitor += (nll - self._monitor) / length
+        if self._tracked < length:
+            return False
+        # The exponential mean's standard error: S sqrt(1 / (2 L - 1)).
+        limit = self._entropy + 0.2 + p.monitor_sigmas * self._nll_spread / math.sqrt(2.0 * length - 1.0)
+        if self._monitor <= limit:
+            return False
+        self._refixes += 1
+        self._fixed = False
+        self._window = []
+        self._alt = None
+        self._solves = 0
+        self._unsolved = 0
+        self._consistent = False
+        self._p11 = self._p22 = NO_PRIOR_VARIANCE
+        self._p12 = 0.0
+        self._prior = (self._px, self._py, self._p11, self._p12, self._p22)
+        return True
+
+    # ----- saving and restoring -----
+    def _export_extra(self) -> dict:
+        return {
+            "fixed": self._fixed, "cumulative": [self._cx, self._cy],
+            "window": [list(entry) for entry in self._window], "prior": list(self._prior),
+            "mirror": None if self._alt is None else list(self._alt), "unsolved": self._unsolved,
+            "solves": self._solves, "evidence": None if math.isinf(self._evidence) else self._evidence,
+            "consistent": self._consistent, "monitor": self._monitor, "tracked": self._tracked,
+            "refixes": self._refixes, "sandwich": [self._psi2, self._dpsi, self._info],
+        }
+
+    def _restore_extra(self, extra: dict) -> None:
+        self._fixed = bool(extra["fixed"])
+        self._cx, self._cy = (float(v) for v in extra["cumulative"])
+        self._window = [(float(r), float(x), float(y)) for r, x, y in extra["window"]]
+        self._prior = tuple(float(v) for v in extra["prior"])
+        self._alt = None if extra["mirror"] is None else (float(extra["mirror"][0]), float(extra["mirror"][1]))
+        self._unsolved = int(extra["unsolved"])
+        self._solves = int(extra["solves"])
+        self._evidence = math.inf if extra["evidence"] is None else float(extra["evidence"])
+        self._consistent = bool(extra["consistent"])
+        self._monitor = float(extra["monitor"])
+        self._tracked = int(extra["tracked"])
+        self._refixes = int(extra["refixes"])
+        self._psi2, self._dpsi, self._info = (float(v) for v in extra["sandwich"])

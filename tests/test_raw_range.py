@@ -1,0 +1,231 @@
+"""The raw-range estimator (agent/core/estimators/raw_range.py): exact on noise-free data, a first fix from
+ranges and odometry alone, the mirror ambiguity, outliers, consistency, and saving/restoring.
+
+Reference values are worked out here, independently of the estimator: the truth of a chosen path, its
+mirror image, the Fisher information of the ranges along the path, a plain EKF's step, chi-square bands."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from agent.config import updated
+from agent.core.estimators import ESTIMATORS, RawRange, make_relative_estimator
+from agent.core.params import RelativeEstimationParams
+
+DT = 0.1
+TABLE_II = ((0.8, 0.0, 0.4), (0.2, 0.0, 10.0))
+# Fisher information of 0.8 N(0, 0.4) + 0.2 N(0, 10) as a location family (lab/bound.py: 1.625 m^-2).
+TABLE_II_FISHER = 1.625
+NO_PRIOR = 1e12 * np.eye(2)     # "position unknown": the prior carries no information
+
+
+def params(components=TABLE_II, **raw) -> RelativeEstimationParams:
+    base = RelativeEstimationParams(estimator="raw_range")
+    return updated(base, raw_range=updated(base.raw_range, noise_components=components, **raw))
+
+
+def circle(seconds: float, radius: float = 10.0, rate: float = math.pi / 30, phase: float = 0.0) -> np.ndarray:
+    """p_ij on a circle about the other vessel (Experiment 1's geometry): (K+1, 2)."""
+    t = np.arange(round(seconds / DT) + 1) * DT
+    return radius * np.column_stack([np.cos(phase + rate * t), np.sin(phase + rate * t)])
+
+
+def gmm(rng: np.random.Generator, n: int) -> np.ndarray:
+    outlier = rng.random(n) < 0.2
+    return np.where(outlier, rng.normal(0.0, math.sqrt(10.0), n), rng.normal(0.0, math.sqrt(0.4), n))
+
+
+def run(estimator, path: np.ndarray, ranges: np.ndarray, start: int = 1, until: int | None = None):
+    """Feed displacements and ranges from epoch `start` (the first range, at start - 1, is marked)."""
+    if start == 1:
+        estimator.mark_range_epoch()
+    for k in range(start, len(path) if until is None else until):
+        estimator.predict(path[k] - path[k - 1])
+        estimator.update(ranges[k - 1], ranges[k])
+    return estimator
+
+
+def test_registered_and_made_by_name():
+    assert ESTIMATORS["raw_range"] is RawRange
+    estimator = make_relative_estimator(params(), (0.0, 0.0), NO_PRIOR)
+    assert isinstance(estimator, RawRange) and estimator.ambiguous
+
+
+def test_noise_free_ranges_on_a_curved_path_converge_to_the_truth():
+    path = circle(30.0)
+    p = updated(params(((1.0, 0.0, 1e-6),), tolerance=1e-12), displacement_variance=1e-12)
+    estimator = run(RawRange(p, (0.0, 0.0), NO_PRIOR), path, np.linalg.norm(path, axis=1))
+    assert estimator.fixed and not estimator.ambiguous
+    assert np.linalg.norm(estimator.position - path[-1]) < 1e-6
+    assert estimator.diagnostics.updates == len(path) - 1
+
+
+def _range_information(path: np.ndarray, k: int, fisher: float) -> np.ndarray:
+    """Fisher information about p_k of the ranges 0..k (odometry exact): fisher * sum u_m u_m^T, u_m the unit
+    vector of p_m; the reference for how well ranges alone can fix p_k."""
+    u = path[: k + 1] / np.linalg.norm(path[: k + 1], axis=1)[:, None]
+    return fisher * u.T @ u
+
+
+def test_first_fix_from_ranges_alone_after_the_path_turns():
+    path = circle(60.0)
+    rng = np.random.default_rng(7)
+    ranges = np.linalg.norm(path, axis=1) + gmm(rng, len(path))
+    # No prior at all, and a start point on the wrong side of the other vessel.
+    estimator = RawRange(params(), -path[0], NO_PRIOR)
+    estimator.mark_range_epoch()
+    fixed_at = None
+    for k in range(1, len(path)):
+        estimator.predict(path[k] - path[k - 1])
+        estimator.update(ranges[k - 1], ranges[k])
+        if fixed_at is None and estimator.fixed:
+            fixed_at = k
+            # At the fix: within 5 standard deviations of the range-only Cramér–Rao bound of that moment.
+            bound = math.sqrt(np.trace(np.linalg.inv(_range_information(path, k, TABLE_II_FISHER))))
+            assert np.linalg.norm(estimator.position - path[k]) < 5 * bound
+    assert fixed_at is not None and fixed_at * DT < 15.0
+    bound = math.sqrt(np.trace(np.linalg.inv(_range_information(path, len(path) - 1, TABLE_II_FISHER))))
+    assert bound < 0.1
+    assert np.linalg.norm(estimator.position - path[-1]) < 5 * bound
+
+
+def test_the_mirror_ambiguity_is_flagged_on_a_straight_line_and_resolved_after_the_turn():
+    # 10 s along the line y = 5 (at 1 m/s), then a left turn on a circle of radius 5 m. Along the straight
+    # part p = (x, 5) and its mirror (x, -5), the reflection across the line through the other vessel
+    # parallel to the motion, give identical ranges.
+    straight = np.column_stack([-5.0 + np.arange(101) * DT, np.full(101, 5.0)])
+    angle = np.arange(1, 151) * DT * 0.2      # 0.2 rad/s on a circle of radius 5 about (5, 10)
+    turn = np.column_stack([5.0 + 5.0 * np.sin(angle), 10.0 - 5.0 * np.cos(angle)])
+    path = np.vstack([straight, turn])
+    rng = np.random.default_rng(3)
+    ranges = np.linalg.norm(path, axis=1) + rng.normal(0.0, 0.05, len(path))
+    estimator = RawRange(params(((1.0, 0.0, 0.0025),)), (0.0, 0.0), NO_PRIOR)
+    run(estimator, path, ranges, until=101)
+    assert estimator.ambiguous
+    mirror = path[100] * np.array([1.0, -1.0])
+    candidates = sorted([estimator.position, estimator.mirror], key=lambda q: q[1])
+    assert np.linalg.norm(candidates[0] - mirror) < 0.5
+    assert np.linalg.norm(candidates[1] - path[100]) < 0.5
+    # The covariance covers both: the spread between them (10 m) enters with the mirror's likelihood share.
+    assert np.trace(estimator.covariance) > 1.0
+    run(estimator, path, ranges, start=101)
+    assert not estimator.ambiguous and estimator.mirror is None
+    assert np.linalg.norm(estimator.position - path[-1]) < 0.1
+
+
+def test_a_gross_outlier_barely_moves_the_estimate():
+    path = circle(20.0)
+    rng = np.random.default_rng(11)
+    ranges = np.linalg.norm(path, axis=1) + gmm(rng, len(path))
+    estimator = run(RawRange(params(), path[0], 25.0 * np.eye(2)), path, ranges)
+    assert estimator.fixed
+    before, covariance = estimator.position, estimator.covariance
+    step = path[-1] - path[-2]
+    estimator.predict(step)
+    estimator.update(ranges[-1], np.linalg.norm(path[-1] + step) + 30.0)
+    moved = np.linalg.norm(estimator.position - (before + step))
+    # A plain EKF with the mixture's total variance 2.32 would move by K e = h / (h + 2.32) * 30 along u.
+    u = (before + step) / np.linalg.norm(before + step)
+    h = u @ covariance @ u
+    assert moved < 0.05 * h / (h + 2.32) * 30.0
+    assert moved < 0.01
+
+
+def test_nees_over_a_monte_carlo_is_inside_its_95_percent_band():
+    runs, seconds = 50, 30.0
+    path = circle(seconds)
+    p = params()
+    nees = []
+    for seed in range(runs):
+        rng = np.random.default_rng(100 + seed)
+        ranges = np.linalg.norm(path, axis=1) + gmm(rng, len(path))
+        prior = path[0] + rng.normal(0.0, 5.0, 2)
+        estimator = run(RawRange(p, prior, 25.0 * np.eye(2)), path, ranges)
+        error = estimator.position - path[-1]
+        nees.append(error @ np.linalg.solve(estimator.covariance, error))
+    # sum of NEES ~ chi-square with 2 * runs = 100 degrees of freedom: 2.5 % and 97.5 % points 74.22, 129.56.
+    assert 74.22 / runs < np.mean(nees) < 129.56 / runs
+
+
+@pytest.mark.parametrize("epochs", [30, 250])
+def test_a_saved_and_restored_estimator_continues_identically(epochs):
+    path = circle(30.0)
+    rng = np.random.default_rng(5)
+    ranges = np.linalg.norm(path, axis=1) + gmm(rng, len(path))
+    p = params()
+    original = run(RawRange(p, (0.0, 0.0), NO_PRIOR), path, ranges, until=epochs)
+    assert original.fixed == (epochs == 250)
+    copy = RawRange(p, (1.0, 2.0), np.eye(2))
+    copy.restore_state(json.loads(json.dumps(original.export_state())))
+    assert copy.fixed == original.fixed
+    for estimator in (original, copy):
+        run(estimator, path, ranges, start=epochs)
+    assert np.array_equal(original.position, copy.position)
+    assert np.array_equal(original.covariance, copy.covariance)
+    assert original.diagnostics.updates == copy.diagnostics.updates
+
+
+def test_invalid_inputs_are_refused_and_leave_the_state():
+    estimator = RawRange(params(), (3.0, 4.0), np.eye(2))
+    estimator.mark_range_epoch()
+    for bad in (math.nan, -1.0, 1e9, "5"):
+        outcome = estimator.update(5.0, bad)
+        assert not outcome.accepted
+    assert not estimator.predict((math.nan, 0.0))
+    assert estimator.diagnostics.rejected == 5
+    assert np.array_equal(estimator.position, [3.0, 4.0])
+
+
+def test_a_wrong_fix_is_dropped_by_the_monitor_and_the_position_found_again():
+    # A confident prior at the mirror image -p_0 (the reflection across the line through the other vessel
+    # parallel to the relative motion, which is tangential on the circle) fixes the wrong side at once; as
+    # the path turns the ranges stop fitting, the monitor drops the fix, and phase 1 finds the true side.
+    path = circle(40.0)
+    rng = np.random.default_rng(2)
+    ranges = np.linalg.norm(path, axis=1) + gmm(rng, len(path))
+    estimator = RawRange(params(), -path[0], 0.01 * np.eye(2))
+    run(estimator, path, ranges, until=30)
+    # Fixed where the prior, carried by the odometry, says: path[k] - 2 p_0, some 20 m from the truth.
+    assert estimator.fixed and np.linalg.norm(estimator.position - (path[29] - 2 * path[0])) < 1.0
+    run(estimator, path, ranges, start=30)
+    assert estimator.refixes == 1 and estimator.fixed
+    assert np.linalg.norm(estimator.position - path[-1]) < 0.3
+
+
+def test_in_the_agent_a_saved_and_restored_fleet_runs_on_bit_for_bit(monkeypatch):
+    """The whole tick (agent/core/step.py) with every pair on the raw-range estimator: a JSON round trip of
+    every vessel's state mid-run (while some pairs may still be fixing) changes nothing."""
+    from pathlib import Path
+
+    import orjson
+
+    from agent.core.snapshot import state_from_json, state_to_json
+    from agent.core.step import step
+    from lab import runner
+    from sim_bridge.scenario import select_scenario
+
+    scenarios = Path(__file__).resolve().parents[1] / "configs" / "scenarios"
+    _, scenario = select_scenario(scenarios / "table2_estimators.yaml", "mckf")
+    agent = updated(scenario.agent, relative=updated(scenario.agent.relative, estimator="raw_range"))
+    scenario = scenario.model_copy(update={"duration": 12.0, "agent": agent,
+                                           "initial": updated(scenario.initial, neighbour_variance=100.0)})
+    original = runner.run(scenario, 5)
+    saved = []
+
+    def step_with_a_round_trip(params, state, inputs):
+        if abs(inputs.time - 3.0) < 1e-9:
+            saved.append(state.vessel)
+            state = state_from_json(orjson.loads(orjson.dumps(state_to_json(state),
+                                                              option=orjson.OPT_SERIALIZE_NUMPY)), params)
+        return step(params, state, inputs)
+
+    monkeypatch.setattr(runner, "step", step_with_a_round_trip)
+    again = runner.run(scenario, 5)
+    for name in ("commands", "estimates", "relative", "positions"):
+        np.testing.assert_array_equal(getattr(again, name), getattr(original, name), err_msg=name)
+    assert sorted(saved) == ["1", "2", "3", "4"]
+    assert np.nanmean(original.e_ij[60:]) < 1.0
