@@ -115,7 +115,9 @@ def test_two_held_vessels_that_command_motion_keep_their_pair_estimates(delay_to
     nothing moved. A shared estimate now refers to the sender's filter epoch, where both vessels' odometry
     was measured, and the fusion is not fed back: with nothing moving each filter keeps its prior and the two
     vessels' fused estimates are the same (CI of the two priors: their mean, the covariances being equal)."""
-    params = AgentParams()
+    # The MCKF: with nothing moving its pseudo-linear update carries no information, so each filter keeps its
+    # prior exactly and the fused estimate has a closed form (the raw-range filter would use the ranges).
+    params = AgentParams(relative={"estimator": "mckf"})
     truth = np.array([-12.0, -13.0])                          # p_12 = p_1 - p_2, constant
     starts = {"1": InitialEstimates(target=(8.0, 3.0, 0.0, 0.0), neighbours={"2": tuple(truth + [0.1, 0.0])},
                                     neighbour_variance=0.04),
