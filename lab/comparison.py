@@ -17,6 +17,7 @@ import numpy as np
 from pydantic import Field, TypeAdapter
 
 from agent.config import PositiveFloat, StrictModel, updated
+from agent.core.checks import valid_range
 from agent.core.estimators import make_relative_estimator
 from agent.core.params import ESTIMATOR_NAMES, AgentParams
 from lab.bound import fisher_information, rms_bound
@@ -177,12 +178,9 @@ def run_once(config: ComparisonConfig, noise: RangeNoise, seed_sequence: np.rand
     iterations = np.zeros(steps, dtype=np.int16)
     for e, name in enumerate(config.estimators):
         estimator = make_relative_estimator(params, initial, dt=config.agent.dt, name=name)
-        estimator.mark_range_epoch()
         errors[e, 0] = math.hypot(*(initial - truth[0]))
-        for k in range(1, steps + 1):
-            estimator.predict(displacement[k - 1])
-            outcome = estimator.update(ranges[k - 1], ranges[k])
-            if name == "mckf":
+        for k, outcome in run_estimator(estimator, displacement, ranges, params.max_range):
+            if name == "mckf" and outcome is not None:
                 iterations[k - 1] = outcome.iterations
             p = estimator.position
             errors[e, k] = math.hypot(p[0] - truth[k, 0], p[1] - truth[k, 1])
@@ -192,6 +190,30 @@ def run_once(config: ComparisonConfig, noise: RangeNoise, seed_sequence: np.rand
         for k in (int(round(t_ls / config.agent.dt)) for t_ls in LS_TIMES)
     ])
     return errors, iterations, least_squares
+
+
+def run_estimator(estimator, displacement: np.ndarray, ranges: np.ndarray, max_range: float):
+    """Feed one pair's displacements and ranges to `estimator` as the agent does (membership.store_ranges,
+    NeighbourTrack.advance): an invalid range (a negative draw) is dropped and the displacement carries on to
+    the next one, and each range pairs with the last one accepted. Yields (k, the update's outcome or None)
+    after step k = 1..K, the estimator then holding its estimate of step k."""
+    previous = None
+    if valid_range(ranges[0], max_range):
+        estimator.mark_range_epoch()
+        previous = ranges[0]
+    for k in range(1, len(ranges)):
+        estimator.predict(displacement[k - 1])
+        outcome = None
+        if not valid_range(ranges[k], max_range):
+            pass
+        elif previous is None:
+            estimator.mark_range_epoch()
+            previous = ranges[k]
+        else:
+            outcome = estimator.update(previous, ranges[k])
+            if outcome.accepted:
+                previous = ranges[k]
+        yield k, outcome
 
 
 # Times (s) at which the offline batch least-squares reference is evaluated.

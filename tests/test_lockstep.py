@@ -37,11 +37,12 @@ def logged(folder: Path, vessels: list[str]) -> dict:
     return out
 
 
-def test_table_two_over_zenoh_equals_the_in_process_runner(tmp_path):
+@pytest.mark.parametrize("variant", ["mckf", "raw_range"])   # the paper's estimator, and the default
+def test_table_two_over_zenoh_equals_the_in_process_runner(tmp_path, variant):
     path = with_duration(CONFIGS / "table2_estimators.yaml", tmp_path, 20.0)
-    _, scenario = select_scenario(path, "mckf")
+    _, scenario = select_scenario(path, variant)
     trace = run(scenario)
-    folder = launch(path, "mckf", tmp_path / "runs", seed=None)
+    folder = launch(path, variant, tmp_path / "runs", seed=None)
     log = logged(folder, trace.vessels)
     stamps = sorted(log["truth"])
     assert len(stamps) == len(trace.time) == 201
