@@ -155,13 +155,12 @@ def _gaps(positions: np.ndarray, target: np.ndarray, vessel: int) -> np.ndarray:
 
 
 def _formation_from_localised(params: AgentParams, estimates: dict, shares: dict) -> np.ndarray:
-    """The formation velocity (33) of one logged tick rebuilt from the target and the neighbours whose pair
-    covariance was within `fleet.localised_trace` alone (agent/core/command.py)."""
+    """The formation velocity (33) of one logged tick rebuilt from the target and the neighbours logged as
+    localised alone (agent/core/command.py)."""
     c = params.control
     phase = estimates["phase"]
     offset = desired_offset(c.radius, phase)
-    localised = [j for j, n in estimates["neighbours"].items()
-                 if n["covariance"][0] + n["covariance"][3] <= params.fleet.localised_trace]
+    localised = [j for j, n in estimates["neighbours"].items() if n["localised"]]
     gain = neighbour_gain(len(localised), c.gain_neighbour, c.neighbour_gain_cap)
     total = np.zeros(2)
     for j in localised:
@@ -243,9 +242,10 @@ def test_a_restarted_agent_without_initial_estimates_rejoins_without_coming_too_
         np.testing.assert_allclose(estimates["velocity"]["formation"],
                                    _formation_from_localised(params, estimates, latest), rtol=0, atol=1e-9,
                                    err_msg=f"at {stamp * 1e-9:.1f} s")
-        covariances = [n["covariance"] for n in estimates["neighbours"].values()]
+        # Localised: P_ij small enough and the estimate agreeing with the median of the last ranges
+        # (agent/core/step.py `_localised`; unit-tested in tests/test_step.py).
         unlocalised_ticks += len(inputs[stamp]["shares"]) > sum(
-            c[0] + c[3] <= params.fleet.localised_trace for c in covariances)
+            n["localised"] for n in estimates["neighbours"].values())
     assert unlocalised_ticks > 0
 
     print(f"restart: agent down at {stopped:.1f} s, new agent's first tick {back_on:.1f} s (outage "

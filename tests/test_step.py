@@ -12,7 +12,7 @@ import lab.runner as runner
 from agent.config import updated
 from agent.core.build import InitialEstimates, initial_state
 from agent.core.params import AgentParams
-from agent.core.records import OdometryReading, TickInputs
+from agent.core.records import OdometryReading, Share, TickInputs
 from agent.core.snapshot import state_from_json, state_to_json
 from agent.core.step import step
 from sim_bridge.scenario import select_scenario
@@ -114,3 +114,23 @@ def test_read_back_with_another_estimator_the_pair_keeps_its_estimate():
         assert track.estimator.name == "kf" and before.name == "akf"
         np.testing.assert_array_equal(track.estimator.position, before.position)
         np.testing.assert_array_equal(track.estimator.covariance, before.covariance)
+
+
+@pytest.mark.parametrize("measured, localised", [(5.0, True), (5.0 + 1.9, True), (5.0 + 2.1, False), (1.0, False)])
+def test_a_sure_pair_estimate_that_the_ranges_contradict_steers_nothing(measured, localised):
+    """Regression (a restart test, MCKF): both vessels of a pair sure of 5.3 m while they were 0.2-1.6 m
+    apart crept together. A neighbour is localised only if |p^_ij| is within 2 m of the median of its last
+    five ranges; otherwise it is judged by its ranges (and steers nothing)."""
+    params = AgentParams(relative={"estimator": "mckf"})   # the MCKF keeps its prior: |p^_ij| stays 5 m
+    state = initial_state("1", params, InitialEstimates(target=(5.0, 0.0, 0.0, 0.0), neighbours={"2": (5.0, 0.0)},
+                                                        neighbour_variance=0.04))
+    out = None
+    for k in range(8):
+        t = 0.1 * k
+        share = Share("2", OdometryReading(t - 0.1, np.zeros(2), 0.0), np.zeros(2), 0.0)
+        state, out = step(params, state, TickInputs(time=t, odometry=OdometryReading(t, np.zeros(2), 0.0),
+                                                    ranges={"2": measured}, shares={"2": share} if k else {},
+                                                    bearing=np.array([1.0, 0.0])))
+    record = out.record.neighbours["2"]
+    assert abs(np.hypot(*record.position) - 5.0) < 0.05 and np.trace(record.covariance) < 0.1
+    assert record.localised is localised

@@ -87,6 +87,7 @@ class NeighbourRecord:
     rejected: int
     iterations: int               # MCKF iterations of the last update
     outcomes: tuple = ()          # (stamp s, range m, UpdateOutcome) of each update this tick ran
+    localised: bool = False       # steered the formation this tick (step.py `_localised`)
 
 
 @dataclass(frozen=True)

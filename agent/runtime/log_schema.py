@@ -101,6 +101,8 @@ class NeighbourEstimate(StrictModel):
     updates: Count
     rejected: Count
     outcomes: list[RangeUpdate] = Field(description="each range update this tick ran")
+    localised: bool = Field(False, description="steered the formation this tick: its covariance small enough "
+                                               "and its estimate agreeing with the ranges")
 
 
 class BearingUpdate(StrictModel):

@@ -56,7 +56,7 @@ def estimates_to_json(record: TickRecord) -> dict:
         "time": record.time, "phase": record.phase,
         "neighbours": {j: {
             "position": floats(n.position), "covariance": floats(n.covariance), "epoch": n.epoch,
-            "iterations": n.iterations, "updates": n.updates, "rejected": n.rejected,
+            "iterations": n.iterations, "updates": n.updates, "rejected": n.rejected, "localised": n.localised,
             "outcomes": [{"stamp": stamp, "range": measured, "accepted": o.accepted, "reason": o.reason,
                           "iterations": o.iterations, "innovation": o.innovation,
                           "innovation_variance": o.innovation_variance, "weight": o.weight}
