@@ -73,7 +73,9 @@ def step(params: AgentParams, state: VesselState, inputs: TickInputs) -> tuple[V
     estimates = {j: t.estimate_at(state.own, now) for j, t in state.tracks.items()}
     # Only a localised neighbour drives the formation and lends its target estimate: an unconverged pair
     # estimate would pull the vessel, and move the neighbour's target estimate, to the wrong place.
-    localised = {j: e for j, e in estimates.items() if e is not None and _localised(params, state.tracks[j], e)}
+    medians = {j: _recent_range(t) for j, t in state.tracks.items()}
+    localised = {j: e for j, e in estimates.items()
+                 if e is not None and _localised(params, state.tracks[j], e, medians[j])}
     bearing = _bearing(state, inputs.bearing)
     target_state, target_cov, bearing_outcome = track_target(params, state, bearing, velocity_change)
     if target_state is not None and params.fleet.fuse_target_estimates:
@@ -91,7 +93,7 @@ def step(params: AgentParams, state: VesselState, inputs: TickInputs) -> tuple[V
     command, terms, saturated = control_command(
         control, params.dt, state.phase, next_phase, odometry.heading, target_state, state.motion.velocity,
         localised, neighbour_phases, obstacles)
-    command = _keep_apart(params, state, inputs.ranges, localised, terms.command, command)
+    command = _keep_apart(params, state, inputs.ranges, localised, medians, terms.command, command)
     if not (math.isfinite(command.surge) and math.isfinite(command.yaw_rate)):
         # Never publish a non-finite command, whatever went wrong upstream.
         health.non_finite_commands += 1
@@ -132,24 +134,29 @@ def _elapsed(params: AgentParams, previous: float | None, now: float) -> float:
     return min(max(elapsed, 0.0), 3.0 * params.dt)
 
 
-def _localised(params: AgentParams, track: NeighbourTrack, estimate: np.ndarray) -> bool:
-    """The pair filter has converged enough to steer by: trace(P_ij) at most `fleet.localised_trace`, and
-    its estimate agrees with the ranges: |p^_ij| within `RANGE_DISAGREEMENT` of the median of the last
-    `SEPARATION_RANGES` ranges. A filter that cannot learn from the ranges (the paper's pseudo-linear ones)
-    keeps a wrong start for good while its covariance says it is sure: in a restart test two vessels that
-    both believed 5.3 m crept to 0.19 m, the guard stopping them only on the ticks the ranges' median
-    happened to exceed the limit. Unlocalised, the neighbour is judged by its raw ranges (`_keep_apart`)."""
+def _localised(params: AgentParams, track: NeighbourTrack, estimate: np.ndarray, median: float | None) -> bool:
+    """The pair filter has converged enough to steer by: trace(P_ij) at most `fleet.localised_trace`, and its
+    estimate agrees with the ranges: |p^_ij| within `RANGE_DISAGREEMENT` of `median`, that of the last
+    `SEPARATION_RANGES` ranges (`_recent_range`). A filter that cannot learn from the ranges (the paper's
+    pseudo-linear ones) keeps a wrong start for good while its covariance says it is sure: in a restart test
+    two vessels that both believed 5.3 m crept to 0.19 m, the guard stopping them only on the ticks the
+    ranges' median happened to exceed the limit. Unlocalised, the neighbour is judged by its raw ranges
+    (`_keep_apart`)."""
     covariance = track.best()[1]
     if covariance[0, 0] + covariance[1, 1] > params.fleet.localised_trace:
         return False
+    return median is None or abs(median - float(np.hypot(*estimate))) <= RANGE_DISAGREEMENT
+
+
+def _recent_range(track: NeighbourTrack) -> float | None:
+    """The median of the last `SEPARATION_RANGES` ranges kept to the neighbour (a stray range voted out);
+    None while fewer are kept."""
     recent = [value for _, value in track.ranges.items()[-SEPARATION_RANGES:]]
-    if len(recent) < SEPARATION_RANGES:
-        return True
-    return abs(float(np.median(recent)) - float(np.hypot(*estimate))) <= RANGE_DISAGREEMENT
+    return float(np.median(recent)) if len(recent) == SEPARATION_RANGES else None
 
 
 def _keep_apart(params: AgentParams, state: VesselState, ranges, localised: dict[str, np.ndarray],
-                velocity: np.ndarray, command: Command) -> Command:
+                medians: dict[str, float | None], velocity: np.ndarray, command: Command) -> Command:
     """The last guard: closer to a neighbour than `control.min_separation`, the vessel does not move
     (forward or astern), unless the command leads away from it. An unlocalised neighbour is judged by the
     raw range, since that is all there is (and gives no direction to move away in); a localised one by its
@@ -162,8 +169,7 @@ def _keep_apart(params: AgentParams, state: VesselState, ranges, localised: dict
         if j not in localised and valid_range(value, params.relative.max_range) and value < limit:
             too_close = True
     for j, estimate in localised.items():
-        recent = [value for _, value in state.tracks[j].ranges.items()[-SEPARATION_RANGES:]]
-        persistent = len(recent) == SEPARATION_RANGES and float(np.median(recent)) < limit
+        persistent = medians[j] is not None and medians[j] < limit
         # p_ij = p_i - p_j points from j to i: a velocity along it leads away from j.
         near = float(np.hypot(*estimate)) < limit
         if (persistent and not near) or (near and float(velocity @ estimate) <= 0.0):

@@ -111,7 +111,7 @@ class InputGate:
         self._last_stamp: dict[tuple[str, str], int] = {}   # (topic, sender) -> stamp_ns of the last accepted
         self._senders: set[str] = set()                    # share senders with any state here
         self._buckets: dict[str, TokenBucket] = {}
-        self._consumed: dict[str, int] = {}   # topic -> stamp_ns of the bearing message last used
+        self._bearing_used: int | None = None   # stamp_ns of the bearing message the last tick used
         self._range_sets: deque[Ranges] = deque(maxlen=MAX_RANGE_SETS)   # UWB messages since the last tick
         self._used_odometry = None            # the OdometryReading the last snapshot gave the tick
 
@@ -271,7 +271,7 @@ class InputGate:
             self._shares.clear()
             self._latest = {t: m for t, m in self._latest.items() if low <= m.stamp_ns <= high}
             self._range_sets = deque((m for m in self._range_sets if low <= m.stamp_ns <= high), maxlen=MAX_RANGE_SETS)
-            self._consumed.clear()
+            self._bearing_used = None
             self._used_odometry = None
             self._delivered_through = None
             self._arrival.notify_all()
@@ -328,10 +328,10 @@ class InputGate:
             self._range_sets.clear()
             # A bearing is a measurement at its stamp: it is used by one tick only (so is each range set).
             message = latest.get("sensor/bearing")
-            if message is not None and self._consumed.get("sensor/bearing") == message.stamp_ns:
+            if message is not None and self._bearing_used == message.stamp_ns:
                 latest["sensor/bearing"] = None
             elif message is not None:
-                self._consumed["sensor/bearing"] = message.stamp_ns
+                self._bearing_used = message.stamp_ns
         odometry = latest.get("sensor/odom")
 
         def fresh(message) -> bool:
