@@ -11,8 +11,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import platform
-import sys
 import time
 from pathlib import Path
 
@@ -20,7 +18,7 @@ import numpy as np
 
 from agent.config import ConfigError, deep_merge, parse_mapping
 from lab import arguments
-from lab.report import invocation, markdown_table
+from lab.report import invocation, machine, markdown_table
 from lab.runner import run as run_scenario
 from lab.scenario_cmd import DEFAULT_DIR, load, resolve, run_monte_carlo
 from sim_bridge.scenario import Scenario
@@ -88,10 +86,6 @@ def fleet_scenarios(base: dict, variants: dict[str, Scenario], sizes: list[int],
     return built
 
 
-def machine() -> list[str]:
-    return [f"platform: {platform.platform()}", f"os.cpu_count(): {os.cpu_count()}",
-            f"Python: {platform.python_implementation()} {sys.version.split()[0]}",
-            f"numpy: {np.__version__}"]
 
 
 def run(args: argparse.Namespace) -> int:

@@ -27,8 +27,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
-import platform
 import signal
 import subprocess
 import sys
@@ -46,7 +44,7 @@ import zenoh
 from agent.core.params import AgentParams
 from agent.runtime.zenoh_session import ZenohSettings, zenoh_config
 from lab import arguments
-from lab.report import invocation, markdown_table
+from lab.report import invocation, machine, markdown_table
 
 VESSEL = "1"
 PEERS = ("2", "3")
@@ -557,9 +555,7 @@ def render(command: str, results: Results, baseline: Results) -> str:
         "",
         "## Machine",
         "",
-        f"- platform: {platform.platform()}",
-        f"- os.cpu_count(): {os.cpu_count()}",
-        f"- Python: {platform.python_implementation()} {platform.python_version()}",
+        *(f"- {line}" for line in machine()),
         "",
         "## Verdict",
         "",

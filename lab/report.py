@@ -3,9 +3,13 @@
 from __future__ import annotations
 
 import argparse
+import os
+import platform
 import shlex
 import sys
 from collections.abc import Sequence
+
+import numpy as np
 
 
 def markdown_table(header: Sequence[str], rows: Sequence[Sequence[object]]) -> str:
@@ -27,3 +31,10 @@ def invocation(args: argparse.Namespace) -> str:
     if argv is None:
         argv = sys.argv[1:]
     return " ".join(["usv-lab", *map(shlex.quote, argv)])
+
+
+def machine() -> list[str]:
+    """What a result page says of the machine it was measured on, a line each."""
+    return [f"platform: {platform.platform()}", f"os.cpu_count(): {os.cpu_count()}",
+            f"Python: {platform.python_implementation()} {sys.version.split()[0]}",
+            f"numpy: {np.__version__}"]
