@@ -142,17 +142,23 @@ def join_parts(logs: list[Log]) -> Log:
     versions = {log.format_version for log in logs}
     if len(versions) > 1:
         raise LogError(f"{first.path}: its parts have different log format versions ({', '.join(sorted(versions))})")
-    topics: dict[str, list[tuple[int, dict]]] = defaultdict(list)
-    for log in logs:
-        for topic, messages in log.topics.items():
-            topics[topic].extend(messages)
+    topics = _concatenated(logs)
     known = {"parts": [log.path for log in logs], "set_id": first.set_id, "part": first.part,
              "missing_parts": sorted(set(range(numbers[-1] + 1)) - set(numbers))}
     unfinished = any(log.unfinished for log in logs)
     if isinstance(first, VesselLog):
-        return VesselLog(first.path, first.metadata, dict(topics), unfinished, first.format_version,
+        return VesselLog(first.path, first.metadata, topics, unfinished, first.format_version,
                          vessel=first.vessel, **known)
-    return Log(first.path, first.metadata, dict(topics), unfinished, first.format_version, **known)
+    return Log(first.path, first.metadata, topics, unfinished, first.format_version, **known)
+
+
+def _concatenated(logs: list[Log]) -> dict[str, list[tuple[int, dict]]]:
+    """Each topic's messages of `logs`, one log after the other."""
+    topics: dict[str, list[tuple[int, dict]]] = defaultdict(list)
+    for log in logs:
+        for topic, messages in log.topics.items():
+            topics[topic].extend(messages)
+    return dict(topics)
 
 
 def _span(log: Log) -> tuple[int, int] | None:
@@ -177,12 +183,8 @@ def join_sessions(logs: list[VesselLog]) -> VesselLog:
     if len(versions) > 1:
         raise LogError(f"{logs[0].path}: the logs of vessel {logs[0].vessel} have different log format versions "
                        f"({', '.join(sorted(versions))})")
-    topics: dict[str, list[tuple[int, dict]]] = defaultdict(list)
-    for log in logs:
-        for topic, messages in log.topics.items():
-            topics[topic].extend(messages)
     first = logs[0]
-    return VesselLog(first.path, first.metadata, dict(topics), any(log.unfinished for log in logs),
+    return VesselLog(first.path, first.metadata, _concatenated(logs), any(log.unfinished for log in logs),
                      first.format_version, parts=[path for log in logs for path in (log.parts or [log.path])],
                      missing_parts=first.missing_parts, set_id=first.set_id, part=first.part, vessel=first.vessel,
                      sessions=[log.path for log in logs])

@@ -203,8 +203,8 @@ def summary_markdown(summary: dict) -> str:
         if len(s.get("sessions", [])) > 1:
             lines += [f"The agent ran {len(s['sessions'])} times (restarted), one log each, read in time order: "
                       + ", ".join(f"`{Path(path).name}`" for path in s["sessions"]) + ".", ""]
-            s = s | {"parts": [path for path in s["parts"] if path not in s["sessions"][1:]]}
-        if len(s.get("parts", [])) > 1 or s.get("missing_parts"):
+        # Each run's log is a file of its own: more files than runs means a log was rotated.
+        if len(s.get("parts", [])) > max(1, len(s.get("sessions", []))) or s.get("missing_parts"):
             lines += [f"The log was rotated: {len(s['parts'])} part(s) read"
                       + (f"; part(s) {_missing(s['missing_parts'])} missing (deleted by the log's size bound, or "
                          "not copied): their messages are not in these figures" if s["missing_parts"] else "")
