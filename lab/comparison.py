@@ -59,7 +59,7 @@ class ComparisonConfig(StrictModel):
     variance_scale: PositiveFloat = Field(
         1.0, description="multiplies the filters' range variance; 1 is the derivation, others diagnose"
     )
-    estimators: tuple[str, ...] = (*ESTIMATOR_NAMES, "raw_range")
+    estimators: tuple[str, ...] = ESTIMATOR_NAMES
     raw_range_noise: Literal["model", "params"] = Field(
         "model",
         description=(

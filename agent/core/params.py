@@ -10,7 +10,7 @@ from pydantic import Field, model_validator
 from agent.config import NonNegativeFloat, PositiveFloat, StrictModel, commented_yaml
 
 EstimatorName = Literal["mckf", "kf", "akf", "rls", "huber_rls", "raw_range"]
-ESTIMATOR_NAMES: tuple[str, ...] = ("rls", "huber_rls", "kf", "akf", "mckf")
+ESTIMATOR_NAMES: tuple[str, ...] = ("rls", "huber_rls", "kf", "akf", "mckf", "raw_range")
 
 
 class MckfParams(StrictModel):
