@@ -22,12 +22,13 @@ docs/contract.md is the page a driver-bridge author follows.
 from __future__ import annotations
 
 import math
-from typing import Annotated
+from typing import Annotated, Literal
 
 import numpy as np
 from pydantic import Field, ValidationError, field_validator, model_validator
 
 from agent.config import StrictModel
+from agent.core.observability import VERDICTS
 from agent.core.records import OdometryReading, Share
 
 FLEET_PREFIX = "usv"
@@ -201,6 +202,16 @@ class ShareMessage(Header):
         return self
 
 
+class WeakestPair(StrictModel):
+    """The neighbour whose relative motion has told its pair filter least (agent/core/observability.py)."""
+
+    neighbour: VesselId
+    excitation: Annotated[float, Field(ge=0, allow_inf_nan=False)] = Field(
+        description="smallest eigenvalue of the spread of the relative path over the observability window (m^2); "
+                    "its square root is the path's width in its narrowest direction")
+    observability: Literal[VERDICTS]
+
+
 class Status(Header):
     phase: Finite
     command: tuple[Finite, Finite]
@@ -210,6 +221,7 @@ class Status(Header):
     ticked: bool = Field(True, description="false for a heartbeat before the agent's first tick")
     target: tuple[Finite, Finite, Finite, Finite] | None = None
     health: dict[str, int] = Field(default_factory=dict)
+    weakest_pair: WeakestPair | None = Field(None, description="None: no pair filter running this tick")
 
 
 class Clock(StrictModel):

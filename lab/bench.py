@@ -19,9 +19,23 @@ Every input is computed before the clock starts:
 Predict does the same work on both sides: x += delta and P += R_delta (filterpy: x = F x + B u,
 P = F P F^T + Q with F = I).
 
+Our estimators start from the bench's prior: the true relative position plus N(0, initial_covariance I), with
+covariance initial_covariance I (Table I). The agent's default, raw_range, is also started cold, with
+covariance NO_PRIOR_VARIANCE I (no prior at all, as it restarts a dropped fix); a joiner with no estimate at
+all starts from the range along x with a spread of the range itself (membership.prior_from_target), nearly
+as uninformative. raw_range works in two phases: a batch fix (a small non-linear least squares every
+`solve_every` ranges) until it reports `fixed`, then a cheap tracking update. Its rows are also split by
+phase; which update is in which phase comes from an untimed run over the same data (the estimators are
+deterministic, so every timed repeat goes through the same phases).
+
+The bank, vessel 0's 11 pairs in a ring of 12, is timed for the MCKF (the paper's filter) and for raw_range
+(the default, from the bench's prior and cold) against 11 filterpy KFs; one sample is one tick, predict and
+update of all 11. The bench starts all pairs at the same tick, as a vessel (re)started among its neighbours
+does, so a cold bank's pairs run their fix phases side by side.
+
 Each timed call is bracketed by `time.perf_counter_ns` with the garbage collector off; every repeat starts
 fresh filters on the same data, and the repeats visit the estimators in turn so that drift of the machine
-hits all of them alike. Median and p99 are over the individual updates of all repeats pooled.
+hits all of them alike. Median, mean, p99 and max are over the individual samples of all repeats pooled.
 """
 
 from __future__ import annotations
@@ -44,6 +58,7 @@ import numpy as np
 from agent.config import updated
 from agent.core.estimators import PLKF, make_relative_estimator
 from agent.core.estimators.pseudolinear import equivalent_noise_variance, pseudo_measurement
+from agent.core.estimators.raw_range import NO_PRIOR_VARIANCE
 from agent.core.params import ESTIMATOR_NAMES, AgentParams, RelativeEstimationParams
 from lab import arguments
 from lab.comparison import ComparisonConfig, relative_trajectory
@@ -59,6 +74,11 @@ DISPLACEMENT_VARIANCE = 1e-6
 FILTERPY = "filterpy KF"
 FILTERPY_IN_LOOP = "filterpy KF, z/R_z/H built in the loop"
 PLKF_LABEL = "plkf (target tracker, 4 states)"
+PAPER = "mckf"                 # the paper's filter (Sec. III-A)
+DEFAULT = "raw_range"          # the agent's default estimator (params.py): the issue's budget is for it
+# The issue's budget: at most 100 us per neighbour per tick, a bank of 11 at most 1 ms.
+BUDGET_PER_NEIGHBOUR_US = 100.0
+BUDGET_BANK_US = 1000.0
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -191,21 +211,54 @@ def prepare_filterpy(data: PairData, params: RelativeEstimationParams) -> np.nda
     return positions
 
 
-def new_ours(name: str, data: PairData, params: RelativeEstimationParams):
-    estimator = make_relative_estimator(params, data.initial, dt=DT, name=name)
+@dataclass(frozen=True)
+class Setup:
+    """One of our estimators as the bench starts it: from the bench's prior (`data.initial`,
+    initial_covariance I) or cold (NO_PRIOR_VARIANCE I: no prior)."""
+
+    name: str
+    cold: bool = False
+
+    @property
+    def label(self) -> str:
+        return f"{self.name}, cold start" if self.cold else self.name
+
+
+SINGLE_SETUPS = (*(Setup(name) for name in ESTIMATOR_NAMES), Setup(DEFAULT, cold=True))
+BANK_SETUPS = (Setup(PAPER), Setup(DEFAULT), Setup(DEFAULT, cold=True))
+
+
+def bank_label(label: str) -> str:
+    return f"bank: {BANK_SIZE} x {label}"
+
+
+def new_ours(setup: Setup, data: PairData, params: RelativeEstimationParams):
+    covariance = NO_PRIOR_VARIANCE * np.eye(2) if setup.cold else None
+    estimator = make_relative_estimator(params, data.initial, covariance, dt=DT, name=setup.name)
     estimator.mark_range_epoch()
     return estimator
 
 
-def run_ours(name: str, data: PairData, params: RelativeEstimationParams) -> np.ndarray:
-    """Posterior positions (K, 2) of our estimator `name` on `data` (untimed; for checking)."""
-    estimator = new_ours(name, data, params)
-    positions = np.empty((len(data.range_pairs), 2))
+@dataclass(frozen=True)
+class Trace:
+    """What one of our estimators did at each update of one pair's data, from an untimed run."""
+
+    positions: np.ndarray          # (K, 2) posterior
+    iterations: list[int]          # UpdateOutcome.iterations
+    fixing: list[bool]             # in the fix phase: raw_range not yet `fixed` (the others have none)
+
+
+def run_ours(setup: Setup, data: PairData, params: RelativeEstimationParams) -> Trace:
+    """Our estimator `setup` on `data`, untimed: for checking, and for what the timing loops do not keep."""
+    estimator = new_ours(setup, data, params)
+    n = len(data.range_pairs)
+    positions, iterations, fixing = np.empty((n, 2)), [0] * n, [False] * n
     for k, (d, (r_prev, r_now)) in enumerate(zip(data.displacements, data.range_pairs)):
+        fixing[k] = not getattr(estimator, "fixed", True)
         estimator.predict(d)
-        estimator.update(r_prev, r_now)
+        iterations[k] = estimator.update(r_prev, r_now).iterations
         positions[k] = estimator.position
-    return positions
+    return Trace(positions, iterations, fixing)
 
 
 def run_filterpy(data: PairData, params: RelativeEstimationParams) -> np.ndarray:
@@ -376,26 +429,57 @@ def timer_overhead_ns(samples: int = 20_000) -> float:
 # Results
 # ----------------------------------------------------------------------------------------------------------
 
+def figures_us(samples_ns: Sequence[int]) -> tuple[float, float, float, float]:
+    """(median, mean, p99, max) of `samples_ns` in us; NaN each if there are none (a phase never reached)."""
+    if not samples_ns:
+        return (math.nan,) * 4
+    us = np.asarray(samples_ns, dtype=float) / 1e3
+    return float(np.median(us)), float(us.mean()), float(np.percentile(us, 99)), float(us.max())
+
+
 @dataclass
 class Timing:
-    full_ns: list[int] = field(default_factory=list)       # predict + update, all repeats pooled
-    update_ns: list[int] = field(default_factory=list)     # update alone, all repeats pooled
+    """The samples of one row, all repeats pooled: one per predict+update of one pair, or for a bank one per
+    tick (predict+update of all its pairs)."""
+
+    full_ns: list[int] = field(default_factory=list)       # predict + update (a bank: the whole tick)
+    update_ns: list[int] = field(default_factory=list)     # update alone (single pair only)
     iterations: list[int] = field(default_factory=list)
     repeat_medians_ns: list[float] = field(default_factory=list)
+    fixing: list[bool] = field(default_factory=list)       # per step of a repeat: in the fix phase?
+    fix_updates: list[int] = field(default_factory=list)   # per pair: updates in its fix phase, in one repeat
 
-    def add(self, full: tuple[list[int], list[int]], update: tuple[list[int], list[int]]) -> None:
+    def add(self, full: tuple[list[int], list[int]],
+            update: tuple[list[int], list[int]] | None = None) -> None:
         self.full_ns += full[0]
-        self.update_ns += update[0]
         self.iterations += full[1]
+        if update is not None:
+            self.update_ns += update[0]
         self.repeat_medians_ns.append(float(np.median(full[0])))
+
+    def set_phases(self, traces: Sequence[Trace]) -> None:
+        """Each step's phase, from untimed runs of the row's pairs: a tick is in the fix phase while any pair
+        is."""
+        self.fixing = [any(step) for step in zip(*(trace.fixing for trace in traces))]
+        self.fix_updates = [sum(trace.fixing) for trace in traces]
+
+    def phase_ns(self, fixing: bool) -> list[int]:
+        """The samples of the fix phase (True) or of the tracking phase (False), all repeats."""
+        steps = len(self.fixing)
+        return [t for i, t in enumerate(self.full_ns) if self.fixing[i % steps] == fixing]
+
+    @property
+    def worst_step(self) -> int:
+        """The step of a repeat with the slowest sample (after `set_phases`)."""
+        return int(np.argmax(self.full_ns)) % len(self.fixing)
 
     @property
     def median_us(self) -> float:
         return float(np.median(self.full_ns)) / 1e3
 
     @property
-    def p99_us(self) -> float:
-        return float(np.percentile(self.full_ns, 99)) / 1e3
+    def mean_us(self) -> float:
+        return float(np.mean(self.full_ns)) / 1e3
 
     @property
     def update_median_us(self) -> float:
@@ -407,33 +491,27 @@ class Timing:
 
 
 @dataclass
-class BankTiming:
-    ours_ns: list[int] = field(default_factory=list)        # per tick, all repeats pooled
-    filterpy_ns: list[int] = field(default_factory=list)
-    iterations: list[int] = field(default_factory=list)     # MCKF iterations of every update of the bank
-
-
-@dataclass
 class Results:
     seed: int
     updates: int
     repeats: int
     single: dict[str, Timing]
-    bank: BankTiming
+    bank: dict[str, Timing]
     memory: dict[str, tuple[float, float]]
     kf_vs_filterpy: float          # max |our KF - filterpy KF| position difference, every pair and step (m)
     timer_overhead_ns: float
 
 
-SINGLE_ROWS = (*ESTIMATOR_NAMES, FILTERPY, FILTERPY_IN_LOOP, PLKF_LABEL)
+SINGLE_ROWS = (*(setup.label for setup in SINGLE_SETUPS), FILTERPY, FILTERPY_IN_LOOP, PLKF_LABEL)
+BANK_ROWS = (*(bank_label(setup.label) for setup in BANK_SETUPS), bank_label(FILTERPY))
 
 
 def _one_repeat(pair: PairData, bank: list[PairData], target: TargetData, params: RelativeEstimationParams,
-                single: dict[str, Timing], banked: BankTiming) -> None:
+                single: dict[str, Timing], banked: dict[str, Timing]) -> None:
     """Every timing once, fresh filters each, appended to `single` and `banked`."""
-    for name in ESTIMATOR_NAMES:
-        single[name].add(_quiet(lambda: _time_ours(new_ours(name, pair, params), pair, False)),
-                         _quiet(lambda: _time_ours(new_ours(name, pair, params), pair, True)))
+    for setup in SINGLE_SETUPS:
+        single[setup.label].add(_quiet(lambda: _time_ours(new_ours(setup, pair, params), pair, False)),
+                                _quiet(lambda: _time_ours(new_ours(setup, pair, params), pair, True)))
     single[FILTERPY].add(_quiet(lambda: _time_filterpy(new_filterpy(pair, params), pair, False)),
                          _quiet(lambda: _time_filterpy(new_filterpy(pair, params), pair, True)))
     single[FILTERPY_IN_LOOP].add(
@@ -441,10 +519,11 @@ def _one_repeat(pair: PairData, bank: list[PairData], target: TargetData, params
         _quiet(lambda: _time_filterpy_in_loop(new_filterpy(pair, params), pair, params, True)))
     single[PLKF_LABEL].add(_quiet(lambda: _time_plkf(target, False)),
                            _quiet(lambda: _time_plkf(target, True)))
-    estimators = [new_ours("mckf", data, params) for data in bank]
-    banked.ours_ns += _quiet(lambda: (_time_bank(estimators, bank, ours=True), []))[0]
+    for setup in BANK_SETUPS:
+        estimators = [new_ours(setup, data, params) for data in bank]
+        banked[bank_label(setup.label)].add(_quiet(lambda: (_time_bank(estimators, bank, ours=True), [])))
     kfs = [new_filterpy(data, params) for data in bank]
-    banked.filterpy_ns += _quiet(lambda: (_time_bank(kfs, bank, ours=False), []))[0]
+    banked[bank_label(FILTERPY)].add(_quiet(lambda: (_time_bank(kfs, bank, ours=False), [])))
 
 
 def measure(seed: int, updates: int, repeats: int, progress: Callable[[str], None] = lambda _: None
@@ -453,34 +532,39 @@ def measure(seed: int, updates: int, repeats: int, progress: Callable[[str], Non
     params = bench_params()
     progress("generating data")
     pair, bank, target = make_data(seed, updates, params)
-    difference = max(float(np.max(np.abs(run_ours("kf", data, params) - run_filterpy(data, params))))
+    difference = max(float(np.max(np.abs(run_ours(Setup("kf"), data, params).positions
+                                          - run_filterpy(data, params))))
                      for data in (pair, *bank))
 
     # A warm-up repeat whose numbers are discarded: the first pass of each code path pays for cold caches.
     progress("warm-up")
-    _one_repeat(pair, bank, target, params, {name: Timing() for name in SINGLE_ROWS}, BankTiming())
+    _one_repeat(pair, bank, target, params, {name: Timing() for name in SINGLE_ROWS},
+                {name: Timing() for name in BANK_ROWS})
     single = {name: Timing() for name in SINGLE_ROWS}
-    banked = BankTiming()
+    banked = {name: Timing() for name in BANK_ROWS}
     for repeat in range(repeats):
         progress(f"repeat {repeat + 1}/{repeats}")
         _one_repeat(pair, bank, target, params, single, banked)
 
-    # The bank's iteration counts, from an untimed pass (the timed bank loop does not keep outcomes).
-    for data in bank:
-        estimator = new_ours("mckf", data, params)
-        for d, (a, b) in zip(data.displacements, data.range_pairs):
-            estimator.predict(d)
-            banked.iterations.append(estimator.update(a, b).iterations)
+    # Phases, and the banks' iterations (the timed bank loop keeps no outcomes), from untimed runs.
+    progress("tracing phases")
+    for setup in SINGLE_SETUPS:
+        single[setup.label].set_phases([run_ours(setup, pair, params)])
+    for setup in BANK_SETUPS:
+        traces = [run_ours(setup, data, params) for data in bank]
+        banked[bank_label(setup.label)].set_phases(traces)
+        banked[bank_label(setup.label)].iterations = [i for trace in traces for i in trace.iterations]
 
     progress("measuring memory")
-    memory = {
-        "one mckf": _peak_memory(lambda: [new_ours("mckf", pair, params)], [pair], ours=True),
-        f"bank of {BANK_SIZE} mckf": _peak_memory(
-            lambda: [new_ours("mckf", data, params) for data in bank], bank, ours=True),
-        "one filterpy KF": _peak_memory(lambda: [new_filterpy(pair, params)], [pair], ours=False),
-        f"{BANK_SIZE} filterpy KFs": _peak_memory(
-            lambda: [new_filterpy(data, params) for data in bank], bank, ours=False),
-    }
+    memory = {}
+    for setup in (Setup(PAPER), Setup(DEFAULT)):
+        memory[f"one {setup.label}"] = _peak_memory(
+            lambda: [new_ours(setup, pair, params)], [pair], ours=True)
+        memory[f"bank of {BANK_SIZE} {setup.label}"] = _peak_memory(
+            lambda: [new_ours(setup, data, params) for data in bank], bank, ours=True)
+    memory["one filterpy KF"] = _peak_memory(lambda: [new_filterpy(pair, params)], [pair], ours=False)
+    memory[f"{BANK_SIZE} filterpy KFs"] = _peak_memory(
+        lambda: [new_filterpy(data, params) for data in bank], bank, ours=False)
     return Results(seed=seed, updates=updates, repeats=repeats, single=single, bank=banked, memory=memory,
                    kf_vs_filterpy=difference, timer_overhead_ns=timer_overhead_ns())
 
@@ -530,47 +614,136 @@ def machine_info() -> list[tuple[str, str]]:
     ]
 
 
+def _iterations(timing: Timing) -> str:
+    # raw_range's outcomes count its batch solves in `iterations`, not iterations of one update.
+    return f"{timing.mean_iterations:.3f}" if timing.iterations and not any(timing.fixing) else "-"
+
+
+def _cells(values: Sequence[float]) -> list[object]:
+    """'-' for a figure of a phase the data never reached (NaN)."""
+    return ["-" if math.isnan(value) else value for value in values]
+
+
+def _lasted(steps: int, total: int, unit: str) -> str:
+    """How long a fix phase lasted, in steps and in seconds of data."""
+    end = "" if steps < total else ", all of the data: it did not end"
+    return f"{steps} {unit} ({steps * DT:.1f} s{end})"
+
+
+def _verdict(bank_mean_us: float) -> str:
+    return ("within" if bank_mean_us <= BUDGET_BANK_US and bank_mean_us / BANK_SIZE <= BUDGET_PER_NEIGHBOUR_US
+            else "over")
+
+
+def _phase_rows(results: Results) -> list[list[object]]:
+    """The default estimator's rows, single pair and bank, from the bench's prior and cold, split by phase."""
+    phased = [(setup.label, results.single[setup.label], 1)
+              for setup in SINGLE_SETUPS if setup.name == DEFAULT]
+    phased += [(bank_label(setup.label), results.bank[bank_label(setup.label)], BANK_SIZE)
+               for setup in BANK_SETUPS if setup.name == DEFAULT]
+    rows = []
+    for label, timing, pairs in phased:
+        for fixing, phase in ((True, "fix phase"), (False, "tracking")):
+            steps = sum(1 for f in timing.fixing if f == fixing)
+            median, mean, p99, worst = figures_us(timing.phase_ns(fixing))
+            rows.append([f"{label}: {phase}", steps, f"{steps * DT:.1f}",
+                         *_cells([median, mean, p99, worst, mean / pairs])])
+    return rows
+
+
+def _summary(results: Results) -> str:
+    single, banks = results.single, results.bank
+    cold = Setup(DEFAULT, cold=True).label
+    reference, fp_bank = single[FILTERPY], banks[bank_label(FILTERPY)]
+    ref_full, ref_update = reference.median_us, reference.update_median_us
+    steps = results.updates
+    budget = (f"mean <= {BUDGET_PER_NEIGHBOUR_US:g} us per neighbour per tick, bank of {BANK_SIZE} <= "
+              f"{BUDGET_BANK_US / 1e3:g} ms")
+    verdicts = []
+    for start, label in (("from the bench's prior", DEFAULT), ("from a cold start", cold)):
+        mean = banks[bank_label(label)].mean_us
+        verdicts.append(f"{start}: {mean:.1f} us per tick mean ({mean / BANK_SIZE:.1f} us per neighbour, "
+                        f"{mean / fp_bank.mean_us:.2f} x {BANK_SIZE} filterpy KFs): {_verdict(mean)}")
+    lines = [
+        f"Budget of the issue ({budget}), default estimator {DEFAULT}, bank of {BANK_SIZE} (one vessel of a "
+        f"{FLEET_SIZE}-vessel fleet), over the {steps} ticks ({steps * DT:g} s) of a run, fix phase "
+        f"included: {'; '.join(verdicts)}."
+    ]
+    fix_texts = []
+    for start, label in (("From a cold start", cold), ("From the bench's prior", DEFAULT)):
+        timing = banks[bank_label(label)]
+        samples = timing.phase_ns(True)
+        _, mean, p99, worst = figures_us(samples)
+        over = sum(1 for t in samples if t > BUDGET_BANK_US * 1e3) / results.repeats
+        fix_texts.append(
+            f"{start} it lasted {_lasted(sum(timing.fixing), steps, 'ticks')}, its pairs' own fix phases "
+            f"{min(timing.fix_updates)}-{max(timing.fix_updates)} updates: {mean:.0f} us per tick mean "
+            f"({mean / BUDGET_BANK_US:.2f} x the budget, {mean / BANK_SIZE:.1f} us per neighbour), "
+            f"{over:.0f} of its ticks over {BUDGET_BANK_US / 1e3:g} ms, p99 {p99:.0f} us "
+            f"({p99 / BUDGET_BANK_US:.1f} x), worst tick {worst:.0f} us ({worst / BUDGET_BANK_US:.1f} x, "
+            f"step {timing.worst_step})")
+    tracking = figures_us(banks[bank_label(cold)].phase_ns(False))[1]
+    lines.append(
+        "Fix phase of the bank (its ticks until the last pair reported `fixed`), which the mean hides: its "
+        f"pairs, started together, run their batch solves on the same ticks. {'. '.join(fix_texts)}."
+        + ("" if math.isnan(tracking) else f" Tracking afterwards: {tracking:.1f} us per tick mean "
+           f"({tracking / BANK_SIZE:.1f} us per neighbour)."))
+    raw = single[DEFAULT]
+    median, mean, p99, worst = figures_us(raw.full_ns)
+    fix = "; ".join(f"{start}, {_lasted(sum(single[label].fixing), steps, 'updates')} at "
+                    f"{figures_us(single[label].phase_ns(True))[1]:.0f} us mean"
+                    for start, label in (("from the bench's prior", DEFAULT), ("cold", cold)))
+    tracking = figures_us(raw.phase_ns(False))[0]
+    lines.append(
+        f"One {DEFAULT} pair predict+update: {median:.2f} us median, {mean:.2f} us mean, p99 {p99:.1f} us, "
+        f"max {worst:.0f} us, vs filterpy KF {ref_full:.2f} us median: ratio {median / ref_full:.2f}. "
+        f"Its fix phase lasted, {fix}"
+        + ("." if math.isnan(tracking) else f"; tracking: {tracking:.2f} us median."))
+    mckf, bank_mckf = single[PAPER], banks[bank_label(PAPER)]
+    lines.append(
+        f"One MCKF pair predict+update: {mckf.median_us:.2f} us median vs filterpy KF {ref_full:.2f} us: "
+        f"ratio {mckf.median_us / ref_full:.2f} (update alone: {mckf.update_median_us:.2f} vs "
+        f"{ref_update:.2f} us, ratio {mckf.update_median_us / ref_update:.2f}); "
+        f"{mckf.mean_iterations:.2f} MCKF iterations per update on average.")
+    lines.append(
+        f"Bank of {BANK_SIZE} MCKF pairs: {bank_mckf.median_us:.1f} us per tick median "
+        f"({bank_mckf.mean_us:.1f} mean) vs {fp_bank.median_us:.1f} us ({fp_bank.mean_us:.1f}) for "
+        f"{BANK_SIZE} filterpy KFs: ratio {bank_mckf.median_us / fp_bank.median_us:.2f} "
+        f"({bank_mckf.mean_us / fp_bank.mean_us:.2f}); "
+        f"{100 * bank_mckf.mean_us * 1e-6 / DT:.2f} % of the {DT:g} s sampling period.")
+    return "\n".join(lines)
+
+
 def render(results: Results, command: str, info: Sequence[tuple[str, str]]) -> tuple[str, str]:
-    """(document, table) in markdown."""
+    """(document, tables and summary) in markdown."""
     single = results.single
     reference = single[FILTERPY]
     ref_full, ref_update = reference.median_us, reference.update_median_us
     rows = []
     for name, timing in single.items():
-        iterations = f"{timing.mean_iterations:.3f}" if timing.iterations else "-"
-        rows.append([
-            name, timing.median_us, timing.p99_us, f"{timing.median_us / ref_full:.2f}",
-            timing.update_median_us, f"{timing.update_median_us / ref_update:.2f}", iterations,
-        ])
-    header = ["estimator", "median us, predict+update", "p99 us", "ratio to filterpy KF",
+        median, mean, p99, worst = figures_us(timing.full_ns)
+        rows.append([name, median, mean, p99, worst, f"{median / ref_full:.2f}", timing.update_median_us,
+                     f"{timing.update_median_us / ref_update:.2f}", _iterations(timing)])
+    header = ["estimator", "median us, predict+update", "mean us", "p99 us", "max us", "ratio to filterpy KF",
               "median us, update only", "update ratio to filterpy KF", "mean iterations"]
-    bank = results.bank
-    ours_median = float(np.median(bank.ours_ns)) / 1e3
-    fp_median = float(np.median(bank.filterpy_ns)) / 1e3
-    bank_rows = [
-        [f"bank: {BANK_SIZE} x mckf", ours_median, float(np.percentile(bank.ours_ns, 99)) / 1e3,
-         f"{ours_median / fp_median:.2f}", ours_median / BANK_SIZE, f"{np.mean(bank.iterations):.3f}"],
-        [f"bank: {BANK_SIZE} x {FILTERPY}", fp_median, float(np.percentile(bank.filterpy_ns, 99)) / 1e3,
-         "1.00", fp_median / BANK_SIZE, "-"],
-    ]
-    bank_header = ["bank (one tick)", "median us per tick", "p99 us", "ratio to filterpy bank",
-                   "us per pair", "mean iterations"]
+    fp_bank = results.bank[bank_label(FILTERPY)]
+    bank_rows = []
+    for name, timing in results.bank.items():
+        median, mean, p99, worst = figures_us(timing.full_ns)
+        bank_rows.append([name, median, mean, p99, worst, f"{median / fp_bank.median_us:.2f}",
+                          f"{mean / fp_bank.mean_us:.2f}", mean / BANK_SIZE, _iterations(timing)])
+    bank_header = ["bank (one tick)", "median us per tick", "mean us per tick", "p99 us", "max us",
+                   "median ratio to filterpy bank", "mean ratio to filterpy bank", "mean us per neighbour",
+                   "mean iterations"]
+    phase_header = [f"{DEFAULT}: phase", "steps per repeat", "s of data", "median us", "mean us", "p99 us",
+                    "max us", "mean us per neighbour"]
     table = markdown_table(header, rows)
     bank_table = markdown_table(bank_header, bank_rows)
-    mckf = single["mckf"]
-    summary = (
-        f"One MCKF pair predict+update: {mckf.median_us:.2f} us median vs filterpy KF {ref_full:.2f} us: "
-        f"ratio {mckf.median_us / ref_full:.2f} (update alone: {mckf.update_median_us:.2f} vs "
-        f"{ref_update:.2f} us, ratio {mckf.update_median_us / ref_update:.2f}); "
-        f"{mckf.mean_iterations:.2f} MCKF iterations per update on average.\n"
-        f"Bank of {BANK_SIZE} MCKF pairs (one vessel of a {FLEET_SIZE}-vessel fleet): {ours_median:.1f} us "
-        f"per tick median vs {fp_median:.1f} us for {BANK_SIZE} filterpy KFs: ratio "
-        f"{ours_median / fp_median:.2f}; "
-        f"{100 * ours_median * 1e-6 / DT:.2f} % of the {DT:g} s sampling period."
-    )
+    phase_table = markdown_table(phase_header, _phase_rows(results))
+    summary = _summary(results)
     memory_rows = [[name, peak, retained] for name, (peak, retained) in results.memory.items()]
     spread = ", ".join(f"{name} {min(t.repeat_medians_ns) / 1e3:.2f}-{max(t.repeat_medians_ns) / 1e3:.2f}"
-                       for name, t in single.items() if name in ("mckf", FILTERPY))
+                       for name, t in single.items() if name in (PAPER, DEFAULT, FILTERPY))
     updates, repeats = results.updates, results.repeats
     document = "\n".join([
         "# Benchmark: per-update cost of the estimators vs filterpy's KalmanFilter",
@@ -604,11 +777,22 @@ def render(results: Results, command: str, info: Sequence[tuple[str, str]]) -> t
         "repeat); every repeat starts fresh filters on the same data, the repeats visit the estimators in "
         "turn, the garbage collector is off while timing.",
         "- Each sample is one `predict` + one `update` call bracketed by `perf_counter_ns` (the update-only "
-        "columns bracket the `update` call alone). Median and p99 are over the individual samples of all "
-        f"repeats pooled ({updates * repeats} per row). Repeat medians ranged {spread} us.",
+        "columns bracket the `update` call alone). Median, mean, p99 and max are over the individual samples "
+        f"of all repeats pooled ({updates * repeats} per row). Repeat medians ranged {spread} us.",
         "- Ours: `predict(delta)` with delta a numpy (2,) float64 row, `update(r_prev, r_now)` with two "
-        "Python floats; `update` computes the pseudo-measurement z (13) and R_z (14) itself, checks its "
-        "inputs and returns an `UpdateOutcome`.",
+        "Python floats; `update` computes its measurement itself (the pseudo-linear ones: z (13) and "
+        "R_z (14)), checks its inputs and returns an `UpdateOutcome`.",
+        "- Start: our estimators start from the true relative position plus N(0, 25 I), with covariance "
+        f"25 I (Table I). `{Setup(DEFAULT, cold=True).label}`: {DEFAULT}, the agent's default, started with "
+        f"covariance {NO_PRIOR_VARIANCE:g} I, no prior at all (as it restarts a dropped fix; a joiner with "
+        "no estimate starts from the range along x with a spread of the range itself, nearly as "
+        "uninformative).",
+        f"- Phases of {DEFAULT}: a batch fix (a non-linear least squares over a window of ranges every "
+        "`solve_every` ranges) until it reports `fixed`, then one cheap tracking update per range. An "
+        "update is in the fix phase if the estimator had not reported `fixed` before it; a bank's tick, if "
+        "any of its pairs' updates is. Which updates these are comes from an untimed run over the same data "
+        "(the estimators are deterministic). The mean of a whole run depends on its length: the fix phase "
+        "is a fixed stretch at the start.",
         "- filterpy 2.0.0 `KalmanFilter(dim_x=2, dim_z=1)` with F = I, B = I, Q = R_delta = 2e-6 I: "
         "`predict(u=delta)` (delta a (2, 1) array) and `update(z, R=R_z, H=delta^T)` with z, R_z, H "
         "pre-computed (1, 1), (1, 1), (1, 2) arrays, R_z evaluated at filterpy's own prior estimate. "
@@ -621,10 +805,12 @@ def render(results: Results, command: str, info: Sequence[tuple[str, str]]) -> t
         "vessel 0 circling a target at the origin. Its ratio is to the 2-state filterpy KF above and only "
         "sizes it: it is a 4-state filter with a 2-D measurement.",
         f"- Bank: vessel 0 of a ring of {FLEET_SIZE} vessels on the same circle estimates its {BANK_SIZE} "
-        "neighbours with independent MCKFs, each fed its own pair (own noise draws); one sample is one tick, "
-        f"i.e. predict+update of all {BANK_SIZE}. Compared with {BANK_SIZE} filterpy KFs on the same data.",
+        f"neighbours with independent estimators ({PAPER}, the paper's filter; {DEFAULT}, the default, also "
+        "cold), each fed its own pair (own noise draws), all started at the same tick; one sample is one "
+        f"tick, i.e. predict+update of all {BANK_SIZE}. Compared with {BANK_SIZE} filterpy KFs on the same "
+        "data.",
         "- Mean iterations: MCKF iterations per update (L_max = 10, tolerance 1e-6); 1 for the other "
-        "estimators.",
+        f"pseudo-linear estimators; '-' for {DEFAULT}, whose outcomes count batch solves.",
         "",
         "## Single pair",
         "",
@@ -633,6 +819,13 @@ def render(results: Results, command: str, info: Sequence[tuple[str, str]]) -> t
         "## Bank of one vessel",
         "",
         bank_table,
+        "",
+        f"## Fix and tracking phases of {DEFAULT}",
+        "",
+        "Steps per repeat: updates (single pair) or ticks (bank) in that phase, in one repeat; s of data: "
+        f"those steps times dt. Mean us per neighbour: a bank's mean per tick over its {BANK_SIZE} pairs.",
+        "",
+        phase_table,
         "",
         "## Memory (tracemalloc)",
         "",
@@ -643,7 +836,7 @@ def render(results: Results, command: str, info: Sequence[tuple[str, str]]) -> t
         markdown_table(["filters", "peak KiB", "retained KiB"], memory_rows),
         "",
     ])
-    printed = "\n\n".join([table, bank_table, summary])
+    printed = "\n\n".join([table, bank_table, phase_table, summary])
     return document, printed
 
 

@@ -127,7 +127,7 @@ def filter_variance(noise: RangeNoise, config: ComparisonConfig) -> float:
 
 def noise_components(noise: RangeNoise) -> tuple[tuple[float, float, float], ...]:
     """The range-noise density as (weight, mean, variance) Gaussian components for the raw-range estimator:
-    exact for a Gaussian (variance floored at 1e-8) or a Gaussian mixture, else a 4-component mixture fitted to it by EM."""
+    exact for a Gaussian (variance floored at 1e-8) or a Gaussian mixture, else a 6-component mixture fitted to it by EM."""
     if isinstance(noise, GaussianMixtureNoise):
         eps = noise.outlier_fraction
         return ((1.0 - eps, 0.0, noise.variance), (eps, 0.0, noise.outlier_variance))
@@ -137,7 +137,7 @@ def noise_components(noise: RangeNoise) -> tuple[tuple[float, float, float], ...
 
 
 @lru_cache(maxsize=16)
-def _fitted_mixture(noise_json: str, components: int = 4, samples: int = 50_000, iterations: int = 200
+def _fitted_mixture(noise_json: str, components: int = 6, samples: int = 50_000, iterations: int = 200
                     ) -> tuple[tuple[float, float, float], ...]:
     """EM fit of a Gaussian mixture to samples of the noise model (fixed seed: the same fit every time)."""
     noise = _NOISE_ADAPTER.validate_json(noise_json)

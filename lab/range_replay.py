@@ -13,9 +13,14 @@ interval between its two range epochs, gaps included.
 
 Each Monte Carlo run draws its own displacement noise and its own initial estimate
 p0 ~ N(p(t0), P0) from one child of `SeedSequence(seed)`; every estimator of a run sees the same numbers.
-Unless `--range-variance` is given, the filters' range variance is the sample variance of the range
-residuals against the ground truth, range - |a - b|; their mean (the range bias) is reported but not removed,
-since the estimators assume zero-mean range noise.
+
+The filters' range noise comes from the agent parameters (`--config`), as on a boat: the pseudo-linear filters'
+variance `relative.range_variance` and raw_range's density `relative.raw_range.noise_components`.
+`--range-variance` overrides the pseudo-linear variance only. `--truth-variance` instead gives every filter
+the sample variance of this file's residuals against its ground truth, range - |a - b| (raw_range: one
+zero-mean Gaussian of that variance, its gross-error component kept): that tunes the filters on the truth
+they are scored against, so it is never the default and the output says so. The residuals' mean (the range
+bias) is reported either way and never removed.
 
 The pure parts (`parse_csv`, `range_residual_stats`, `synthesise_displacements`, `replay`) do no I/O beyond
 reading the CSV; `run` adds the printing, the progress bar and the output files.
@@ -189,15 +194,27 @@ def synthesise_displacements(
 
 
 # ----------------------------------------------------------------------------------------------- replay
+# Where the filters' range noise came from.
+NOISE_CONFIG = "config"
+NOISE_GIVEN = "given"
+NOISE_TRUTH = "truth-derived"
+
+
 @dataclass
 class RangeReplayResult(ErrorHistory):
     """Per-epoch errors of every estimator over every run, and what the filters were given."""
 
     rejected: dict[str, np.ndarray]   # estimator -> (runs,) updates the estimator refused
-    range_variance: float             # what the filters were given (m^2)
-    range_variance_estimated: bool    # True when it came from the data's residuals
+    range_variance: float             # the pseudo-linear filters' range variance (m^2)
+    noise_source: str                 # NOISE_CONFIG, NOISE_GIVEN or NOISE_TRUTH
     range_bias: float                 # mean range residual of the data (m)
     residual_variance: float          # sample variance of the range residuals (m^2)
+    raw_range_components: tuple[tuple[float, float, float], ...] = ()   # raw_range's assumed density
+    raw_range_gross: tuple[float, float] = (0.0, 1.0)   # its gross-error component (weight, variance m^2)
+
+    @property
+    def tuned_on_truth(self) -> bool:
+        return self.noise_source == NOISE_TRUTH
 
 
 def filter_params(params: AgentParams, range_variance: float) -> RelativeEstimationParams:
@@ -207,6 +224,32 @@ def filter_params(params: AgentParams, range_variance: float) -> RelativeEstimat
     except ValueError:
         raise ConfigError(
             f"range variance must be a positive finite number, got {range_variance!r}") from None
+
+
+def truth_params(params: AgentParams, variance: float) -> RelativeEstimationParams:
+    """Every filter given `variance`: the pseudo-linear range variance, and raw_range's density as one
+    zero-mean Gaussian of it (its gross-error component, a model of faults, kept from the config)."""
+    relative = filter_params(params, variance)
+    raw = updated(relative.raw_range, noise_components=((1.0, 0.0, variance),))
+    return updated(relative, raw_range=raw)
+
+
+def noise_params(
+    log: RangeLog, params: AgentParams, range_variance: float | None, truth_variance: bool
+) -> tuple[RelativeEstimationParams, str]:
+    """The relative-estimation parameters the filters run with, and where their noise came from."""
+    if truth_variance and range_variance is not None:
+        raise ConfigError("give either a range variance or the truth-derived variance, not both")
+    if truth_variance:
+        _, residual_variance = range_residual_stats(log)
+        if not residual_variance > 0.0:
+            raise ConfigError(
+                f"{log.source}: the ranges match the ground truth exactly (residual variance "
+                f"{residual_variance:g} m^2), so no range variance can be derived from the truth")
+        return truth_params(params, residual_variance), NOISE_TRUTH
+    if range_variance is not None:
+        return filter_params(params, range_variance), NOISE_GIVEN
+    return params.relative, NOISE_CONFIG
 
 
 def run_estimators(
@@ -255,23 +298,17 @@ def replay(
     range_variance: float | None = None,
     names: Sequence[str] = ESTIMATOR_NAMES,
     progress: Callable[[int], None] | None = None,
+    truth_variance: bool = False,
 ) -> RangeReplayResult:
     """All Monte Carlo runs of every estimator on `log`; `progress(1)` is called after each run.
 
-    `range_variance` None means: the sample variance of the data's range residuals.
+    The range noise is the config's (`params`) unless `range_variance` (the pseudo-linear filters' only) or
+    `truth_variance` (every filter, from the residuals against the truth) says otherwise; see the module.
     """
     if runs < 1:
         raise ConfigError(f"runs must be at least 1, got {runs}")
     bias, residual_variance = range_residual_stats(log)
-    estimated = range_variance is None
-    if estimated:
-        range_variance = residual_variance
-        if not range_variance > 0.0:
-            raise ConfigError(
-                f"{log.source}: the ranges match the ground truth exactly (residual variance "
-                f"{residual_variance:g} m^2), so no range variance can be estimated; give --range-variance"
-            )
-    relative = filter_params(params, float(range_variance))
+    relative, source = noise_params(log, params, range_variance, truth_variance)
     dt = params.dt
     truth0 = log.truth[0]
     errors = np.empty((runs, len(names), len(log)))
@@ -287,10 +324,13 @@ def replay(
         time=log.elapsed,
         errors={name: errors[:, e, :] for e, name in enumerate(names)},
         rejected={name: rejected[:, e] for e, name in enumerate(names)},
-        range_variance=float(range_variance),
-        range_variance_estimated=estimated,
+        range_variance=float(relative.range_variance),
+        noise_source=source,
         range_bias=bias,
         residual_variance=residual_variance,
+        raw_range_components=tuple(tuple(float(v) for v in c) for c in relative.raw_range.noise_components),
+        raw_range_gross=(float(relative.raw_range.gross_error_fraction),
+                         float(relative.raw_range.gross_error_variance)),
     )
 
 
@@ -298,8 +338,9 @@ def replay(
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("csv", type=Path,
                         help="ranges with ground truth; header exactly " + ",".join(COLUMNS))
-    parser.add_argument("--config", type=Path, default=None,
-                        help="agent parameters (YAML, AgentParams); default: the paper's Table I")
+    parser.add_argument("--config", "--params", dest="config", type=Path, default=None,
+                        help="agent parameters (YAML, AgentParams), the filters' range noise included; "
+                             "default: the paper's Table I")
     parser.add_argument("--seed", type=arguments.seed, default=DEFAULT_SEED,
                         help="root seed of the odometry noise and initial estimates "
                              f"(default {DEFAULT_SEED})")
@@ -308,11 +349,38 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--settle", type=arguments.non_negative_float, default=DEFAULT_SETTLE,
                         help="the 'after' column averages from this many seconds on "
                              f"(default {DEFAULT_SETTLE:g})")
-    parser.add_argument("--range-variance", type=arguments.positive_float, default=None,
-                        help="range variance given to the filters (m^2); default: the sample variance of the "
-                             "data's range residuals against the ground truth")
+    noise = parser.add_mutually_exclusive_group()
+    noise.add_argument("--range-variance", type=arguments.positive_float, default=None,
+                       help="range variance of the pseudo-linear filters (m^2), instead of the config's "
+                            "relative.range_variance (raw_range keeps its noise_components)")
+    noise.add_argument("--truth-variance", action="store_true",
+                       help="TUNED ON THE TRUTH: give every filter the sample variance of the ranges' "
+                            "residuals against this file's ground truth (raw_range: one Gaussian of it); "
+                            "the output is labelled so")
     parser.add_argument("--out", type=Path, default=Path(DEFAULT_OUT),
                         help=f"directory of the table and figure (default {DEFAULT_OUT})")
+
+
+def density_text(components: Sequence[Sequence[float]]) -> str:
+    """A Gaussian mixture as text: 0.8 N(0, 0.4) + 0.2 N(0, 10), variances in m^2."""
+    total = sum(c[0] for c in components)
+    return " + ".join(f"{w / total:.3g} N({m:g}, {v:.3g})" for w, m, v in components)
+
+
+def noise_lines(result: RangeReplayResult, config: Path | None) -> list[str]:
+    """What range noise the filters ran with and where it came from, a line each."""
+    where = f"the config {config}" if config is not None else "the default config (the paper's Table I)"
+    if result.noise_source == NOISE_TRUTH:
+        origin = ("TRUTH-DERIVED: the sample variance of this file's range residuals against its ground truth "
+                  "(--truth-variance); the filters are tuned on the truth they are scored against")
+    elif result.noise_source == NOISE_GIVEN:
+        origin = f"given on the command line (--range-variance; raw_range's density from {where})"
+    else:
+        origin = f"from {where}, not from the ground truth"
+    return [f"range noise: {origin}",
+            f"pseudo-linear filters' range variance: {result.range_variance:.4g} m^2",
+            (f"raw_range's noise density (m, m^2): {density_text(result.raw_range_components)}, with a gross-error "
+             f"component of weight {result.raw_range_gross[0]:g} and variance {result.raw_range_gross[1]:g}")]
 
 
 def run(args: argparse.Namespace) -> int:
@@ -331,14 +399,13 @@ def run(args: argparse.Namespace) -> int:
           f"max {np.max(steps):.3f} s)")
     with tqdm(total=args.runs, desc="replay runs", unit="run", file=sys.stderr) as bar:
         result = replay(log, params, runs=args.runs, seed=args.seed, range_variance=args.range_variance,
-                        progress=bar.update)
-    source = "estimated from the range residuals" if result.range_variance_estimated else "given"
+                        truth_variance=args.truth_variance, progress=bar.update)
     summary = [
         f"mean range bias (range - |a - b|): {result.range_bias:+.4f} m (not removed)",
         f"range residual sample variance: {result.residual_variance:.4g} m^2",
-        f"range variance used by the filters: {result.range_variance:.4g} m^2 ({source})",
-        f"displacement variance: {params.relative.displacement_variance:g} m^2 per dt = {params.dt:g} s, "
-        f"per end; runs: {args.runs}, seed: {args.seed}",
+        *noise_lines(result, args.config),
+        (f"displacement variance: {params.relative.displacement_variance:g} m^2 per dt = {params.dt:g} s, "
+         f"per end; runs: {args.runs}, seed: {args.seed}"),
     ]
     for line in summary:
         print(line)
@@ -355,15 +422,18 @@ def run(args: argparse.Namespace) -> int:
     stem = Path(args.csv).stem
     markdown_path, figure_path = out / f"replay_{stem}.md", out / f"replay_{stem}.png"
     out.mkdir(parents=True, exist_ok=True)
+    title = f"# Replay of `{Path(args.csv).name}`"
+    if result.tuned_on_truth:
+        title += ": filters tuned on the ground truth"
     markdown = "\n".join([
-        f"# Replay of `{Path(args.csv).name}`",
+        title,
         "",
         "```",
         invocation(args),
         "```",
         "",
-        f"- {len(log)} ranges over {duration:.3f} s; interval median {np.median(steps):.3f} s, "
-        f"max {np.max(steps):.3f} s",
+        (f"- {len(log)} ranges over {duration:.3f} s; interval median {np.median(steps):.3f} s, "
+         f"max {np.max(steps):.3f} s"),
         *(f"- {line}" for line in summary),
         "- RMSE over runs at each range epoch; time averages weight epochs by time (trapezoid rule)",
         "",

@@ -48,9 +48,9 @@ class RunTrace:
 
 
 def run(scenario: Scenario, seed: np.random.SeedSequence | int | None = None) -> RunTrace:
-    """One run of `scenario`; `seed` defaults to the scenario's own. A vessel that joins later starts with
-    no estimates (its target from its first bearing, its neighbours from the shares), as its agent process
-    would."""
+    """One run of `scenario`; `seed` defaults to the scenario's own. A vessel that joins later, or one the
+    scenario starts cold, starts with no estimates (its target from its first bearing, its neighbours from
+    the ranges and shares), as its agent process would."""
     sequence = seed if isinstance(seed, np.random.SeedSequence) else np.random.SeedSequence(
         scenario.seed if seed is None else seed)
     random = streams(sequence)
@@ -68,11 +68,9 @@ def run(scenario: Scenario, seed: np.random.SeedSequence | int | None = None) ->
         readings = world.sense()
         live = world.live()
         joined = {v for v in live if v not in agents}
-        if k == 0:
-            starts = initial_estimates(scenario, world.truth(), random.initial)
-            agents.update({i: initial_state(i, params, start) for i, start in starts.items()})
-        else:
-            agents.update({i: initial_state(i, params, InitialEstimates()) for i in joined})
+        starts = initial_estimates(scenario, world.truth(), random.initial) if k == 0 else {}
+        agents.update({i: initial_state(i, params, starts.get(i, InitialEstimates()))
+                       for i in live if i not in agents})
         for gone in [v for v in agents if v not in live]:
             del agents[gone]
             inbox.pop(gone, None)

@@ -2,7 +2,8 @@
 
 Every run of every variant of every requested file goes through one process pool; run r of a variant gets
 child r of `SeedSequence(scenario.seed)`, so the numbers do not depend on the number of workers (only the
-measured tick times do). One markdown page per file puts our means beside the paper's, with two figures.
+measured tick times do). One markdown page per file puts our means beside the paper's (where it gives
+any), then the whole-run means beside the means after settling, with two figures.
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ import os
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from itertools import combinations
 from pathlib import Path
 
 import numpy as np
@@ -24,7 +26,7 @@ from lab.parallel import map_in_order
 from lab.report import invocation, markdown_table
 from lab.runner import RunTrace
 from lab.runner import run as run_scenario
-from mission_log.metrics import RunMetrics
+from mission_log.metrics import RunMetrics, nan_mean
 from sim_bridge.scenario import Scenario, ScenarioFile, load_scenarios
 
 DEFAULT_DIR = Path("configs/scenarios")
@@ -99,12 +101,28 @@ def load(path: Path, runs: int | None = None, seed: int | None = None
 # Monte Carlo
 # ----------------------------------------------------------------------------------------------------------
 
+def mean_after(time: np.ndarray, values: np.ndarray, start: float) -> float:
+    """Time average of `values` from `start` (s) to the end of the run; NaN ticks (no estimate yet, a vessel
+    absent) do not count."""
+    return nan_mean(np.asarray(values)[np.asarray(time) >= start])
+
+
+def closest_approach(positions: np.ndarray) -> float:
+    """Smallest distance between any two vessels over the run; positions (K, n, 2), NaN when absent (a
+    vessel that leaves before another joins is never compared with it)."""
+    pairs = combinations(range(positions.shape[1]), 2)
+    gaps = [np.hypot(*(positions[:, i] - positions[:, j]).T) for i, j in pairs]
+    return float(np.nanmin(gaps))
+
+
 @dataclass
 class RunOutcome:
-    """What one run sends back from a worker: metrics, error curves and, for run 0, the whole trace."""
+    """What one run sends back from a worker: metrics, error curves, the closest approach of any two
+    vessels and, for run 0, the whole trace."""
 
     metrics: RunMetrics
     errors: np.ndarray                  # (3, K): ERRORS over time
+    closest: float
     trace: RunTrace | None
 
 
@@ -115,6 +133,7 @@ class VariantResult:
     time: np.ndarray                    # (K,)
     metrics: list[RunMetrics]           # one per run, in run order
     errors: np.ndarray                  # (runs, 3, K)
+    closest: np.ndarray                 # (runs,) closest approach of any two vessels
     first: RunTrace                     # run 0, for the trajectory figure
 
     def mean_std(self, field: str) -> tuple[float, float]:
@@ -125,12 +144,23 @@ class VariantResult:
     def settling_times(self) -> list[float]:
         return [m.settling_time for m in self.metrics if m.settling_time is not None]
 
+    def after_settling(self, error: str) -> np.ndarray:
+        """Each settled run's time average of `error` (one of ERRORS) from its own settling time to the
+        end; the runs that never settle have none."""
+        panel = ERRORS.index(error)
+        return np.array([mean_after(self.time, curves[panel], m.settling_time)
+                         for curves, m in zip(self.errors, self.metrics) if m.settling_time is not None])
+
     def summary(self) -> dict[str, float]:
         """The aggregated numbers of the variant; TIMING_KEYS are the only machine-dependent ones."""
         result = {"runs": float(len(self.metrics)), "settled": float(len(self.settling_times))}
         for key in ("e_ij", "e_io", "e_io_velocity", "e_c"):
             result[key], result[f"{key}_std"] = self.mean_std(f"mean_{key}")
+        for key in ERRORS:
+            result[f"{key}_settled"], result[f"{key}_settled_std"] = _nan_mean_std(self.after_settling(key))
         result["settling_time"], result["settling_time_std"] = _nan_mean_std(np.array(self.settling_times))
+        result["closest"], result["closest_std"] = _nan_mean_std(self.closest)
+        result["closest_min"] = float(np.min(self.closest))
         result["tick_ms"] = self.mean_std("mean_tick_ms")[0]
         result["p99_tick_ms"] = self.mean_std("p99_tick_ms")[0]
         return result
@@ -150,7 +180,7 @@ def _run_job(job: Job) -> RunOutcome:
     scenario, seed, keep_trace = job
     trace = run_scenario(scenario, seed)
     errors = np.stack([getattr(trace, name) for name in ERRORS])
-    return RunOutcome(trace.metrics, errors, trace if keep_trace else None)
+    return RunOutcome(trace.metrics, errors, closest_approach(trace.positions), trace if keep_trace else None)
 
 
 def run_monte_carlo(files: dict[str, dict[str, Scenario]], workers: int,
@@ -173,7 +203,8 @@ def run_monte_carlo(files: dict[str, dict[str, Scenario]], workers: int,
         first = runs[0].trace
         results.setdefault(stem, {})[variant] = VariantResult(
             name=variant, scenario=files[stem][variant], time=first.time, metrics=[r.metrics for r in runs],
-            errors=np.stack([r.errors for r in runs]), first=first)
+            errors=np.stack([r.errors for r in runs]), closest=np.array([r.closest for r in runs]),
+            first=first)
     return results
 
 
@@ -205,11 +236,11 @@ def run(args: argparse.Namespace) -> int:
         errors = error_figure(
             {name: (v.time, v.errors) for name, v in variants.items()}, join_leave_events(variants),
             f"{spec.name}: errors, mean over runs +-1 std", args.out / f"{stem}_errors.png")
-        table = comparison_table(variants)
-        page = render_page(path, spec, variants, table, command, elapsed, args.workers,
+        tables = (comparison_table(variants), settling_table(variants))
+        page = render_page(path, spec, variants, tables, command, elapsed, args.workers,
                            (trajectories.name, errors.name))
         (args.out / f"{stem}.md").write_text(page, encoding="utf-8")
-        print(f"\n{stem}:\n{table}")
+        print(f"\n{stem}:\n{tables[0]}\n\n{tables[1]}")
         index.append((stem, spec, variants))
     if "all" in args.names:
         (args.out / "README.md").write_text(render_index(index, command), encoding="utf-8")
@@ -241,21 +272,48 @@ def _paper(value: float | None, digits: int = 3) -> str:
     return "-" if value is None else f"{value:.{digits}f}"
 
 
+def _paper_tables(variants: dict[str, VariantResult]) -> list[str]:
+    """The paper's tables the variants are compared with; none when the paper gives no numbers."""
+    return sorted({r.scenario.paper.table for r in variants.values() if r.scenario.paper.table})
+
+
 def comparison_table(variants: dict[str, VariantResult]) -> str:
-    header = ["variant", "e_ij ours (m)", "e_ij paper", "e_io ours (m)", "e_io paper", "e_c ours (m)",
-              "e_c paper", "settling ours (s)", "settling paper", "tick ours (ms)", "run time paper (ms)",
-              "settled runs"]
+    """The whole-run means, each beside the paper's figure when the paper gives any for the file."""
+    with_paper = bool(_paper_tables(variants))
+
+    def pair(ours: str, paper: str) -> list[str]:
+        return [ours, paper] if with_paper else [ours]
+
+    header = ["variant", *pair("e_ij ours (m)", "e_ij paper"), *pair("e_io ours (m)", "e_io paper"),
+              *pair("e_c ours (m)", "e_c paper"), *pair("settling ours (s)", "settling paper"),
+              *pair("tick ours (ms)", "run time paper (ms)"), "settled runs"]
     rows = []
     for name, result in variants.items():
         s, paper = result.summary(), result.scenario.paper
         rows.append([
             name,
-            _ours(s["e_ij"], s["e_ij_std"]), _paper(paper.mean_e_ij),
-            _ours(s["e_io"], s["e_io_std"]), _paper(paper.mean_e_io),
-            _ours(s["e_c"], s["e_c_std"]), _paper(paper.mean_e_c),
-            _ours(s["settling_time"], s["settling_time_std"], 2) if s["settled"] else "never",
-            _paper(paper.settling_time, 2),
-            f"{s['tick_ms']:.3f}", _paper(paper.run_time_ms, 2),
+            *pair(_ours(s["e_ij"], s["e_ij_std"]), _paper(paper.mean_e_ij)),
+            *pair(_ours(s["e_io"], s["e_io_std"]), _paper(paper.mean_e_io)),
+            *pair(_ours(s["e_c"], s["e_c_std"]), _paper(paper.mean_e_c)),
+            *pair(_ours(s["settling_time"], s["settling_time_std"], 2) if s["settled"] else "never",
+                  _paper(paper.settling_time, 2)),
+            *pair(f"{s['tick_ms']:.3f}", _paper(paper.run_time_ms, 2)),
+            f"{int(s['settled'])}/{int(s['runs'])}",
+        ])
+    return markdown_table(header, rows)
+
+
+def settling_table(variants: dict[str, VariantResult]) -> str:
+    """e_c over the whole run beside the means after settling, and how close any two vessels came."""
+    header = ["variant", "e_c whole run (m)", "e_c after settling (m)", "e_ij after settling (m)",
+              "e_io after settling (m)", "closest approach (m)", "closest, worst run (m)", "settled runs"]
+    rows = []
+    for name, result in variants.items():
+        s = result.summary()
+        rows.append([
+            name, _ours(s["e_c"], s["e_c_std"]),
+            *(_ours(s[f"{key}_settled"], s[f"{key}_settled_std"]) for key in ("e_c", "e_ij", "e_io")),
+            _ours(s["closest"], s["closest_std"], 2), f"{s['closest_min']:.2f}",
             f"{int(s['settled'])}/{int(s['runs'])}",
         ])
     return markdown_table(header, rows)
@@ -269,10 +327,23 @@ def _setting(variants: dict[str, VariantResult], value: Callable[[Scenario], obj
     return "; ".join(f"{name}: {v}" for name, v in values.items())
 
 
-def render_page(path: Path, spec: ScenarioFile, variants: dict[str, VariantResult], table: str, command: str,
-                elapsed: float, workers: int, figures: tuple[str, str]) -> str:
-    tables = sorted({r.scenario.paper.table for r in variants.values() if r.scenario.paper.table})
-    against = f"the paper's Table {', '.join(tables)}" if tables else "the paper (no numbers given)"
+def _start(scenario: Scenario) -> str:
+    """What the vessels know at the start, for the settings list."""
+    cold = scenario.initial.cold
+    if cold == "all":
+        return "none, every vessel starts cold"
+    drawn = (f"drawn around the truth, P_ij,0 = {scenario.initial.neighbour_variance} I, "
+             f"P_io,0 = {scenario.initial.target_variance} I")
+    return drawn + (f"; none for {', '.join(cold)} (cold)" if cold else "")
+
+
+def render_page(path: Path, spec: ScenarioFile, variants: dict[str, VariantResult], tables: tuple[str, str],
+                command: str, elapsed: float, workers: int, figures: tuple[str, str]) -> str:
+    paper = _paper_tables(variants)
+    heading = (f"Ours vs the paper's Table {', '.join(paper)}" if paper
+               else "Ours (the paper gives no numbers)")
+    paper_time = (" The paper's Avg. Run Time is per iteration on its own machine, and it shows a single "
+                  "run, so its numbers have no spread." if paper else "")
     runs = _setting(variants, lambda s: s.runs)
     return "\n".join([
         f"# Scenario {spec.name}" + (f": {spec.description}" if spec.description else ""),
@@ -292,20 +363,31 @@ def render_page(path: Path, spec: ScenarioFile, variants: dict[str, VariantResul
         f"- vessels: {_setting(variants, lambda s: len(s.world.vessels))}; "
         f"r* (m): {_setting(variants, lambda s: s.agent.control.radius)}; "
         f"dt (s): {_setting(variants, lambda s: s.world.dt)}",
+        f"- initial estimates: {_setting(variants, _start)}",
         f"- wall time {elapsed:.1f} s for all the files of the command, {workers} worker process(es), "
         f"os.cpu_count() = {os.cpu_count()}",
         "",
-        f"## Ours vs {against}",
+        f"## {heading}",
         "",
-        "Ours: mean ± std over the runs of each run's time average of the error (the paper's \"Mean\", "
-        "Sec. VI: e_ij, e_io the worst over the vessels at each tick, e_c the formation centre's distance "
-        "to the target). Settling: first time from which every radius stays within ±10 % of r* to the end; "
-        "mean ± std over the settled runs only, whose count is the last column. Tick: mean compute time of "
-        "one vessel's tick (all its estimators and its controller), measured here while the worker processes "
-        "shared the machine; the paper's Avg. Run Time is per iteration on its own machine, and it shows "
-        "a single run, so its numbers have no spread.",
+        "Ours: mean ± std over the runs of each run's time average of the error over the whole run (the "
+        "paper's \"Mean\", Sec. VI: e_ij, e_io the worst over the vessels at each tick, e_c the formation "
+        "centre's distance to the target; a tick at which no vessel has an estimate yet does not count). "
+        "Settling: first time from which every radius stays within ±10 % of r* to the end; mean ± std over "
+        "the settled runs only, whose count is the last column. Tick: mean compute time of one vessel's tick "
+        "(all its estimators and its controller), measured here while the worker processes shared the "
+        f"machine.{paper_time}",
         "",
-        table,
+        tables[0],
+        "",
+        "## Whole run and after settling",
+        "",
+        "The whole-run mean includes the start-up transient. After settling: each settled run's time "
+        "average from its own settling time to the end of the run, then mean ± std over the settled runs "
+        "(a run that never settles has no such average; the last column counts the settled runs). Closest "
+        "approach: the smallest distance between any two vessels in a run, mean ± std over all runs, and "
+        "the smallest of any run.",
+        "",
+        tables[1],
         "",
         "## Figures",
         "",

@@ -30,7 +30,7 @@ from pathlib import Path
 from agent.runtime.mcap_log import FORMAT_RECORD, PART_RECORD, read_messages, read_metadata
 from agent.shell.tick_log import log_topic
 
-READS_FORMATS = ("1", "2", "3", "4")  # the log format versions this reader knows (agent/runtime/mcap_log.py writes them)
+READS_FORMATS = ("1", "2", "3", "4", "5")  # the log format versions this reader knows (agent/runtime/mcap_log.py writes them)
 UNRECORDED_FORMAT = "1"     # what a file from before the version was recorded holds
 
 

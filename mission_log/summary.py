@@ -1,7 +1,9 @@
 """`usv-log summary`: what a mission's logs hold and how the processes fared.
 
 Per vessel: the span of its log, message counts, rates and gaps per topic, what its input gate refused, tick
-overruns, the time its commands spent at each limit, and its estimators' health in windows of time. For the
+overruns, the time its commands spent at each limit, its estimators' health in windows of time, and each pair's
+observability (the share of ticks it was observable, when it first was, the spans it was not, and the last
+eigenvalues of its relative path's spread; agent/core/observability.py). For the
 sim bridge: ticks, missed commands, watchdog stops, command latency. Times are seconds from the mission's
 start (mission_log.reader.mission_start_ns), on either clock; the start itself is given once, as a UTC time
 on the wall clock. A log rotated into parts says how many were read and which are missing.
@@ -82,6 +84,40 @@ def health_windows(estimates: list[tuple[int, dict]], window: float, origin_ns: 
     return result
 
 
+def pair_observability(estimates: list[tuple[int, dict]], origin_ns: int = 0) -> dict[str, dict]:
+    """Per neighbour: its pair's observability over the log (format 5 on; a neighbour whose estimates do not
+    say is left out). `not_observable` lists the stretches it was not, [from s, to s, verdict], each to the
+    next tick with another verdict (or to its last tick)."""
+    pairs: dict[str, dict] = {}
+    for t, m in estimates:
+        time = (t - origin_ns) * 1e-9
+        for j, n in m["neighbours"].items():
+            verdict = n.get("observability")
+            if verdict is None:
+                continue
+            pair = pairs.setdefault(j, {"ticks": 0, "observable_ticks": 0, "first_observable_s": None,
+                                        "spans": [], "last": None, "last_s": None})
+            pair["ticks"] += 1
+            open_span = pair["spans"][-1] if pair["spans"] and pair["spans"][-1][1] is None else None
+            if open_span is not None and verdict != open_span[2]:
+                open_span[1] = time
+            if verdict == "observable":
+                pair["observable_ticks"] += 1
+                if pair["first_observable_s"] is None:
+                    pair["first_observable_s"] = time
+            elif open_span is None or verdict != open_span[2]:
+                pair["spans"].append([time, None, verdict])
+            pair["last"], pair["last_s"] = n, time
+    result = {}
+    for j, pair in sorted(pairs.items()):
+        last = pair["last"]
+        spans = [[start, pair["last_s"] if end is None else end, verdict] for start, end, verdict in pair["spans"]]
+        result[j] = {"ticks": pair["ticks"], "observable_fraction": pair["observable_ticks"] / pair["ticks"],
+                     "first_observable_s": pair["first_observable_s"], "not_observable": spans,
+                     "final": last["observability"], "final_excitation": list(last["excitation"])}
+    return result
+
+
 def _parts(log: Log) -> dict:
     return {"parts": [str(path) for path in log.parts], "missing_parts": list(log.missing_parts),
             "sessions": [str(path) for path in getattr(log, "sessions", [])]}
@@ -114,6 +150,7 @@ def vessel_summary(log, window: float, origin_ns: int = 0) -> dict:
         "saturation_s": saturation,
         "cpu_ms_per_tick": 1e3 * final["cpu_seconds"] / final["ticks"] if final.get("ticks") else None,
         "health_over_time": health_windows(estimates, window, origin_ns),
+        "observability": pair_observability(estimates, origin_ns),
     }
 
 
@@ -173,6 +210,24 @@ def _topic_table(topics: dict) -> list[str]:
     return lines
 
 
+SPANS_SHOWN = 4   # not-observable spans listed per pair; the rest are counted
+
+
+def _observability_table(pairs: dict[str, dict]) -> list[str]:
+    lines = ["Pair observability (the relative path's spread over the window, docs/estimation.md):", "",
+             ("| neighbour | observable (% of ticks) | first observable (s) | last verdict | last λ_min, λ_max (m²) | "
+              "not observable (s) |"), "|---|---|---|---|---|---|"]
+    for j, p in pairs.items():
+        spans = [f"{start:.1f}–{end:.1f} {verdict}" for start, end, verdict in p["not_observable"][:SPANS_SHOWN]]
+        more = len(p["not_observable"]) - SPANS_SHOWN
+        if more > 0:
+            spans.append(f"and {more} more")
+        low, high = p["final_excitation"]
+        lines.append(f"| {j} | {100 * p['observable_fraction']:.0f} | {_fmt(p['first_observable_s'], 1)} | "
+                     f"{p['final']} | {low:.2f}, {high:.2f} | {', '.join(spans) or 'none'} |")
+    return lines + [""]
+
+
 def summary_markdown(summary: dict) -> str:
     lines = [f"# Summary of {summary['source']}", "", _start_line(summary), ""]
     vessels = summary["vessels"]
@@ -224,4 +279,6 @@ def summary_markdown(summary: dict) -> str:
                              f"{_fmt(row['mean_weight'])} | {_fmt(row['mean_nis'])} | {row['bearing_updates']} | "
                              f"{row['bearing_refused']} |")
             lines.append("")
+        if s.get("observability"):
+            lines += _observability_table(s["observability"])
     return "\n".join(lines) + "\n"

@@ -30,10 +30,15 @@ from sim_bridge.world import Truth, WorldConfig
 
 
 class InitialUncertainty(StrictModel):
-    """How the vessels' first estimates are drawn (Sec. VI: p^_ij,0 ~ N(p_ij,0, P_ij,0), likewise x_io)."""
+    """How the vessels' first estimates are drawn (Sec. VI: p^_ij,0 ~ N(p_ij,0, P_ij,0), likewise x_io),
+    and which vessels start cold, knowing nothing, as a fleet deployed without surveyed positions."""
 
     neighbour_variance: PositiveFloat = Field(0.04, description="P_ij,0 = value * I (Table II: 0.04)")
     target_variance: PositiveFloat = Field(1.0, description="P_io,0 = value * I (Table II: I)")
+    cold: Literal["all"] | list[str] = Field(
+        default_factory=list,
+        description="vessels that start with no estimates (target from the first bearing, neighbours from "
+                    "the ranges and shares): 'all', or a list of ids")
 
 
 class PaperRow(StrictModel):
@@ -66,6 +71,17 @@ class Scenario(StrictModel):
         if abs(self.world.dt - self.agent.dt) > 1e-12:
             raise ValueError(f"world.dt ({self.world.dt}) and agent.dt ({self.agent.dt}) must agree")
         return self
+
+    @model_validator(mode="after")
+    def _cold_vessels_exist(self) -> Scenario:
+        if self.initial.cold != "all":
+            unknown = set(self.initial.cold) - {v.id for v in self.world.vessels}
+            if unknown:
+                raise ValueError(f"initial.cold names vessels the world does not have: {sorted(unknown)}")
+        return self
+
+    def starts_cold(self, vessel: str) -> bool:
+        return self.initial.cold == "all" or vessel in self.initial.cold
 
     def agent_params(self) -> AgentParams:
         """The agent parameters the vessels run with, R_z's range variance filled in from the world."""
@@ -118,7 +134,9 @@ def select_scenario(path: str | Path, variant: str | None = None) -> tuple[str, 
 
 def initial_estimates(scenario: Scenario, truth: Truth, rng: np.random.Generator) -> dict[str, InitialEstimates]:
     """The deployment knowledge of the vessels there at the start (`truth` at time 0), drawn around the
-    truth as in Sec. VI: x^_io,0 ~ N(x_io,0, P_io,0) for each, and p^_ij,0 ~ N(p_ij,0, P_ij,0) for each pair."""
+    truth as in Sec. VI: x^_io,0 ~ N(x_io,0, P_io,0) for each, and p^_ij,0 ~ N(p_ij,0, P_ij,0) for each pair.
+    A cold vessel (`initial.cold`) is left out, so it starts knowing nothing; its draws are made all the
+    same, so the others get the numbers they would get in the warm scenario."""
     p_ij, p_io = scenario.initial.neighbour_variance, scenario.initial.target_variance
     estimates = {}
     for i in truth.positions:
@@ -130,6 +148,7 @@ def initial_estimates(scenario: Scenario, truth: Truth, rng: np.random.Generator
             if j != i:
                 true = truth.positions[i] - truth.positions[j]
                 neighbours[j] = tuple((true + rng.normal(0.0, math.sqrt(p_ij), 2)).tolist())
-        estimates[i] = InitialEstimates(target=tuple(target.tolist()), target_variance=p_io, neighbours=neighbours,
-                                        neighbour_variance=p_ij, stamp=truth.time)
+        if not scenario.starts_cold(i):
+            estimates[i] = InitialEstimates(target=tuple(target.tolist()), target_variance=p_io,
+                                            neighbours=neighbours, neighbour_variance=p_ij, stamp=truth.time)
     return estimates

@@ -496,6 +496,12 @@ def test_the_sim_bridge_killed_and_restarted_is_followed(tmp_path, short_scenari
     bridge_config = tmp_path / "bridge.yaml"
     bridge_config.write_text(yaml.safe_dump({"mode": "lockstep", "zenoh": {"listen": [f"tcp/127.0.0.1:{port}"]}}))
     bridge_cmd = [sys.executable, "-m", "sim_bridge", "--scenario", str(short_scenario), "--config", str(bridge_config)]
+    # The first mission is long, so that it is still running when the test's session has connected and it
+    # is killed: a lockstep fleet can run the short one to its end before that.
+    long_scenario = tmp_path / "long.yaml"
+    long = yaml.safe_load(short_scenario.read_text())
+    long["base"]["duration"] = 600.0
+    long_scenario.write_text(yaml.safe_dump(long))
     agents = {}
     for vessel, settings in agent_configs(scenario, None, tmp_path, lambda v: {
             "listen": ["tcp/127.0.0.1:0"], "connect": [f"tcp/127.0.0.1:{port}"]}).items():
@@ -504,7 +510,7 @@ def test_the_sim_bridge_killed_and_restarted_is_followed(tmp_path, short_scenari
         agents[vessel] = subprocess.Popen([sys.executable, "-m", "agent", "--vessel", vessel, "--config", str(path)],
                                           stderr=(tmp_path / f"agent-{vessel}.err").open("w"))
     statuses: list[Status] = []
-    first = subprocess.Popen(bridge_cmd, stderr=subprocess.PIPE, text=True)
+    first = subprocess.Popen([*bridge_cmd[:4], str(long_scenario), *bridge_cmd[5:]], stderr=subprocess.PIPE, text=True)
     try:
         with session_to(port) as session:
             session.declare_subscriber("usv/*/status",

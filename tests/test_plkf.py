@@ -189,3 +189,36 @@ def test_covariance_stays_symmetric_positive_definite(seed, occlusion):
         assert np.allclose(P, P.T, atol=0, rtol=0)
         assert np.all(np.linalg.eigvalsh(P) > 0)
         assert np.all(np.isfinite(tracker.state))
+
+
+def _tracked_state(position):
+    """A vessel state whose target filter holds `position` (vessel relative to the target... as the PLKF
+    stores it: along the bearing), still, with a modest covariance."""
+    from agent.core.build import InitialEstimates, initial_state
+    from agent.core.params import AgentParams
+
+    params = AgentParams()
+    state = initial_state("0", params, InitialEstimates())
+    state.tracker = PLKF(params.target, np.array([*position, 0.0, 0.0]), np.eye(4) * 0.01, dt=params.dt)
+    return params, state
+
+
+def test_an_estimate_behind_the_bearing_starts_the_target_filter_again():
+    # The pseudo-linear update cannot tell p from -p; an estimate on the wrong side of the vessel is restarted
+    # at the range guess along the bearing and counted, not left to converge on the target's reflection.
+    from agent.core.target import track_target
+
+    params, state = _tracked_state([-4.0, -3.0])
+    bearing = np.array([0.8, 0.6])
+    x, _, _ = track_target(params, state, bearing, None)
+    assert state.health.target_restarts == 1
+    np.testing.assert_allclose(x[:2], bearing * params.target.initial_range_guess)
+
+
+def test_an_estimate_along_the_bearing_is_not_restarted():
+    from agent.core.target import track_target
+
+    params, state = _tracked_state([4.0, 3.0])
+    x, _, _ = track_target(params, state, np.array([0.8, 0.6]), None)
+    assert state.health.target_restarts == 0
+    np.testing.assert_allclose(x[:2], [4.0, 3.0], atol=1e-9)

@@ -13,6 +13,9 @@ from agent.config import ConfigError
 from agent.core.params import ESTIMATOR_NAMES, AgentParams
 from lab import cli
 from lab.range_replay import (
+    NOISE_CONFIG,
+    NOISE_GIVEN,
+    NOISE_TRUTH,
     RangeLog,
     RangeReplayResult,
     parse_csv,
@@ -156,7 +159,8 @@ def test_estimators_converge_on_a_noisy_irregular_log_with_a_gap():
     t, ranges, a, b = circle_scenario(seed=101, range_std=0.1, duration=120.0)
     log = RangeLog("circle", t, ranges, a, b)
     params = AgentParams()
-    result = replay(log, params, runs=5, seed=4)
+    # The filters are tuned on the truth here (explicitly), so that the KF's consistency can be checked.
+    result = replay(log, params, runs=5, seed=4, truth_variance=True)
 
     assert set(result.errors) == set(ESTIMATOR_NAMES)
     for name in ESTIMATOR_NAMES:
@@ -165,9 +169,11 @@ def test_estimators_converge_on_a_noisy_irregular_log_with_a_gap():
         assert (result.rejected[name] == 0).all(), name
         assert math.isfinite(result.time_averaged_rmse(name, 10.0))
 
-    # The range variance came from the data: range_std^2 = 0.01 m^2, estimated from ~1000 residuals.
-    assert result.range_variance_estimated
+    # The range variance came from the data: range_std^2 = 0.01 m^2, estimated from ~1000 residuals, and
+    # raw_range was given one Gaussian of it.
+    assert result.noise_source == NOISE_TRUTH and result.tuned_on_truth
     assert result.range_variance == pytest.approx(0.01, rel=0.15)
+    assert result.raw_range_components == ((1.0, 0.0, result.range_variance),)
     assert abs(result.range_bias) < 0.02
 
     # Every run starts from p0 ~ N(p, 25 I): an RMS error of sqrt(50) = 7.1 m.
@@ -184,7 +190,7 @@ def test_estimators_converge_on_a_noisy_irregular_log_with_a_gap():
     assert result.time_averaged_rmse("mckf", 60.0) < 0.5 * initial
     # ... and given a bandwidth suited to Gaussian noise it does as well as the KF.
     wide = with_relative(mckf={"bandwidths": (1e4, 1e4, 5.0)})
-    assert replay(log, wide, runs=5, seed=4, names=("mckf",)).final_rmse("mckf") < 1.0
+    assert replay(log, wide, runs=5, seed=4, names=("mckf",), truth_variance=True).final_rmse("mckf") < 1.0
 
 
 def test_exact_data_keeps_every_estimator_on_the_truth_across_the_gap():
@@ -195,7 +201,7 @@ def test_exact_data_keeps_every_estimator_on_the_truth_across_the_gap():
     log = RangeLog("exact", t, ranges, a, b)
     params = with_relative(displacement_variance=1e-24, initial_covariance=1e-14)
     result = replay(log, params, runs=2, seed=5, range_variance=1e-4)
-    assert not result.range_variance_estimated and result.range_variance == 1e-4
+    assert result.noise_source == NOISE_GIVEN and result.range_variance == 1e-4
     for name in ESTIMATOR_NAMES:
         assert np.max(result.errors[name]) < 1e-5, name
 
@@ -258,21 +264,54 @@ def test_estimators_are_driven_epoch_by_epoch_with_the_interval_lengths(monkeypa
     assert [c[1:] for c in calls if c[0] == "update"] == [(3.0, 2.9), (2.9, 2.7), (2.7, 2.0)]
 
 
-def test_range_statistics_and_exact_ranges_need_a_given_variance():
+def test_range_statistics_and_a_truth_variance_needs_residuals():
     t, ranges, a, b = circle_scenario(seed=2, range_std=0.0, duration=5.0)
     biased = RangeLog("biased", t, ranges + 0.25, a, b)
     bias, variance = range_residual_stats(biased)
     assert bias == pytest.approx(0.25) and variance == pytest.approx(0.0, abs=1e-20)
-    with pytest.raises(ConfigError, match="--range-variance"):
-        replay(biased, AgentParams(), runs=1)
+    # Exact ranges leave no variance to derive from the truth; the config's noise still works.
+    with pytest.raises(ConfigError, match="from the truth"):
+        replay(biased, AgentParams(), runs=1, truth_variance=True)
+    assert replay(biased, AgentParams(), runs=1, names=("kf",)).noise_source == NOISE_CONFIG
+    with pytest.raises(ConfigError, match="not both"):
+        replay(biased, AgentParams(), runs=1, range_variance=1.0, truth_variance=True)
+
+
+def test_noise_comes_from_the_config_by_default_not_from_the_truth():
+    # Two logs on one path, range noise 0.05 m and 0.7 m: by default the filters get the config's noise for
+    # both, whatever the residuals against the truth say.
+    quiet = RangeLog("quiet", *circle_scenario(seed=5, range_std=0.05, duration=30.0))
+    noisy = RangeLog("noisy", *circle_scenario(seed=5, range_std=0.7, duration=30.0))
+    params = with_relative(range_variance=0.3, raw_range={"noise_components": [(0.9, 0.05, 0.02), (0.1, 0.0, 1.0)]})
+    for log in (quiet, noisy):
+        result = replay(log, params, runs=1, seed=3)
+        assert result.noise_source == NOISE_CONFIG and not result.tuned_on_truth
+        assert result.range_variance == 0.3
+        assert result.raw_range_components == ((0.9, 0.05, 0.02), (0.1, 0.0, 1.0))
+        assert result.raw_range_gross == (0.001, 1e4)
+    assert range_residual_stats(noisy)[1] > 100 * range_residual_stats(quiet)[1]
+
+
+def test_a_config_sets_the_noise_raw_range_assumes():
+    # raw_range ignores range_variance; its density is relative.raw_range.noise_components, so a config for
+    # real data must reach it: a different density gives different raw_range estimates from the same draws.
+    log = RangeLog("circle", *circle_scenario(seed=8, range_std=0.1, duration=40.0))
+    table_two = replay(log, AgentParams(), runs=2, seed=6, names=("raw_range", "kf"))
+    narrow = replay(log, with_relative(raw_range={"noise_components": [(1.0, 0.0, 0.01)]}), runs=2, seed=6,
+                    names=("raw_range", "kf"))
+    other_variance = replay(log, with_relative(range_variance=0.01), runs=2, seed=6, names=("raw_range", "kf"))
+    assert not np.array_equal(table_two.errors["raw_range"], narrow.errors["raw_range"])
+    np.testing.assert_array_equal(table_two.errors["kf"], narrow.errors["kf"])
+    np.testing.assert_array_equal(table_two.errors["raw_range"], other_variance.errors["raw_range"])
+    assert not np.array_equal(table_two.errors["kf"], other_variance.errors["kf"])
 
 
 def test_rmse_summaries_weight_irregular_epochs_by_time():
     # Two runs with errors 3 and 4 at each epoch -> RMSE sqrt(12.5); then the last epoch has RMSE 10.
     errors = np.array([[3.0, 3.0, 10.0], [4.0, 4.0, 10.0]])
     result = RangeReplayResult(time=np.array([0.0, 1.0, 10.0]), errors={"kf": errors},
-                          rejected={"kf": np.zeros(2)}, range_variance=1.0, range_variance_estimated=False,
-                          range_bias=0.0, residual_variance=1.0)
+                               rejected={"kf": np.zeros(2)}, range_variance=1.0, noise_source=NOISE_GIVEN,
+                               range_bias=0.0, residual_variance=1.0)
     rmse = math.sqrt(12.5)
     np.testing.assert_allclose(result.rmse("kf"), [rmse, rmse, 10.0])
     np.testing.assert_allclose(result.spread("kf"), [0.5, 0.5, 0.0])
@@ -312,11 +351,14 @@ def test_cli_writes_table_and_figure(tmp_path, replay_only, capsys, monkeypatch)
     assert cli.main(argv) == 0
 
     printed = capsys.readouterr()
-    assert "range variance used by the filters" in printed.out and "estimated" in printed.out
-    assert "mean range bias" in printed.out
+    assert "range noise: from the default config (the paper's Table I), not from the ground truth" in printed.out
+    assert "pseudo-linear filters' range variance: 2.32 m^2" in printed.out
+    assert "raw_range's noise density (m, m^2): 0.8 N(0, 0.4) + 0.2 N(0, 10)" in printed.out
+    assert "TRUTH" not in printed.out and "mean range bias" in printed.out
     markdown = (out / "replay_walk.md").read_text(encoding="utf-8")
     assert "| estimator |" in markdown and "after 10 s" in markdown
-    for label in ("RLS", "Huber-RLS", "KF", "AKF", "MCKF"):
+    assert markdown.startswith("# Replay of `walk.csv`\n") and "not from the ground truth" in markdown
+    for label in ("RLS", "Huber-RLS", "KF", "AKF", "MCKF", "raw_range"):
         assert f"| {label} |" in markdown
     assert markdown.split("```")[1].strip() == f"usv-lab replay {csv_path} --runs 3 --out {out}"
     assert (out / "replay_walk.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
@@ -331,7 +373,32 @@ def test_cli_given_range_variance_and_config(tmp_path, replay_only, capsys):
             "--config", str(config), "--settle", "5", "--seed", "9"]
     assert cli.main(argv) == 0
     printed = capsys.readouterr().out
-    assert "0.5 m^2 (given)" in printed and "1e-05 m^2 per dt" in printed
+    assert "range noise: given on the command line (--range-variance" in printed
+    assert "pseudo-linear filters' range variance: 0.5 m^2" in printed and "1e-05 m^2 per dt" in printed
+
+
+def test_cli_config_sets_the_noise_and_the_truth_variance_is_labelled(tmp_path, replay_only, capsys):
+    t, ranges, a, b = circle_scenario(seed=3, range_std=0.1, duration=12.0)
+    csv_path = write_csv(tmp_path / "walk.csv", t, ranges, a, b)
+    config = tmp_path / "real.yaml"
+    config.write_text("relative:\n  range_variance: 0.04\n  raw_range:\n    noise_components: [[1.0, 0.1, 0.02]]\n",
+                      encoding="utf-8")
+    assert cli.main(["replay", str(csv_path), "--runs", "1", "--out", str(tmp_path), "--params", str(config)]) == 0
+    printed = capsys.readouterr().out
+    assert f"range noise: from the config {config}, not from the ground truth" in printed
+    assert "range variance: 0.04 m^2" in printed and "density (m, m^2): 1 N(0.1, 0.02)" in printed
+
+    assert cli.main(["replay", str(csv_path), "--runs", "1", "--out", str(tmp_path), "--truth-variance"]) == 0
+    printed = capsys.readouterr().out
+    assert "range noise: TRUTH-DERIVED" in printed and "tuned on the truth" in printed
+    markdown = (tmp_path / "replay_walk.md").read_text(encoding="utf-8")
+    assert markdown.startswith("# Replay of `walk.csv`: filters tuned on the ground truth\n")
+    assert "TRUTH-DERIVED" in markdown
+
+    with pytest.raises(SystemExit) as stopped:
+        cli.main(["replay", str(csv_path), "--truth-variance", "--range-variance", "0.5"])
+    assert stopped.value.code == 2
+    assert "not allowed with argument" in capsys.readouterr().err
 
 
 def test_cli_rejects_bad_input_with_exit_code_2(tmp_path, replay_only, capsys):

@@ -8,10 +8,14 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+import numpy as np
 import pytest
 
+from agent.config import updated
 from lab import scenario_cmd
 from lab.cli import main
+from mission_log.metrics import RunMetrics, nan_mean
+from sim_bridge.scenario import Scenario, ScenarioFile
 
 SCENARIOS_DIR = Path(__file__).resolve().parents[1] / "configs" / "scenarios"
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
@@ -58,13 +62,64 @@ def test_scenario_writes_the_page_and_both_figures(tiny, tmp_path, capsys):
         assert (out / figure).read_bytes()[:8] == PNG_MAGIC
         assert f"]({figure})" in page
     assert "usv-lab " + " ".join(argv) in page
-    assert "e_ij paper" in page and "run time paper (ms)" in page
-    rows = {line.split("|")[1].strip(): line for line in page.splitlines() if line.startswith("| ")}
+    paper, settling = page.split("## Whole run and after settling")
+    assert "e_ij paper" in paper and "run time paper (ms)" in paper
+    rows = {line.split("|")[1].strip(): line for line in paper.splitlines() if line.startswith("| ")}
     assert "| 0.449 |" in rows["mckf"] and "| 12.30 |" in rows["mckf"]
     assert rows["kf"].count("| - |") == 5           # the paper gives nothing for this variant
     assert rows["mckf"].rstrip().endswith("/2 |")    # settled runs out of 2
+    header = next(line for line in settling.splitlines() if line.startswith("| variant"))
+    for column in ("e_c whole run (m)", "e_c after settling (m)", "e_ij after settling (m)",
+                   "e_io after settling (m)", "closest approach (m)", "settled runs"):
+        assert f"| {column} |" in header
+    rows = {line.split("|")[1].strip(): line for line in settling.splitlines() if line.startswith("| ")}
+    assert {"mckf", "kf"} <= set(rows)
+    assert "initial estimates: drawn around the truth, P_ij,0 = 0.04 I" in page
     assert not (out / "README.md").exists()         # the index is written for 'all' only
     assert "mckf" in capsys.readouterr().out
+
+
+def hand_made(scenario: Scenario, curves: list[list[float]], settling: list[float | None]
+              ) -> scenario_cmd.VariantResult:
+    """A variant's result from given e_c curves (one per run, 1 s apart; e_ij and e_io twice and three
+    times e_c) and settling times, without running anything."""
+    e_c = np.array(curves)
+    errors = np.stack([2 * e_c, 3 * e_c, e_c], axis=1)             # (runs, ERRORS, K)
+    metrics = [RunMetrics(nan_mean(2 * c), nan_mean(3 * c), math.nan, nan_mean(c), t, 0.5, 0.9)
+               for c, t in zip(e_c, settling)]
+    time = np.arange(e_c.shape[1]) * 1.0
+    return scenario_cmd.VariantResult(name=scenario.name, scenario=scenario, time=time, metrics=metrics,
+                                      errors=errors, closest=np.array([4.0, 3.0, 5.0]), first=None)
+
+
+def test_the_mean_after_settling_starts_at_each_runs_own_settling_time(tiny):
+    nan = math.nan
+    curves = [[5, 5, 5, 5, 1, 1, 1, 1, 1, 3],           # settles at 4 s: mean after 8/6
+              [4, 4, 4, 4, 4, 4, 0.5, nan, 0.5, 0.5],   # settles at 6 s: 0.5, the tick with no value left out
+              [0.1] * 10]                               # never settles: no mean after settling
+    result = hand_made(scenario_cmd.load(tiny)[1]["kf"], curves, [4.0, 6.0, None])
+    np.testing.assert_allclose(result.after_settling("e_c"), [8 / 6, 0.5], rtol=1e-12)
+    np.testing.assert_allclose(result.after_settling("e_io"), [3 * 8 / 6, 1.5], rtol=1e-12)
+    summary = result.summary()
+    assert summary["e_c_settled"] == pytest.approx((8 / 6 + 0.5) / 2, rel=1e-12)
+    assert summary["e_c_settled_std"] == pytest.approx((8 / 6 - 0.5) / 2, rel=1e-12)
+    assert summary["e_c"] == pytest.approx((2.8 + 25.5 / 9 + 0.1) / 3, rel=1e-12)   # whole run, every run
+    assert (summary["closest"], summary["closest_min"], summary["settled"]) == (4.0, 3.0, 2.0)
+    assert scenario_cmd.mean_after(np.arange(4.0), np.array([9.0, nan, 1.0, 2.0]), 1.0) == pytest.approx(1.5)
+
+
+def test_a_cold_file_without_paper_numbers_has_no_paper_columns(tiny):
+    kf = scenario_cmd.load(tiny)[1]["kf"]
+    cold = updated(kf, initial=updated(kf.initial, cold="all"))
+    variants = {"kf": hand_made(cold, [[1.0, 0.5, 0.5]] * 3, [1.0, 1.0, None])}
+    tables = (scenario_cmd.comparison_table(variants), scenario_cmd.settling_table(variants))
+    assert "paper" not in tables[0] and "| 2/3 |" in tables[0]
+    assert "| 0.500 ± 0.000 |" in tables[1]            # e_c after settling
+    spec = ScenarioFile(name="cold", base={})
+    page = scenario_cmd.render_page(tiny, spec, variants, tables, "usv-lab scenario cold", 1.0, 1,
+                                    ("t.png", "e.png"))
+    assert "## Ours (the paper gives no numbers)" in page
+    assert "initial estimates: none, every vessel starts cold" in page
 
 
 def test_an_unknown_name_is_refused_with_the_known_ones(tmp_path, capsys):

@@ -49,6 +49,36 @@ def test_summary_counts_every_message_of_every_process(fleet_run):
     assert "| 1 | 0.0 | 12.0 | 121 |" in shown.stdout and "## Sim bridge" in shown.stdout
 
 
+def test_summary_shows_each_pairs_observability(fleet_run):
+    """Each vessel's two pairs: the share of ticks observable, when first, the spans not, the last spread; the
+    status says how many pairs fall short and which is the weakest, the same as the estimates."""
+    folder, _ = fleet_run
+    run = load_run(folder)
+    summary = run_summary(run)
+    for vessel, s in summary["vessels"].items():
+        pairs = s["observability"]
+        assert sorted(pairs) == sorted({"1", "2", "3"} - {vessel})
+        for pair in pairs.values():
+            assert 0 < pair["ticks"] <= TICKS and 0.0 <= pair["observable_fraction"] <= 1.0
+            low, high = pair["final_excitation"]
+            assert 0.0 <= low <= high
+            assert pair["final"] in ("observable", "mirror-ambiguous", "unobservable")
+            observable = pair["observable_fraction"] * pair["ticks"]
+            not_observable = sum(round((end - start) / 0.1) for start, end, _ in pair["not_observable"])
+            # Each span runs to the next verdict's tick (or to the last tick, which then is not counted).
+            assert not_observable in (pair["ticks"] - round(observable), pair["ticks"] - round(observable) - 1)
+        log = run.vessels[vessel]
+        last_status, last_estimates = log.last(f"usv/{vessel}/status"), log.last(f"/{vessel}/estimates")
+        verdicts = [n["observability"] for n in last_estimates["neighbours"].values()]
+        assert last_status["health"]["pairs_mirror_ambiguous"] == verdicts.count("mirror-ambiguous")
+        assert last_status["health"]["pairs_unobservable"] == verdicts.count("unobservable")
+        weakest = last_status["weakest_pair"]
+        assert weakest["excitation"] == min(n["excitation"][0] for n in last_estimates["neighbours"].values())
+    shown = usv_log("summary", str(folder))
+    assert shown.returncode == 0, shown.stderr
+    assert shown.stdout.count("Pair observability") == 3 and "| last verdict |" in shown.stdout
+
+
 def test_a_gap_in_a_topic_is_found():
     stamps = [k * 100_000_000 for k in range(100) if not 30 <= k < 40]    # 10 Hz with 1 s missing
     stats = topic_statistics([(t, {}) for t in stamps])

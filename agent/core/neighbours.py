@@ -12,7 +12,8 @@ as it is known, and j's commanded velocity for the rest. In the lockstep simulat
 the interpolation meets the samples exactly, and nothing is approximated.
 
 The pair state is p_ij of (10); the odometry differences are (5) and (11), the range pairing (12), (13),
-(14), the prediction (15).
+(14), the prediction (15). Beside the filter, the track keeps the spread of the relative path at the range
+epochs, what (41) asks of the motion (`observability.py`); it is bookkeeping and changes no estimate.
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ import numpy as np
 
 from agent.core.estimators import RelativePositionEstimator, make_relative_estimator
 from agent.core.estimators.base import UpdateOutcome
+from agent.core.observability import PathSpread, verdict
 from agent.core.params import FleetParams, RelativeEstimationParams
 from agent.core.records import Share
 
@@ -135,6 +137,8 @@ class NeighbourTrack:
         self.params = params
         self.dt = dt
         self.timing = timing
+        self.observability = params.observability
+        self.spread = PathSpread()         # the relative path at the range epochs, (41)
         self.odometry = History(history)   # j's cumulative odometry by its stamps
         self.ranges = History(history)     # ranges to j measured by i, by their stamps
         self.estimator: RelativePositionEstimator | None = None
@@ -203,10 +207,12 @@ class NeighbourTrack:
         self.estimator = make_relative_estimator(self.params, position, prior.covariance, dt=self.dt)
         self.epoch, self.epoch_own, self.epoch_other = key, mine, theirs
         self.last_range = None
+        self.spread = PathSpread()
         range_now = self.ranges.get(key)
         if range_now is not None:
             self.estimator.mark_range_epoch()
             self.last_range = range_now
+            self.spread.add(0.0, 0.0, 0.0, self.observability.window)
         return "started"
 
     def advance(self, own: History, now: float, unusable: Counter) -> None:
@@ -232,6 +238,8 @@ class NeighbourTrack:
             if not self.estimator.predict(displacement, intervals=(key - self.epoch) * 1e-6 / self.dt):
                 self.ranges.pop(key)
                 continue
+            self.spread.add(float(displacement[0]), float(displacement[1]), (key - self.epoch) * 1e-6,
+                            self.observability.window)
             self.epoch, self.epoch_own, self.epoch_other = key, mine, theirs
             if self.last_range is None:
                 self.estimator.mark_range_epoch()
@@ -245,6 +253,12 @@ class NeighbourTrack:
                 self.updates += 1
             else:
                 self.rejected += 1
+
+    def excitation(self) -> tuple[float, float, str]:
+        """(lambda_min, lambda_max) of the relative path's spread over the window (m^2), and the verdict:
+        observable, mirror-ambiguous or unobservable (`observability.py`)."""
+        low, high = self.spread.eigenvalues()
+        return low, high, verdict(low, high, self.observability.min_width)
 
     def estimate_at(self, own: History, now: float) -> np.ndarray | None:
         """p^_ij at `now`: the filter's estimate carried forward by i's odometry, j's odometry as far as it is

@@ -8,6 +8,7 @@ from typing import Literal
 from pydantic import Field, model_validator
 
 from agent.config import NonNegativeFloat, PositiveFloat, StrictModel, commented_yaml
+from agent.core.observability import ObservabilityParams
 
 EstimatorName = Literal["mckf", "kf", "akf", "rls", "huber_rls", "raw_range"]
 ESTIMATOR_NAMES: tuple[str, ...] = ("rls", "huber_rls", "kf", "akf", "mckf", "raw_range")
@@ -48,7 +49,7 @@ class HuberParams(StrictModel):
 
 class RawRangeParams(StrictModel):
     """Raw-range estimator (agent/core/estimators/raw_range.py): a batch fix over a window of ranges, then a
-    robust iterated EKF on each range r = |p| + noise."""
+    moment-matching update on each range r = |p| + noise."""
 
     noise_components: tuple[tuple[PositiveFloat, float, PositiveFloat], ...] = Field(
         ((0.8, 0.0, 0.4), (0.2, 0.0, 10.0)),
@@ -74,9 +75,11 @@ class RawRangeParams(StrictModel):
         9.2, description="the fix is declared unique once the mirror solution's negative log-likelihood exceeds "
                          "the best one's by this much (nats; 9.2: a likelihood ratio of 10^4)")
     fix_max_variance: PositiveFloat = Field(
-        4.0, description="and once the largest eigenvalue of the batch covariance is at most this (m^2)")
+        0.25, description="and once the largest eigenvalue of the batch covariance is at most this (m^2): the "
+                          "batch is kept until the position is known to about 0.5 m, because the tracking "
+                          "update, a linearisation, is less efficient than the batch while the estimate is "
+                          "uncertain (docs/results/estimator_comparison.md)")
     batch_iterations: int = Field(20, ge=1, le=1000, description="Gauss-Newton/EM iterations of a batch solve")
-    iterations: int = Field(3, ge=1, le=100, description="iterations of the robust iterated EKF per range")
     tolerance: PositiveFloat = Field(1e-6, description="stop iterating when the step is below this (m)")
     monitor_length: int = Field(100, ge=10, le=100_000,
                                 description="ranges the tracking monitor averages the residuals' fit over")
@@ -115,6 +118,7 @@ class RelativeEstimationParams(StrictModel):
     rls: RlsParams = RlsParams()
     huber_rls: HuberParams = HuberParams()
     raw_range: RawRangeParams = RawRangeParams()
+    observability: ObservabilityParams = ObservabilityParams()
 
 
 class TargetEstimationParams(StrictModel):

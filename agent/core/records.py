@@ -88,6 +88,10 @@ class NeighbourRecord:
     iterations: int               # MCKF iterations of the last update
     outcomes: tuple = ()          # (stamp s, range m, UpdateOutcome) of each update this tick ran
     localised: bool = False       # steered the formation this tick (step.py `_localised`)
+    # The relative path's spread over the window (observability.py): its eigenvalues (m^2), smallest first,
+    # and what they make of the pair: observable, mirror-ambiguous or unobservable.
+    excitation: tuple[float, float] = (0.0, 0.0)
+    observability: str = "unobservable"
 
 
 @dataclass(frozen=True)

@@ -20,7 +20,8 @@ from agent.core.params import AgentParams
 from agent.core.records import floats, share_from_json, share_to_json
 from agent.core.state import Health, OwnMotion, VesselState
 
-SNAPSHOT_VERSION = 2   # 2: pair filters keep both odometries at their epoch
+SNAPSHOT_VERSION = 3   # 2: pair filters keep both odometries at their epoch; 3: and their path spread
+READS_SNAPSHOTS = (2, 3)   # a version-2 state starts each pair's path spread afresh (bookkeeping only)
 
 
 def state_to_json(state: VesselState) -> dict:
@@ -42,8 +43,9 @@ def state_to_json(state: VesselState) -> dict:
 
 def state_from_json(data: dict, params: AgentParams) -> VesselState:
     """The state `state_to_json` wrote, for a core running with `params`; ValueError if it is not one."""
-    if data.get("version") != SNAPSHOT_VERSION:
-        raise ValueError(f"state snapshot version {data.get('version')!r}; this build reads {SNAPSHOT_VERSION}")
+    if data.get("version") not in READS_SNAPSHOTS:
+        raise ValueError(f"state snapshot version {data.get('version')!r}; this build reads "
+                         f"{', '.join(map(str, READS_SNAPSHOTS))}")
     motion = data["motion"]
     tracker = None
     if data["tracker"] is not None:
@@ -93,6 +95,7 @@ def _track_to_json(track: NeighbourTrack) -> dict:
         "updates": track.updates,
         "rejected": track.rejected,
         "last_iterations": track.last_iterations,
+        "spread": track.spread.export_state(),
     }
 
 
@@ -114,4 +117,6 @@ def _track_from_json(neighbour: str, data: dict, params: AgentParams) -> Neighbo
     track.updates = data["updates"]
     track.rejected = data["rejected"]
     track.last_iterations = data["last_iterations"]
+    if "spread" in data:
+        track.spread.restore_state(data["spread"])
     return track

@@ -35,6 +35,7 @@ class Health:
     priors_stale: int = 0         # initial estimates too old to carry to now
     priors_refused: int = 0       # initial estimates the measured range contradicts
     separation_stops: int = 0     # ticks the surge was held at zero by the range guard
+    target_restarts: int = 0      # target filter started again: its estimate went behind the bearing
 
     def as_dict(self) -> dict[str, int]:
         return dict(self.__dict__)

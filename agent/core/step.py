@@ -206,8 +206,9 @@ def _symmetric(matrix: np.ndarray) -> np.ndarray:
 
 
 def _neighbour_record(track: NeighbourTrack, estimate: np.ndarray, localised: bool) -> NeighbourRecord:
+    low, high, observability = track.excitation()
     return NeighbourRecord(
         position=estimate, covariance=track.best()[1], epoch=track.epoch * 1e-6,
         updates=track.updates, rejected=track.rejected, iterations=track.last_iterations,
-        outcomes=tuple(track.outcomes), localised=localised,
+        outcomes=tuple(track.outcomes), localised=localised, excitation=(low, high), observability=observability,
     )

@@ -34,14 +34,26 @@ def track_target(params: AgentParams, state: VesselState, bearing: np.ndarray | 
     if state.tracker is None:
         if bearing is None or not np.linalg.norm(bearing) > 0:
             return None, None, None
-        p = params.target
-        guess = bearing / np.linalg.norm(bearing) * p.initial_range_guess
-        covariance = np.diag([p.initial_range_guess**2] * 2 + [p.initial_covariance] * 2)
-        state.tracker = PLKF(p, np.concatenate([guess, -state.motion.velocity]), covariance, dt=params.dt)
+        _start_tracker(params, state, bearing)
     tracker = state.tracker
     if velocity_change is not None:
         tracker.predict(velocity_change)
     outcome = tracker.update(bearing)
     if bearing is not None and not outcome.accepted:
         state.health.bad_bearing += 1
+    elif bearing is not None and float(bearing @ tracker.state[:2]) < params.target.min_range:
+        # The pseudo-linear measurement G(b) p = 0 holds for p and -p alike: an estimate pushed through the
+        # vessel (a cold start's range guess far off while the target's velocity is unknown) would converge
+        # on the point reflection of the target and never come back. The bearing says which side it is on.
+        state.health.target_restarts += 1
+        _start_tracker(params, state, bearing)
+        tracker = state.tracker
     return tracker.state, tracker.covariance, outcome
+
+
+def _start_tracker(params: AgentParams, state: VesselState, bearing: np.ndarray) -> None:
+    """A target estimate from one bearing: `initial_range_guess` along it, the target taken as still."""
+    p = params.target
+    guess = bearing / np.linalg.norm(bearing) * p.initial_range_guess
+    covariance = np.diag([p.initial_range_guess**2] * 2 + [p.initial_covariance] * 2)
+    state.tracker = PLKF(p, np.concatenate([guess, -state.motion.velocity]), covariance, dt=params.dt)

@@ -20,11 +20,12 @@ a new `FORMAT_VERSION` (agent/runtime/mcap_log.py) and the readers taught to rea
 from __future__ import annotations
 
 from dataclasses import fields
-from typing import Annotated
+from typing import Annotated, Literal
 
 from pydantic import ConfigDict, Field, create_model
 
 from agent.config import StrictModel
+from agent.core.observability import VERDICTS
 from agent.core.state import Health
 
 
@@ -103,6 +104,13 @@ class NeighbourEstimate(StrictModel):
     outcomes: list[RangeUpdate] = Field(description="each range update this tick ran")
     localised: bool = Field(False, description="steered the formation this tick: its covariance small enough "
                                                "and its estimate agreeing with the ranges")
+    excitation: Annotated[list[float], Field(
+        min_length=2, max_length=2, description="smallest and largest eigenvalue (m^2) of the spread of the "
+                                                "relative path at the range epochs over the observability "
+                                                "window, (41) (agent/core/observability.py)")]
+    observability: Literal[VERDICTS] = Field(
+        description="what the relative path lets the ranges tell: observable, mirror-ambiguous (a straight "
+                    "line) or unobservable (no relative motion)")
 
 
 class BearingUpdate(StrictModel):
@@ -206,6 +214,9 @@ class TrackState(StrictModel):
     updates: Count
     rejected: Count
     last_iterations: Count
+    spread: Annotated[list[float], Field(
+        min_length=8, max_length=8, description="the relative path's spread (agent/core/observability.py): "
+                                                "path x, y, weight, mean x, y, scatter 11, 12, 22")]
 
 
 class PendingPrior(StrictModel):

@@ -46,7 +46,7 @@ from agent.config import PositiveFloat, StrictModel
 PROFILE = ""  # plain JSON messages, no ROS profile
 NUMPY = orjson.OPT_SERIALIZE_NUMPY
 FORMAT_RECORD = "usv-log-format"   # metadata record: {"version": FORMAT_VERSION}
-FORMAT_VERSION = "4"               # 2: inputs carry range_stamp; 3: and earlier_ranges; 4: shared estimates a stamp. The channels of agent/runtime/log_schema.py, the `run` metadata
+FORMAT_VERSION = "5"               # 2: inputs carry range_stamp; 3: and earlier_ranges; 4: shared estimates a stamp; 5: each pair's observability in the estimates, its path spread in the state. The channels of agent/runtime/log_schema.py, the `run` metadata
 PART_RECORD = "usv-log-part"       # metadata record: {"set": id shared by a log's parts, "part": "0", "first": file name}
 PART_WIDTH = 4                     # agent-1.part0001.mcap
 MB = 1_000_000

@@ -46,6 +46,7 @@ from agent.contract import (
     Clock,
     Cmd,
     Status,
+    WeakestPair,
     decode,
     encode,
     every,
@@ -56,6 +57,7 @@ from agent.contract import (
     vessel_of,
 )
 from agent.core.build import InitialEstimates, initial_state
+from agent.core.observability import MIRROR_AMBIGUOUS, UNOBSERVABLE
 from agent.core.records import STOP, Command, TickInputs, TickOutput
 from agent.core.snapshot import state_to_json
 from agent.core.state import VesselState
@@ -413,7 +415,7 @@ class AgentNode:
                 peers=sorted(self._live_view),
                 target=None if record is None or record.target_state is None
                 else tuple(float(v) for v in record.target_state),
-                health=self._health(record),
+                health=self._health(record), weakest_pair=weakest_pair(record),
             )
         except Exception:  # noqa: BLE001  (a non-finite estimate: the status goes without it)
             status = Status(stamp_ns=stamp, seq=self._seq["status"], sender=self.id, phase=0.0,
@@ -481,6 +483,11 @@ class AgentNode:
 
     def _health(self, record) -> dict[str, int]:
         health = dict(record.health if record is not None else {})
+        if record is not None:
+            # This tick's pairs whose relative motion leaves them short of observable (gauges, not counts).
+            verdicts = [n.observability for n in record.neighbours.values()]
+            health.update(pairs_mirror_ambiguous=verdicts.count(MIRROR_AMBIGUOUS),
+                          pairs_unobservable=verdicts.count(UNOBSERVABLE))
         health.update({f"rejected_{k}": v for k, v in self.gate.rejected.items()})
         health.update(overruns=self.overruns, log_errors=self.log_errors, tick_errors=self.tick_errors,
                       core_rebuilds=self.core_rebuilds, sim_restarts=self.sim_restarts,
@@ -491,6 +498,15 @@ class AgentNode:
         value = self._seq[stream]
         self._seq[stream] += 1
         return value
+
+
+def weakest_pair(record) -> WeakestPair | None:
+    """The pair of this tick whose relative path is narrowest (smallest eigenvalue of its spread, (41)), or None
+    without a record or a pair."""
+    if record is None or not record.neighbours:
+        return None
+    j, n = min(record.neighbours.items(), key=lambda item: (item[1].excitation[0], item[0]))
+    return WeakestPair(neighbour=j, excitation=float(n.excitation[0]), observability=n.observability)
 
 
 def error_kind(error: BaseException) -> str:

@@ -5,8 +5,9 @@ Per tick, on topics under `/<id>/`:
   shares), exactly, so that `usv-log replay` can feed them to the core again;
 - `cmd` and `status`: what went out on the wire;
 - `estimates`: every estimate with its covariance, each inter-vessel filter's updates of the tick
-  (innovation, its predicted variance, the MCKF weight, accepted or not), the PLKF's bearing update, the
-  velocity terms of the controller and which limits saturated;
+  (innovation, its predicted variance, the MCKF weight, accepted or not) and its pair's observability (the
+  eigenvalues of its relative path's spread and the verdict), the PLKF's bearing update, the velocity terms
+  of the controller and which limits saturated;
 - `tf` (foxglove.FrameTransforms) and, once a second, `scene` (foxglove.SceneUpdate): see agent/runtime/foxglove.py;
 - at the end, `summary`: the run as a whole (`TickLogger.summary`);
 - `errors`, when a tick fails: the exception and the inputs that caused it (`TickLogger.error`; the first of
@@ -57,6 +58,7 @@ def estimates_to_json(record: TickRecord) -> dict:
         "neighbours": {j: {
             "position": floats(n.position), "covariance": floats(n.covariance), "epoch": n.epoch,
             "iterations": n.iterations, "updates": n.updates, "rejected": n.rejected, "localised": n.localised,
+            "excitation": [float(v) for v in n.excitation], "observability": n.observability,
             "outcomes": [{"stamp": stamp, "range": measured, "accepted": o.accepted, "reason": o.reason,
                           "iterations": o.iterations, "innovation": o.innovation,
                           "innovation_variance": o.innovation_variance, "weight": o.weight}

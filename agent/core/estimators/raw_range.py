@@ -11,10 +11,11 @@ multilateration of p_k from anchors on the relative path.
 Two phases.
 
 1. Fix (no usable linearisation point yet). Every range is kept with D at its epoch (at most `window`). Every
-   `solve_every` ranges, the negative log-likelihood of the window under the assumed noise density (a
-   Gaussian mixture, `noise_components`, plus a very wide gross-error component) plus the prior (p_0, P_0)
-   carried by odometry (P grows by 2 R_delta per period, (15)) is minimised for p_k by Gauss-Newton with EM
-   weights (each range's component responsibilities give it a precision and a mean shift), with step halving.
+   `solve_every` ranges, the negative log-likelihood of the window under the assumed noise density
+   (range_density.py: a Gaussian mixture, `noise_components`, plus a very wide gross-error component) plus the
+   prior (p_0, P_0)
+   carried by odometry (P grows by 2 R_delta per period, (15)) is minimised for p_k with step halving: EM
+   steps (each range's component responsibilities give it a precision) far from the minimum, Newton's near it.
    Cold starting points: the anchors' principal line, along which the range model is linear in
    (alpha, alpha^2 + beta^2), gives two points at +-beta from the line; the two points at the mean range
    straight across the anchors' centroid; the prior's mean. Later solves are warm-started.
@@ -34,10 +35,17 @@ Two phases.
    noise's, less when it is only an approximation (a fitted mixture, an unmodelled bias). It is measured as
    the sandwich (mean psi')^2 / mean psi^2 of the residuals' score psi = -(ln f)' (both means are I_f when the
    density is right), shrunk towards I_f and kept within [I_f / 20, I_f].
-2. Tracking: each range updates the state by a robust iterated EKF on h(p) = |p| (H = p^T/|p|). The EM
-   weights of the range (responsibilities with each component's variance plus H P^- H^T) give the gain's
-   measurement variance and mean shift; the covariance is updated with the information per range I, for the
-   reason above, its score means running over the last ~200 ranges. A few plain-float operations per iteration: no numpy in the loop.
+2. Tracking: each range updates the Gaussian N(p^-, P) by moment matching on the range linearised at p^-
+   (H = u^T = p^T/|p|): with f_h = f * N(0, h) the predictive density of the residual e = r - |p^-|
+   (h = H P H^T) and psi, psi' its score -(ln f_h)' and the score's derivative,
+       p^+ = p^- + P H^T psi(e),    P^+ = P - P H^T psi'(e) H P
+   (C. J. Masreliez, IEEE Trans. Automatic Control 20(1), 1975): the posterior's exact mean and covariance
+   for the linearised measurement, so the covariance stays consistent whatever the noise's shape. A range
+   far in the tails has psi ~ 0 and psi' ~ 0 and changes nothing; one between the mixture's components can
+   have psi' < 0 and widen P, as the true posterior does. psi' is scaled by I / I_f, the sandwich share
+   above, over the last ~200 ranges. One pass of plain-float arithmetic per range, no numpy. The fix waits
+   until the batch covariance is small (`fix_max_variance`), where the linearisation costs nothing: with a
+   broad prior the batch is the better estimator (docs/results/estimator_comparison.md).
    The mean negative log-likelihood of the recent residuals is watched (`monitor`): if it leaves the
    density's entropy by far, the fix is dropped and phase 1 starts again from no prior (a wrong fix, or a
    jump in the relative position the odometry did not see).
@@ -52,7 +60,6 @@ replaces the state, as in the base.
 from __future__ import annotations
 
 import math
-from functools import lru_cache
 
 import numpy as np
 
@@ -62,10 +69,8 @@ from agent.core.estimators.base import (
     UpdateOutcome,
     _as_range,
 )
-from agent.core.params import RelativeEstimationParams
+from agent.core.estimators.range_density import RangeDensity, density_of
 
-LOG_2PI = math.log(2.0 * math.pi)
-_trapezoid = getattr(np, "trapezoid", None) or np.trapz
 # Smallest distance from an anchor at which a range is used; closer, its direction is undefined.
 MIN_DISTANCE = 1e-9
 # Sandwich covariance: pseudo-ranges at I_f a batch's score moments are shrunk towards, and the length of
@@ -76,75 +81,8 @@ SANDWICH_LENGTH = 200
 MAX_HALVINGS = 8
 # The covariance a dropped fix starts phase 1 again with: no prior.
 NO_PRIOR_VARIANCE = 1e12
-
-
-def _components(params: RelativeEstimationParams) -> tuple[tuple[float, float, float], ...]:
-    """(weight, mean, variance) per mixture component, weights normalised to 1, the gross-error component
-    last."""
-    p = params.raw_range
-    total = sum(c[0] for c in p.noise_components)
-    scale = (1.0 - p.gross_error_fraction) / total
-    components = tuple((float(w) * scale, float(m), float(v)) for w, m, v in p.noise_components)
-    if p.gross_error_fraction > 0.0:
-        components += ((float(p.gross_error_fraction), 0.0, float(p.gross_error_variance)),)
-    return components
-
-
-@lru_cache(maxsize=64)
-def mixture_statistics(components: tuple[tuple[float, float, float], ...]) -> tuple[float, float, float]:
-    """(I_f, H, S) of the mixture density f, integrated numerically once per noise model: the Fisher
-    information as a location family I_f = ∫ f'^2 / f dx (m^-2), the entropy H = E[-ln f(mu)] and the
-    standard deviation S of -ln f(mu), mu ~ f (nats; the goodness-of-fit tests)."""
-    # One fine grid per component (+-12 of its standard deviations), merged: the components' widths may
-    # differ by orders of magnitude.
-    x = np.unique(np.concatenate([m + math.sqrt(v) * np.linspace(-12.0, 12.0, 40_001) for _, m, v in components]))
-    f = np.zeros_like(x)
-    df = np.zeros_like(x)
-    for w, m, v in components:
-        g = w * np.exp(-0.5 * (x - m) ** 2 / v) / math.sqrt(2 * math.pi * v)
-        f += g
-        df += -g * (x - m) / v
-    mask = f > 1e-300
-    x, f, df = x[mask], f[mask], df[mask]
-    nll = -np.log(f)
-    entropy = float(_trapezoid(f * nll, x))
-    spread = float(_trapezoid(f * (nll - entropy) ** 2, x))
-    return float(_trapezoid(df ** 2 / f, x)), entropy, math.sqrt(max(spread, 0.0))
-
-
-def mixture_fisher_information(components: tuple[tuple[float, float, float], ...]) -> float:
-    """Fisher information of the mixture density as a location family (m^-2)."""
-    return mixture_statistics(components)[0]
-
-
-def em_weight(e: float, h: float, components: tuple[tuple[float, float, float], ...]
-              ) -> tuple[float, float, float, float, float]:
-    """EM weights of one range residual e = r - |p|: (precision w, mean shift m, negative log-likelihood of e,
-    score psi, its derivative psi') with the components' responsibilities gamma_c and the density evaluated at
-    variance v_c = sigma_c^2 + h (h: the state's uncertainty along the range). w = sum gamma_c / sigma_c^2,
-    m = sum gamma_c mu_c / sigma_c^2 / w; psi = -(ln f)'(e) = sum gamma_c s_c with s_c = (e - mu_c) / v_c, and
-    psi' = sum gamma_c / v_c - sum gamma_c s_c^2 + psi^2."""
-    best = -math.inf
-    logs = []
-    for weight, mean, variance in components:
-        s = variance + h
-        d = e - mean
-        lp = math.log(weight) - 0.5 * (math.log(s) + d * d / s)
-        logs.append(lp)
-        best = max(best, lp)
-    total = precision = shift = psi = curvature = 0.0
-    for (_, mean, variance), lp in zip(components, logs):
-        g = math.exp(lp - best)
-        total += g
-        precision += g / variance
-        shift += g * mean / variance
-        v = variance + h
-        sc = (e - mean) / v
-        psi += g * sc
-        curvature += g * (1.0 / v - sc * sc)
-    psi /= total
-    return (precision / total, shift / precision, 0.5 * LOG_2PI - best - math.log(total), psi,
-            curvature / total + psi * psi)
+# A batch solve switches from EM to Newton steps once a step is this short (m): near the minimum.
+NEWTON_REACH = 0.05
 
 
 def _inverse(a11: float, a12: float, a22: float) -> tuple[float, float, float]:
@@ -160,12 +98,11 @@ def _largest_eigenvalue(a11: float, a12: float, a22: float) -> float:
 class BatchWindow:
     """Negative log-likelihood of the window's ranges plus a Gaussian prior, and its minimiser (numpy)."""
 
-    def __init__(self, ranges: np.ndarray, anchors: np.ndarray, components, prior: tuple[float, ...]) -> None:
+    def __init__(self, ranges: np.ndarray, anchors: np.ndarray, density: RangeDensity,
+                 prior: tuple[float, ...]) -> None:
         self.r = ranges                       # (N,)
         self.a = anchors                      # (N, 2): p_m = p - a_m
-        self.mean = np.array([c[1] for c in components])[:, None]
-        self.var = np.array([c[2] for c in components])[:, None]
-        self.log_norm = np.log(np.array([c[0] for c in components]))[:, None] - 0.5 * (LOG_2PI + np.log(self.var))
+        self.density = density
         qx, qy, q11, q12, q22 = prior
         self.q = (qx, qy)
         self.i11, self.i12, self.i22 = _inverse(q11, q12, q22)
@@ -174,40 +111,44 @@ class BatchWindow:
         ex, ey = px - self.q[0], py - self.q[1]
         return 0.5 * (self.i11 * ex * ex + 2 * self.i12 * ex * ey + self.i22 * ey * ey)
 
-    def evaluate(self, px: float, py: float) -> tuple[float, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """(cost, u (N, 2) unit vectors, residuals e, EM precision w, EM mean shift m) at p."""
+    def evaluate(self, px: float, py: float) -> tuple[float, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+                                                        np.ndarray, np.ndarray]:
+        """At p: (cost, unit vectors ux, uy of p - a_m, distances d, the residuals' score psi = -(ln f)'(e) and
+        its derivative psi', EM precision w = sum_c gamma_c / sigma_c^2), arrays of N."""
         dx = px - self.a[:, 0]
         dy = py - self.a[:, 1]
         d = np.maximum(np.hypot(dx, dy), MIN_DISTANCE)
-        e = self.r - d
-        logs = self.log_norm - 0.5 * (e - self.mean) ** 2 / self.var      # (K, N)
-        top = logs.max(axis=0)
-        g = np.exp(logs - top)
-        total = g.sum(axis=0)
-        cost = float(-(top + np.log(total)).sum()) + self.prior_term(px, py)
-        g /= total
-        w = (g / self.var).sum(axis=0)
-        m = (g * self.mean / self.var).sum(axis=0) / w
-        u = np.column_stack([dx / d, dy / d])
-        return cost, u, e, w, m
+        nll, psi, dpsi, w = self.density.evaluate(self.r - d)
+        return float(nll.sum()) + self.prior_term(px, py), dx / d, dy / d, d, psi, dpsi, w
 
     def solve(self, px: float, py: float, iterations: int, tolerance: float) -> tuple[float, float, float]:
-        """Gauss-Newton with EM weights from p, with step halving; (px, py, cost) at the end."""
-        cost, u, e, w, m = self.evaluate(px, py)
+        """EM steps from p, then Newton's method once a step is shorter than NEWTON_REACH, with step halving;
+        (px, py, cost) at the end. Both use the exact gradient sum psi u - P^-1 (p - p_0). EM's matrix
+        sum w u u^T + P^-1 is positive definite everywhere and its steps are safe far from a minimum, but
+        converge only linearly; the Hessian sum psi' u u^T - sum (psi / d) (I - u u^T) + P^-1 converges
+        quadratically near one (it halves the cost of a solve) and is used there while positive definite."""
+        cost, ux, uy, d, psi, dpsi, w = self.evaluate(px, py)
+        newton = False
         for _ in range(iterations):
-            ux, uy = u[:, 0], u[:, 1]
-            wr = w * (e - m)
-            a11 = float((w * ux * ux).sum()) + self.i11
-            a12 = float((w * ux * uy).sum()) + self.i12
-            a22 = float((w * uy * uy).sum()) + self.i22
-            g1 = float((wr * ux).sum()) + self.i11 * (self.q[0] - px) + self.i12 * (self.q[1] - py)
-            g2 = float((wr * uy).sum()) + self.i12 * (self.q[0] - px) + self.i22 * (self.q[1] - py)
-            det = a11 * a22 - a12 * a12
-            if not det > 1e-12 * max(a11 * a22, 1e-300):
-                damping = 1e-6 * max(a11, a22, 1e-12)
-                a11 += damping
-                a22 += damping
+            g1 = float((psi * ux).sum()) + self.i11 * (self.q[0] - px) + self.i12 * (self.q[1] - py)
+            g2 = float((psi * uy).sum()) + self.i12 * (self.q[0] - px) + self.i22 * (self.q[1] - py)
+            uxx, uxy, uyy = ux * ux, ux * uy, uy * uy
+            if newton:
+                bend = psi / d
+                a11 = float((dpsi * uxx - bend * uyy).sum()) + self.i11
+                a12 = float(((dpsi + bend) * uxy).sum()) + self.i12
+                a22 = float((dpsi * uyy - bend * uxx).sum()) + self.i22
                 det = a11 * a22 - a12 * a12
+            if not (newton and a11 > 0.0 and det > 1e-12 * a11 * a22):
+                a11 = float((w * uxx).sum()) + self.i11
+                a12 = float((w * uxy).sum()) + self.i12
+                a22 = float((w * uyy).sum()) + self.i22
+                det = a11 * a22 - a12 * a12
+                if not det > 1e-12 * max(a11 * a22, 1e-300):
+                    damping = 1e-6 * max(a11, a22, 1e-12)
+                    a11 += damping
+                    a22 += damping
+                    det = a11 * a22 - a12 * a12
             sx = (a22 * g1 - a12 * g2) / det
             sy = (a11 * g2 - a12 * g1) / det
             step = 1.0
@@ -219,22 +160,18 @@ class BatchWindow:
             else:
                 break
             px, py = px + step * sx, py + step * sy
-            cost, u, e, w, m = trial
-            if step * math.hypot(sx, sy) <= tolerance:
+            cost, ux, uy, d, psi, dpsi, w = trial
+            length = step * math.hypot(sx, sy)
+            if length <= tolerance:
                 break
+            newton = newton or length <= NEWTON_REACH
         return px, py, cost
 
     def score_moments(self, px: float, py: float) -> tuple[float, float, int]:
         """(sum of psi^2, sum of psi', N) of the ranges' residuals at p under the assumed density: the two
         estimates of the Fisher information the sandwich compares (module docstring)."""
-        _, _, e, _, _ = self.evaluate(px, py)
-        logs = self.log_norm - 0.5 * (e - self.mean) ** 2 / self.var
-        g = np.exp(logs - logs.max(axis=0))
-        g /= g.sum(axis=0)
-        sc = (e - self.mean) / self.var
-        psi = (g * sc).sum(axis=0)
-        curvature = (g * (1.0 / self.var - sc * sc)).sum(axis=0) + psi * psi
-        return float((psi * psi).sum()), float(curvature.sum()), len(e)
+        _, _, _, _, psi, dpsi, _ = self.evaluate(px, py)
+        return float((psi * psi).sum()), float(dpsi.sum()), len(psi)
 
     def covariance(self, px: float, py: float, fisher: float) -> tuple[float, float, float]:
         """(P^-1 + I_f sum u u^T)^-1 at p."""
@@ -283,7 +220,7 @@ class BatchWindow:
 
 
 class RawRange(RelativePositionEstimator):
-    """Batch fix over a window of raw ranges, mirror ambiguity explicit, then a robust iterated EKF on
+    """Batch fix over a window of raw ranges, mirror ambiguity explicit, then moment-matching updates on
     r = |p| (module docstring)."""
 
     name = "raw_range"
@@ -312,8 +249,8 @@ class RawRange(RelativePositionEstimator):
 
     # ----- life cycle -----
     def _reset_extra(self) -> None:
-        self._components = _components(self.params)
-        self._fisher, self._entropy, self._nll_spread = mixture_statistics(self._components)
+        self._density = density = density_of(self.params.raw_range)
+        self._fisher, self._entropy, self._nll_spread = density.fisher, density.entropy, density.spread
         # Sandwich: running means of psi^2 and psi' of the residuals (both I_f when the density is right), and
         # the information per range the covariance uses, (mean psi')^2 / mean psi^2 within [I_f / 20, I_f].
         self._psi2 = self._dpsi = self._info = self._fisher
@@ -392,7 +329,7 @@ class RawRange(RelativePositionEstimator):
         p = self.params.raw_range
         data = np.array(self._window)
         anchors = np.column_stack([self._cx - data[:, 1], self._cy - data[:, 2]])
-        batch = BatchWindow(data[:, 0], anchors, self._components, self._prior)
+        batch = BatchWindow(data[:, 0], anchors, self._density, self._prior)
         starts = []
         if self._solves > 0:
             starts.append((self._px, self._py))
@@ -451,54 +388,29 @@ class RawRange(RelativePositionEstimator):
                              weight=1.0 if ax is None else 1.0 / (1.0 + math.exp(-min(evidence, 700.0))))
 
     def _track(self, r: float) -> UpdateOutcome:
-        """Phase 2: robust iterated EKF on r = |p| + mu."""
-        p = self.params.raw_range
-        components = self._components
+        """Phase 2: the moment-matching update of a Gaussian prior N(p^-, P) by one range (module docstring)."""
         px, py, p11, p12, p22 = self._px, self._py, self._p11, self._p12, self._p22
         d = math.hypot(px, py)
         if d < MIN_DISTANCE:
             return UpdateOutcome(accepted=True, reason="at the origin: range direction undefined")
         ux, uy = px / d, py / d
-        h = ux * (p11 * ux + p12 * uy) + uy * (p12 * ux + p22 * uy)
+        hx = p11 * ux + p12 * uy                     # P H^T, H = u^T
+        hy = p12 * ux + p22 * uy
+        h = ux * hx + uy * hy                        # the prior's variance along the range
         innovation = r - d
-        _, _, nll, psi, dpsi = em_weight(innovation, h, components)
+        nll, psi, dpsi = self._density.predictive(innovation, h)
         self._psi2 += (psi * psi - self._psi2) / SANDWICH_LENGTH
         self._dpsi += (dpsi - self._dpsi) / SANDWICH_LENGTH
         self._info = info = self._sandwich()
-        qx, qy = px, py
-        iterations = 0
-        w = 1.0
-        while iterations < p.iterations:
-            iterations += 1
-            d = math.hypot(qx, qy)
-            if d < MIN_DISTANCE:
-                break
-            ux, uy = qx / d, qy / d
-            w, shift, _, _, _ = em_weight(r - d, h, components)
-            hx = p11 * ux + p12 * uy
-            hy = p12 * ux + p22 * uy
-            s = ux * hx + uy * hy + 1.0 / w
-            # IEKF: p = p^- + K (r - m - |q| - u^T (p^- - q))
-            y = r - shift - d - (ux * (px - qx) + uy * (py - qy))
-            nx, ny = px + hx * y / s, py + hy * y / s
-            change = math.hypot(nx - qx, ny - qy)
-            qx, qy = nx, ny
-            if change <= p.tolerance:
-                break
-        d = math.hypot(qx, qy)
-        if d >= MIN_DISTANCE:
-            ux, uy = qx / d, qy / d
-        hx = p11 * ux + p12 * uy
-        hy = p12 * ux + p22 * uy
-        s = ux * hx + uy * hy + 1.0 / info
-        self._px, self._py = qx, qy
-        self._p11, self._p12, self._p22 = p11 - hx * hx / s, p12 - hx * hy / s, p22 - hy * hy / s
+        # Where the assumed density only approximates the noise, the sandwich says how much of its
+        # information a range really carries; the covariance shrinks by that share only.
+        shrink = dpsi * info / self._fisher
+        self._px, self._py = px + hx * psi, py + hy * psi
+        self._p11, self._p12, self._p22 = p11 - hx * hx * shrink, p12 - hx * hy * shrink, p22 - hy * hy * shrink
         self._tracked += 1
-        if self._watch(nll):
-            return UpdateOutcome(accepted=True, reason="fix dropped: the ranges no longer fit", iterations=iterations,
-                                 innovation=innovation, innovation_variance=h + 1.0 / info, weight=w)
-        return UpdateOutcome(accepted=True, iterations=iterations, innovation=innovation,
-                             innovation_variance=h + 1.0 / info, weight=w)
+        reason = "fix dropped: the ranges no longer fit" if self._watch(nll) else ""
+        return UpdateOutcome(accepted=True, reason=reason, iterations=1, innovation=innovation,
+                             innovation_variance=h + 1.0 / info, weight=dpsi * h if h > 0.0 else 1.0)
 
     def _sandwich(self) -> float:
         """Information per range for the covariance: the sandwich (mean psi')^2 / mean psi^2, which is I_f when
