@@ -15,6 +15,7 @@ from typing import Literal
 
 import numpy as np
 from pydantic import Field, TypeAdapter
+from scipy.stats import chi2
 
 from agent.config import PositiveFloat, StrictModel, updated
 from agent.core.checks import valid_range
@@ -82,6 +83,7 @@ class ComparisonResult(ErrorHistory):
     least_squares: np.ndarray         # (runs, len(LS_TIMES)) batch least-squares error at LS_TIMES
     fisher: float                     # Fisher information of the range noise as a location family (m^-2)
     bound: np.ndarray                 # (K+1,) posterior Cramér–Rao bound on the RMSE over runs (m)
+    nees: dict[str, np.ndarray]       # estimator -> (runs, K+1) e^T P^-1 e with the estimator's own P
 
     def bound_at(self, t: float) -> float:
         """The bound at the epoch nearest to time t (s)."""
@@ -90,6 +92,24 @@ class ComparisonResult(ErrorHistory):
     def rmse_at(self, name: str, t: float) -> float:
         """The RMSE over runs of one estimator at the epoch nearest to time t (s)."""
         return float(self.rmse(name)[int(np.argmin(np.abs(self.time - t)))])
+
+    def mean_nees_at(self, name: str, t: float) -> float:
+        """The mean over runs of one estimator's NEES at the epoch nearest to time t (s); 2 if consistent."""
+        return float(np.mean(self.nees[name][:, int(np.argmin(np.abs(self.time - t)))]))
+
+    def worst_run_ratio(self, name: str, start: float) -> float:
+        """The largest over runs of one run's RMSE over time from `start` on, divided by the bound's RMS over
+        the same epochs: how far the worst run strays from the bound."""
+        late = self.time >= start - 1e-9
+        per_run = np.sqrt(np.mean(self.errors[name][:, late] ** 2, axis=1))
+        return float(per_run.max() / math.sqrt(np.mean(self.bound[late] ** 2)))
+
+
+def nees_band(runs: int, dof: int = 2, level: float = 0.95) -> tuple[float, float]:
+    """The two-sided band of the mean NEES over `runs` independent runs of a consistent estimator:
+    runs * mean ~ chi^2(runs * dof)."""
+    low, high = chi2.ppf([(1 - level) / 2, (1 + level) / 2], runs * dof)
+    return float(low / runs), float(high / runs)
 
 
 def relative_trajectory(config: ComparisonConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -157,8 +177,9 @@ def _fitted_mixture(noise_json: str, components: int = 6, samples: int = 50_000,
 
 
 def run_once(config: ComparisonConfig, noise: RangeNoise, seed_sequence: np.random.SeedSequence
-             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """One Monte Carlo run: errors (estimators, K+1), MCKF iterations (K,), batch LS errors at LS_TIMES."""
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """One Monte Carlo run: errors (estimators, K+1), MCKF iterations (K,), batch LS errors at LS_TIMES, NEES
+    (estimators, K+1)."""
     rng = np.random.default_rng(seed_sequence)
     t, own, other = relative_trajectory(config)
     truth = own - other
@@ -175,21 +196,31 @@ def run_once(config: ComparisonConfig, noise: RangeNoise, seed_sequence: np.rand
     if config.raw_range_noise == "model":
         params = updated(params, raw_range=updated(params.raw_range, noise_components=noise_components(noise)))
     errors = np.empty((len(config.estimators), steps + 1))
+    nees = np.empty((len(config.estimators), steps + 1))
     iterations = np.zeros(steps, dtype=np.int16)
     for e, name in enumerate(config.estimators):
         estimator = make_relative_estimator(params, initial, dt=config.agent.dt, name=name)
         errors[e, 0] = math.hypot(*(initial - truth[0]))
+        nees[e, 0] = _nees(initial - truth[0], estimator.covariance)
         for k, outcome in run_estimator(estimator, displacement, ranges, params.max_range):
             if name == "mckf" and outcome is not None:
                 iterations[k - 1] = outcome.iterations
             p = estimator.position
             errors[e, k] = math.hypot(p[0] - truth[k, 0], p[1] - truth[k, 1])
+            nees[e, k] = _nees(p - truth[k], estimator.covariance)
     least_squares = np.array([
         np.linalg.norm(batch_least_squares(displacement[:k], ranges[: k + 1]) - truth[k]) if k <= steps
         else math.nan
         for k in (int(round(t_ls / config.agent.dt)) for t_ls in LS_TIMES)
     ])
-    return errors, iterations, least_squares
+    return errors, iterations, least_squares, nees
+
+
+def _nees(error: np.ndarray, covariance: np.ndarray) -> float:
+    """e^T P^-1 e for a 2x2 P, closed form."""
+    (a, b), (_, d) = covariance
+    x, y = error
+    return float((d * x * x - 2 * b * x * y + a * y * y) / (a * d - b * b))
 
 
 def run_estimator(estimator, displacement: np.ndarray, ranges: np.ndarray, max_range: float):
@@ -235,7 +266,7 @@ def batch_least_squares(displacement: np.ndarray, ranges: np.ndarray) -> np.ndar
 
 
 def _run_job(job: tuple[ComparisonConfig, RangeNoise, np.random.SeedSequence]
-             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     return run_once(*job)
 
 
@@ -262,6 +293,7 @@ def run_comparison(config: ComparisonConfig, noise_name: str, workers: int = 1, 
         least_squares=np.stack([o[2] for o in outputs]),
         fisher=fisher,
         bound=bound,
+        nees={name: np.stack([o[3][e] for o in outputs]) for e, name in enumerate(config.estimators)},
     )
 
 

@@ -1,7 +1,8 @@
 """`usv-lab fleet-bench`: what the fleet simulation costs. A benchmark, not a test: it asserts no time.
 
 (a) The wall time of the whole Table II Monte Carlo, through the same process pool as `usv-lab scenario`.
-(b) The compute time of one vessel's tick (`RunTrace.tick_seconds`) for fleets of n vessels, built from the
+(b) The compute time of one vessel's tick (`RunTrace.tick_seconds`) for fleets of n vessels on each pair
+    estimator asked for (the paper's MCKF and the agent's default by default), built from the
     Table IV base (constant-velocity target, U_v = 10, U_vf = 3) with r* = 20 m for every n, so that the rows
     differ in n only and 50 vessels fit on the circle. These runs are sequential, in this process, after the
     pool has shut down, so nothing else competes for the CPU while they are timed.
@@ -17,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from agent.config import ConfigError, deep_merge, parse_mapping
+from agent.core.params import ESTIMATOR_NAMES
 from lab import arguments
 from lab.report import invocation, machine, markdown_table
 from lab.runner import run as run_scenario
@@ -47,6 +49,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scale", default="table4_scale", metavar="NAME",
                         help="scenario file whose base and positions part (b) starts from")
     parser.add_argument("--scenarios-dir", type=Path, default=DEFAULT_DIR, help="where NAMEs are looked up")
+    parser.add_argument("--estimators", nargs="+", choices=ESTIMATOR_NAMES, default=["mckf", "raw_range"],
+                        help="pair estimators of the tick-time part (default: the paper's and the agent's)")
 
 
 def spread_positions(count: int, seed: int, avoid: tuple[float, float]) -> list[tuple[float, float]]:
@@ -66,9 +70,10 @@ def spread_positions(count: int, seed: int, avoid: tuple[float, float]) -> list[
     return [(round(float(x), 2), round(float(y), 2)) for x, y in points]
 
 
-def fleet_scenarios(base: dict, variants: dict[str, Scenario], sizes: list[int], duration: float, seed: int
-                    ) -> list[tuple[int, Scenario, str, float | None]]:
-    """(n, scenario, where its start positions come from, the paper's run time for that n and r*)."""
+def fleet_scenarios(base: dict, variants: dict[str, Scenario], sizes: list[int], duration: float, seed: int,
+                    estimator: str | None = None) -> list[tuple[int, Scenario, str, float | None]]:
+    """(n, scenario, where its start positions come from, the paper's run time for that n and r*); every
+    vessel on `estimator` if given, else the file's own."""
     target = next(iter(variants.values())).world.target.position
     built = []
     for n in sizes:
@@ -80,8 +85,11 @@ def fleet_scenarios(base: dict, variants: dict[str, Scenario], sizes: list[int],
             points = spread_positions(n, seed, target)
             vessels = [{"id": str(i + 1), "position": p} for i, p in enumerate(points)]
             source, paper = f"drawn (seed {seed})", None
+        agent = {"control": {"radius": RADIUS}}
+        if estimator is not None:
+            agent["relative"] = {"estimator": estimator}
         merged = deep_merge(base, {"name": f"n{n}_r{RADIUS:g}", "duration": duration, "runs": 1,
-                                   "world": {"vessels": vessels}, "agent": {"control": {"radius": RADIUS}}})
+                                   "world": {"vessels": vessels}, "agent": agent})
         built.append((n, parse_mapping(Scenario, merged, f"fleet-bench n = {n}"), source, paper))
     return built
 
@@ -96,7 +104,9 @@ def run(args: argparse.Namespace) -> int:
     (scale_path,) = resolve([args.scale], args.scenarios_dir)
     _, mc_variants = load(mc_path, args.runs)
     scale_spec, scale_variants = load(scale_path)
-    fleets = fleet_scenarios(scale_spec.base, scale_variants, args.sizes, args.duration, args.seed)
+    fleets = [(name, *fleet) for name in args.estimators
+              for fleet in fleet_scenarios(scale_spec.base, scale_variants, args.sizes, args.duration, args.seed,
+                                           name)]
 
     jobs = sum(s.runs for s in mc_variants.values())
     started = time.perf_counter()
@@ -112,19 +122,19 @@ def run(args: argparse.Namespace) -> int:
           os.cpu_count(), f"{mc_seconds:.1f}", f"{mc_seconds / jobs:.2f}"]])
 
     rows = []
-    for n, scenario, source, paper in fleets:
-        print(f"fleet of {n}: {args.duration:g} s simulated ...", flush=True)
+    for name, n, scenario, source, paper in fleets:
+        print(f"fleet of {n}, {name}: {args.duration:g} s simulated ...", flush=True)
         started = time.perf_counter()
         trace = run_scenario(scenario)
         wall = time.perf_counter() - started
         ticks = trace.tick_seconds
         step_ms = np.nansum(ticks, axis=1) * 1e3   # all vessels of one sampling period, as one computer would
-        rows.append([n, f"{RADIUS:g}", source, int(np.isfinite(ticks).sum()),
+        rows.append([name, n, f"{RADIUS:g}", source, int(np.isfinite(ticks).sum()),
                      f"{trace.metrics.mean_tick_ms:.3f}", f"{trace.metrics.p99_tick_ms:.3f}",
                      f"{step_ms.mean():.2f}",
                      "-" if paper is None else f"{paper:g}", f"{wall:.1f}"])
     tick_table = markdown_table(
-        ["n", "r* (m)", "start positions", "vessel ticks", "mean tick (ms)", "p99 tick (ms)",
+        ["estimator", "n", "r* (m)", "start positions", "vessel ticks", "mean tick (ms)", "p99 tick (ms)",
          "mean fleet step (ms)", "paper Avg. Run Time (ms)", "run wall time (s)"], rows)
 
     document = render(invocation(args), mc_table, tick_table, args, scale_path)
@@ -158,7 +168,8 @@ def render(command: str, mc_table: str, tick_table: str, args: argparse.Namespac
         "",
         "## Tick compute time by fleet size",
         "",
-        f"One run per fleet size, {args.duration:g} s simulated, built from the base of `{scale_path}` "
+        f"One run per pair estimator and fleet size, {args.duration:g} s simulated, built from the base of "
+        f"`{scale_path}` "
         f"(constant-velocity target, U_v = 10 m/s, U_vf = 3 m/s) with r* = {RADIUS:g} m for every n. Start "
         f"positions of the sizes the file has are its own; the others are drawn with "
         f"numpy.random.default_rng({args.seed}) uniformly in [-{HALF_WIDTH:g}, {HALF_WIDTH:g}]^2 m, at "

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from lab.bound import fisher_information, pcrlb, rms_bound
+from lab.comparison import ComparisonConfig, nees_band, relative_trajectory, run_comparison
 from sim_bridge.noise import GaussianMixtureNoise, GaussianNoise, LogNormalNoise
 
 TABLE_II_GMM = GaussianMixtureNoise(outlier_fraction=0.2, variance=0.4, outlier_variance=10.0)
@@ -221,7 +222,7 @@ def test_bad_inputs_are_refused():
 # ---- Experiment 1 (`usv-lab compare`) carries the bound -------------------------------------------------
 
 def test_comparison_result_carries_the_bound_of_its_true_path():
-    from lab.comparison import ComparisonConfig, relative_trajectory, run_comparison
+
 
     config = ComparisonConfig(runs=2, duration=6.0, estimators=("kf", "mckf"))
     result = run_comparison(config, "gmm")
@@ -255,6 +256,7 @@ def test_compare_page_has_the_bound_and_the_ratios_and_is_reproducible(tmp_path)
     page = pages[0]
     assert "I_f = 1.6253 m^-2" in page and "I_f = 9.8483 m^-2" in page
     for section in page.split("\n## ")[1:]:
+        section, consistency = section.split("\nConsistency, over the 2 runs")
         rows = {}
         for line in section.splitlines():
             if line.startswith("| ") and "/ bound at" not in line:
@@ -268,3 +270,33 @@ def test_compare_page_has_the_bound_and_the_ratios_and_is_reproducible(tmp_path)
                 rmse, ratio = float(cells[2 * t]), float(cells[2 * t + 1])
                 assert ratio == pytest.approx(rmse / float(bound[2 * t]), rel=0.01, abs=0.06)
                 assert ratio > 1.0
+        # Every estimator has its worst-run ratio and mean NEES at the three horizons; the two-run band.
+        low, high = nees_band(2)
+        assert f"inside [{low:.2f}, {high:.2f}]" in consistency
+        table = [line for line in consistency.splitlines() if line.startswith("| ")][1:]
+        assert sorted(line.split("|")[1].strip() for line in table) == sorted(
+            ("RLS", "Huber-RLS", "KF", "AKF", "MCKF", "raw_range"))
+        for line in table:
+            cells = [cell.strip() for cell in line.strip().strip("|").split("|")]
+            assert float(cells[1]) > 0 and len(cells) == 5
+
+
+def test_nees_band_is_the_chi_square_quantiles_of_the_mean():
+    # chi^2 with 200 degrees of freedom: 2.5 % and 97.5 % quantiles 162.728 and 241.058 (tables).
+    low, high = nees_band(100)
+    assert low == pytest.approx(1.62728, abs=1e-4) and high == pytest.approx(2.41058, abs=1e-4)
+    # One run: chi^2(2) is exponential with mean 2, quantiles -2 ln(1 - q).
+    low, high = nees_band(1)
+    assert low == pytest.approx(-2 * math.log(0.975)) and high == pytest.approx(-2 * math.log(0.025))
+
+
+def test_nees_of_each_run_uses_the_estimators_own_covariance():
+    config = ComparisonConfig(runs=3, duration=3.0, estimators=("kf", "raw_range"))
+    result = run_comparison(config, "gmm")
+    assert set(result.nees) == {"kf", "raw_range"}
+    for name in ("kf", "raw_range"):
+        assert result.nees[name].shape == result.errors[name].shape
+        assert np.all(result.nees[name] >= 0)
+    # At the start every estimator holds the initial estimate with P_0 = initial_covariance * I.
+    p0 = config.agent.relative.initial_covariance
+    np.testing.assert_allclose(result.nees["kf"][:, 0], result.errors["kf"][:, 0] ** 2 / p0, rtol=1e-12)

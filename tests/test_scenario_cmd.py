@@ -156,4 +156,16 @@ def test_fleet_bench_smoke(tiny, tmp_path):
     document = (out / "fleet_benchmark.md").read_text(encoding="utf-8")
     assert "usv-lab " + " ".join(argv) in document
     assert "os.cpu_count()" in document and "numpy" in document
-    assert "| 3 | 20 | drawn (seed 50) |" in document
+    # One row per pair estimator, each fleet on that estimator (the paper's and the agent's by default).
+    assert "| mckf | 3 | 20 | drawn (seed 50) |" in document
+    assert "| raw_range | 3 | 20 | drawn (seed 50) |" in document
+
+
+def test_fleet_bench_puts_every_vessel_on_the_estimator_asked_for(tiny):
+    from lab.fleet_bench import fleet_scenarios
+
+    spec, variants = scenario_cmd.load(SCENARIOS_DIR / "table4_scale.yaml")
+    for name in ("kf", "raw_range"):
+        built = fleet_scenarios(spec.base, variants, [4, 5], 1.0, 50, name)
+        assert [n for n, *_ in built] == [4, 5]
+        assert {s.agent_params().relative.estimator for _, s, _, _ in built} == {name}

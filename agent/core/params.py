@@ -75,10 +75,10 @@ class RawRangeParams(StrictModel):
         9.2, description="the fix is declared unique once the mirror solution's negative log-likelihood exceeds "
                          "the best one's by this much (nats; 9.2: a likelihood ratio of 10^4)")
     fix_max_variance: PositiveFloat = Field(
-        0.25, description="and once the largest eigenvalue of the batch covariance is at most this (m^2): the "
-                          "batch is kept until the position is known to about 0.5 m, because the tracking "
-                          "update, a linearisation, is less efficient than the batch while the estimate is "
-                          "uncertain (docs/results/estimator_comparison.md)")
+        0.05, description="and once the largest eigenvalue of the batch covariance is at most this (m^2): the "
+                          "batch is kept until the position is known to about 0.2 m, because from fewer ranges "
+                          "its Cramér-Rao covariance is overconfident for a skewed noise, and so would the "
+                          "tracking that starts from it be (docs/estimation.md, section 8)")
     batch_iterations: int = Field(20, ge=1, le=1000, description="Gauss-Newton/EM iterations of a batch solve")
     tolerance: PositiveFloat = Field(1e-6, description="stop iterating when the step is below this (m)")
     monitor_length: int = Field(100, ge=10, le=100_000,

@@ -83,6 +83,9 @@ MAX_HALVINGS = 8
 NO_PRIOR_VARIANCE = 1e12
 # A batch solve switches from EM to Newton steps once a step is this short (m): near the minimum.
 NEWTON_REACH = 0.05
+# Cold start points are scouted with this many iterations each, and the best SCOUTED_KEPT solved fully.
+SCOUT_ITERATIONS = 3
+SCOUTED_KEPT = 2
 
 
 def _inverse(a11: float, a12: float, a22: float) -> tuple[float, float, float]:
@@ -320,7 +323,13 @@ class RawRange(RelativePositionEstimator):
         if len(self._window) > p.window:
             del self._window[: len(self._window) - p.window]
         self._unsolved += 1
-        if len(self._window) < p.min_ranges or (self._unsolved < p.solve_every and self._solves > 0):
+        if self._solves == 0:
+            # Pairs that start together would solve on the same ticks; the first solve waits up to
+            # solve_every - 1 more ranges, by the millimetres of the pair's first range, which differ.
+            waiting = len(self._window) < p.min_ranges + int(self._window[0][0] * 1e3) % p.solve_every
+        else:
+            waiting = self._unsolved < p.solve_every
+        if waiting:
             return UpdateOutcome(accepted=True, reason="collecting")
         self._unsolved = 0
         return self._solve()
@@ -338,6 +347,11 @@ class RawRange(RelativePositionEstimator):
         if self._solves == 0 or not self._consistent:
             # Cold: both line candidates, the points straight across the anchors' centroid, the prior's mean.
             starts += [*batch.line_candidates(), *batch.centroid_candidates(), self._prior[:2]]
+        if len(starts) > SCOUTED_KEPT:
+            # A few iterations from every cold start point, then only the most promising are solved fully.
+            scouted = sorted((batch.solve(x, y, SCOUT_ITERATIONS, p.tolerance) for x, y in starts),
+                             key=lambda s: s[2])
+            starts = [s[:2] for s in scouted[:SCOUTED_KEPT]]
         solutions = [batch.solve(x, y, p.batch_iterations, p.tolerance) for x, y in starts]
         bx, by, best = min(solutions, key=lambda s: s[2])
         mx, my = batch.mirror(bx, by)
