@@ -23,6 +23,7 @@ from agent.core.estimators import make_relative_estimator
 from agent.core.params import ESTIMATOR_NAMES, AgentParams
 from lab.bound import fisher_information, rms_bound
 from lab.errors import ErrorHistory
+from lab.mixture_fit import em_mixture
 from lab.parallel import map_in_order
 from sim_bridge.noise import (
     GaussianMixtureNoise,
@@ -162,17 +163,10 @@ def _fitted_mixture(noise_json: str, components: int = 6, samples: int = 50_000,
     """EM fit of a Gaussian mixture to samples of the noise model (fixed seed: the same fit every time)."""
     noise = _NOISE_ADAPTER.validate_json(noise_json)
     x = np.sort(noise.sample(np.random.default_rng(0), samples))
-    weight = np.full(components, 1.0 / components)
-    mean = np.quantile(x, (np.arange(components) + 0.5) / components)
-    variance = np.full(components, x.var() / components)
-    for _ in range(iterations):
-        log_p = np.log(weight)[:, None] - 0.5 * (np.log(2 * np.pi * variance)[:, None]
-                                                 + (x[None] - mean[:, None]) ** 2 / variance[:, None])
-        g = np.exp(log_p - log_p.max(axis=0))
-        g /= g.sum(axis=0)
-        n = g.sum(axis=1)
-        weight, mean = n / len(x), (g * x).sum(axis=1) / n
-        variance = np.maximum((g * (x - mean[:, None]) ** 2).sum(axis=1) / n, 1e-4)
+    weight, mean, variance = em_mixture(
+        x, np.full(len(x), 1.0 / len(x)), np.full(components, 1.0 / components),
+        np.quantile(x, (np.arange(components) + 0.5) / components), np.full(components, x.var() / components),
+        iterations, 1e-4)
     return tuple((float(w), float(m), float(v)) for w, m, v in zip(weight, mean, variance))
 
 

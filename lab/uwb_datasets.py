@@ -42,6 +42,7 @@ from agent.config import ConfigError, load_yaml, updated
 from agent.core.params import ESTIMATOR_NAMES, AgentParams
 from lab import arguments
 from lab.estimator_plots import LABELS
+from lab.mixture_fit import em_mixture
 from lab.range_replay import RangeLog, parse_csv, replay
 from lab.report import markdown_table
 
@@ -450,18 +451,8 @@ def fit_mixture(samples: Sequence[np.ndarray], components: int = 3, iterations: 
     cumulative = np.cumsum(weight[order])
     means = x[order][np.searchsorted(cumulative, (np.arange(components) + 0.5) / components)]
     variances = np.full(components, max(float(np.var(x)) / components, min_variance))
-    shares = np.full(components, 1.0 / components)
-    for _ in range(iterations):
-        log_p = (np.log(shares)[:, None] - 0.5 * np.log(2 * math.pi * variances)[:, None]
-                 - 0.5 * (x[None, :] - means[:, None]) ** 2 / variances[:, None])
-        log_p -= log_p.max(axis=0)
-        resp = np.exp(log_p)
-        resp /= resp.sum(axis=0)
-        resp *= weight[None, :]
-        mass = resp.sum(axis=1)
-        shares = mass / mass.sum()
-        means = (resp @ x) / mass
-        variances = np.maximum((resp * (x[None, :] - means[:, None]) ** 2).sum(axis=1) / mass, min_variance)
+    shares, means, variances = em_mixture(x, weight, np.full(components, 1.0 / components), means, variances,
+                                          iterations, min_variance)
     order = np.argsort(-shares)
     return tuple((float(shares[k]), float(means[k]), float(variances[k])) for k in order)
 
