@@ -25,8 +25,6 @@ from sim_bridge.scenario import select_scenario
 DEFAULT = Path(__file__).resolve().parents[1] / "configs" / "scenarios" / "table2_estimators.yaml"
 LATE = 20.0     # s: the errors are averaged from here to the end
 
-__all__ = ["closest_approach", "main"]
-
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m lab.cold_start", description=__doc__.splitlines()[0])

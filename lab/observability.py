@@ -34,13 +34,13 @@ from agent.core.observability import OBSERVABLE, ObservabilityParams
 from agent.core.records import Command, TickOutput
 from agent.core.step import step
 from lab import runner
-from lab.scenario_cmd import closest_approach
+from lab.cold_start import LATE
+from lab.scenario_cmd import closest_approach, mean_after
 from sim_bridge.scenario import select_scenario
 
 DEFAULT = Path(__file__).resolve().parents[1] / "configs" / "scenarios" / "table2_estimators.yaml"
 WEAVE_PERIOD = 6.0    # s
 WEAVE_UNTIL = 30.0    # s
-LATE = 20.0           # s: e_ij is averaged from here to the end
 
 
 def pair_verdicts(scenario, seed: int, cold: bool, weave: float = 0.0) -> tuple[dict, runner.RunTrace]:
@@ -138,7 +138,7 @@ def main(argv: list[str] | None = None) -> int:
         localised = [next((row[0] for row in rows if row[4]), None) for rows in seen.values()]
         everyone = None if None in localised or not localised else max(localised)
         print(f"\nevery pair localised by {_time(everyone)} s; mean e_ij after {LATE:.0f} s "
-              f"{np.nanmean(trace.e_ij[trace.time >= LATE]):.3f} m\n")
+              f"{mean_after(trace.time, trace.e_ij, LATE):.3f} m\n")
     return 0
 
 

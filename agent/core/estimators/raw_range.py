@@ -423,6 +423,8 @@ class RawRange(RelativePositionEstimator):
         self._p11, self._p12, self._p22 = p11 - hx * hx * shrink, p12 - hx * hy * shrink, p22 - hy * hy * shrink
         self._tracked += 1
         reason = "fix dropped: the ranges no longer fit" if self._watch(nll) else ""
+        # weight: the share of the prior's variance along the range this range removed, h psi' (for a Gaussian
+        # noise the Kalman gain's h / (sigma^2 + h); about 0 for a gross error).
         return UpdateOutcome(accepted=True, reason=reason, iterations=1, innovation=innovation,
                              innovation_variance=h + 1.0 / info, weight=dpsi * h if h > 0.0 else 1.0)
 
