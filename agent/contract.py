@@ -63,19 +63,53 @@ Velocity = tuple[SpeedComponent, SpeedComponent]
 def covariance_problem(values, size: int) -> str | None:
     """Why `values` (size x size, row-major) is not a covariance: not symmetric, or not positive semi-definite
     (both up to COVARIANCE_TOLERANCE of its largest entry); None if it is one. The entries are already finite
-    and within +-MAX_VARIANCE."""
+    and within +-MAX_VARIANCE.
+
+    Every share, odometry and pair estimate is checked, several per tick: the usual case is decided in plain
+    floats (a Cholesky factorisation of M + tolerance I that succeeds proves the smallest eigenvalue above
+    -tolerance), and only a matrix it cannot clear goes to numpy's eigenvalues for the verdict."""
     if len(values) != size * size:
         return f"needs {size * size} numbers ({size}x{size}, row-major)"
-    matrix = np.array(values, dtype=float).reshape(size, size)
-    scale = float(np.abs(matrix).max())
+    scale = max(abs(v) for v in values)
     if scale == 0.0:
         return None
     tolerance = COVARIANCE_TOLERANCE * scale
-    if np.abs(matrix - matrix.T).max() > tolerance:
-        return "is not symmetric"
+    for i in range(size):
+        for j in range(i + 1, size):
+            if abs(values[i * size + j] - values[j * size + i]) > tolerance:
+                return "is not symmetric"
+    if size == 2:
+        # Closed form: the smaller eigenvalue of [[a, b], [b, c]].
+        a, b, c = values[0], 0.5 * (values[1] + values[2]), values[3]
+        smallest = 0.5 * (a + c) - math.hypot(0.5 * (a - c), b)
+        return "is not positive semi-definite" if smallest < -tolerance else None
+    if _shifted_cholesky_succeeds(values, size, tolerance):
+        return None
+    matrix = np.array(values, dtype=float).reshape(size, size)
     if float(np.linalg.eigvalsh(0.5 * (matrix + matrix.T))[0]) < -tolerance:
         return "is not positive semi-definite"
     return None
+
+
+def _shifted_cholesky_succeeds(values, size: int, shift: float) -> bool:
+    """True if the symmetric part of the matrix plus `shift` I is positive definite (every Cholesky pivot
+    positive), which proves its smallest eigenvalue is above -shift. False says nothing either way."""
+    lower: list[list[float]] = []
+    for i in range(size):
+        row = []
+        for j in range(i + 1):
+            entry = 0.5 * (values[i * size + j] + values[j * size + i]) + (shift if i == j else 0.0)
+            other = lower[j] if j < i else row
+            for k in range(j):
+                entry -= row[k] * other[k]
+            if i == j:
+                if not entry > 0.0:
+                    return False
+                row.append(math.sqrt(entry))
+            else:
+                row.append(entry / lower[j][j])
+        lower.append(row)
+    return True
 
 
 # ----- keys -----

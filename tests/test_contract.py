@@ -389,6 +389,42 @@ def test_the_sim_clock_is_bounded_and_follows_a_restart():
     assert offer(2.0**62 / 1e9, after=2.0) == "clock_jump" and offer(50.4) == "tick"
 
 
+def _eigenvalue_verdict(values: list[float], size: int) -> str | None:
+    """The rule covariance_problem states, by numpy's eigenvalues alone: the reference for its fast path."""
+    matrix = np.array(values).reshape(size, size)
+    tolerance = 1e-9 * np.abs(matrix).max()
+    if np.abs(matrix - matrix.T).max() > tolerance:
+        return "is not symmetric"
+    if np.linalg.eigvalsh(0.5 * (matrix + matrix.T))[0] < -tolerance:
+        return "is not positive semi-definite"
+    return None
+
+
+@pytest.mark.parametrize("size", [2, 3, 4])
+def test_the_covariance_check_gives_the_eigenvalue_verdict(size):
+    """The plain-float Cholesky path must not change a verdict: definite, singular, indefinite and just
+    beyond the tolerance, at scales from 1e-8 to 1e8."""
+    rng = np.random.default_rng(11)
+    tolerance = 1e-9
+    for _ in range(400):
+        scale = 10 ** rng.uniform(-8, 8)
+        q, _ = np.linalg.qr(rng.normal(size=(size, size)))
+        eigenvalues = rng.uniform(0.0, 1.0, size) * scale
+        kind = rng.integers(4)
+        if kind == 1:
+            eigenvalues[0] = 0.0                                   # singular: positive semi-definite
+        elif kind == 2:
+            eigenvalues[0] = -rng.uniform(0.01, 1.0) * scale        # clearly indefinite
+        elif kind == 3:                                            # a hair either side of the tolerance
+            eigenvalues[1:] = scale
+            eigenvalues[0] = -tolerance * scale * rng.choice([0.5, 2.0])
+        matrix = q @ np.diag(eigenvalues) @ q.T
+        values = matrix.ravel().tolist()
+        assert covariance_problem(values, size) == _eigenvalue_verdict(values, size)
+    assert covariance_problem([1.0, 2.0, 2.0, 1.0], 2) == "is not positive semi-definite"   # eigenvalues 3, -1
+    assert covariance_problem([0.0] * size * size, size) is None
+
+
 def test_the_contract_accepts_what_the_core_shares():
     """The bounds must never refuse a genuine share: a covariance of a filter passes, with rounding."""
     rng = np.random.default_rng(3)
