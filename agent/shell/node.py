@@ -218,8 +218,10 @@ class AgentNode:
             self._check_id_free(session)
             if self.log is None:
                 self.open_log()
-            subscribers = [session.declare_subscriber(key(self.id, t), self._on_input) for t in OWN_TOPICS]
-            subscribers.append(session.declare_subscriber(every("share"), self._on_input))
+            # One subscriber for all four sensors: each subscriber is a thread of zenoh-python's, and a message
+            # handed across threads costs more CPU than decoding it (docs/results/runtime_benchmark.md).
+            subscribers = [session.declare_subscriber(f"{FLEET_PREFIX}/{self.id}/sensor/*", self._on_input),
+                           session.declare_subscriber(every("share"), self._on_input)]
             if self.settings.clock == "sim":
                 subscribers.append(session.declare_subscriber(CLOCK_KEY, self._on_clock))
             token = session.liveliness().declare_token(key(self.id, LIVELINESS))
