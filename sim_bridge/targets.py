@@ -11,7 +11,6 @@ from typing import Annotated, Literal, Protocol
 
 import numpy as np
 from pydantic import Field, model_validator
-from scipy.optimize import brentq
 
 from agent.config import NonNegativeFloat, PositiveFloat, StrictModel
 
@@ -114,6 +113,9 @@ class SinusoidTarget:
 
             def excess(delta: float) -> float:
                 return delta**2 + (self._lateral(along + delta) - here) ** 2 - length**2
+
+            # Imported here: scipy.optimize adds 0.4 s to the start of every sim bridge, few of which need it.
+            from scipy.optimize import brentq
 
             # excess(0) < 0 <= excess(length): a chord of the right length ends in (0, length].
             advance = brentq(excess, 0.0, length, xtol=1e-14, rtol=4 * np.finfo(float).eps)
