@@ -113,6 +113,7 @@ class SimBridge:
         self._seq: dict[str, int] = {}
         self._publishers: dict[str, object] = {}
         self._next_scene = 0
+        self._scene: foxglove.StaticScene | None = None
         self._radius = scenario.agent_params().control.radius   # r*, for the desired circle in the log
         # Sensor-to-command latency: wall time from publishing a tick's sensors to each agent's command.
         self._tick_stamp: int | None = None
@@ -444,9 +445,11 @@ class SimBridge:
         self.log.log("/tf", foxglove.transforms(stamp, links), stamp, schema=foxglove.FrameTransforms)
         if stamp >= self._next_scene:
             self._next_scene = stamp + foxglove.SCENE_PERIOD_NS
-            self.log.log("/scene", foxglove.SceneUpdate(entities=[
-                *foxglove.target_entities(stamp, "target", self._radius, "target"),
-                *foxglove.island_entities(stamp, "world", self.scenario.world.islands)]), stamp)
+            if self._scene is None:
+                self._scene = foxglove.StaticScene([
+                    *foxglove.target_entities(0, "target", self._radius, "target"),
+                    *foxglove.island_entities(0, "world", self.scenario.world.islands)])
+            self.log.log("/scene", self._scene.at(stamp), stamp, schema=foxglove.SceneUpdate)
 
     def _next(self, vessel: str, stream: str) -> int:
         name = f"{vessel}/{stream}"

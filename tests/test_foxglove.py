@@ -90,6 +90,16 @@ def test_the_transforms_written_directly_are_what_the_model_dumps():
     assert foxglove.FrameTransforms.model_validate(written).model_dump() == written
 
 
+def test_a_static_scene_restamped_is_what_the_models_dump_at_that_stamp():
+    scene = foxglove.StaticScene([*foxglove.target_entities(0, "target", 5.0, "target"),
+                                  *foxglove.island_entities(0, "world", [[(0.0, 0.0), (1.0, 0.0), (0.0, 1.0)]])])
+    for stamp in (3_000_000_000, 4_250_000_001):
+        built = foxglove.SceneUpdate(entities=[*foxglove.target_entities(stamp, "target", 5.0, "target"),
+                                               *foxglove.island_entities(stamp, "world",
+                                                                          [[(0.0, 0.0), (1.0, 0.0), (0.0, 1.0)]])])
+        assert scene.at(stamp) == built.model_dump(mode="json")
+
+
 def test_a_heading_becomes_a_rotation_about_z():
     turned = foxglove.yaw_rotation(math.pi / 2)
     assert (turned.x, turned.y) == (0.0, 0.0)

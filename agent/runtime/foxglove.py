@@ -196,3 +196,19 @@ def island_entities(stamp_ns: int, frame: str, islands: Sequence[Sequence[Sequen
         lines=[LinePrimitive(type=LINE_LOOP, pose=Pose(), thickness=0.15, scale_invariant=False,
                              points=[Vector3(x=float(x), y=float(y)) for x, y in polygon], color=ISLAND_COLOUR)])
         for n, polygon in enumerate(islands)]
+
+
+class StaticScene:
+    """A SceneUpdate whose entities do not change but for their time stamps (the target marker and circle, the
+    islands): built and checked as the models once, then only re-stamped each time it is logged."""
+
+    def __init__(self, entities: list[SceneEntity]) -> None:
+        self._message = SceneUpdate(entities=entities).model_dump(mode="json")
+
+    def at(self, stamp_ns: int) -> dict:
+        """The message stamped `stamp_ns`, as the dict `SceneUpdate` would dump (log it with that schema)."""
+        when = {"sec": stamp_ns // 1_000_000_000, "nsec": stamp_ns % 1_000_000_000}
+        for entity in self._message["entities"]:
+            entity["timestamp"] = when
+        return self._message
+

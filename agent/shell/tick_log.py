@@ -86,6 +86,7 @@ class TickLogger:
         self.id = vessel
         self.radius = radius
         self._next_scene = 0
+        self._scene: foxglove.StaticScene | None = None
 
     def tick(self, stamp: int, inputs: TickInputs, output: TickOutput, command, status=None,
              wire: dict[str, bytes] | None = None) -> None:
@@ -130,6 +131,7 @@ class TickLogger:
                      schema=foxglove.FrameTransforms)
         if record.target_state is not None and stamp >= self._next_scene:
             self._next_scene = stamp + foxglove.SCENE_PERIOD_NS
-            frame = foxglove.estimate_frame(self.id, "target")
-            self.log.log(log_topic(self.id, "scene"), foxglove.SceneUpdate(entities=foxglove.target_entities(
-                stamp, frame, self.radius, f"target as {self.id} sees it")), stamp)
+            if self._scene is None:
+                self._scene = foxglove.StaticScene(foxglove.target_entities(
+                    0, foxglove.estimate_frame(self.id, "target"), self.radius, f"target as {self.id} sees it"))
+            self.log.log(log_topic(self.id, "scene"), self._scene.at(stamp), stamp, schema=foxglove.SceneUpdate)
