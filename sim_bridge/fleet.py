@@ -56,6 +56,7 @@ from sim_bridge.world import SeaSensors, World, streams
 SEA_LEAD = 10.0   # s from writing the settings to sim time 0 of a sea-mode run: time for every process to start
 AGENT_LISTEN = "tcp/127.0.0.1:0"   # port 0: the OS picks a free one as the agent binds it
 PORT_TAKEN = "Address already in use"
+SIM_ID_CHECK = 0.2                 # s an agent of a simulated fleet looks for another agent with its id
 BRIDGE_ATTEMPTS = 3                # starts of the sim bridge, each on a fresh port, before the launch fails
 FIRST_PORT = 20000                 # free_port() draws from [FIRST_PORT, the first port for outgoing connections)
 _PORTS = random.SystemRandom()     # not the `random` module's state, which a caller may have seeded
@@ -331,6 +332,8 @@ class Fleet:
         attempt = 1
         while True:
             self.bridge = self._start("bridge", self.bridge_cmd)
+            # Zenoh retries a failed connect only after a second: connect once the bridge is listening.
+            self._wait_for_port(deadline)
             session = zenoh.open(zenoh_config(ZenohSettings(connect=[f"tcp/127.0.0.1:{self.bridge_port}"])))
             try:
                 session.declare_subscriber(CLOCK_KEY, on_clock)
@@ -352,6 +355,16 @@ class Fleet:
             attempt += 1
             print(f"usv-fleet: port {taken} was taken before the sim bridge could listen on it; starting it "
                   f"again on port {self.bridge_port}", file=sys.stderr)
+
+    def _wait_for_port(self, deadline: float) -> None:
+        """Until the bridge's port takes a TCP connection, or the bridge has exited (its caller finds out)."""
+        while self.bridge.poll() is None and time.monotonic() < deadline:
+            self._check_interrupted()
+            try:
+                with socket.create_connection(("127.0.0.1", self.bridge_port), timeout=0.1):
+                    return
+            except OSError:
+                time.sleep(0.01)
 
     def _wait_for_bridge(self, session, deadline: float) -> bool:
         """Start no agent before this session reaches the bridge: Zenoh retries a connection with a growing
@@ -393,20 +406,32 @@ class Fleet:
     def ticks_done(self) -> int | None:
         """The ticks the sim bridge simulated, from its log (its closing summary, else its ground truth);
         None without a readable log."""
+        summary, truth = self._bridge_log()
+        if summary is not None and isinstance(summary.get("ticks"), int):
+            return summary["ticks"]
+        return truth
+
+    def bridge_summary(self) -> dict | None:
+        """The sim bridge's closing summary (ticks, loop_seconds, cpu_seconds, ...); None if it wrote none."""
+        return self._bridge_log()[0]
+
+    def _bridge_log(self) -> tuple[dict | None, int | None]:
+        """(the closing summary or None, ground-truth records counted until it) of sim.mcap; (None, None)
+        without a readable log."""
         path = self.folder / "sim.mcap"
         if not path.is_file():
-            return None
+            return None, None
         truth = 0
         try:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")      # a bridge killed hard leaves an unfinished file: read it
                 for topic, _, message in read_messages(path):
-                    if topic == "/bridge/summary" and isinstance(message.get("ticks"), int):
-                        return message["ticks"]
+                    if topic == "/bridge/summary":
+                        return message, truth
                     truth += topic == "/truth"
         except (OSError, ValueError):
-            return None
-        return truth
+            return None, None
+        return None, truth
 
     def _stop(self) -> None:
         """SIGTERM to every child still running; SIGKILL to those still running STOP_SECONDS later (or at
@@ -466,11 +491,13 @@ def launch(scenario_path: Path, variant: str | None, out: Path, seed: int | None
 def agent_configs(scenario, seed: int | None, folder: Path, zenoh) -> dict[str, dict]:
     """Each vessel's agent settings (NodeSettings as a mapping) for a simulated mission: sim clock, the
     scenario's parameters and initial estimates, its log in `folder`, and `zenoh(vessel)` as its Zenoh section
-    (loopback peers for the launcher, clients of a router in tests/test_multihost.py)."""
+    (loopback peers for the launcher, clients of a router in tests/test_multihost.py). The look for another
+    agent with the vessel's id is short (`SIM_ID_CHECK`): these links are up within milliseconds, and the
+    launcher gives every agent its own id; the default second is for a boat's radio links."""
     agent_params = scenario.agent_params().model_dump(mode="json")
     starts = initial_settings(scenario, seed)
     return {v.id: {"clock": "sim", "zenoh": zenoh(v.id), "log": str(folder / f"agent-{v.id}.mcap"),
-                   "agent": agent_params, "initial": starts.get(v.id, {})}
+                   "id_check": SIM_ID_CHECK, "agent": agent_params, "initial": starts.get(v.id, {})}
             for v in scenario.world.vessels}
 
 
@@ -559,6 +586,7 @@ def main(argv: list[str] | None = None) -> int:
         signal.signal(signum, lambda signum, frame: fleet.interrupt(signum))
     try:
         fleet.run()
+        launched = time.monotonic() - started
     except (RuntimeError, TimeoutError) as error:
         stopped = f"the sim bridge and {len(fleet.agents)} agent(s)" + (
             f" ({', '.join(fleet.hard_killed)} with SIGKILL)" if fleet.hard_killed else "")
@@ -579,6 +607,12 @@ def main(argv: list[str] | None = None) -> int:
               "ticks ran; `usv-log` analyses it)", file=sys.stderr)
         return 128 + error.signum
     print((fleet.folder / "summary.md").read_text())
+    summary = fleet.bridge_summary() or {}
+    if summary.get("loop_seconds"):
+        simulated = summary["ticks"] * fleet.scenario.world.dt
+        print(f"usv-fleet: {simulated:.1f} s of mission in {summary['loop_seconds']:.2f} s of ticks: "
+              f"{simulated / summary['loop_seconds']:.1f}x real time ({simulated / launched:.1f}x with the start-up "
+              f"and shut-down of the processes, {launched:.1f} s)", file=sys.stderr)
     print(f"usv-fleet: run folder {fleet.folder} ({time.monotonic() - started:.1f} s)", file=sys.stderr)
     return 0
 

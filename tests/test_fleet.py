@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import socket
 import subprocess
 import sys
@@ -35,6 +36,10 @@ def test_fleet_run_leaves_a_run_folder_with_logs_plot_and_metrics(tmp_path, shor
     # It ran to its end and says so; the summary has no word of a cut-short run.
     assert metrics["ticks_planned"] == 121 and metrics["complete"] is True and metrics["cut_short"] is None
     assert "cut short" not in (folder / "summary.md").read_text() and "121 ticks of 121 planned" in result.stdout
+    # It says how fast it ran: the tick loop's real-time factor, and the whole launch's.
+    said = re.search(r"12\.1 s of mission in ([0-9.]+) s of ticks: ([0-9.]+)x real time \(([0-9.]+)x with", result.stderr)
+    assert said, result.stderr
+    assert float(said[2]) == pytest.approx(12.1 / float(said[1]), rel=0.02) and float(said[3]) < float(said[2])
     # Every child's pid is on record (tests/test_launcher_faults.py checks that none outlives the launcher).
     assert set(json.loads((folder / "processes.json").read_text())) == {"launcher", "bridge", "agent-1", "agent-2",
                                                                           "agent-3"}
