@@ -40,6 +40,7 @@ FIGURES = {   # key: (what it is, unit, decimals)
     "shell_ratio": ("agent / core, in process", "", 2),
     "shell_bridge_ms": ("sim bridge, in process", "ms", 3),
     "fleet_agent_ms": ("agent, fleet over Zenoh", "ms", 2),
+    "fleet_agent_per_core": ("fleet agent / in-process core", "", 2),
     "fleet_bridge_ms": ("sim bridge, fleet over Zenoh", "ms", 2),
     "fleet_factor": ("lockstep tick loop", "x", 1),
     "launch_factor": ("whole launch", "x", 1),
@@ -87,6 +88,8 @@ def measure(root: Path) -> dict[str, float]:
     simulated = ticks * scenario.world.dt
     figures.update(fleet_bridge_ms=cpu.pop("/bridge/summary"), fleet_agent_ms=float(np.mean(list(cpu.values()))),
                    fleet_factor=simulated / loop, launch_factor=simulated / launch)
+    # The machine's speed drifts by tens of per cent over minutes: the core measured just before is the yardstick.
+    figures["fleet_agent_per_core"] = figures["fleet_agent_ms"] / figures["shell_core_ms"]
     return figures
 
 
@@ -134,11 +137,13 @@ def compare(before: str, after: str | None, pairs: int, progress=print) -> dict:
                     _git("worktree", "remove", "--force", str(root))
     medians = {side: {name: statistics.median(run[name] for run in runs) for name in FIGURES}
                for side, runs in results.items()}
+    spread = {side: {name: [min(run[name] for run in runs), max(run[name] for run in runs)] for name in FIGURES}
+              for side, runs in results.items()}
     dirty = after is None and bool(_git("status", "--porcelain", "--untracked-files=no"))
     return {"before": _git("rev-parse", "--short", before),
             "after": (_git("rev-parse", "--short", after) if after is not None
                       else _git("rev-parse", "--short", "HEAD") + ("+changes" if dirty else "")),
-            "pairs": pairs, "medians": medians, "date": datetime.now(UTC).strftime("%Y-%m-%d"),
+            "pairs": pairs, "medians": medians, "spread": spread, "runs": results, "date": datetime.now(UTC).strftime("%Y-%m-%d"),
             "cores": os.cpu_count()}
 
 
@@ -152,14 +157,21 @@ def page(record: list[dict]) -> str:
     for entry in record:
         cells = []
         for name, (_, _, decimals) in FIGURES.items():
+            if name not in entry["medians"]["before"]:
+                cells.append("-")
+                continue
             was, now = entry["medians"]["before"][name], entry["medians"]["after"][name]
-            cells.append(f"{was:.{decimals}f} → {now:.{decimals}f} ({now / was:.2f})")
+            cell = f"{was:.{decimals}f} → {now:.{decimals}f} ({now / was:.2f})"
+            if "spread" in entry:
+                low, high = (entry["spread"][side][name] for side in ("before", "after"))
+                cell += f"<br>[{low[0]:.{decimals}f}-{low[1]:.{decimals}f}] [{high[0]:.{decimals}f}-{high[1]:.{decimals}f}]"
+            cells.append(cell)
         rows.append([entry["label"], f"`{entry['before']}` → `{entry['after']}`", entry["pairs"], *cells])
     return "\n".join([
         "# What each change to the runtime bought", "",
         "Each row is one run of `usv-lab runtime-ab --before REV --label TEXT` (lab/runtime_ab.py): the medians "
         "of alternating pairs of runs before and after the change, on this machine (2 cores), with the "
-        "after/before ratio in brackets. CPU figures are milliseconds per tick; \"in process\" is the shells "
+        "after/before ratio in brackets and, below, the range of each side's runs. CPU figures are milliseconds per tick; \"in process\" is the shells "
         "in one thread without Zenoh (lab/shell_bench.py), \"fleet over Zenoh\" the lockstep Table II fleet, "
         "bridge and 4 agent processes sharing the 2 cores. The targets of issue #14 are in "
         "runtime_benchmark.md.", "",

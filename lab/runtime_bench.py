@@ -13,6 +13,11 @@
     computation alone allows on one core), and the CPU each process spent per tick (every thread, Zenoh's
     included; from each process's own summary record), which is what the two cores have to share.
 (d) The peak resident memory of every process of each run (/proc VmHWM).
+(e) Where an agent's and the bridge's CPU per tick goes, against two floors measured in the same run: the
+    shells in one process without Zenoh (lab/shell_bench.py: decoding, gate, core, messages, logs, by
+    section) and the transport floor (lab/transport_floor.py: the same lockstep message pattern between
+    processes that do nothing else). What the fleet costs beyond the sum of the two is the price of six
+    processes sharing two cores: thread hand-offs, cold caches, the scheduler.
 """
 
 from __future__ import annotations
@@ -36,6 +41,8 @@ from lab import arguments
 from lab.report import invocation, markdown_table
 from lab.runner import run as run_in_process
 from lab.scenario_cmd import DEFAULT_DIR
+from lab.shell_bench import AGENT_SECTIONS, SECTION_TEXT, run_shells
+from lab.transport_floor import SIZES, transport_floor
 from sim_bridge.fleet import Fleet, free_port
 from sim_bridge.scenario import select_scenario, with_duration
 
@@ -49,6 +56,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="simulated (= wall) seconds of each real-time latency run")
     parser.add_argument("--sizes", type=arguments.positive_int, nargs="+", default=[4, 12],
                         help="fleet sizes of the latency runs (variants n<size>_r5 of table4_scale)")
+    parser.add_argument("--floor-ticks", type=arguments.positive_int, default=1000,
+                        help="ticks of the transport floor (lab/transport_floor.py)")
     parser.add_argument("--out", type=Path, default=Path("docs/results"), help="where runtime_benchmark.md goes")
     parser.add_argument("--scenarios-dir", type=Path, default=DEFAULT_DIR, help="where the scenario files are")
 
@@ -188,22 +197,38 @@ def run(args: argparse.Namespace) -> int:
         memory_rows.append(["lockstep Table II, 4 vessels", *_memory_cells(_memory(folder))])
         print("runtime-bench: the same mission in process (the baseline)", file=sys.stderr)
         alone_factor, core_ms = in_process_baseline(table2, "mckf")
+        print("runtime-bench: the same mission through the shells in one process, and the transport floor",
+              file=sys.stderr)
+        _, scenario = select_scenario(table2, "mckf")
+        shells = run_shells(scenario, scratch / "shells")
+        floor = transport_floor(len(scenario.world.vessels), args.floor_ticks)
     factor = simulated / summary["loop_seconds"]
     lockstep = [[summary["ticks"], f"{simulated:.1f}", f"{summary['loop_seconds']:.2f}", f"{factor:.1f}x",
                  f"{launch_seconds:.1f}", f"{simulated / launch_seconds:.1f}x", summary["missed_commands"],
-                 f"{alone_factor:.1f}x", f"{factor / alone_factor:.2f}"]]
-    agents_cpu = [v for k, v in cpu.items() if k.startswith("agent-")]
+                 f"{alone_factor:.1f}x", f"{factor / alone_factor:.2f}", f"{100.0 / floor['loop_ms']:.0f}x"]]
+    agents_cpu = float(np.mean([v for k, v in cpu.items() if k.startswith("agent-")]))
+    bridge_cpu = cpu.get("bridge", float("nan"))
     dt_ms = 1e3 * fleet.scenario.world.dt
     cores = os.cpu_count() or 1
-    total_cpu = cpu.get("bridge", float("nan")) + sum(agents_cpu)
-    cpu_rows = [[f"{cpu.get('bridge', float('nan')):.2f}", f"{np.mean(agents_cpu):.2f}", f"{core_ms:.2f}",
+    total_cpu = bridge_cpu + agents_cpu * len(fleet.scenario.world.vessels)
+    shell_core = shells.per_tick_ms("core")
+    cpu_rows = [[f"{bridge_cpu:.2f}", f"{agents_cpu:.2f}", f"{agents_cpu / core_ms:.1f}x", f"{core_ms:.2f}",
                  f"{total_cpu:.2f}", f"{cores * dt_ms / total_cpu:.1f}x", f"{cores * dt_ms / 50:.1f}"]]
+    split_rows = [["the fleet over Zenoh (every thread)", f"{bridge_cpu:.3f}", f"{agents_cpu:.3f}"],
+                  ["the shells in one process, no Zenoh", f"{shells.per_tick_ms('bridge'):.3f}",
+                   f"{shells.agent_ms:.3f}"]]
+    split_rows += [[f"- agent: {SECTION_TEXT[name]}", "", f"{shells.per_tick_ms(name):.3f}"] for name in AGENT_SECTIONS]
+    split_rows += [["the transport floor: the same messages, no work", f"{floor['bridge_cpu_ms']:.3f}",
+                    f"{floor['agent_cpu_ms']:.3f}"],
+                   ["the rest: fleet - shells - floor", f"{bridge_cpu - shells.per_tick_ms('bridge') - floor['bridge_cpu_ms']:.3f}",
+                    f"{agents_cpu - shells.agent_ms - floor['agent_cpu_ms']:.3f}"]]
     text = "\n".join([
         "# Runtime benchmark: the fleet over Zenoh on loopback", "",
         f"Command: `{invocation(args)}`", "",
         f"Machine: {platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}, "
         f"{platform.system()} {platform.release()}. Every figure is from one run of the command above; the "
-        "processes share the machine's cores, so the figures move with whatever else runs.", "",
+        "processes share the machine's cores, so the figures move with whatever else runs (from one run to the "
+        "next by 15-30 % here: docs/results/runtime_changes.md compares a change by alternating runs).", "",
         "## Sensor-to-command latency (real-time mode)", "",
         "From the sim bridge publishing a tick's sensors to it receiving each agent's command: two Zenoh hops "
         "plus the agent's decoding, tick, encoding and logging. The baseline is bare Zenoh between two processes "
@@ -213,16 +238,27 @@ def run(args: argparse.Namespace) -> int:
                         "bare one-way p50 (ms)", "p50 / bare round trip", "commands timed"], rows), "",
         "## Lockstep real-time factor (Table II, MCKF, 4 vessels)", "",
         "The bridge advances a tick when every agent has answered, and each agent waits for its neighbours' "
-        "shares of the tick before (tests/test_lockstep.py checks the result equals the in-process runner).", "",
+        "shares of the tick before (tests/test_lockstep.py checks the result equals the in-process runner). "
+        "The last column is the factor of the transport floor's tick loop: the same messages between the same "
+        "number of processes doing nothing else.", "",
         markdown_table(["ticks", "simulated (s)", "tick loop (s)", "real-time factor", "whole launch (s)",
                         "factor incl. start-up", "missed commands", "in process, same seed",
-                        "over Zenoh / in process"], lockstep), "",
+                        "over Zenoh / in process", "transport floor"], lockstep), "",
         "Where the time goes: CPU milliseconds per tick of each process (all its threads), against the core "
         "tick alone (the in-process run's mean core `step`). With every process busy all the time the "
         f"{cores} cores could give at best {cores} x {dt_ms:.0f} ms / (sum of CPU per tick) of real time; "
         f"{50}x real time needs the whole fleet's CPU per tick under {cores * dt_ms / 50:.1f} ms.", "",
-        markdown_table(["sim bridge", "agent (mean)", "of which the core tick (in process)", "sum over processes",
-                        "factor if the cores were never idle", "CPU budget per tick for 50x"], cpu_rows), "",
+        markdown_table(["sim bridge", "agent (mean)", "agent / core tick", "core tick (in process)",
+                        "sum over processes", "factor if the cores were never idle", "CPU budget per tick for 50x"],
+                       cpu_rows), "",
+        "The same CPU against two floors measured in this run: the shells of the bridge and the agents in one "
+        "process without Zenoh (lab/shell_bench.py: the processes' own objects handing each other the wire "
+        "bytes; an agent's tick by section), and the transport floor (lab/transport_floor.py: bridge and "
+        f"{len(scenario.world.vessels)} agent processes exchanging the lockstep messages, payloads of "
+        f"{', '.join(f'{k} {v} B' for k, v in SIZES.items())}, with no work on them; {floor['shares_per_tick']:.2f} "
+        f"shares reached each agent per tick). In process the agent costs {shells.agent_ms / shell_core:.2f} "
+        "times its core.", "",
+        markdown_table(["CPU per tick (ms)", "sim bridge", "agent (mean)"], split_rows), "",
         "## Peak resident memory per process (MB)", "",
         markdown_table(["run", "sim bridge", "agents: min", "agents: max", "agents: mean"], memory_rows), "",
     ])

@@ -1,0 +1,129 @@
+"""The transport floor of a lockstep tick: what Zenoh and zenoh-python cost the fleet's processes per tick
+when the processes do nothing else. A benchmark part of `usv-lab runtime-bench`, not a test.
+
+The message pattern of a lockstep Table II fleet, with payloads of the real messages' sizes and no work on
+them: a "bridge" process publishes four sensor messages per vessel and the clock, then waits until every
+"agent" has answered; each agent process (one subscriber for its four sensor keys, one for every vessel's
+share, one for the clock, as the agent declares them) wakes on the clock and publishes a share, a command
+and a status. Each process's CPU per tick (all its threads) is the floor under the real process's; the tick
+loop's wall time is the floor under the lockstep real-time factor.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import threading
+import time
+
+import zenoh
+
+from sim_bridge.fleet import free_port
+
+# Bytes of each payload: about those of the Table II mission's messages.
+SIZES = {"sensor": 200, "clock": 150, "share": 700, "cmd": 110, "status": 900}
+READY = b"ready"
+START_TIMEOUT = 30.0   # s for every agent process to start and be heard
+TICK_TIMEOUT = 2.0     # s a tick waits for its answers
+WARM_UP = 50           # ticks run before the measured ones: the agents' links to each other come up meanwhile
+
+
+def _config(listen: int | None = None, connect: int | None = None):
+    from lab.runtime_bench import _session_config  # the agents' session settings
+
+    return _session_config(listen=listen, connect=connect)
+
+
+def agent(vessel: int, port: int, ticks: int) -> None:
+    """One agent of the floor (run in its own process): prints its CPU and shares received per measured
+    tick as JSON at the end."""
+    with zenoh.open(_config(listen=0, connect=port)) as session:   # listening, as agents do: they link up
+        tick = threading.Event()
+        shares = [0]
+
+        def take(sample) -> None:
+            sample.payload.to_bytes()
+
+        def take_share(sample) -> None:
+            sample.payload.to_bytes()
+            shares[0] += 1
+
+        def on_clock(sample) -> None:
+            sample.payload.to_bytes()
+            tick.set()
+
+        subscribers = [session.declare_subscriber(f"floor/{vessel}/sensor/*", take),
+                       session.declare_subscriber("floor/*/share", take_share),
+                       session.declare_subscriber("floor/clock", on_clock)]
+        share = session.declare_publisher(f"floor/{vessel}/share", allowed_destination=zenoh.Locality.REMOTE)
+        cmd = session.declare_publisher(f"floor/{vessel}/cmd")
+        status = session.declare_publisher(f"floor/{vessel}/status")
+        payloads = {name: b"x" * size for name, size in SIZES.items()}
+        while not tick.wait(0.1):   # until the first clock: say so (the bridge may miss a first word)
+            status.put(READY)
+        done, cpu_started, shares_before = 0, 0.0, 0
+        while True:
+            if done == WARM_UP:
+                cpu_started, shares_before = time.process_time(), shares[0]
+            tick.clear()
+            share.put(payloads["share"])
+            cmd.put(payloads["cmd"])
+            status.put(payloads["status"])
+            done += 1
+            if done == WARM_UP + ticks or not tick.wait(TICK_TIMEOUT):
+                break
+        cpu, measured = time.process_time() - cpu_started, done - WARM_UP
+        for subscriber in subscribers:
+            subscriber.undeclare()
+    print(json.dumps({"cpu_ms": 1e3 * cpu / measured, "shares": (shares[0] - shares_before) / measured}))
+
+
+def transport_floor(vessels: int = 4, ticks: int = 1000) -> dict[str, float]:
+    """Run the floor: the tick loop's wall time and each process's CPU, in milliseconds per tick."""
+    port = free_port()
+    payloads = {name: b"x" * size for name, size in SIZES.items()}
+    with zenoh.open(_config(listen=port)) as session:
+        answered = threading.Condition()
+        answers: set[str] = set()
+        ready: set[str] = set()
+
+        def on_status(sample) -> None:
+            with answered:
+                (ready if sample.payload.to_bytes() == READY else answers).add(str(sample.key_expr))
+                answered.notify_all()
+
+        subscriber = session.declare_subscriber("floor/*/status", on_status)
+        sensors = [session.declare_publisher(f"floor/{v}/sensor/{name}")
+                   for v in range(vessels) for name in ("odom", "uwb", "bearing", "sonar")]
+        clock = session.declare_publisher("floor/clock")
+        code = "from lab.transport_floor import agent; agent({}, {}, {})"
+        children = [subprocess.Popen([sys.executable, "-c", code.format(v, port, ticks)], stdout=subprocess.PIPE,
+                                     text=True) for v in range(vessels)]
+        try:
+            with answered:
+                if not answered.wait_for(lambda: len(ready) == vessels, timeout=START_TIMEOUT):
+                    raise RuntimeError(f"transport floor: {len(ready)} of {vessels} agent processes were heard "
+                                       f"within {START_TIMEOUT:.0f} s")
+            missed = 0
+            for k in range(WARM_UP + ticks):
+                if k == WARM_UP:
+                    started, cpu_started, missed = time.monotonic(), time.process_time(), 0
+                with answered:
+                    answers.clear()
+                for publisher in sensors:
+                    publisher.put(payloads["sensor"])
+                clock.put(payloads["clock"])
+                with answered:
+                    if not answered.wait_for(lambda: len(answers) == vessels, timeout=TICK_TIMEOUT):
+                        missed += 1
+            wall, cpu = time.monotonic() - started, time.process_time() - cpu_started
+            agents = [json.loads(child.communicate(timeout=30)[0].strip().splitlines()[-1]) for child in children]
+        finally:
+            subscriber.undeclare()
+            for child in children:
+                if child.poll() is None:
+                    child.kill()
+    return {"loop_ms": 1e3 * wall / ticks, "bridge_cpu_ms": 1e3 * cpu / ticks,
+            "agent_cpu_ms": sum(a["cpu_ms"] for a in agents) / len(agents),
+            "shares_per_tick": sum(a["shares"] for a in agents) / len(agents), "missed": missed}
