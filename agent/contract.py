@@ -70,7 +70,7 @@ def covariance_problem(values, size: int) -> str | None:
     -tolerance), and only a matrix it cannot clear goes to numpy's eigenvalues for the verdict."""
     if len(values) != size * size:
         return f"needs {size * size} numbers ({size}x{size}, row-major)"
-    scale = max(abs(v) for v in values)
+    scale = max(map(abs, values))
     if scale == 0.0:
         return None
     tolerance = COVARIANCE_TOLERANCE * scale
