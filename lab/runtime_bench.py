@@ -145,13 +145,16 @@ def _bridge_records(folder: Path) -> tuple[list[float], dict]:
 
 
 def _cpu_per_tick(folder: Path) -> dict[str, float]:
-    """CPU milliseconds per tick of each process's loop, from the summary record each one logs at the end."""
+    """CPU milliseconds per tick of each process's loop, from the summary record each one logs at the end;
+    `core-<id>` for the part of an agent's tick thread inside the core's step."""
     cpu = {}
     for path in sorted(folder.glob("*.mcap")):
         for topic, _, message in read_messages(path):
             if topic.endswith("/summary") and message.get("ticks"):
                 name = "bridge" if topic == "/bridge/summary" else f"agent-{topic.split('/')[1]}"
                 cpu[name] = 1e3 * message["cpu_seconds"] / message["ticks"]
+                if message.get("core_cpu_seconds") is not None:
+                    cpu[f"core-{topic.split('/')[1]}"] = 1e3 * message["core_cpu_seconds"] / message["ticks"]
     return cpu
 
 
@@ -207,6 +210,7 @@ def run(args: argparse.Namespace) -> int:
                  f"{launch_seconds:.1f}", f"{simulated / launch_seconds:.1f}x", summary["missed_commands"],
                  f"{alone_factor:.1f}x", f"{factor / alone_factor:.2f}", f"{100.0 / floor['loop_ms']:.0f}x"]]
     agents_cpu = float(np.mean([v for k, v in cpu.items() if k.startswith("agent-")]))
+    fleet_core = float(np.mean([v for k, v in cpu.items() if k.startswith("core-")]))
     bridge_cpu = cpu.get("bridge", float("nan"))
     dt_ms = 1e3 * fleet.scenario.world.dt
     cores = os.cpu_count() or 1
@@ -217,6 +221,7 @@ def run(args: argparse.Namespace) -> int:
     split_rows = [["the fleet over Zenoh (every thread)", f"{bridge_cpu:.3f}", f"{agents_cpu:.3f}"],
                   ["the shells in one process, no Zenoh", f"{shells.per_tick_ms('bridge'):.3f}",
                    f"{shells.agent_ms:.3f}"]]
+    split_rows.insert(1, ["- of which the agent's core `step` (its tick thread)", "", f"{fleet_core:.3f}"])
     split_rows += [[f"- agent: {SECTION_TEXT[name]}", "", f"{shells.per_tick_ms(name):.3f}"] for name in AGENT_SECTIONS]
     split_rows += [["the transport floor: the same messages, no work", f"{floor['bridge_cpu_ms']:.3f}",
                     f"{floor['agent_cpu_ms']:.3f}"],
@@ -257,7 +262,9 @@ def run(args: argparse.Namespace) -> int:
         f"{len(scenario.world.vessels)} agent processes exchanging the lockstep messages, payloads of "
         f"{', '.join(f'{k} {v} B' for k, v in SIZES.items())}, with no work on them; {floor['shares_per_tick']:.2f} "
         f"shares reached each agent per tick). In process the agent costs {shells.agent_ms / shell_core:.2f} "
-        "times its core.", "",
+        f"times its core. The same core `step` costs {fleet_core / shell_core:.2f} times as much CPU inside the "
+        "fleet's agents as in the one process: what sharing two cores with five other processes does to the "
+        "same Python code (cold caches, the scheduler), before any messaging.", "",
         markdown_table(["CPU per tick (ms)", "sim bridge", "agent (mean)"], split_rows), "",
         "## Peak resident memory per process (MB)", "",
         markdown_table(["run", "sim bridge", "agents: min", "agents: max", "agents: mean"], memory_rows), "",

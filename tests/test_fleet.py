@@ -53,6 +53,8 @@ def test_fleet_run_leaves_a_run_folder_with_logs_plot_and_metrics(tmp_path, shor
     for name, topic in [("sim.mcap", "/bridge/summary"), *((f"agent-{i}.mcap", f"/{i}/summary") for i in "123")]:
         (summary,) = [m for t, _, m in read_messages(folder / name) if t == topic]
         assert summary["ticks"] == 121 and 0.0 < summary["cpu_seconds"] and 0.0 < summary["loop_seconds"]
+        if name != "sim.mcap":   # and an agent, the part of it inside the core's step
+            assert 0.0 < summary["core_cpu_seconds"] < summary["cpu_seconds"]
 
 
 def test_unknown_variant_is_a_clear_error(tmp_path, short_scenario):

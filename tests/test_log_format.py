@@ -157,7 +157,7 @@ def test_the_run_covers_the_optional_parts_of_the_schemas(run_folder):
     assert any(m["bearing"] is not None for m in estimates) and any(m["target_state"] for m in estimates)
     assert len(estimates) == 3 * TICKS - 1          # vessel 2's tick without odometry has no estimates
     assert run.vessels["2"].last("/2/summary") == {"ticks": TICKS, "overruns": 0, "refused": {"stale": 2},
-                                                   "loop_seconds": 1.5, "cpu_seconds": 0.25}
+                                                   "loop_seconds": 1.5, "cpu_seconds": 0.25, "core_cpu_seconds": None}
     assert run.sim.last("/bridge/summary")["startup_missing"] == ["3"]
 
 

@@ -256,6 +256,9 @@ class AgentSummary(StrictModel):
     refused: dict[str, Count] = Field(description="inputs the gate refused, by reason")
     loop_seconds: float = Field(description="wall time from the first tick to the end (s)")
     cpu_seconds: float = Field(description="CPU time of the process, all threads, over the same span (s)")
+    core_cpu_seconds: float | None = Field(
+        None, description="CPU time of the tick thread inside the core's step over the same span (s): against "
+                          "the same step timed alone, what sharing the machine costs it")
 
 
 class BridgeSummary(StrictModel):

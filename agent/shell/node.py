@@ -106,6 +106,7 @@ class AgentNode:
         self.core_rebuilds = 0
         self.sim_restarts = 0
         self.shares_unsent = 0
+        self.core_seconds = 0.0   # tick thread CPU inside the core's step since the first tick
         self.stopping = threading.Event()
         self._sim_tick = threading.Event()
         self._restart_pending = False
@@ -271,7 +272,7 @@ class AgentNode:
                             self.overruns += 1
                             deadline = time.monotonic()  # do not try to catch up a backlog of ticks
                     if self.ticks == 0:  # what the run costs from its first tick, not the wait before it
-                        started, cpu_started = time.monotonic(), time.process_time()
+                        started, cpu_started, self.core_seconds = time.monotonic(), time.process_time(), 0.0
                     self._tick(publishers, clock)
                 except Exception as error:  # noqa: BLE001  (whatever one pass of the loop meets, the loop goes on)
                     self._tick_failed(error, None, 0)
@@ -347,7 +348,8 @@ class AgentNode:
             return
         try:
             self.tick_log.summary(nanoseconds(self.now()), ticks=self.ticks, overruns=self.overruns,
-                                  refused=self.gate.rejected, loop_seconds=wall_seconds, cpu_seconds=cpu_seconds)
+                                  refused=self.gate.rejected, loop_seconds=wall_seconds, cpu_seconds=cpu_seconds,
+                                  core_cpu_seconds=self.core_seconds)
         except Exception:  # noqa: BLE001  (the summary must not stop a clean shutdown)
             self.log_errors += 1
 
@@ -385,7 +387,9 @@ class AgentNode:
             if clock is not None:
                 self._deliver_shares(clock)
             inputs = self.gate.snapshot(now)
+            core_started = time.thread_time()
             self.state, output = step(self.params, self.state, inputs)
+            self.core_seconds += time.thread_time() - core_started
             self._check_command(output.command)
             self._failed_in_a_row = 0
         except Exception as error:  # noqa: BLE001  (one bad tick must not take the vessel's control down)
