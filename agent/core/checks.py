@@ -14,22 +14,41 @@ import numpy as np
 
 from agent.core.records import Share
 
+FLOAT64 = np.dtype(np.float64)
+
 
 def finite_vector(value, size: int) -> bool:
-    try:
-        array = np.asarray(value, dtype=float)
-    except (TypeError, ValueError):
-        return False
-    return array.shape == (size,) and bool(np.isfinite(array).all())
+    return finite_floats(value, (size,)) is not None
 
 
 def finite_matrix(value) -> bool:
     """A finite 2x2 matrix."""
-    try:
-        array = np.asarray(value, dtype=float)
-    except (TypeError, ValueError):
-        return False
-    return array.shape == (2, 2) and bool(np.isfinite(array).all())
+    return finite_floats(value, (2, 2)) is not None
+
+
+def finite_array(value, shape: tuple[int, ...]) -> bool:
+    """`value`, as a float array, has `shape` and only finite elements."""
+    return finite_floats(value, shape) is not None
+
+
+def finite_floats(value, shape: tuple[int, ...]) -> list[float] | None:
+    """The elements of `value` as a flat list of floats if it passes `finite_array`, else None: the check and
+    the conversion a caller doing its algebra in floats needs, in one pass."""
+    if type(value) is np.ndarray and value.dtype == FLOAT64:
+        # The common case, without a conversion: math.isfinite over a few elements costs less than numpy's
+        # isfinite-and-reduce, and these checks run several times per share and neighbour each tick.
+        if value.shape != shape:
+            return None
+        values = value.ravel().tolist()
+    else:
+        try:
+            array = np.asarray(value, dtype=float)
+        except (TypeError, ValueError):
+            return None
+        if array.shape != shape:
+            return None
+        values = array.ravel().tolist()
+    return values if all(map(math.isfinite, values)) else None
 
 
 def valid_range(value, max_range: float) -> bool:
@@ -42,14 +61,20 @@ def valid_share(share: object, receiver: str) -> bool:
     if not isinstance(share, Share):
         return False
     odometry = share.odometry
-    return (finite_vector(odometry.position, 2) and isinstance(odometry.stamp, (int, float))
+    return (finite_floats(odometry.position, (2,)) is not None and isinstance(odometry.stamp, (int, float))
             and math.isfinite(odometry.stamp) and math.isfinite(share.phase)
-            and finite_vector(share.velocity, 2)
-            and (share.target is None or (finite_vector(share.target, 4)
+            and finite_floats(share.velocity, (2,)) is not None
+            and (share.target is None or (finite_floats(share.target, (4,)) is not None
                                           and share.target_covariance is not None
-                                          and np.shape(share.target_covariance) == (4, 4)
-                                          and np.isfinite(share.target_covariance).all()))
+                                          and _finite_4x4(share.target_covariance)))
             and isinstance(share.neighbours, Mapping) and valid_pair_entry(share.neighbours.get(receiver)))
+
+
+def _finite_4x4(value) -> bool:
+    """Shape (4, 4) and every element finite."""
+    if type(value) is np.ndarray and value.dtype == FLOAT64:
+        return finite_floats(value, (4, 4)) is not None
+    return np.shape(value) == (4, 4) and bool(np.isfinite(value).all())
 
 
 def valid_pair_entry(entry) -> bool:
@@ -61,7 +86,8 @@ def valid_pair_entry(entry) -> bool:
         position, covariance, stamp = entry
     except (TypeError, ValueError):
         return False
-    return finite_vector(position, 2) and finite_matrix(covariance) and isinstance(stamp, float) and math.isfinite(stamp)
+    return (finite_floats(position, (2,)) is not None and finite_floats(covariance, (2, 2)) is not None
+            and isinstance(stamp, float) and math.isfinite(stamp))
 
 
 def obstacle_array(points) -> tuple[np.ndarray | None, bool]:

@@ -10,6 +10,7 @@ import numpy as np
 from agent.core.control.avoidance import avoidance_velocity, safety_filter
 from agent.core.control.formation import (
     desired_offset,
+    desired_offsets,
     desired_velocity,
     formation_velocity,
     neighbour_gain,
@@ -43,15 +44,20 @@ def control_command(c: ControlParams, dt: float, phase: float, next_phase: float
     offset = desired_offset(c.radius, phase)
     usable = [j for j, estimate in estimates.items() if estimate is not None and j in neighbour_phases]
     gain = neighbour_gain(len(usable), c.gain_neighbour, c.neighbour_gain_cap)
-    errors = [(gain, offset - desired_offset(c.radius, neighbour_phases[j]) - estimates[j])   # (30), (33)
-              for j in usable]
+    # (30), (33) for all neighbours at once: p*_ij - p^_ij = (p*_io - p*_jo) - p^_ij.
+    errors = np.empty((len(usable) + 1, 2))
+    gains = [gain] * len(usable)
+    if usable:
+        errors[:len(usable)] = (offset - desired_offsets(c.radius, np.array([neighbour_phases[j] for j in usable]))
+                                - np.array([estimates[j] for j in usable], dtype=float))
     tracking = np.zeros(2)
     if target_state is not None:
-        errors.append((c.gain_target, offset - target_state[:2]))
+        errors[len(usable)] = offset - target_state[:2]
+        gains.append(c.gain_target)
         target_velocity = own_velocity - target_state[2:]                       # v^_o = v_i - v^_io
         tracking = tracking_velocity(target_velocity, desired_velocity(c.radius, phase, next_phase, dt),
                                      c.max_target_speed)
-    formation = formation_velocity(errors)
+    formation = formation_velocity(np.array(gains, dtype=float), errors[:len(gains)])
     avoidance = avoidance_velocity(obstacles, c.safety_distance, c.avoidance_gain, c.avoidance_spread)
     formation_bounded = saturate(c.max_formation_speed, formation)
     avoidance_bounded = saturate(c.max_avoidance_speed, avoidance)

@@ -11,8 +11,8 @@ import math
 
 import numpy as np
 
-from agent.core.checks import finite_matrix, finite_vector
-from agent.core.fusion import covariance_intersection, covariance_intersection_many
+from agent.core.checks import finite_floats
+from agent.core.fusion import covariance_intersection_2d, covariance_intersection_stacked
 from agent.core.neighbours import NeighbourTrack, stamp_key
 from agent.core.params import AgentParams
 from agent.core.state import VesselState
@@ -43,29 +43,34 @@ def fuse_reciprocal(params: AgentParams, state: VesselState, track: NeighbourTra
     if theirs is None:
         return
     position, covariance, stamp = theirs
-    if not (finite_vector(position, 2) and finite_matrix(covariance) and math.isfinite(stamp)):
+    # In plain floats: a handful of 2-D operations per neighbour, where numpy's per-call overhead would be
+    # most of the cost.
+    position, covariance = finite_floats(position, (2,)), finite_floats(covariance, (2, 2))
+    if position is None or covariance is None or not math.isfinite(stamp):
         state.health.bad_shares += 1
         return
-    their_position, their_covariance = -np.asarray(position, dtype=float), np.asarray(covariance, dtype=float)
+    bx, by = -position[0], -position[1]
+    b11, b12, b21, b22 = covariance
     key = stamp_key(stamp)
     if key != track.epoch:
-        gap = stamp_key(params.fleet.max_odometry_gap)
-        if abs(key - track.epoch) > gap:
+        if abs(key - track.epoch) > stamp_key(params.fleet.max_odometry_gap):
             return
         mine_then, theirs_then, why = track.positions_at(state.own, key)
         if why:
             return
-        their_position = their_position + (track.epoch_own - mine_then) - (track.epoch_other - theirs_then)
-        intervals = abs(key - track.epoch) * 1e-6 / params.dt
-        their_covariance = their_covariance + 2.0 * params.relative.displacement_variance * intervals * np.eye(2)
+        (mx, my), (tx, ty) = mine_then.tolist(), theirs_then.tolist()
+        (ox, oy), (ex, ey) = track.epoch_own.tolist(), track.epoch_other.tolist()
+        bx, by = (bx + (ox - mx)) - (ex - tx), (by + (oy - my)) - (ey - ty)
+        grown = 2.0 * params.relative.displacement_variance * (abs(key - track.epoch) * 1e-6 / params.dt)
+        b11, b22 = b11 + grown, b22 + grown
+    ax, ay, a11, a12, a22 = track.estimator.moments()
     try:
-        fused, fused_covariance = covariance_intersection(
-            track.estimator.position, track.estimator.covariance, their_position, their_covariance)
+        x, y, p11, p12, p22 = covariance_intersection_2d(ax, ay, a11, a12, a12, a22, bx, by, b11, b12, b21, b22)
     except np.linalg.LinAlgError:
         state.health.bad_shares += 1
         return
-    if finite_vector(fused, 2) and finite_matrix(fused_covariance):
-        track.fused = (fused, fused_covariance)
+    if all(map(math.isfinite, (x, y, p11, p12, p22))):
+        track.fused = (np.array([x, y]), np.array([[p11, p12], [p12, p22]]))
     else:
         state.health.bad_shares += 1
 
@@ -79,33 +84,57 @@ def fuse_targets(params: AgentParams, state: VesselState, estimates: dict[str, n
     freedom) is left out and counted. Returns the fused state and covariance (ours alone if none fits)."""
     tracker = state.tracker
     own = (tracker.state, tracker.covariance)
-    candidates = [own]
-    for j, track in state.tracks.items():
-        share, relative = track.share, estimates.get(j)
-        if share is None or share.target is None or relative is None or track.estimator is None:
-            continue
-        age = now - share.odometry.stamp
-        carry = np.eye(4)
-        carry[0:2, 2:4] = -age * np.eye(2)           # p_jo moves with v_j - v_o over the share's age
-        x_shared = carry @ np.asarray(share.target, dtype=float)
-        x_shared[:2] += age * np.asarray(share.velocity, dtype=float)
-        P_shared = carry @ np.asarray(share.target_covariance, dtype=float) @ carry.T
-        x = np.concatenate([relative + x_shared[:2], state.motion.velocity - x_shared[2:]])
-        P = SWAP_VELOCITY @ P_shared @ SWAP_VELOCITY
-        P[:2, :2] += track.best()[1]
-        difference = x - own[0]
-        try:
-            distance = float(difference @ np.linalg.solve(own[1] + P, difference))
-        except np.linalg.LinAlgError:
-            distance = math.inf
-        if distance > params.fleet.target_gate:
-            state.health.target_estimates_gated += 1
-            continue
-        candidates.append((x, P))
-    if len(candidates) > 1:
-        try:
-            fused, fused_covariance = covariance_intersection_many(candidates)
-        except np.linalg.LinAlgError:
-            return own
-        tracker.assimilate(fused, fused_covariance)
+    shared = [(track.share, relative, track) for j, track in state.tracks.items()
+              if track.share is not None and track.share.target is not None
+              and (relative := estimates.get(j)) is not None and track.estimator is not None]
+    if not shared:
+        return tracker.state, tracker.covariance
+    # Every neighbour at once, as stacks: per neighbour, numpy's call overhead would be most of the cost.
+    age = np.array([now - share.odometry.stamp for share, _, _ in shared])[:, None]
+    x = np.array([share.target for share, _, _ in shared], dtype=float)
+    P = np.array([share.target_covariance for share, _, _ in shared], dtype=float)
+    # p_jo moves with v_j - v_o over the share's age: x <- C x, P <- C P C^T with C = [I, -age I; 0, I],
+    # written out by blocks (C's zeros and ones add nothing but rounding-free terms).
+    x[:, :2] -= age * x[:, 2:]
+    x[:, :2] += age * np.array([share.velocity for share, _, _ in shared], dtype=float)
+    P[:, :2, :] -= age[:, :, None] * P[:, 2:, :]
+    P[:, :, :2] -= age[:, :, None] * P[:, :, 2:]
+    # To our frame: p_io = p^_ij + p_jo, v_io = v_i - v^_o; SWAP_VELOCITY P SWAP_VELOCITY flips the sign of
+    # the off-diagonal blocks, and p^_ij's covariance adds to the position block.
+    x[:, :2] += np.array([relative for _, relative, _ in shared], dtype=float)
+    x[:, 2:] = state.motion.velocity - x[:, 2:]
+    P[:, :2, 2:] *= -1.0
+    P[:, 2:, :2] *= -1.0
+    P[:, :2, :2] += np.array([track.best()[1] for _, _, track in shared], dtype=float)
+    distances = _gate_distances(x - own[0], own[1] + P)
+    keep = distances <= params.fleet.target_gate
+    keep |= np.isnan(distances)     # NaN fails the gate test `distance > gate` and so is kept
+    state.health.target_estimates_gated += int(keep.size - np.count_nonzero(keep))
+    if not keep.any():
+        return tracker.state, tracker.covariance
+    means = np.concatenate([own[0][None], x[keep]])
+    covariances = np.concatenate([own[1][None], P[keep]])
+    try:
+        fused, fused_covariance = covariance_intersection_stacked(means, covariances,
+                                                                  np.full(len(means), 1.0 / len(means)))
+    except np.linalg.LinAlgError:
+        return own
+    tracker.assimilate(fused, fused_covariance)
     return tracker.state, tracker.covariance
+
+
+def _gate_distances(differences: np.ndarray, covariances: np.ndarray) -> np.ndarray:
+    """d_k^T S_k^-1 d_k for each row d_k and matrix S_k (the chi-square statistic of the gate); inf where
+    S_k is singular."""
+    try:
+        solved = np.linalg.solve(covariances, differences[:, :, None])[:, :, 0]
+    except np.linalg.LinAlgError:
+        return np.array([_gate_distance(d, S) for d, S in zip(differences, covariances)])
+    return np.einsum("ij,ij->i", differences, solved)
+
+
+def _gate_distance(difference: np.ndarray, covariance: np.ndarray) -> float:
+    try:
+        return float(difference @ np.linalg.solve(covariance, difference))
+    except np.linalg.LinAlgError:
+        return math.inf

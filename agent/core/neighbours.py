@@ -63,9 +63,10 @@ class History:
                 self._keys.append(key)
         self._values[key] = value
         if len(self._values) > self.size:
-            for old in self.keys()[: len(self._values) - self.size]:
+            keys, excess = self.keys(), len(self._values) - self.size
+            for old in keys[:excess]:
                 del self._values[old]
-            self._keys = None
+            self._keys = keys[excess:]     # still sorted: no sort on the next read
 
     def get(self, key: int):
         return self._values.get(key)
@@ -110,6 +111,11 @@ class History:
     def items(self) -> list[tuple[int, object]]:
         return [(key, self._values[key]) for key in self.keys()]
 
+    def last_values(self, count: int) -> list:
+        """The values of the last `count` stamps (fewer if fewer are kept), oldest first."""
+        values = self._values
+        return [values[key] for key in self.keys()[-count:]]
+
     def restore(self, pairs) -> None:
         """Take back what `items` gave (agent/core/snapshot.py)."""
         self._values = dict(pairs)
@@ -137,6 +143,8 @@ class NeighbourTrack:
         self.params = params
         self.dt = dt
         self.timing = timing
+        self.gap_key = stamp_key(timing.max_gap)     # timing.max_gap and timing.wait as stamp keys
+        self.wait_key = stamp_key(timing.wait)
         self.observability = params.observability
         self.spread = PathSpread()         # the relative path at the range epochs, (41)
         self.odometry = History(history)   # j's cumulative odometry by its stamps
@@ -163,6 +171,14 @@ class NeighbourTrack:
             return self.fused
         return self.estimator.position, self.estimator.covariance
 
+    def best_trace(self) -> float:
+        """trace of `best`'s covariance, without building the matrix."""
+        if self.fused is not None:
+            covariance = self.fused[1]
+            return covariance.item(0, 0) + covariance.item(1, 1)
+        _, _, p11, _, p22 = self.estimator.moments()
+        return p11 + p22
+
     def receive(self, share: Share, now: float) -> None:
         """Keep j's odometry and what it shares; shares may repeat or arrive out of order."""
         self.odometry.put(share.odometry.stamp, np.asarray(share.odometry.position, dtype=float))
@@ -173,9 +189,8 @@ class NeighbourTrack:
 
     def positions_at(self, own: History, key: int) -> tuple[np.ndarray | None, np.ndarray | None, str]:
         """(i's odometry, j's odometry, why not) at stamp `key`, interpolated where needed."""
-        gap = stamp_key(self.timing.max_gap)
-        mine, why_mine = own.at(key, gap)
-        theirs, why_theirs = self.odometry.at(key, gap)
+        mine, why_mine = own.at(key, self.gap_key)
+        theirs, why_theirs = self.odometry.at(key, self.gap_key)
         if mine is None or theirs is None:
             reasons = {why_mine, why_theirs}
             return None, None, "later" if "later" in reasons else ("gap" if "gap" in reasons else "before")
@@ -223,10 +238,14 @@ class NeighbourTrack:
         self.outcomes = []
         if self.estimator is None or self.epoch is None:
             return
+        latest = self.odometry.latest()
         for key in self.ranges.keys_after(self.epoch):
-            mine, theirs, why = self.positions_at(own, key)
+            if latest is None or key > latest:
+                mine, theirs, why = None, None, "later"     # what positions_at says, without asking
+            else:
+                mine, theirs, why = self.positions_at(own, key)
             if why == "later":
-                if stamp_key(now) - key <= stamp_key(self.timing.wait):
+                if stamp_key(now) - key <= self.wait_key:
                     break           # wait for the odometry of its time; later ranges wait behind it
                 why = "unpaired"
             if why:
@@ -234,12 +253,14 @@ class NeighbourTrack:
                 unusable["gap" if why == "before" else why] += 1
                 continue
             range_now = self.ranges.get(key)
-            displacement = (mine - self.epoch_own) - (theirs - self.epoch_other)
+            # (5), (11) in plain floats: numpy's per-call overhead would be most of the cost of 2-vectors.
+            (mx, my), (tx, ty) = mine.tolist(), theirs.tolist()
+            (ox, oy), (ex, ey) = self.epoch_own.tolist(), self.epoch_other.tolist()
+            displacement = ((mx - ox) - (tx - ex), (my - oy) - (ty - ey))
             if not self.estimator.predict(displacement, intervals=(key - self.epoch) * 1e-6 / self.dt):
                 self.ranges.pop(key)
                 continue
-            self.spread.add(float(displacement[0]), float(displacement[1]), (key - self.epoch) * 1e-6,
-                            self.observability.window)
+            self.spread.add(*displacement, (key - self.epoch) * 1e-6, self.observability.window)
             self.epoch, self.epoch_own, self.epoch_other = key, mine, theirs
             if self.last_range is None:
                 self.estimator.mark_range_epoch()
@@ -270,11 +291,15 @@ class NeighbourTrack:
         position = self.best()[0]
         if key == self.epoch or own_now is None:
             return position
-        other_moved = np.zeros(2)
+        # In plain floats, as numpy would do it element by element (2-vectors: the call overhead is the cost).
+        mx = my = 0.0       # j's motion since the epoch
         latest = self.odometry.latest()
         known = latest if latest is not None and self.epoch < latest < key else self.epoch
         if known != self.epoch:
-            other_moved = self.odometry.get(known) - self.epoch_other
+            (kx, ky), (ex, ey) = self.odometry.get(known).tolist(), self.epoch_other.tolist()
+            mx, my = kx - ex, ky - ey
         if self.share is not None:
-            other_moved = other_moved + np.asarray(self.share.velocity, dtype=float) * ((key - known) * 1e-6)
-        return position + (own_now - self.epoch_own) - other_moved
+            (vx, vy), elapsed = np.asarray(self.share.velocity, dtype=float).tolist(), (key - known) * 1e-6
+            mx, my = mx + vx * elapsed, my + vy * elapsed
+        (px, py), (ix, iy), (ox, oy) = position.tolist(), own_now.tolist(), self.epoch_own.tolist()
+        return np.array([(px + (ix - ox)) - mx, (py + (iy - oy)) - my])

@@ -62,7 +62,8 @@ def step(params: AgentParams, state: VesselState, inputs: TickInputs) -> tuple[V
     forget_silent(params, state, now)
     unusable: Counter[str] = Counter()
     for track in state.tracks.values():
-        start_track(params, state, track, now)
+        if track.estimator is None:
+            start_track(params, state, track, now)
         track.advance(state.own, now, unusable)
         track.fused = None
         if params.fleet.fuse_shared_estimates:
@@ -74,8 +75,9 @@ def step(params: AgentParams, state: VesselState, inputs: TickInputs) -> tuple[V
     # Only a localised neighbour drives the formation and lends its target estimate: an unconverged pair
     # estimate would pull the vessel, and move the neighbour's target estimate, to the wrong place.
     medians = {j: _recent_range(t) for j, t in state.tracks.items()}
+    distances = _norms(estimates)
     localised = {j: e for j, e in estimates.items()
-                 if e is not None and _localised(params, state.tracks[j], e, medians[j])}
+                 if e is not None and _localised(params, state.tracks[j], distances[j], medians[j])}
     bearing = _bearing(state, inputs.bearing)
     target_state, target_cov, bearing_outcome = track_target(params, state, bearing, velocity_change)
     if target_state is not None and params.fleet.fuse_target_estimates:
@@ -93,7 +95,7 @@ def step(params: AgentParams, state: VesselState, inputs: TickInputs) -> tuple[V
     command, terms, saturated = control_command(
         control, params.dt, state.phase, next_phase, odometry.heading, target_state, state.motion.velocity,
         localised, neighbour_phases, obstacles)
-    command = _keep_apart(params, state, inputs.ranges, localised, medians, terms.command, command)
+    command = _keep_apart(params, state, inputs.ranges, localised, medians, distances, terms.command, command)
     if not (math.isfinite(command.surge) and math.isfinite(command.yaw_rate)):
         # Never publish a non-finite command, whatever went wrong upstream.
         health.non_finite_commands += 1
@@ -103,8 +105,8 @@ def step(params: AgentParams, state: VesselState, inputs: TickInputs) -> tuple[V
         sender=state.vessel, odometry=odometry, velocity=command.surge * heading_vector, phase=state.phase,
         target=None if target_state is None else _to_shared(target_state, state.motion.velocity),
         target_covariance=None if target_cov is None else SWAP_VELOCITY @ target_cov @ SWAP_VELOCITY,
-        neighbours={j: (t.estimator.position.copy(), _symmetric(t.estimator.covariance), t.epoch * 1e-6)
-                    for j, t in state.tracks.items() if t.estimator is not None and t.epoch is not None},
+        neighbours={j: _shared_estimate(t) for j, t in state.tracks.items()
+                    if t.estimator is not None and t.epoch is not None},
     )
     record = TickRecord(
         time=now, phase=state.phase,
@@ -134,29 +136,43 @@ def _elapsed(params: AgentParams, previous: float | None, now: float) -> float:
     return min(max(elapsed, 0.0), 3.0 * params.dt)
 
 
-def _localised(params: AgentParams, track: NeighbourTrack, estimate: np.ndarray, median: float | None) -> bool:
+def _localised(params: AgentParams, track: NeighbourTrack, distance: float, median: float | None) -> bool:
     """The pair filter has converged enough to steer by: trace(P_ij) at most `fleet.localised_trace`, and its
     estimate agrees with the ranges: |p^_ij| within `RANGE_DISAGREEMENT` of `median`, that of the last
     `SEPARATION_RANGES` ranges (`_recent_range`). A filter that cannot learn from the ranges (the paper's
     pseudo-linear ones) keeps a wrong start for good while its covariance says it is sure: in a restart test
     two vessels that both believed 5.3 m crept to 0.19 m, the guard stopping them only on the ticks the
     ranges' median happened to exceed the limit. Unlocalised, the neighbour is judged by its raw ranges
-    (`_keep_apart`)."""
-    covariance = track.best()[1]
-    if covariance[0, 0] + covariance[1, 1] > params.fleet.localised_trace:
+    (`_keep_apart`). `distance` is |p^_ij| (`_norms`)."""
+    if track.best_trace() > params.fleet.localised_trace:
         return False
-    return median is None or abs(median - float(np.hypot(*estimate))) <= RANGE_DISAGREEMENT
+    return median is None or abs(median - distance) <= RANGE_DISAGREEMENT
+
+
+def _norms(vectors: dict[str, np.ndarray | None]) -> dict[str, float]:
+    """|v| of each 2-vector that is not None, by one numpy.hypot over all of them (a call per neighbour
+    would cost more than the arithmetic)."""
+    present = [(j, v) for j, v in vectors.items() if v is not None]
+    if not present:
+        return {}
+    stacked = np.array([v for _, v in present], dtype=float)
+    return dict(zip([j for j, _ in present], np.hypot(stacked[:, 0], stacked[:, 1]).tolist()))
 
 
 def _recent_range(track: NeighbourTrack) -> float | None:
     """The median of the last `SEPARATION_RANGES` ranges kept to the neighbour (a stray range voted out);
     None while fewer are kept."""
-    recent = [value for _, value in track.ranges.items()[-SEPARATION_RANGES:]]
-    return float(np.median(recent)) if len(recent) == SEPARATION_RANGES else None
+    recent = track.ranges.last_values(SEPARATION_RANGES)
+    if len(recent) < SEPARATION_RANGES:
+        return None
+    ordered, half = sorted(recent), SEPARATION_RANGES // 2
+    # numpy.median's value: the middle one, or the mean of the two middle ones.
+    return float(ordered[half] if SEPARATION_RANGES % 2 else (ordered[half - 1] + ordered[half]) / 2.0)
 
 
 def _keep_apart(params: AgentParams, state: VesselState, ranges, localised: dict[str, np.ndarray],
-                medians: dict[str, float | None], velocity: np.ndarray, command: Command) -> Command:
+                medians: dict[str, float | None], distances: dict[str, float], velocity: np.ndarray,
+                command: Command) -> Command:
     """The last guard: closer to a neighbour than `control.min_separation`, the vessel does not move
     (forward or astern), unless the command leads away from it. An unlocalised neighbour is judged by the
     raw range, since that is all there is (and gives no direction to move away in); a localised one by its
@@ -171,7 +187,7 @@ def _keep_apart(params: AgentParams, state: VesselState, ranges, localised: dict
     for j, estimate in localised.items():
         persistent = medians[j] is not None and medians[j] < limit
         # p_ij = p_i - p_j points from j to i: a velocity along it leads away from j.
-        near = float(np.hypot(*estimate)) < limit
+        near = distances[j] < limit
         if (persistent and not near) or (near and float(velocity @ estimate) <= 0.0):
             too_close = True    # short ranges the estimate does not explain: its direction is not to be trusted
     if too_close and command.surge != 0.0:
@@ -199,10 +215,11 @@ def _to_shared(state: np.ndarray, own_velocity: np.ndarray) -> np.ndarray:
     return np.concatenate([state[:2], own_velocity - state[2:]])
 
 
-def _symmetric(matrix: np.ndarray) -> np.ndarray:
-    """The symmetric part: what a share can carry (three numbers), so a share means the same in process
-    and on the wire."""
-    return 0.5 * (matrix + matrix.T)
+def _shared_estimate(track: NeighbourTrack) -> tuple[np.ndarray, np.ndarray, float]:
+    """What a share carries of the pair filter: p^_ij, P_ij and the epoch (s). P_ij as the three numbers of
+    its symmetric part (what a share can carry), so a share means the same in process and on the wire."""
+    px, py, p11, p12, p22 = track.estimator.moments()
+    return np.array([px, py]), np.array([[p11, p12], [p12, p22]]), track.epoch * 1e-6
 
 
 def _neighbour_record(track: NeighbourTrack, estimate: np.ndarray, localised: bool) -> NeighbourRecord:

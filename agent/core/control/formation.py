@@ -32,6 +32,11 @@ def desired_offset(radius: float, phase: float) -> np.ndarray:
     return np.array([radius * math.cos(phase), radius * math.sin(phase)])
 
 
+def desired_offsets(radius: float, phases: np.ndarray) -> np.ndarray:
+    """(27) for several phases at once: the rows r* [cos phi_j, sin phi_j], (m, 2)."""
+    return np.stack([radius * np.cos(phases), radius * np.sin(phases)], axis=1)
+
+
 def desired_velocity(radius: float, phase: float, next_phase: float, dt: float) -> np.ndarray:
     """(29): v*_io = (p*_io,k+1 - p*_io,k) / dt."""
     return (desired_offset(radius, next_phase) - desired_offset(radius, phase)) / dt
@@ -52,13 +57,10 @@ def neighbour_gain(count: int, gain: float, total_cap: float | None) -> float:
     return total_cap / count
 
 
-def formation_velocity(offset_errors: list[tuple[float, np.ndarray]]) -> np.ndarray:
-    """(33) first line: v^f = sum_j kappa_ij (p*_ij - p^_ij), given the pairs (kappa_ij, p*_ij - p^_ij)
-    over the neighbours and the target."""
-    total = np.zeros(2)
-    for gain, error in offset_errors:
-        total += gain * error
-    return total
+def formation_velocity(gains: np.ndarray, offset_errors: np.ndarray) -> np.ndarray:
+    """(33) first line: v^f = sum_j kappa_ij (p*_ij - p^_ij), given the gains kappa (m,) and the offset
+    errors p*_ij - p^_ij (m, 2) over the neighbours and the target, summed in their order."""
+    return np.zeros(2) + np.add.reduce(np.asarray(gains, dtype=float)[:, None] * offset_errors, axis=0)
 
 
 def tracking_velocity(target_velocity_estimate: np.ndarray, desired_relative_velocity: np.ndarray,

@@ -97,6 +97,11 @@ class RelativePositionEstimator(ABC):
     def covariance(self) -> np.ndarray:
         return np.array([[self._p11, self._p12], [self._p12, self._p22]])
 
+    def moments(self) -> tuple[float, float, float, float, float]:
+        """(px, py, p11, p12, p22): `position` and `covariance` as plain floats, for callers that do their
+        2-D algebra in floats (agent/core/cooperation.py) and need no arrays."""
+        return self._px, self._py, self._p11, self._p12, self._p22
+
     @property
     def diagnostics(self) -> Diagnostics:
         return self._diag
@@ -146,10 +151,14 @@ class RelativePositionEstimator(ABC):
         R_delta_ij = R_delta_i + R_delta_j = 2 R_delta_i of (13) is per period and grows linearly with it
         (a random walk), which (15) with one period per step leaves implicit.
         """
-        try:
-            dx, dy = (float(v) for v in np.asarray(displacement, dtype=float).reshape(2))
-        except (TypeError, ValueError):
-            dx = dy = math.nan
+        if (type(displacement) is tuple and len(displacement) == 2 and type(displacement[0]) is float
+                and type(displacement[1]) is float):
+            dx, dy = displacement       # already two floats (agent/core/neighbours.py): no conversion
+        else:
+            try:
+                dx, dy = (float(v) for v in np.asarray(displacement, dtype=float).reshape(2))
+            except (TypeError, ValueError):
+                dx = dy = math.nan
         intervals = _real(intervals)
         if not (math.isfinite(dx) and math.isfinite(dy) and math.isfinite(intervals) and intervals >= 0):
             self._diag.rejected += 1

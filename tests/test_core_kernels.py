@@ -1,0 +1,177 @@
+"""The closed-form and stacked kernels the core uses for speed give what the plain numpy algebra gives.
+
+Each kernel is checked against the textbook form computed independently with numpy (inverse, solve, matrix
+products, loops over the estimates), on random inputs, to floating-point rounding; and the checks keep the
+verdicts of numpy's isfinite on every kind of input."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from agent.core.checks import finite_floats, finite_matrix, finite_vector, valid_pair_entry
+from agent.core.control.formation import desired_offset, desired_offsets, formation_velocity
+from agent.core.control.oscillator import coupling_gains, oscillator_step
+from agent.core.cooperation import _gate_distances
+from agent.core.fusion import (
+    covariance_intersection,
+    covariance_intersection_2d,
+    covariance_intersection_many,
+    covariance_intersection_stacked,
+    inverse,
+)
+
+RNG_SEEDS = range(20)
+
+
+def _spd(rng: np.random.Generator, k: int) -> np.ndarray:
+    M = rng.normal(size=(k, k))
+    return M @ M.T + 0.1 * np.eye(k)
+
+
+def _reference_intersection(estimates, weights):
+    """P^-1 = sum w_k P_k^-1, x = P sum w_k P_k^-1 x_k with numpy.linalg.inv, one estimate at a time."""
+    information = sum(w * np.linalg.inv(C) for w, (_, C) in zip(weights, estimates))
+    P = np.linalg.inv(information)
+    x = P @ sum(w * np.linalg.inv(C) @ c for w, (c, C) in zip(weights, estimates))
+    return x, 0.5 * (P + P.T)
+
+
+@pytest.mark.parametrize("seed", RNG_SEEDS)
+def test_two_dimensional_intersection_in_floats_matches_numpy(seed):
+    rng = np.random.default_rng(seed)
+    a, A, b, B = rng.normal(size=2) * 10, _spd(rng, 2), rng.normal(size=2) * 10, _spd(rng, 2)
+    weight = float(rng.uniform(0.1, 0.9))
+    x_ref, P_ref = _reference_intersection([(a, A), (b, B)], (weight, 1.0 - weight))
+    x, y, p11, p12, p22 = covariance_intersection_2d(*a, *A.ravel(), *b, *B.ravel(), weight)
+    np.testing.assert_allclose([x, y], x_ref, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose([[p11, p12], [p12, p22]], P_ref, rtol=1e-12, atol=1e-12)
+    x_arr, P_arr = covariance_intersection(a, A, b, B, weight)
+    np.testing.assert_array_equal(x_arr, [x, y])
+    np.testing.assert_array_equal(P_arr, [[p11, p12], [p12, p22]])
+
+
+@pytest.mark.parametrize("seed", RNG_SEEDS)
+@pytest.mark.parametrize("k", [2, 4])
+def test_stacked_intersection_matches_a_loop_over_the_estimates(seed, k):
+    rng = np.random.default_rng(seed)
+    m = int(rng.integers(1, 40))
+    estimates = [(rng.normal(size=k) * 10, _spd(rng, k)) for _ in range(m)]
+    x_ref, P_ref = _reference_intersection(estimates, [1.0 / m] * m)
+    x, P = covariance_intersection_many(estimates)
+    np.testing.assert_allclose(x, x_ref, rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(P, P_ref, rtol=1e-9, atol=1e-12)
+    x_s, P_s = covariance_intersection_stacked(np.array([c for c, _ in estimates]),
+                                               np.array([C for _, C in estimates]), np.full(m, 1.0 / m))
+    np.testing.assert_array_equal(x_s, x)
+    np.testing.assert_array_equal(P_s, P)
+
+
+def test_singular_covariances_raise_as_numpy_does():
+    with pytest.raises(np.linalg.LinAlgError):
+        covariance_intersection_2d(0.0, 0.0, 1.0, 1.0, 1.0, 1.0, 0.0, 0.0, 1.0, 0.0, 0.0, 1.0)
+    with pytest.raises(np.linalg.LinAlgError):
+        inverse(np.array([[1.0, math.inf], [0.0, 1.0]]))
+    with pytest.raises(np.linalg.LinAlgError):
+        covariance_intersection_stacked(np.zeros((2, 4)), np.array([np.eye(4), np.zeros((4, 4))]), np.full(2, 0.5))
+
+
+@pytest.mark.parametrize("seed", RNG_SEEDS)
+def test_inverse_of_a_two_by_two_matches_numpy(seed):
+    M = np.random.default_rng(seed).normal(size=(2, 2))
+    np.testing.assert_allclose(inverse(M), np.linalg.inv(M), rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("seed", RNG_SEEDS)
+def test_gate_distances_match_one_solve_per_neighbour(seed):
+    rng = np.random.default_rng(seed)
+    m = int(rng.integers(1, 30))
+    differences, covariances = rng.normal(size=(m, 4)), np.array([_spd(rng, 4) for _ in range(m)])
+    expected = [float(d @ np.linalg.solve(S, d)) for d, S in zip(differences, covariances)]
+    np.testing.assert_allclose(_gate_distances(differences, covariances), expected, rtol=1e-12)
+    covariances[0] = 0.0    # singular: that one is infinitely far, the others as before
+    distances = _gate_distances(differences, covariances)
+    assert distances[0] == math.inf
+    np.testing.assert_allclose(distances[1:], expected[1:], rtol=1e-12)
+
+
+@pytest.mark.parametrize("seed", RNG_SEEDS)
+def test_formation_terms_match_the_loop_of_33(seed):
+    rng = np.random.default_rng(seed)
+    m = int(rng.integers(0, 50))
+    phases = rng.uniform(-math.pi, math.pi, m)
+    np.testing.assert_array_equal(desired_offsets(7.5, phases).reshape(m, 2),
+                                  np.array([desired_offset(7.5, p) for p in phases]).reshape(m, 2))
+    gains, errors = rng.uniform(0.0, 2.0, m), rng.normal(size=(m, 2)) * 5
+    total = np.zeros(2)
+    for gain, error in zip(gains, errors):
+        total += gain * error
+    np.testing.assert_array_equal(formation_velocity(gains, errors), total)
+
+
+def _oscillator_loop(phase, neighbour_phases, yaw_rate, dt, gain):
+    """(28) as written: a loop over the harmonics and the neighbours."""
+    n = len(neighbour_phases) + 1
+    coupling = 0.0
+    for m, k_m in enumerate(coupling_gains(n, gain), start=1):
+        if k_m == 0.0:
+            break
+        coupling += k_m / (m * n) * sum(math.sin(m * (phase - other)) for other in neighbour_phases)
+    return phase + yaw_rate * dt + dt * coupling
+
+
+@pytest.mark.parametrize("seed", RNG_SEEDS)
+def test_oscillator_matches_the_loop_of_28(seed):
+    rng = np.random.default_rng(seed)
+    neighbours = rng.uniform(-math.pi, math.pi, int(rng.integers(0, 60))).tolist()
+    phase, gain = float(rng.uniform(-math.pi, math.pi)), float(rng.choice([0.0, 0.3, 1.0]))
+    expected = math.remainder(_oscillator_loop(phase, neighbours, 0.1, 0.1, gain), 2 * math.pi)
+    got = oscillator_step(phase, neighbours, 0.1, 0.1, gain)
+    assert math.isclose(math.remainder(got - expected, 2 * math.pi), 0.0, abs_tol=1e-12)
+
+
+@pytest.mark.parametrize("value, shape", [
+    (np.array([1.0, 2.0]), (2,)), (np.array([1.0, np.nan]), (2,)), (np.array([np.inf, 0.0]), (2,)),
+    (np.array([1.0, 2.0, 3.0]), (2,)), (np.eye(2), (2, 2)), (np.array([[1.0, -np.inf], [0.0, 1.0]]), (2, 2)),
+    (np.eye(2), (2,)), ([1.0, 2.0], (2,)), ((1, 2), (2,)), ([1.0, float("nan")], (2,)), ("ab", (2,)),
+    (None, (2,)), (np.array([1, 2]), (2,)), (np.array([1.0, 2.0], dtype=np.float32), (2,)),
+    (np.array([1.0, 2.0]).astype(">f8"), (2,)), (np.array([1e308, 1e308]), (2,)), (np.eye(4), (4, 4)),
+])
+def test_finite_checks_keep_numpys_verdicts(value, shape):
+    try:
+        array = np.asarray(value, dtype=float)
+        expected = array.shape == shape and bool(np.isfinite(array).all())
+    except (TypeError, ValueError):
+        expected = False
+    values = finite_floats(value, shape)
+    assert (values is not None) == expected
+    if expected:
+        assert values == np.asarray(value, dtype=float).ravel().tolist()
+    if shape == (2,):
+        assert finite_vector(value, 2) == expected
+    if shape == (2, 2):
+        assert finite_matrix(value) == expected
+
+
+def test_pair_entry_check():
+    assert valid_pair_entry(None)
+    assert valid_pair_entry((np.zeros(2), np.eye(2), 1.0))
+    assert not valid_pair_entry((np.zeros(2), np.eye(2), 1))           # a stamp is a float
+    assert not valid_pair_entry((np.array([0.0, np.nan]), np.eye(2), 1.0))
+    assert not valid_pair_entry((np.zeros(2), np.full((2, 2), np.inf), 1.0))
+    assert not valid_pair_entry((np.zeros(2), np.eye(2)))
+
+
+def test_history_keeps_the_latest_stamps_in_order_without_a_resort():
+    from agent.core.neighbours import History
+
+    history = History(5)
+    stamps = [0.1 * k for k in range(12)] + [0.35]     # the last one out of order
+    for stamp in stamps:
+        history.put(stamp, stamp)
+    kept = sorted({round(s * 1e6) for s in stamps})[-5:]
+    assert history.keys() == kept
+    assert history.last_values(3) == [history.get(k) for k in kept[-3:]]
+    assert history.last_values(10) == [history.get(k) for k in kept]
