@@ -24,7 +24,7 @@ demo: $(STAMP)
 compare: $(STAMP)
 	$(VENV)/bin/usv-lab compare --runs 100 --seed 2024
 
-# Everything (what .ci/run calls), about 2 minutes on 2 cores.
+# Everything (what .ci/run calls), about 8 minutes on 2 cores.
 test: $(STAMP)
 	$(PY) -m pytest -q
 

@@ -233,7 +233,8 @@ def run(args: argparse.Namespace) -> int:
         f"Machine: {platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}, "
         f"{platform.system()} {platform.release()}. Every figure is from one run of the command above; the "
         "processes share the machine's cores, so the figures move with whatever else runs (from one run to the "
-        "next by 15-30 % here: docs/results/runtime_changes.md compares a change by alternating runs).", "",
+        "next by 15-30 % here). What each change to the runtime bought, measured by alternating runs before and "
+        "after it: [runtime_changes.md](runtime_changes.md) (`usv-lab runtime-ab`).", "",
         "## Sensor-to-command latency (real-time mode)", "",
         "From the sim bridge publishing a tick's sensors to it receiving each agent's command: two Zenoh hops "
         "plus the agent's decoding, tick, encoding and logging. The baseline is bare Zenoh between two processes "
