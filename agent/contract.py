@@ -15,6 +15,7 @@ semi-definite, int64 stamps) and the JSON schema written into logs. Keys:
     usv/<id>/status          Status        agent -> anyone   estimates, covariances, health
     usv/<id>/alive           (liveliness token of the agent)
     sim/clock                Clock         sim bridge -> all sim time, one message per tick
+    mission/all, mission/<id> MissionCommand operator -> agents   start, hold, resume, set (radius, yaw rate)
 
 docs/contract.md is the page a driver-bridge author follows.
 """
@@ -33,6 +34,10 @@ from agent.core.records import OdometryReading, Share
 
 FLEET_PREFIX = "usv"
 CLOCK_KEY = "sim/clock"
+MISSION_PREFIX = "mission"
+MISSION_ALL = "all"      # mission/all: every vessel; mission/<id>: one
+MAX_RADIUS = 1e4         # m: the largest circle a mission command may ask for
+MAX_YAW_RATE = math.pi   # rad/s: the fastest circling a mission command may ask for (a lap in 2 s)
 LIVELINESS = "alive"
 
 VESSEL_ID_PATTERN = r"^[A-Za-z0-9_-]{1,32}$"
@@ -113,6 +118,11 @@ def _shifted_cholesky_succeeds(values, size: int, shift: float) -> bool:
 
 
 # ----- keys -----
+def mission_key(vessel: str | None = None) -> str:
+    """`mission/<vessel>`, or `mission/all` for the whole fleet (None)."""
+    return f"{MISSION_PREFIX}/{MISSION_ALL if vessel is None else vessel}"
+
+
 def key(vessel: str, topic: str) -> str:
     """`usv/<vessel>/<topic>`; topic is one of the names in TOPICS, or "alive" (the liveliness token)."""
     if topic not in TOPICS and topic != LIVELINESS:
@@ -236,6 +246,40 @@ class ShareMessage(Header):
         return self
 
 
+class MissionCommand(Header):
+    """What the operator tells the fleet (`mission/all`) or one vessel (`mission/<id>`). `sender` is the
+    operator's id; `seq` must grow from one command of a sender to the next (an agent refuses a replayed one).
+    `hold`: stop and keep station, as the watchdog does; `resume`, `start`: circle again; `set`: a new circle
+    radius and/or yaw rate, taken at the next tick."""
+
+    command: Literal["start", "hold", "resume", "set"]
+    # strict: JSON true is not a radius of 1 m.
+    radius: Annotated[float, Field(gt=0, le=MAX_RADIUS, allow_inf_nan=False, strict=True)] | None = Field(
+        None, description="set: r*, the circle's radius (m)")
+    yaw_rate: Annotated[float, Field(gt=0, le=MAX_YAW_RATE, allow_inf_nan=False, strict=True)] | None = Field(
+        None, description="set: omega*, the yaw rate of circling (rad/s)")
+
+    @model_validator(mode="after")
+    def _values_with_set(self):
+        given = self.radius is not None or self.yaw_rate is not None
+        if self.command == "set" and not given:
+            raise ValueError("set needs radius or yaw_rate")
+        if self.command != "set" and given:
+            raise ValueError(f"{self.command} takes no radius or yaw_rate")
+        return self
+
+
+class MissionAck(StrictModel):
+    """An agent's answer to the latest mission command it judged (in its status)."""
+
+    sender: str = Field(max_length=64, description="the command's sender, as received")
+    seq: int = Field(ge=0, le=MAX_STAMP_NS)
+    command: str = Field(max_length=16)
+    applied: bool = Field(description="false: refused, and `reason` says why")
+    reason: str = Field("", max_length=300)
+    stamp_ns: StampNs = Field(description="the tick at which it was applied or refused")
+
+
 class WeakestPair(StrictModel):
     """The neighbour whose relative motion has told its pair filter least (agent/core/observability.py)."""
 
@@ -256,6 +300,9 @@ class Status(Header):
     target: tuple[Finite, Finite, Finite, Finite] | None = None
     health: dict[str, int] = Field(default_factory=dict)
     weakest_pair: WeakestPair | None = Field(None, description="None: no pair filter running this tick")
+    held: bool = Field(False, description="a mission command `hold` is in force: commanding STOP")
+    mission: list[MissionAck] = Field(default_factory=list, max_length=8,
+                                      description="the latest mission command judged from each sender")
 
 
 class Clock(StrictModel):

@@ -151,7 +151,21 @@ def vessel_summary(log, window: float, origin_ns: int = 0) -> dict:
         "cpu_ms_per_tick": 1e3 * final["cpu_seconds"] / final["ticks"] if final.get("ticks") else None,
         "health_over_time": health_windows(estimates, window, origin_ns),
         "observability": pair_observability(estimates, origin_ns),
+        "mission": mission_commands(log.topic("mission"), origin_ns),
     }
+
+
+def mission_commands(records: list[tuple[int, dict]], origin_ns: int = 0) -> list[dict]:
+    """Every mission command the vessel judged (its `mission` topic), in log order: when (s from the
+    origin), who sent it, what it said, and whether it was applied or why not."""
+    found = []
+    for stamp, record in records:
+        ack, command = record["ack"], record.get("command") or {}
+        values = {k: command[k] for k in ("radius", "yaw_rate") if command.get(k) is not None}
+        found.append({"time_s": (stamp - origin_ns) * 1e-9, "sender": ack["sender"], "seq": ack["seq"],
+                      "command": ack["command"], "values": values, "applied": ack["applied"],
+                      "reason": ack["reason"]})
+    return found
 
 
 def sim_summary(log: Log) -> dict:
@@ -228,6 +242,29 @@ def _observability_table(pairs: dict[str, dict]) -> list[str]:
     return lines + [""]
 
 
+def _mission_table(vessels: dict) -> list[str]:
+    """Every mission command the fleet received, once per command: who applied it and who refused it, why."""
+    commands: dict[tuple, dict] = {}
+    for vessel, s in vessels.items():
+        for c in s.get("mission", []):
+            entry = commands.setdefault((c["sender"], c["seq"], c["command"]), {**c, "applied_by": [], "refused": {}})
+            entry["time_s"] = min(entry["time_s"], c["time_s"])
+            if c["applied"]:
+                entry["applied_by"].append(vessel)
+            else:
+                entry["refused"].setdefault(c["reason"], []).append(vessel)
+    if not commands:
+        return []
+    lines = ["## Mission commands", "", "| time (s) | sender | seq | command | applied by | refused by |",
+             "|---|---|---|---|---|---|"]
+    for c in sorted(commands.values(), key=lambda c: c["time_s"]):
+        what = c["command"] + "".join(f" {k}={v:g}" for k, v in c["values"].items())
+        lines.append(f"| {c['time_s']:.1f} | {c['sender']} | {c['seq']} | {what} | "
+                     f"{', '.join(c['applied_by']) or 'none'} | "
+                     + ("; ".join(f"{', '.join(who)} ({why})" for why, who in c["refused"].items()) or "none") + " |")
+    return [*lines, ""]
+
+
 def summary_markdown(summary: dict) -> str:
     lines = [f"# Summary of {summary['source']}", "", _start_line(summary), ""]
     vessels = summary["vessels"]
@@ -250,6 +287,7 @@ def summary_markdown(summary: dict) -> str:
                      f"; sensor-to-command latency p50 {latency['p50']:.2f} ms, p99 {latency['p99']:.2f} ms")
                   + ("" if not sim["startup_missing"] else
                      f". **No agent came for vessel(s) {', '.join(sim['startup_missing'])}**"), ""]
+    lines += _mission_table(vessels)
     for v, s in vessels.items():
         lines += [f"## Vessel {v}", ""]
         if s["unfinished"]:

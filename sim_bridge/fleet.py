@@ -574,10 +574,13 @@ def main(argv: list[str] | None = None) -> int:
     run.add_argument("--variant", default=None, help="variant of the file (default: the first)")
     run.add_argument("--out", type=Path, default=Path("runs"), help="parent of the run folder")
     run.add_argument("--seed", type=int, default=None, help="override the scenario's seed")
+    run.add_argument("--mode", choices=("lockstep", "realtime"), default="lockstep",
+                     help="lockstep: as fast as the processes go; realtime: sim time at the wall clock's pace "
+                          "(time to watch and command the fleet with usv-op)")
     args = parser.parse_args(argv)
     started = time.monotonic()
     try:
-        fleet = Fleet(args.scenario, args.variant, args.out, args.seed)
+        fleet = Fleet(args.scenario, args.variant, args.out, args.seed, mode=args.mode)
     except ConfigError as error:
         print(f"usv-fleet: {error}", file=sys.stderr)
         return 2

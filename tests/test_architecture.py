@@ -4,7 +4,7 @@ function, under `if TYPE_CHECKING`, relative ones, and `importlib.import_module`
 - `agent.core` is the pure per-vessel core: no transport, log format, plotting, threads, sockets or
   processes (zenoh, mcap, matplotlib, threading, socket, subprocess), none of the agent process around it
   (agent.shell, agent.runtime, agent.contract), and nothing of the packages built on it.
-- `driver_bridge` takes from `agent` only what every process of the fleet shares: the wire contract
+- `driver_bridge` and `usv_op` (the operator's station) take from `agent` only what every process of the fleet shares: the wire contract
   (agent.contract), typed configuration (agent.config), angles (agent.angles) and the runtime
   (agent.runtime: Zenoh session settings, the vessel-process command line, MCAP logs).
 - `sim_bridge` takes the same, plus the core's pure vocabulary that its scenario and world model share with
@@ -27,11 +27,11 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-PACKAGES = ("agent", "sim_bridge", "driver_bridge", "lab", "mission_log", "usv_deploy")
+PACKAGES = ("agent", "sim_bridge", "driver_bridge", "lab", "mission_log", "usv_deploy", "usv_op")
 
 CORE_FORBIDDEN = ("zenoh", "mcap", "matplotlib", "threading", "socket", "subprocess",
                   "agent.shell", "agent.runtime", "agent.contract",
-                  "sim_bridge", "driver_bridge", "lab", "mission_log", "usv_deploy")
+                  "sim_bridge", "driver_bridge", "lab", "mission_log", "usv_deploy", "usv_op")
 SHARED_FROM_AGENT = ("agent.contract", "agent.config", "agent.angles", "agent.runtime")
 CORE_VOCABULARY = ("agent.core.params", "agent.core.records", "agent.core.build")
 
@@ -121,10 +121,11 @@ def test_the_core_is_pure(imports):
            f"agent.core imports none of {', '.join(CORE_FORBIDDEN)}")
 
 
-def test_the_driver_bridge_takes_only_the_shared_modules_from_agent(imports):
-    broken(imports, "driver_bridge",
+@pytest.mark.parametrize("importer", ["driver_bridge", "usv_op"])
+def test_the_driver_bridge_and_the_operator_take_only_the_shared_modules_from_agent(imports, importer):
+    broken(imports, importer,
            lambda target: not within(target, "agent") or any(within(target, n) for n in SHARED_FROM_AGENT),
-           f"driver_bridge imports from agent only {', '.join(SHARED_FROM_AGENT)}")
+           f"{importer} imports from agent only {', '.join(SHARED_FROM_AGENT)}")
 
 
 def test_the_sim_bridge_takes_the_shared_modules_and_the_core_vocabulary_from_agent(imports):
@@ -137,7 +138,7 @@ def test_the_sim_bridge_takes_the_shared_modules_and_the_core_vocabulary_from_ag
 @pytest.mark.parametrize("importer, forbidden", [
     ("mission_log", ("lab", "sim_bridge")),
     ("sim_bridge", ("lab",)),
-    ("agent", ("sim_bridge", "driver_bridge", "lab", "mission_log", "usv_deploy")),
+    ("agent", ("sim_bridge", "driver_bridge", "lab", "mission_log", "usv_deploy", "usv_op")),
 ])
 def test_the_layers(imports, importer, forbidden):
     broken(imports, importer, lambda target: not any(within(target, name) for name in forbidden),
@@ -158,6 +159,7 @@ def test_the_scan_reads_every_package(imports):
     assert ("driver_bridge.node", "zenoh") in seen                    # a process imports its transport
     assert ("sim_bridge.fleet", "mission_log.metrics") in seen        # the launcher computes the metrics
     assert ("usv_deploy.cli", "usv_deploy.certs") in seen             # inside a function (cryptography)
+    assert ("usv_op.cli", "agent.contract") in seen                   # the operator speaks the contract
 
 
 def test_the_scan_sees_every_kind_of_import():

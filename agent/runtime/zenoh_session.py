@@ -43,9 +43,13 @@ class SessionError(zenoh.ZError):
     reached in client mode): one line that says why, without Rust's source locations."""
 
 
-def open_session(settings: ZenohSettings) -> zenoh.Session:
-    """A Zenoh session configured by `zenoh_config`; SessionError (one line) if Zenoh cannot open it."""
+def open_session(settings: ZenohSettings, wait_for_peers: bool = True) -> zenoh.Session:
+    """A Zenoh session configured by `zenoh_config`; SessionError (one line) if Zenoh cannot open it.
+    `wait_for_peers=False`: return without waiting to link to the peers gossip names (a tool that must
+    answer at once: one frozen peer, which still accepts the TCP connection, would hold it for seconds)."""
     config = zenoh_config(settings)
+    if not wait_for_peers:
+        config.insert_json5("open/return_conditions/connect_scouted", "false")
     try:
         return zenoh.open(config)
     except zenoh.ZError as error:

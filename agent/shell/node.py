@@ -41,6 +41,7 @@ import zenoh
 from agent.contract import (
     CLOCK_KEY,
     FLEET_PREFIX,
+    MISSION_PREFIX,
     LIVELINESS,
     MAX_PEERS,
     Clock,
@@ -67,6 +68,7 @@ from agent.runtime.mcap_log import McapLog
 from agent.runtime.process import startup_error, vessel_process
 from agent.runtime.zenoh_session import SessionError, open_session
 from agent.shell.gate import OWN_TOPICS, InputGate, SimClock
+from agent.shell.mission import MissionOrders
 from agent.shell.settings import NodeSettings
 from agent.shell.tick_log import TickLogger, log_topic
 
@@ -98,8 +100,8 @@ class AgentNode:
                               max_rate=settings.max_input_rate)
         self.clock = SimClock(settings.agent.dt, settings.max_clock_jump, settings.clock_confirm,
                               settings.clock_timeout)
-        control = settings.agent.control
-        self.limits = (control.max_speed, control.max_correction_yaw_rate + abs(control.yaw_rate))
+        self.orders = MissionOrders(vessel_id, settings.max_input_age, settings.max_input_future, self.gate.count)
+        self._set_limits()
         self.ticks = 0
         self.overruns = 0
         self.tick_errors = 0
@@ -164,6 +166,13 @@ class AgentNode:
     def _on_input(self, sample) -> None:
         self.gate.offer(str(sample.key_expr), sample.payload.to_bytes(), self._input_time())
 
+    def _on_mission(self, sample) -> None:
+        try:
+            self.orders.offer(str(sample.key_expr), sample.payload.to_bytes(), self._input_time(),
+                              nanoseconds(self.now()), lambda: self._live_view)
+        except Exception as error:  # noqa: BLE001  (a callback must never raise into Zenoh)
+            self.gate.count("internal", f"mission: {type(error).__name__}: {error}")
+
     def _on_clock(self, sample) -> None:
         try:
             message, reason = decode(Clock, sample.payload.to_bytes())
@@ -222,7 +231,8 @@ class AgentNode:
             # One subscriber for all four sensors: each subscriber is a thread of zenoh-python's, and a message
             # handed across threads costs more CPU than decoding it (docs/results/runtime_benchmark.md).
             subscribers = [session.declare_subscriber(f"{FLEET_PREFIX}/{self.id}/sensor/*", self._on_input),
-                           session.declare_subscriber(every("share"), self._on_input)]
+                           session.declare_subscriber(every("share"), self._on_input),
+                           session.declare_subscriber(f"{MISSION_PREFIX}/*", self._on_mission)]
             if self.settings.clock == "sim":
                 subscribers.append(session.declare_subscriber(CLOCK_KEY, self._on_clock))
             token = session.liveliness().declare_token(key(self.id, LIVELINESS))
@@ -322,6 +332,9 @@ class AgentNode:
         the ticks go to a new log file."""
         self._restart_pending = False
         self.sim_restarts += 1
+        self.orders.reset()
+        self.params = self.settings.agent   # a new mission starts from the configured circle
+        self._set_limits()
         self.state = initial_state(self.id, self.params, self.settings.initial)
         self._failed_in_a_row = 0
         if self.sim_restarts <= 3 or time.monotonic() - self._restarts_told >= ERROR_REPEAT:
@@ -363,7 +376,7 @@ class AgentNode:
             publishers["status"].put(encode(Status(
                 stamp_ns=0, seq=self._next("status"), sender=self.id, phase=0.0, command=(0.0, 0.0),
                 shared=self._last_shared, peers=sorted(self._live_view), ticked=False,
-                health=self._health(None))))
+                health=self._health(None), held=self.orders.held, mission=self.orders.acks())))
         except Exception as error:  # noqa: BLE001  (a heartbeat lost is not worth the process)
             self._tick_failed(error, None, 0)
 
@@ -383,6 +396,10 @@ class AgentNode:
         now = self.now() if clock is None else seconds(clock.stamp_ns)
         stamp = nanoseconds(now)
         inputs = None
+        params = self.orders.apply(self.params, stamp)
+        if params is not self.params:
+            self.params = params
+            self._set_limits()
         try:
             if clock is not None:
                 self._deliver_shares(clock)
@@ -392,6 +409,8 @@ class AgentNode:
             self.core_seconds += time.thread_time() - core_started
             self._check_command(output.command)
             self._failed_in_a_row = 0
+            if self.orders.held:   # the operator's hold: STOP, as the watchdog would; the core keeps estimating
+                output = TickOutput(STOP, output.share, output.record)
         except Exception as error:  # noqa: BLE001  (one bad tick must not take the vessel's control down)
             output = TickOutput(STOP, None, None)
             self._tick_failed(error, inputs, stamp)
@@ -422,11 +441,12 @@ class AgentNode:
                 target=None if record is None or record.target_state is None
                 else tuple(float(v) for v in record.target_state),
                 health=self._health(record), weakest_pair=weakest_pair(record),
+                held=self.orders.held, mission=self.orders.acks(),
             )
         except Exception:  # noqa: BLE001  (a non-finite estimate: the status goes without it)
             status = Status(stamp_ns=stamp, seq=self._seq["status"], sender=self.id, phase=0.0,
                             command=(command.surge, command.yaw_rate), shared=shared, peers=sorted(self._live_view),
-                            health=self._health(None))
+                            health=self._health(None), held=self.orders.held, mission=self.orders.acks())
         self._next("status")
         wire["status"] = encode(status)
         publishers["status"].put(wire["status"])
@@ -434,6 +454,8 @@ class AgentNode:
             try:
                 logged = inputs if inputs is not None else TickInputs(time=now, odometry=None)
                 self.tick_log.tick(stamp, logged, output, command, status, wire)
+                for order, ack in self.orders.judged():
+                    self.tick_log.mission(stamp, order, ack)
                 every = self.settings.snapshot_every
                 if every and self.ticks % every == 0:
                     # After this tick: replay can start at the next one (agent/core/snapshot.py).
@@ -444,6 +466,10 @@ class AgentNode:
                 if self.log_errors == 1:
                     print(f"usv-agent {self.id}: logging failed: {type(error).__name__}: {error}", file=sys.stderr)
         self.ticks += 1
+
+    def _set_limits(self) -> None:
+        control = self.params.control
+        self.limits = (control.max_speed, control.max_correction_yaw_rate + abs(control.yaw_rate))
 
     def _check_command(self, command: Command) -> None:
         """CommandOutOfLimits unless the command is finite and within U_v and U_omega_c + omega* (formation.py's

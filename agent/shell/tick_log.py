@@ -10,6 +10,8 @@ Per tick, on topics under `/<id>/`:
   of the controller and which limits saturated;
 - `tf` (foxglove.FrameTransforms) and, once a second, `scene` (foxglove.SceneUpdate): see agent/runtime/foxglove.py;
 - at the end, `summary`: the run as a whole (`TickLogger.summary`);
+- `mission`, for every mission command judged: the command and the agent's answer (applied, or refused and
+  why);
 - `errors`, when a tick fails: the exception and the inputs that caused it (`TickLogger.error`; the first of
   each kind, then at most one every few seconds).
 
@@ -28,7 +30,7 @@ from collections.abc import Mapping
 from pydantic import ConfigDict, Field
 
 from agent.config import StrictModel
-from agent.contract import key
+from agent.contract import MissionAck, MissionCommand, key
 from agent.core.records import TickInputs, TickOutput, TickRecord, floats, inputs_to_json
 from agent.runtime import foxglove
 from agent.runtime.log_schema import AgentSummary, Estimates, Inputs
@@ -43,6 +45,16 @@ class TickError(StrictModel):
     message: str
     count: int = Field(ge=1, description="failures of this kind so far")
     inputs: Inputs | None = Field(description="the tick's inputs; None when reading them failed")
+
+
+class MissionRecord(StrictModel):
+    """A mission command the agent judged (agent/shell/mission.py), on `/<id>/mission`: the command as read
+    (None if it could not be read) and the agent's answer."""
+
+    model_config = ConfigDict(title="usv.MissionRecord")
+
+    command: MissionCommand | None
+    ack: MissionAck
 
 
 def log_topic(vessel: str, name: str) -> str:
@@ -108,6 +120,12 @@ class TickLogger:
         self.log.log(log_topic(self.id, "errors"), {
             "kind": kind, "message": message, "count": count,
             "inputs": None if inputs is None else inputs_to_json(inputs)}, stamp, schema=TickError)
+
+    def mission(self, stamp: int, command: MissionCommand | None, ack: MissionAck) -> None:
+        """Log one judged mission command at time `stamp` (ns)."""
+        self.log.log(log_topic(self.id, "mission"), {
+            "command": None if command is None else command.model_dump(mode="json"),
+            "ack": ack.model_dump(mode="json")}, stamp, schema=MissionRecord)
 
     def summary(self, stamp: int, *, ticks: int, overruns: int, refused: Mapping[str, int], loop_seconds: float,
                 cpu_seconds: float, core_cpu_seconds: float | None = None) -> None:

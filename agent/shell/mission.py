@@ -1,0 +1,171 @@
+"""The operator's mission commands in the agent: judged as they arrive, applied at a tick boundary.
+
+A command comes on `mission/all` (every vessel) or `mission/<id>` (one vessel; the agent sees the others'
+too, so that one addressed to a vessel nobody knows is refused, not lost in silence). It is refused, counted
+and answered when it is malformed, stale or ahead of the agent's clock (the same window as every input),
+replayed (its `seq` not above the last one judged from its sender), or addressed to an unknown vessel; a
+`set` whose values the controller's parameters refuse is refused when applied. Nothing is half-applied: a
+`set` is checked whole before anything changes. Accepted commands wait for the next tick, which applies
+them in order before it runs the core:
+- `hold`: the tick commands STOP (as the watchdog would) until `resume` or `start`; the core still runs, so
+  the estimates stay current;
+- `set`: the tick runs with the new radius and/or yaw rate (r*, omega*).
+Every judgement is an acknowledgement (`MissionAck`); the status carries the latest one of each sender, and
+the log gets every one.
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+from collections import OrderedDict
+from collections.abc import Callable
+
+from pydantic import ValidationError
+
+from agent.config import updated
+from agent.contract import (
+    MAX_STAMP_NS,
+    MISSION_ALL,
+    MISSION_PREFIX,
+    MissionAck,
+    MissionCommand,
+    decode,
+    seconds,
+)
+from agent.core.params import AgentParams
+
+MAX_SENDERS = 8      # operators remembered (their last seq and ack); the oldest is forgotten beyond
+MAX_PENDING = 64     # accepted commands waiting for the next tick; more is a flood, refused
+
+
+class MissionOrders:
+    """The mission commands of one agent. `offer` runs on Zenoh's threads, `apply` on the tick thread."""
+
+    def __init__(self, vessel: str, max_age: float, max_future: float, count: Callable[[str, str], None]) -> None:
+        self.vessel = vessel
+        self.max_age, self.max_future = max_age, max_future
+        self._count = count
+        self.held = False
+        self._lock = threading.Lock()
+        self._pending: list[MissionCommand] = []
+        self._last_seq: OrderedDict[str, int] = OrderedDict()
+        self._acks: OrderedDict[str, MissionAck] = OrderedDict()
+        self._judged: list[tuple[MissionCommand | None, MissionAck]] = []   # for the log, drained by the tick
+
+    def offer(self, key: str, payload: bytes, now: float | None, now_ns: int, known: Callable[[], frozenset]) -> bool:
+        """Judge one payload received on `key` at agent time `now` (None: no clock to judge stamps by);
+        True if it waits for the next tick."""
+        parts = str(key).split("/")
+        target = parts[1] if len(parts) == 2 and parts[0] == MISSION_PREFIX else None
+        message, reason = decode(MissionCommand, payload)
+        if message is None:
+            return self._refuse(None, now_ns, "malformed", reason, who=_who(payload))
+        if target is None:
+            return self._refuse(message, now_ns, "unexpected_key", f"key {key}")
+        if target not in (MISSION_ALL, self.vessel):
+            if target not in known():
+                return self._refuse(message, now_ns, "unknown_vessel", f"no vessel {target!r} is alive")
+            return False   # another vessel's: not ours to judge
+        stamp = seconds(message.stamp_ns)
+        if now is not None and stamp < now - self.max_age:
+            return self._refuse(message, now_ns, "stale", f"stamped {now - stamp:.3f} s ago")
+        if now is not None and stamp > now + self.max_future:
+            return self._refuse(message, now_ns, "future", f"stamped {stamp - now:.3f} s ahead")
+        with self._lock:
+            last = self._last_seq.get(message.sender)
+            if last is not None and message.seq <= last:
+                return self._refuse(message, now_ns, "replayed", f"seq {message.seq} not after {last}", locked=True)
+            if len(self._pending) >= MAX_PENDING:
+                return self._refuse(message, now_ns, "flood", f"{MAX_PENDING} commands wait already", locked=True)
+            self._remember(self._last_seq, message.sender, message.seq)
+            self._pending.append(message)
+        return True
+
+    def apply(self, params: AgentParams, stamp_ns: int) -> AgentParams:
+        """The commands that came since the last tick, in order, at the tick stamped `stamp_ns`; the
+        parameters to tick with."""
+        with self._lock:
+            pending, self._pending = self._pending, []
+        for message in pending:
+            reason = ""
+            if message.command == "hold":
+                self.held = True
+            elif message.command in ("resume", "start"):
+                self.held = False
+            else:
+                changes = {k: v for k, v in (("radius", message.radius), ("yaw_rate", message.yaw_rate))
+                           if v is not None}
+                try:
+                    params = updated(params, control=updated(params.control, **changes))
+                except (ValidationError, ValueError) as error:
+                    reason = f"the controller refuses it: {' '.join(str(error).split())[:200]}"
+            if reason:
+                self._refuse(message, stamp_ns, "refused", reason)
+            else:
+                self._ack(message, MissionAck(sender=message.sender, seq=message.seq, command=message.command,
+                                              applied=True, stamp_ns=stamp_ns))
+        return params
+
+    def acks(self) -> list[MissionAck]:
+        """The latest acknowledgement of each sender (at most MAX_SENDERS), oldest first."""
+        with self._lock:
+            return list(self._acks.values())
+
+    def judged(self) -> list[tuple[MissionCommand | None, MissionAck]]:
+        """Every judgement since the last call (command, or None if it could not be read; and the answer)."""
+        with self._lock:
+            judged, self._judged = self._judged, []
+        return judged
+
+    def reset(self) -> None:
+        """A new mission (the simulation restarted): no hold, nothing pending; senders' seqs are kept."""
+        with self._lock:
+            self._pending.clear()
+            self.held = False
+
+    # ----- internals -----
+    def _refuse(self, message: MissionCommand | None, stamp_ns: int, kind: str, reason: str,
+                locked: bool = False, who: tuple[str, int, str] = ("?", 0, "?")) -> bool:
+        """Count and answer a refusal; `who` names an unreadable command's sender, seq and command as far
+        as they could be read, so that its sender learns why."""
+        self._count(f"mission_{kind}", f"mission: {reason}")
+        sender, seq, command = (message.sender, message.seq, message.command) if message is not None else who
+        ack = MissionAck(sender=sender, seq=seq, command=command, applied=False, reason=f"{kind}: {reason}"[:300],
+                         stamp_ns=max(0, stamp_ns))
+        self._ack(message, ack, locked)
+        return False
+
+    def _ack(self, message: MissionCommand | None, ack: MissionAck, locked: bool = False) -> None:
+        if locked:
+            self._record(message, ack)
+        else:
+            with self._lock:
+                self._record(message, ack)
+
+    def _record(self, message: MissionCommand | None, ack: MissionAck) -> None:
+        self._remember(self._acks, ack.sender, ack)
+        if len(self._judged) < MAX_PENDING * 4:
+            self._judged.append((message, ack))
+
+    @staticmethod
+    def _remember(table: OrderedDict, sender: str, value) -> None:
+        table[sender] = value
+        table.move_to_end(sender)
+        while len(table) > MAX_SENDERS:
+            table.popitem(last=False)
+
+
+def _who(payload: bytes) -> tuple[str, int, str]:
+    """(sender, seq, command) of a payload the contract refused, as far as they read as such; "?" and 0 where
+    not."""
+    try:
+        fields = json.loads(payload)   # not orjson: this must read the NaN that the contract refused
+    except (ValueError, TypeError, RecursionError):
+        return "?", 0, "?"
+    if not isinstance(fields, dict):
+        return "?", 0, "?"
+    sender, seq, command = fields.get("sender"), fields.get("seq"), fields.get("command")
+    return (sender[:64] if isinstance(sender, str) else "?",
+            seq if isinstance(seq, int) and 0 <= seq <= MAX_STAMP_NS else 0,
+            command[:16] if isinstance(command, str) else "?")

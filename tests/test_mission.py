@@ -1,0 +1,267 @@
+"""Mission commands: the contract's MissionCommand, the agent's judgement of them (agent/shell/mission.py),
+and `usv-op` against a real fleet over Zenoh."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import pytest
+
+from agent.contract import MissionCommand, decode, encode
+from agent.core.params import AgentParams
+from agent.shell.mission import MissionOrders
+
+NOW = 100.0
+NOW_NS = 100_000_000_000
+
+
+def orders() -> tuple[MissionOrders, list[str]]:
+    counted: list[str] = []
+    return MissionOrders("1", max_age=1.0, max_future=0.5, count=lambda kind, _: counted.append(kind)), counted
+
+
+def payload(command: str = "hold", seq: int = 1, stamp: float = NOW, **values) -> bytes:
+    return json.dumps({"stamp_ns": round(stamp * 1e9), "seq": seq, "sender": "op", "command": command,
+                       **values}).encode()
+
+
+def offer(mission: MissionOrders, body: bytes, key: str = "mission/all", known=frozenset({"2", "3"})) -> bool:
+    return mission.offer(key, body, NOW, NOW_NS, lambda: known)
+
+
+def test_the_contract_refuses_what_no_mission_can_mean():
+    for bad in ({"command": "set"}, {"command": "set", "radius": -1.0}, {"command": "set", "radius": 0.0},
+                {"command": "set", "yaw_rate": 4.0}, {"command": "hold", "radius": 5.0},
+                {"command": "launch"}, {"command": "set", "radius": 1e5}):
+        message, reason = decode(MissionCommand, json.dumps(
+            {"stamp_ns": 1, "seq": 1, "sender": "op", **bad}).encode())
+        assert message is None and reason, bad
+    assert decode(MissionCommand, b'{"stamp_ns":1,"seq":1,"sender":"op","command":"set","radius":NaN}')[0] is None
+    message, _ = decode(MissionCommand, payload("set", radius=8.0, yaw_rate=0.2))
+    assert (message.radius, message.yaw_rate) == (8.0, 0.2)
+    assert decode(MissionCommand, encode(message))[0] == message
+
+
+def test_a_hold_waits_for_the_tick_and_lasts_until_resume():
+    mission, _ = orders()
+    params = AgentParams()
+    assert offer(mission, payload("hold", seq=1)) and not mission.held      # taken, not yet applied
+    assert mission.apply(params, NOW_NS) is params and mission.held         # applied at the tick boundary
+    (ack,) = mission.acks()
+    assert (ack.sender, ack.seq, ack.command, ack.applied, ack.stamp_ns) == ("op", 1, "hold", True, NOW_NS)
+    assert offer(mission, payload("resume", seq=2)) and mission.held
+    mission.apply(params, NOW_NS + 100_000_000)
+    assert not mission.held and mission.acks()[0].seq == 2
+
+
+def test_a_set_changes_the_circle_whole_at_the_next_tick():
+    mission, _ = orders()
+    params = AgentParams()
+    assert offer(mission, payload("set", seq=5, radius=8.0))
+    assert offer(mission, payload("set", seq=6, yaw_rate=0.05))
+    changed = mission.apply(params, NOW_NS)
+    assert (changed.control.radius, changed.control.yaw_rate) == (8.0, 0.05)
+    assert params.control.radius == 5.0                                   # the old parameters are untouched
+    assert changed.control.max_speed == params.control.max_speed
+    assert [(a.seq, a.applied) for a in mission.acks()] == [(6, True)]    # the latest of the sender
+
+
+@pytest.mark.parametrize("body, key, kind, words", [
+    (payload("set", radius=-3.0), "mission/all", "mission_malformed", "greater than 0"),
+    (b'{"stamp_ns": 100000000000, "seq": 1, "sender": "op", "command": "set", "radius": NaN}', "mission/all",
+     "mission_malformed", "finite"),
+    (payload("hold", stamp=NOW - 5.0), "mission/all", "mission_stale", "5.000 s ago"),
+    (payload("hold", stamp=NOW + 2.0), "mission/all", "mission_future", "ahead"),
+    (payload("hold"), "mission/9", "mission_unknown_vessel", "no vessel '9'"),
+    (payload("hold"), "mission/all/extra", "mission_unexpected_key", "mission/all/extra"),
+])
+def test_a_bad_command_is_refused_counted_and_answered_with_its_reason(body, key, kind, words):
+    mission, counted = orders()
+    assert not offer(mission, body, key)
+    mission.apply(AgentParams(), NOW_NS)
+    assert counted == [kind] and not mission.held
+    (ack,) = mission.acks()
+    assert not ack.applied and words in ack.reason and ack.sender == "op" and ack.seq == 1
+    (judged,) = mission.judged()
+    assert judged[1] == ack
+
+
+def test_a_replayed_seq_is_refused_and_another_vessels_command_is_not_ours():
+    mission, counted = orders()
+    assert offer(mission, payload("hold", seq=7))
+    assert not offer(mission, payload("hold", seq=7)) and not offer(mission, payload("resume", seq=3))
+    assert counted == ["mission_replayed", "mission_replayed"]
+    assert mission.acks()[0].reason == "replayed: seq 3 not after 7"
+    assert not offer(mission, payload("resume", seq=8), key="mission/2")   # vessel 2's, alive: silently not ours
+    assert counted == ["mission_replayed", "mission_replayed"]
+    mission.apply(AgentParams(), NOW_NS)
+    assert mission.held                                                     # the genuine hold, and only it
+    assert offer(mission, payload("resume", seq=9), key="mission/1")       # addressed to this vessel
+    mission.apply(AgentParams(), NOW_NS)
+    assert not mission.held
+
+
+def test_an_unreadable_payload_is_counted_without_an_answer_to_anyone():
+    mission, counted = orders()
+    for body in (b"\xff\xfe", b"[1, 2]", b"{}", b"null"):
+        assert not offer(mission, body)
+    assert counted == ["mission_malformed"] * 4
+    assert [a.sender for a in mission.acks()] == ["?"] and math.isfinite(mission.acks()[0].stamp_ns)
+
+
+def test_no_payload_makes_the_judgement_raise_or_apply_anything_half():
+    """Random bytes, random JSON and genuine commands with one field replaced by a random value: each is
+    refused with a reason or taken whole; nothing raises, and the parameters are either the old ones or the
+    new circle, never a mixture."""
+    import numpy as np
+
+    rng = np.random.default_rng(20261201)
+    mission, _ = orders()
+    weird = [None, True, -1, 0, 2**70, 1e308, -0.0, "", "x" * 5000, [], {}, [1.0, 2.0], {"a": 1}, float("inf")]
+    fields = ["stamp_ns", "seq", "sender", "command", "radius", "yaw_rate", "extra"]
+    params = AgentParams()
+    for n in range(3000):
+        kind = n % 3
+        if kind == 0:
+            body = rng.bytes(int(rng.integers(0, 200)))
+        else:
+            message = {"stamp_ns": NOW_NS, "seq": n + 10, "sender": "op", "command": "set", "radius": 7.0}
+            if kind == 2:
+                message[fields[int(rng.integers(len(fields)))]] = weird[int(rng.integers(len(weird)))]
+            body = json.dumps(message).encode()
+        mission.offer(str(rng.choice(["mission/all", "mission/1", "mission/2", "mission/x/y", "other"])), body,
+                      NOW, NOW_NS, lambda: frozenset({"2"}))
+        changed = mission.apply(params, NOW_NS)
+        assert changed.control.radius in (params.control.radius, 7.0)
+        assert changed.control.yaw_rate == params.control.yaw_rate
+    assert all(a.stamp_ns == NOW_NS for a in mission.acks())
+
+
+# ----- with real processes: a fleet in real time, usv-op, and raw payloads on the mission keys -----
+def _op(fleet, *args: str, timeout: float = 30.0):
+    import subprocess
+    import sys
+
+    return subprocess.run([sys.executable, "-m", "usv_op", "--connect", f"tcp/127.0.0.1:{fleet.bridge_port}", *args],
+                          capture_output=True, text=True, timeout=timeout, check=False)
+
+
+@pytest.mark.slow   # a fleet of processes over Zenoh for 34 s of real time
+def test_the_fleet_obeys_hold_resume_and_a_new_radius_and_refuses_bad_commands(tmp_path):
+    import os
+    import signal
+    import threading
+    import time
+    from pathlib import Path
+
+    import numpy as np
+    import zenoh
+    from conftest import wait_until
+
+    from agent.contract import mission_key
+    from agent.runtime.zenoh_session import ZenohSettings, zenoh_config
+    from mission_log.reader import load_run
+    from sim_bridge.fleet import Fleet
+    from sim_bridge.scenario import with_duration
+
+    scenarios = Path(__file__).resolve().parents[1] / "configs" / "scenarios"
+    fleet = Fleet(with_duration(scenarios / "table2_estimators.yaml", tmp_path, 34.0), "mckf", tmp_path / "runs",
+                  mode="realtime")
+    said: dict[str, object] = {}
+
+    def operator() -> None:
+        try:
+            assert wait_until(lambda: fleet._sim_time >= 3.0, timeout=60)
+            said["hold"] = _op(fleet, "hold")
+            assert wait_until(lambda: fleet._sim_time >= 5.0, timeout=30)
+            with zenoh.open(zenoh_config(ZenohSettings(connect=[f"tcp/127.0.0.1:{fleet.bridge_port}"]))) as session:
+                time.sleep(0.5)   # the links to the agents come up
+                now = round(fleet._sim_time * 1e9)
+                for sender, seq, body, key in [
+                        ("neg", 1, {"command": "set", "radius": -3.0}, mission_key()),
+                        ("nan", 1, {"command": "set", "radius": float("nan")}, mission_key()),
+                        ("who", 1, {"command": "hold"}, mission_key("9")),
+                        ("old", 1, {"command": "resume", "stamp_ns": now - 5_000_000_000}, mission_key()),
+                        ("rep", 9, {"command": "hold"}, mission_key()),
+                        ("rep", 9, {"command": "resume"}, mission_key())]:
+                    message = {"stamp_ns": now, "seq": seq, "sender": sender, **body}
+                    session.put(key, json.dumps(message).encode())
+                    time.sleep(0.05)
+                time.sleep(0.5)
+            said["resume"] = _op(fleet, "resume")
+            assert wait_until(lambda: fleet._sim_time >= 8.0, timeout=30)
+            said["set"] = _op(fleet, "set", "radius=8")
+            said["set_time"] = fleet._sim_time
+            assert wait_until(lambda: fleet._sim_time >= 28.0, timeout=60)
+            stopped = fleet.agents["3"]
+            os.kill(stopped.pid, signal.SIGSTOP)
+            try:
+                said["hold_stopped"] = _op(fleet, "hold", "--deadline", "1.5")
+            finally:
+                os.kill(stopped.pid, signal.SIGCONT)
+        except BaseException as error:  # noqa: BLE001  (the test reads it below)
+            said["error"] = error
+
+    thread = threading.Thread(target=operator, daemon=True)
+    thread.start()
+    folder = fleet.run(timeout=180)
+    thread.join(timeout=60)
+    assert "error" not in said, said.get("error")
+    for step in ("hold", "resume", "set"):
+        result = said[step]
+        assert result.returncode == 0, (step, result.stdout, result.stderr)
+        assert result.stdout.count("applied") == 4, result.stdout
+    # SIGSTOPped, vessel 3 is alive (its token lasts) but cannot answer: usv-op says so and fails.
+    stopped = said["hold_stopped"]
+    assert stopped.returncode == 1 and "vessel 3: no answer" in stopped.stdout, stopped.stdout
+
+    run = load_run(folder)
+    for vessel, log in run.vessels.items():
+        judged = [m for _, m in log.topic("mission")]
+        acks = {(m["ack"]["sender"], m["ack"]["seq"], m["ack"]["command"]): m["ack"] for m in judged}
+        hold = next(m["ack"] for m in judged if m["ack"]["sender"] == "operator" and m["ack"]["command"] == "hold")
+        resume = next(m["ack"] for m in judged if m["ack"]["sender"] == "operator"
+                      and m["ack"]["command"] == "resume")
+        assert hold["applied"] and resume["applied"] and hold["stamp_ns"] < resume["stamp_ns"]
+        # Every command from the tick that applied the hold until the one that applied the resume is zero,
+        # and only those.
+        commands = [(t, m["surge"], m["yaw_rate"]) for t, m in log.topic("cmd")]
+        held = [(s, w) for t, s, w in commands if hold["stamp_ns"] <= t < resume["stamp_ns"]]
+        assert len(held) >= 15 and all(c == (0.0, 0.0) for c in held), vessel
+        assert any(s != 0.0 for t, s, _ in commands if t >= resume["stamp_ns"])
+        assert any(s != 0.0 for t, s, _ in commands if t < hold["stamp_ns"])
+        # Each bad command refused, with its reason, in the log and in the statuses that went out.
+        reasons = {"neg": "greater than 0", "nan": "finite", "who": "unknown_vessel", "old": "stale"}
+        for sender, words in reasons.items():
+            ack = next(a for (s, _, _), a in acks.items() if s == sender)
+            assert not ack["applied"] and words in ack["reason"], (vessel, sender, ack)
+        replayed = {m["ack"]["command"]: m["ack"] for m in judged if m["ack"]["sender"] == "rep"}
+        assert replayed["hold"]["applied"] and not replayed["resume"]["applied"]
+        assert "replayed: seq 9 not after 9" in replayed["resume"]["reason"]
+        in_status = {a["sender"]: a for _, m in log.topic("status") for a in m["mission"]}
+        assert {"neg", "nan", "who", "old", "rep", "operator"} <= set(in_status)
+        assert "greater than 0" in in_status["neg"]["reason"]
+        # The health counters say what was refused.
+        health = log.topic("status")[-1][1]["health"]
+        assert health["rejected_mission_malformed"] == 2 and health["rejected_mission_replayed"] == 1
+    # usv-log summary lists every command the mission received, who applied it and who refused it.
+    from mission_log.summary import run_summary, summary_markdown
+
+    text = summary_markdown(run_summary(run))
+    table = text[text.index("## Mission commands"):text.index("## Vessel")]
+    assert "| operator |" in table and "| hold | 1, 2, 3, 4 | none |" in table
+    assert "| set radius=8 | 1, 2, 3, 4 | none |" in table
+    assert ("| neg | 1 | set | none | 1, 2, 3, 4 (malformed: MissionCommand: radius: Input should be greater than 0) |"
+            in table)                                                      # refused: its sender and reason named
+    # The new circle: every vessel settles on r* = 8 m after the set (radius within 10 %).
+    truth = run.sim.messages("/truth")
+    times = np.array([m["time"] for _, m in truth])
+    radii = np.array([[math.dist(m["vessels"][v]["position"], m["target"]) for v in "1234"] for _, m in truth])
+    inside = np.all(np.abs(radii - 8.0) <= 0.8, axis=1)
+    after = times >= said["set_time"]
+    outside = np.flatnonzero(after & ~inside & (times < 28.0))
+    settled = times[outside[-1] + 1] if len(outside) else said["set_time"]
+    print(f"radius 5 -> 8 m set at {said['set_time']:.1f} s: settled (within 10 %) at {settled:.1f} s, "
+          f"{settled - said['set_time']:.1f} s later")
+    assert settled < 26.0 and np.all(inside[(times >= settled) & (times < 28.0)])

@@ -1,0 +1,1 @@
+"""The operator's station: `usv-op`, mission commands and the live fleet from the shore."""

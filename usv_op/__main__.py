@@ -1,0 +1,3 @@
+from usv_op.cli import main
+
+raise SystemExit(main())

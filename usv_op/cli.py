@@ -1,0 +1,242 @@
+"""`usv-op`: the operator's command line on the shore.
+
+    usv-op status [--once]                      the live fleet in the terminal, refreshed in place
+    usv-op hold | resume | start [--vessel ID]  a mission command, then wait for every live agent's answer
+    usv-op set radius=8 [yaw_rate=0.1] [--vessel ID]
+
+A command goes to `mission/all` (or `mission/<ID>`), stamped with the fleet's clock: the sim clock when one
+is heard (a simulated fleet), else this computer's clock (a fleet at sea runs on synchronised wall clocks).
+Its `seq` is the wall clock in ns, so it grows from one invocation to the next. The command then waits for
+each live agent it addresses (liveliness) to answer in its status: exit 0 if every one applied it, 1 if one
+refused it or did not answer within --deadline (each is named), 2 on a usage error.
+
+Zenoh: `--connect` endpoints (the shore router, or a vessel's agent on loopback), or the ZENOH_CONFIG file
+and ZENOH_CONFIG_OVERRIDE as for every process (agent/runtime/zenoh_session.py).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import threading
+import time
+
+from agent.config import ConfigError
+from agent.contract import (
+    CLOCK_KEY,
+    LIVELINESS,
+    Clock,
+    MissionCommand,
+    Status,
+    decode,
+    encode,
+    every,
+    mission_key,
+    vessel_of,
+)
+from agent.runtime.zenoh_session import SessionError, ZenohSettings, open_session
+
+CLOCK_LISTEN = 0.5      # s to listen for a sim clock before stamping with the wall clock
+DISCOVERY = 1.0         # s to wait for the agents' liveliness tokens
+SETTABLE = ("radius", "yaw_rate")
+CLOSE_WAIT = 1.0        # s to wait for the session to close before exiting without it
+ONCE_WAIT = 3.0         # s `status --once` waits for a status of every live vessel
+
+
+def _settings(args: argparse.Namespace) -> ZenohSettings:
+    return ZenohSettings(mode=args.mode, connect=args.connect or [])
+
+
+def live_vessels(session, wait: float = DISCOVERY) -> set[str]:
+    """The vessels whose agent holds its liveliness token now."""
+    found: set[str] = set()
+    for reply in session.liveliness().get(every(LIVELINESS), timeout=wait):
+        if reply.ok is not None:
+            vessel = vessel_of(str(reply.ok.key_expr))
+            if vessel is not None:
+                found.add(vessel)
+    return found
+
+
+def fleet_stamp(session) -> int:
+    """Now in the fleet's clock (ns): the latest sim clock heard within CLOCK_LISTEN, else the wall clock."""
+    heard: list[int] = []
+    subscriber = session.declare_subscriber(CLOCK_KEY, lambda sample: heard.append(sample.payload.to_bytes()))
+    time.sleep(CLOCK_LISTEN)
+    subscriber.undeclare()
+    for payload in reversed(heard):
+        clock, _ = decode(Clock, payload)
+        if clock is not None:
+            return clock.stamp_ns
+    return time.time_ns()
+
+
+def send(session, command: MissionCommand, vessel: str | None, deadline: float, out=print) -> int:
+    """Publish `command` to `vessel` (None: the fleet) and wait for the answers; the exit code.
+
+    The vessels expected to answer are the live ones: those whose liveliness token this session sees, and
+    those the agents' statuses list as their live peers. A vessel whose process is frozen still holds its
+    token in the others' sessions until its lease ends, but a session opened now cannot link to it: only
+    the others' statuses tell that it should be there."""
+    answers: dict[str, tuple[bool, str]] = {}
+    peers: set[str] = set()
+    addressed: set[str] = set()
+    done = threading.Event()
+
+    def on_status(sample) -> None:
+        status, _ = decode(Status, sample.payload.to_bytes())
+        if status is None:
+            return
+        peers.update([status.sender, *status.peers])
+        for ack in status.mission:
+            if ack.sender == command.sender and ack.seq == command.seq:
+                answers.setdefault(status.sender, (ack.applied, ack.reason))
+        if addressed and addressed <= set(answers):
+            done.set()
+
+    subscriber = session.declare_subscriber(every("status"), on_status)
+    try:
+        live = live_vessels(session)
+        heard_from_all = time.monotonic() + DISCOVERY   # a status of each live agent brings its peers
+        while not live <= peers and time.monotonic() < heard_from_all:
+            time.sleep(0.02)
+        live |= peers
+        if vessel is not None and vessel not in live:
+            out(f"usv-op: no live vessel {vessel!r} (live: {', '.join(sorted(live)) or 'none'})")
+            return 2
+        addressed.update({vessel} if vessel is not None else live)
+        if not addressed:
+            out("usv-op: no live vessel to command")
+            return 1
+        session.put(mission_key(vessel), encode(command))
+        done.wait(deadline)
+    finally:
+        subscriber.undeclare()
+    code = 0
+    for name in sorted(addressed):
+        if name not in answers:
+            out(f"vessel {name}: no answer within {deadline:g} s")
+            code = 1
+        elif answers[name][0]:
+            out(f"vessel {name}: {command.command} applied")
+        else:
+            out(f"vessel {name}: {command.command} refused: {answers[name][1]}")
+            code = 1
+    return code
+
+
+def _command(args: argparse.Namespace, stamp_ns: int) -> MissionCommand:
+    values = {}
+    for item in getattr(args, "values", None) or []:
+        name, equals, text = item.partition("=")
+        if not equals or name not in SETTABLE:
+            raise ConfigError(f"{item!r}: give {' or '.join(f'{n}=VALUE' for n in SETTABLE)}")
+        try:
+            values[name] = float(text)
+        except ValueError:
+            raise ConfigError(f"{item!r}: {text!r} is not a number") from None
+    return MissionCommand(stamp_ns=stamp_ns, seq=time.time_ns(), sender=args.sender, command=args.command,
+                          **values)
+
+
+def status_lines(statuses: dict[str, tuple[float, Status]], live: set[str], now: float) -> list[str]:
+    """The fleet as the console shows it: one line per vessel heard or alive."""
+    lines = [f"{'vessel':8} {'alive':5} {'age s':>6} {'held':4} {'surge':>6} {'yaw r.':>7} {'refused':>7} "
+             "last mission command"]
+    for vessel in sorted(set(statuses) | live):
+        arrived, status = statuses.get(vessel, (None, None))
+        if status is None:
+            lines.append(f"{vessel:8} {'yes':5} {'-':>6} {'-':4} {'-':>6} {'-':>7} {'-':>7} (no status yet)")
+            continue
+        refused = sum(v for k, v in status.health.items() if k.startswith("rejected_"))
+        last = max(status.mission, key=lambda a: a.stamp_ns, default=None)
+        said = "-" if last is None else (f"{last.command} from {last.sender}: "
+                                         + ("applied" if last.applied else f"refused ({last.reason})"))
+        lines.append(f"{vessel:8} {'yes' if vessel in live else 'no':5} {now - arrived:6.1f} "
+                     f"{'HOLD' if status.held else '':4} {status.command[0]:6.2f} {status.command[1]:7.3f} "
+                     f"{refused:7d} {said}")
+    return lines
+
+
+def watch(session, once: bool, period: float = 0.5, out=print) -> int:
+    """The status console: refreshed in place every `period` s until Ctrl-C (`once`: print once and exit)."""
+    statuses: dict[str, tuple[float, Status]] = {}
+
+    def on_status(sample) -> None:
+        status, _ = decode(Status, sample.payload.to_bytes())
+        if status is not None and status.ticked:
+            statuses[status.sender] = (time.monotonic(), status)
+
+    subscriber = session.declare_subscriber(every("status"), on_status)
+    started = time.monotonic()
+    try:
+        while True:
+            live = live_vessels(session, wait=period)
+            live |= {peer for _, status in list(statuses.values()) for peer in status.peers}   # a frozen one too
+            if once and not (statuses and live <= set(statuses)) and time.monotonic() - started < ONCE_WAIT:
+                continue   # a new subscription takes a moment to reach every agent
+            lines = status_lines(dict(statuses), live, time.monotonic())
+            if once:
+                out("\n".join(lines))
+                return 0
+            out("\x1b[H\x1b[2J" + "\n".join(lines), end="", flush=True)   # home, clear: refresh in place
+    except KeyboardInterrupt:
+        out("")
+        return 0
+    finally:
+        subscriber.undeclare()
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="usv-op", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--connect", action="append", help="Zenoh endpoint to connect to (repeatable)")
+    parser.add_argument("--mode", choices=("peer", "client"), default="peer", help="Zenoh session mode")
+    commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    status = commands.add_parser("status", help="the live fleet, refreshed in place")
+    status.add_argument("--once", action="store_true", help="print the fleet once and exit")
+    for name, text in (("hold", "every addressed vessel stops and keeps station"),
+                       ("resume", "circle again after a hold"), ("start", "start (or go on) circling"),
+                       ("set", "a new radius and/or yaw rate: set radius=8 yaw_rate=0.1")):
+        sub = commands.add_parser(name, help=text)
+        if name == "set":
+            sub.add_argument("values", nargs="+", metavar="NAME=VALUE")
+        sub.add_argument("--vessel", default=None, help="one vessel's id (default: the whole fleet)")
+        sub.add_argument("--deadline", type=float, default=3.0, help="seconds to wait for the answers")
+        sub.add_argument("--sender", default="operator", help="the operator's id in the command")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        session = open_session(_settings(args), wait_for_peers=False)
+    except (ConfigError, SessionError) as error:
+        print(f"usv-op: {' '.join(str(error).split())}", file=sys.stderr)
+        return 2
+    try:
+        if args.command == "status":
+            code = watch(session, args.once)
+        else:
+            code = send(session, _command(args, fleet_stamp(session)), args.vessel, args.deadline)
+    except (ConfigError, ValueError) as error:
+        print(f"usv-op: {' '.join(str(error).split())}", file=sys.stderr)
+        code = 2
+    return _close(session, code)
+
+
+def _close(session, code: int) -> int:
+    """Close the session and return `code`; if the close hangs (a frozen peer holds a link open for about
+    10 s), exit now with `code`: the command is out and its answers are in."""
+    closing = threading.Thread(target=session.close, daemon=True)
+    closing.start()
+    closing.join(CLOSE_WAIT)
+    if closing.is_alive():
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+    return code
+
+
+if __name__ == "__main__":
+    sys.exit(main())
