@@ -44,6 +44,8 @@ FIGURES = {   # key: (what it is, unit, decimals)
     "fleet_bridge_ms": ("sim bridge, fleet over Zenoh", "ms", 2),
     "fleet_factor": ("lockstep tick loop", "x", 1),
     "launch_factor": ("whole launch", "x", 1),
+    "agent_mb": ("agent peak memory", "MB", 0),
+    "bridge_mb": ("sim bridge peak memory", "MB", 0),
 }
 
 
@@ -85,7 +87,10 @@ def measure(root: Path) -> dict[str, float]:
                     cpu[topic] = 1e3 * message["cpu_seconds"] / message["ticks"]
                     if topic == "/bridge/summary":
                         loop, ticks = message["loop_seconds"], message["ticks"]
+        memory = json.loads((folder / "memory.json").read_text())["peak_resident_mb"]
     simulated = ticks * scenario.world.dt
+    figures.update(agent_mb=float(np.mean([v for k, v in memory.items() if k.startswith("agent-")])),
+                   bridge_mb=memory["bridge"])
     figures.update(fleet_bridge_ms=cpu.pop("/bridge/summary"), fleet_agent_ms=float(np.mean(list(cpu.values()))),
                    fleet_factor=simulated / loop, launch_factor=simulated / launch)
     # The machine's speed drifts by tens of per cent over minutes: the core measured just before is the yardstick.

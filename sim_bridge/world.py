@@ -537,8 +537,11 @@ def lost_shares(seed: int, senders: list[str], receivers: list[str], joined: set
     were not yet listening when the shares went out. Every other share is lost with `probability`
     (`message_lost`). The in-process runner and the sim bridge both use this, so they lose the same shares.
     """
+    if not 0.0 <= probability <= 1.0:
+        raise ValueError(f"probability must be in [0, 1], got {probability}")
+    # With no loss no hash is needed: every share of a listening receiver arrives (a uniform is never < 0).
     return [(j, i) for j in senders for i in receivers
-            if j != i and (i in joined or message_lost(seed, j, i, tick, probability))]
+            if j != i and (i in joined or (probability > 0.0 and message_lost(seed, j, i, tick, probability)))]
 
 
 @dataclass(frozen=True)
