@@ -34,6 +34,7 @@ from agent.core.records import OdometryReading, Share
 
 FLEET_PREFIX = "usv"
 CLOCK_KEY = "sim/clock"
+TRUTH_KEY = "sim/truth"  # a simulation's ground truth each tick, in real time only: for viewers, no agent reads it
 MISSION_PREFIX = "mission"
 MISSION_ALL = "all"      # mission/all: every vessel; mission/<id>: one
 MAX_RADIUS = 1e4         # m: the largest circle a mission command may ask for
@@ -301,6 +302,8 @@ class Status(Header):
     health: dict[str, int] = Field(default_factory=dict)
     weakest_pair: WeakestPair | None = Field(None, description="None: no pair filter running this tick")
     held: bool = Field(False, description="a mission command `hold` is in force: commanding STOP")
+    radius: Annotated[float, Field(gt=0, le=MAX_POSITION, allow_inf_nan=False)] | None = Field(
+        None, description="r*: the radius of the circle this vessel steers to now (m)")
     mission: list[MissionAck] = Field(default_factory=list, max_length=8,
                                       description="the latest mission command judged from each sender")
 

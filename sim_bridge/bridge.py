@@ -36,6 +36,7 @@ from contextlib import nullcontext
 from pathlib import Path
 from typing import Literal
 
+import orjson
 import zenoh
 from pydantic import Field
 
@@ -43,6 +44,7 @@ from agent.config import ConfigError, PositiveFloat, StrictModel, load_yaml
 from agent.contract import (
     CLOCK_KEY,
     LIVELINESS,
+    TRUTH_KEY,
     Bearing,
     Clock,
     Cmd,
@@ -227,6 +229,7 @@ class SimBridge:
             else:
                 self.stopping.wait(max(0.0, start + (k + 1) * self.scenario.world.dt - time.monotonic()))
             self._log_tick(stamp)
+            self._publish_truth(session, stamp)
             self.world.step(self._commands_now(now))
             self.ticks += 1
             previous_live, previous_stamp = live, stamp
@@ -256,6 +259,7 @@ class SimBridge:
                 self._publisher(session, CLOCK_KEY).put(encode(Clock(
                     stamp_ns=stamp, seq=n // m, previous_ns=previous_stamp, vessels=live)))
                 self._log_tick(self.epoch_ns + stamp)
+                self._publish_truth(session, self.epoch_ns + stamp)
                 self.ticks += 1
                 previous_stamp = stamp
             if self.world.time < hold - 1e-9:
@@ -417,13 +421,14 @@ class SimBridge:
         self.log.log("/bridge/command_latency", {"milliseconds": latency}, stamp, schema=CommandLatency)
         truth = self.world.truth()
         self._log_frames(stamp, truth)
-        self.log.log("/truth", {
-            "time": truth.time,
-            "vessels": {v: {"position": [float(x) for x in p], "heading": float(truth.headings[v])}
-                        for v, p in truth.positions.items()},
-            "target": [float(x) for x in truth.target_position],
-            "target_velocity": [float(x) for x in truth.target_velocity],
-        }, stamp, schema=LoggedTruth)
+        self.log.log("/truth", truth_record(truth), stamp, schema=LoggedTruth)
+
+    def _publish_truth(self, session, stamp: int) -> None:
+        """The ground truth on `sim/truth`, for the operator's live view (`usv-op view`): in real time only,
+        where someone can watch; a lockstep run is for its logs, and saves the message."""
+        if self.settings.mode == "realtime":
+            record = {"stamp_ns": stamp, **truth_record(self.world.truth())}
+            self._publisher(session, TRUTH_KEY).put(orjson.dumps(record))
 
     def _log_summary(self, cpu_seconds: float) -> None:
         """The run as a whole, once at the end (built as the model, so a wrong value fails here)."""
@@ -437,11 +442,7 @@ class SimBridge:
     def _log_frames(self, stamp: int, truth) -> None:
         """Ground truth for Foxglove's 3D panel: the vessels and the target in the `world` frame and, once a
         second, the islands and the desired circle (agent/foxglove.py)."""
-        links = [("world", "target", float(truth.target_position[0]), float(truth.target_position[1]), 0.0)]
-        for vessel, position in truth.positions.items():
-            frame = foxglove.vessel_frame(vessel)
-            links += [("world", frame, float(position[0]), float(position[1]), 0.0),
-                      (frame, f"{frame}/hull", 0.0, 0.0, float(truth.headings[vessel]))]
+        links = foxglove.world_links(truth.positions, truth.headings, truth.target_position)
         self.log.log("/tf", foxglove.transforms(stamp, links), stamp, schema=foxglove.FrameTransforms)
         if stamp >= self._next_scene:
             self._next_scene = stamp + foxglove.SCENE_PERIOD_NS
@@ -456,6 +457,17 @@ class SimBridge:
         value = self._seq.get(name, 0)
         self._seq[name] = value + 1
         return value
+
+
+def truth_record(truth) -> dict:
+    """The ground truth of one tick as logged on `/truth` (LoggedTruth) and published on `sim/truth`."""
+    return {
+        "time": truth.time,
+        "vessels": {v: {"position": [float(x) for x in p], "heading": float(truth.headings[v])}
+                    for v, p in truth.positions.items()},
+        "target": [float(x) for x in truth.target_position],
+        "target_velocity": [float(x) for x in truth.target_velocity],
+    }
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -3,6 +3,8 @@
     usv-op status [--once]                      the live fleet in the terminal, refreshed in place
     usv-op hold | resume | start [--vessel ID]  a mission command, then wait for every live agent's answer
     usv-op set radius=8 [yaw_rate=0.1] [--vessel ID]
+    usv-op view [--port 8765]                   the live fleet in Foxglove (its WebSocket protocol)
+    usv-op layout [--vessels 1 2 3 4]           the Foxglove layout for the live view and the logs
 
 A command goes to `mission/all` (or `mission/<ID>`), stamped with the fleet's clock: the sim clock when one
 is heard (a simulated fleet), else this computer's clock (a fleet at sea runs on synchronised wall clocks).
@@ -17,7 +19,9 @@ and ZENOH_CONFIG_OVERRIDE as for every process (agent/runtime/zenoh_session.py).
 from __future__ import annotations
 
 import argparse
+import json
 import os
+import signal
 import sys
 import threading
 import time
@@ -36,6 +40,8 @@ from agent.contract import (
     vessel_of,
 )
 from agent.runtime.zenoh_session import SessionError, ZenohSettings, open_session
+from usv_op.layout import fleet_layout
+from usv_op.view import serve
 
 CLOCK_LISTEN = 0.5      # s to listen for a sim clock before stamping with the wall clock
 DISCOVERY = 1.0         # s to wait for the agents' liveliness tokens
@@ -195,6 +201,11 @@ def build_parser() -> argparse.ArgumentParser:
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     status = commands.add_parser("status", help="the live fleet, refreshed in place")
     status.add_argument("--once", action="store_true", help="print the fleet once and exit")
+    view = commands.add_parser("view", help="serve the live fleet to Foxglove over its WebSocket protocol")
+    view.add_argument("--host", default="127.0.0.1", help="address to serve on (0.0.0.0: every interface)")
+    view.add_argument("--port", type=int, default=8765, help="port to serve on (0: any free one)")
+    layout = commands.add_parser("layout", help="print the Foxglove layout (JSON) for a fleet")
+    layout.add_argument("--vessels", nargs="+", default=["1", "2", "3", "4"], help="the fleet's vessel ids")
     for name, text in (("hold", "every addressed vessel stops and keeps station"),
                        ("resume", "circle again after a hold"), ("start", "start (or go on) circling"),
                        ("set", "a new radius and/or yaw rate: set radius=8 yaw_rate=0.1")):
@@ -209,6 +220,13 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    if args.command == "layout":
+        try:
+            print(json.dumps(json.loads(fleet_layout(args.vessels)), indent=2))
+        except ImportError as error:
+            print(f"usv-op: {error}", file=sys.stderr)
+            return 2
+        return 0
     try:
         session = open_session(_settings(args), wait_for_peers=False)
     except (ConfigError, SessionError) as error:
@@ -217,12 +235,22 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.command == "status":
             code = watch(session, args.once)
+        elif args.command == "view":
+            code = serve(session, args.host, args.port, _stop_on_signals())
         else:
             code = send(session, _command(args, fleet_stamp(session)), args.vessel, args.deadline)
-    except (ConfigError, ValueError) as error:
+    except (ConfigError, ValueError, ImportError) as error:
         print(f"usv-op: {' '.join(str(error).split())}", file=sys.stderr)
         code = 2
     return _close(session, code)
+
+
+def _stop_on_signals() -> threading.Event:
+    """An event SIGINT and SIGTERM set (the live view's way to stop)."""
+    stop = threading.Event()
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, lambda *_: stop.set())
+    return stop
 
 
 def _close(session, code: int) -> int:

@@ -20,7 +20,7 @@ vessel's file is viewed from `vessel/<id>`; next to the sim bridge's file everyt
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -168,6 +168,31 @@ def transforms(stamp_ns: int, links: Iterable[tuple[str, str, float, float, floa
          "translation": {"x": float(x), "y": float(y), "z": 0.0},
          "rotation": {"x": 0.0, "y": 0.0, "z": math.sin(0.5 * yaw), "w": math.cos(0.5 * yaw)}}
         for parent, child, x, y, yaw in links]}
+
+
+def estimate_links(vessel: str, heading: float, neighbours: Iterable[tuple[str, float, float]],
+                   target: tuple[float, float] | None) -> list[tuple[str, str, float, float, float]]:
+    """The frames of what vessel `vessel` believes, for `transforms`: its hull turned by `heading`, each
+    neighbour j at -p^_ij and the target at -p^_io (p_ij = p_i - p_j), from (j, x, y) of p^_ij and (x, y) of
+    p^_io. The agent's log and the operator's live view draw the same frames."""
+    me = vessel_frame(vessel)
+    links = [(me, f"{me}/hull", 0.0, 0.0, float(heading))]
+    links += [(me, estimate_frame(vessel, j), -float(x), -float(y), 0.0) for j, x, y in sorted(neighbours)]
+    if target is not None and all(math.isfinite(v) for v in target):
+        links.append((me, estimate_frame(vessel, "target"), -float(target[0]), -float(target[1]), 0.0))
+    return links
+
+
+def world_links(positions: Mapping[str, Sequence[float]], headings: Mapping[str, float],
+                target: Sequence[float]) -> list[tuple[str, str, float, float, float]]:
+    """The ground truth's frames, for `transforms`: the target and each vessel in `world`, each hull turned by
+    its heading (the sim bridge's log and the operator's live view)."""
+    links = [("world", "target", float(target[0]), float(target[1]), 0.0)]
+    for vessel, position in positions.items():
+        frame = vessel_frame(vessel)
+        links += [("world", frame, float(position[0]), float(position[1]), 0.0),
+                  (frame, f"{frame}/hull", 0.0, 0.0, float(headings[vessel]))]
+    return links
 
 
 def circle(radius: float, points: int = 72) -> list[Vector3]:

@@ -376,7 +376,8 @@ class AgentNode:
             publishers["status"].put(encode(Status(
                 stamp_ns=0, seq=self._next("status"), sender=self.id, phase=0.0, command=(0.0, 0.0),
                 shared=self._last_shared, peers=sorted(self._live_view), ticked=False,
-                health=self._health(None), held=self.orders.held, mission=self.orders.acks())))
+                health=self._health(None), held=self.orders.held, radius=self.params.control.radius,
+                mission=self.orders.acks())))
         except Exception as error:  # noqa: BLE001  (a heartbeat lost is not worth the process)
             self._tick_failed(error, None, 0)
 
@@ -441,12 +442,13 @@ class AgentNode:
                 target=None if record is None or record.target_state is None
                 else tuple(float(v) for v in record.target_state),
                 health=self._health(record), weakest_pair=weakest_pair(record),
-                held=self.orders.held, mission=self.orders.acks(),
+                held=self.orders.held, radius=self.params.control.radius, mission=self.orders.acks(),
             )
         except Exception:  # noqa: BLE001  (a non-finite estimate: the status goes without it)
             status = Status(stamp_ns=stamp, seq=self._seq["status"], sender=self.id, phase=0.0,
                             command=(command.surge, command.yaw_rate), shared=shared, peers=sorted(self._live_view),
-                            health=self._health(None), held=self.orders.held, mission=self.orders.acks())
+                            health=self._health(None), held=self.orders.held, radius=self.params.control.radius,
+                            mission=self.orders.acks())
         self._next("status")
         wire["status"] = encode(status)
         publishers["status"].put(wire["status"])

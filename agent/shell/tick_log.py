@@ -24,7 +24,6 @@ is bit for bit what the core saw.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping
 
 from pydantic import ConfigDict, Field
@@ -130,21 +129,17 @@ class TickLogger:
     def summary(self, stamp: int, *, ticks: int, overruns: int, refused: Mapping[str, int], loop_seconds: float,
                 cpu_seconds: float, core_cpu_seconds: float | None = None) -> None:
         """Log the run as a whole at time `stamp` (ns), once at the end: ticks run, wall-clock overruns, inputs
-        refused by reason, and the wall and CPU seconds from the first tick (the core's step's share apart). Built as the model (once a run),
-        so a wrong value fails here rather than in a reader."""
+        refused by reason, and the wall and CPU seconds from the first tick (the core's step's share apart).
+        Built as the model (once a run), so a wrong value fails here rather than in a reader."""
         self.log.log(log_topic(self.id, "summary"), AgentSummary(
             ticks=ticks, overruns=overruns, refused=dict(refused), loop_seconds=loop_seconds,
             cpu_seconds=cpu_seconds, core_cpu_seconds=core_cpu_seconds), stamp)
 
     def _log_frames(self, stamp: int, inputs: TickInputs, record: TickRecord) -> None:
-        me = foxglove.vessel_frame(self.id)
-        links = [(me, f"{me}/hull", 0.0, 0.0, float(inputs.odometry.heading))]
-        # p_ij = p_i - p_j: neighbour j sits at -p^_ij from vessel i, the target at -p^_io.
-        links += [(me, foxglove.estimate_frame(self.id, j), -float(n.position[0]), -float(n.position[1]), 0.0)
-                  for j, n in sorted(record.neighbours.items())]
-        if record.target_state is not None and all(math.isfinite(v) for v in record.target_state[:2]):
-            links.append((me, foxglove.estimate_frame(self.id, "target"), -float(record.target_state[0]),
-                          -float(record.target_state[1]), 0.0))
+        target = record.target_state
+        links = foxglove.estimate_links(
+            self.id, inputs.odometry.heading, [(j, n.position[0], n.position[1]) for j, n in record.neighbours.items()],
+            None if target is None else (float(target[0]), float(target[1])))
         self.log.log(log_topic(self.id, "tf"), foxglove.transforms(stamp, links), stamp,
                      schema=foxglove.FrameTransforms)
         if record.target_state is not None and stamp >= self._next_scene:
