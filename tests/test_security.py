@@ -9,6 +9,7 @@ broken link cannot pass for a denial.
 from __future__ import annotations
 
 import json
+import os
 import select
 import stat
 import subprocess
@@ -291,6 +292,36 @@ def test_only_the_operator_publishes_the_mission(fleet, inboxes):
     watcher = inboxes(fleet["vessel-1"], "mission/**")
     assert_held_back(watcher, lambda: fleet["vessel-2"].put("mission/radius", stamp(FORBIDDEN)),
                      fleet["operator"], "mission/radius")
+
+
+@slow
+def test_the_operator_commands_an_agent_through_the_shore_router(certs, router, tmp_path):
+    """usv-op with the operator's certificate, through the TLS router, holds an agent process that connects
+    with its vessel's certificate; the agent answers, and usv-op says so."""
+    _, port = router
+    configs = {}
+    for name in ("vessel-1", "operator"):
+        configs[name] = tmp_path / f"{name}.json5"
+        configs[name].write_text(json.dumps(secure_config(certs, name, "client", [], [f"tls/localhost:{port}"],
+                                                          VESSELS)))
+    settings = tmp_path / "agent.yaml"
+    settings.write_text(yaml.safe_dump({"clock": "wall", "id_check": 0.2, "log": str(tmp_path / "agent.mcap")}))
+    agent = subprocess.Popen([sys.executable, "-m", "agent", "--vessel", "1", "--config", str(settings)],
+                             env={**os.environ, "ZENOH_CONFIG": str(configs["vessel-1"])},
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        operator_env = {**os.environ, "ZENOH_CONFIG": str(configs["operator"])}
+        for _ in range(10):   # until the agent is up and heard through the router
+            done = subprocess.run([sys.executable, "-m", "usv_op", "hold", "--deadline", "3"], env=operator_env,
+                                  capture_output=True, text=True, timeout=60, check=False)
+            if "applied" in done.stdout or agent.poll() is not None:
+                break
+            time.sleep(0.5)
+        assert done.returncode == 0 and done.stdout.strip() == "vessel 1: hold applied", (done.stdout, done.stderr)
+    finally:
+        agent.terminate()
+        _, err = agent.communicate(timeout=30)
+    assert agent.returncode == 0, err
 
 
 @slow
