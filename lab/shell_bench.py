@@ -106,14 +106,16 @@ class _Timed:
             self.run.seconds[self.section] += time.thread_time() - started
 
 
-def run_shells(scenario: Scenario, folder: Path | None = None) -> ShellRun:
+def run_shells(scenario: Scenario, folder: Path | None = None, between_ticks=None) -> ShellRun:
     """One lockstep run of `scenario` (every vessel there from start to end) through the sim bridge's and the
-    agents' shells, timed by section; the logs go to `folder` (a temporary folder if None)."""
+    agents' shells, timed by section; the logs go to `folder` (a temporary folder if None).
+    `between_ticks(k, nodes)`, if given, is called once every agent has ticked k (and before the world moves
+    on): what arrives then is the next tick's."""
     with tempfile.TemporaryDirectory() as scratch:
-        return _run(scenario, Path(folder or scratch))
+        return _run(scenario, Path(folder or scratch), between_ticks)
 
 
-def _run(scenario: Scenario, folder: Path) -> ShellRun:
+def _run(scenario: Scenario, folder: Path, between_ticks) -> ShellRun:
     folder.mkdir(parents=True, exist_ok=True)
     ids = [v.id for v in scenario.world.vessels]
     if any(v.join_time > 0 or v.leave_time is not None for v in scenario.world.vessels):
@@ -164,6 +166,8 @@ def _run(scenario: Scenario, folder: Path) -> ShellRun:
                 inner = run.seconds["core"] + run.seconds["logging"] - inner
                 run.seconds["publishing"] += time.thread_time() - ticking - inner
                 answers += wire[vessel].take()
+            if between_ticks is not None:
+                between_ticks(k, nodes)
             started = time.thread_time()
             shares = []
             for key_expr, payload in answers:

@@ -265,3 +265,29 @@ def test_the_fleet_obeys_hold_resume_and_a_new_radius_and_refuses_bad_commands(t
     print(f"radius 5 -> 8 m set at {said['set_time']:.1f} s: settled (within 10 %) at {settled:.1f} s, "
           f"{settled - said['set_time']:.1f} s later")
     assert settled < 26.0 and np.all(inside[(times >= settled) & (times < 28.0)])
+
+
+def test_in_lockstep_a_hold_received_during_tick_k_stops_every_vessel_from_tick_k_plus_1_until_resume(tmp_path):
+    """The agent processes' own nodes in lockstep (lab/shell_bench.py): the hold and the resume arrive
+    between two ticks, exactly as a lockstep fleet would get them."""
+    from pathlib import Path
+
+    import numpy as np
+
+    from lab.shell_bench import _Sample, run_shells
+    from sim_bridge.scenario import select_scenario, with_duration
+
+    scenarios = Path(__file__).resolve().parents[1] / "configs" / "scenarios"
+    _, scenario = select_scenario(with_duration(scenarios / "table2_estimators.yaml", tmp_path, 12.0), "mckf")
+    orders = {50: "hold", 80: "resume"}
+
+    def operator(k: int, nodes) -> None:
+        if k in orders:
+            body = json.dumps({"stamp_ns": round(k * 0.1e9), "seq": k, "sender": "op", "command": orders[k]})
+            for node in nodes.values():
+                node._on_mission(_Sample("mission/all", body.encode()))
+
+    commands = run_shells(scenario, tmp_path / "logs", between_ticks=operator).commands
+    assert np.all(commands[51:81] == 0.0)                     # ticks 51 to 80: STOP, every vessel
+    assert np.all(np.any(commands[40:51, :, 0] != 0.0, axis=0))   # moving before ...
+    assert np.all(np.any(commands[81:95, :, 0] != 0.0, axis=0))   # ... and again after the resume
