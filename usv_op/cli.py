@@ -146,33 +146,52 @@ def _command(args: argparse.Namespace, stamp_ns: int) -> MissionCommand:
                           **values)
 
 
-def status_lines(statuses: dict[str, tuple[float, Status]], live: set[str], now: float) -> list[str]:
+RATE_WINDOW = 2.0       # s of statuses the console's tick rate is counted over
+
+
+def status_lines(statuses: dict[str, tuple[float, Status]], live: set[str], now: float,
+                 rates: dict[str, float] | None = None) -> list[str]:
     """The fleet as the console shows it: one line per vessel heard or alive."""
-    lines = [f"{'vessel':8} {'alive':5} {'age s':>6} {'held':4} {'surge':>6} {'yaw r.':>7} {'refused':>7} "
-             "last mission command"]
+    rates = rates or {}
+    lines = [f"{'vessel':8} {'alive':5} {'age s':>6} {'Hz':>5} {'held':4} {'surge':>6} {'yaw r.':>7} {'refused':>7} "
+             f"{'weakest pair':22} last mission command"]
     for vessel in sorted(set(statuses) | live):
         arrived, status = statuses.get(vessel, (None, None))
         if status is None:
-            lines.append(f"{vessel:8} {'yes':5} {'-':>6} {'-':4} {'-':>6} {'-':>7} {'-':>7} (no status yet)")
+            lines.append(f"{vessel:8} {'yes':5} {'-':>6} {'-':>5} {'-':4} {'-':>6} {'-':>7} {'-':>7} {'-':22} "
+                         "(no status yet)")
             continue
         refused = sum(v for k, v in status.health.items() if k.startswith("rejected_"))
         last = max(status.mission, key=lambda a: a.stamp_ns, default=None)
         said = "-" if last is None else (f"{last.command} from {last.sender}: "
                                          + ("applied" if last.applied else f"refused ({last.reason})"))
+        weakest = status.weakest_pair
+        pair = "-" if weakest is None else f"{weakest.neighbour}: {weakest.observability}"
         lines.append(f"{vessel:8} {'yes' if vessel in live else 'no':5} {now - arrived:6.1f} "
-                     f"{'HOLD' if status.held else '':4} {status.command[0]:6.2f} {status.command[1]:7.3f} "
-                     f"{refused:7d} {said}")
+                     f"{rates.get(vessel, 0.0):5.1f} {'HOLD' if status.held else '':4} {status.command[0]:6.2f} "
+                     f"{status.command[1]:7.3f} {refused:7d} {pair[:22]:22} {said}")
     return lines
+
+
+def tick_rate(arrivals: list[float], now: float) -> float:
+    """Statuses per second over the last RATE_WINDOW s of arrival times (0 with fewer than two)."""
+    recent = [t for t in list(arrivals) if now - t <= RATE_WINDOW]
+    return (len(recent) - 1) / (recent[-1] - recent[0]) if len(recent) > 1 and recent[-1] > recent[0] else 0.0
 
 
 def watch(session, once: bool, period: float = 0.5, out=print) -> int:
     """The status console: refreshed in place every `period` s until Ctrl-C (`once`: print once and exit)."""
     statuses: dict[str, tuple[float, Status]] = {}
+    arrivals: dict[str, list[float]] = {}
 
     def on_status(sample) -> None:
         status, _ = decode(Status, sample.payload.to_bytes())
         if status is not None and status.ticked:
-            statuses[status.sender] = (time.monotonic(), status)
+            now = time.monotonic()
+            statuses[status.sender] = (now, status)
+            recent = arrivals.setdefault(status.sender, [])
+            recent.append(now)
+            del recent[:max(0, len(recent) - 200)]
 
     subscriber = session.declare_subscriber(every("status"), on_status)
     started = time.monotonic()
@@ -180,9 +199,12 @@ def watch(session, once: bool, period: float = 0.5, out=print) -> int:
         while True:
             live = live_vessels(session, wait=period)
             live |= {peer for _, status in list(statuses.values()) for peer in status.peers}   # a frozen one too
-            if once and not (statuses and live <= set(statuses)) and time.monotonic() - started < ONCE_WAIT:
+            heard = {v for v, times in list(arrivals.items()) if len(times) >= 3}   # enough for a rate
+            if once and not (heard and live <= heard) and time.monotonic() - started < ONCE_WAIT:
                 continue   # a new subscription takes a moment to reach every agent
-            lines = status_lines(dict(statuses), live, time.monotonic())
+            now = time.monotonic()
+            rates = {v: tick_rate(times, now) for v, times in list(arrivals.items())}
+            lines = status_lines(dict(statuses), live, now, rates)
             if once:
                 out("\n".join(lines))
                 return 0
