@@ -251,22 +251,24 @@ class MissionCommand(Header):
     """What the operator tells the fleet (`mission/all`) or one vessel (`mission/<id>`). `sender` is the
     operator's id; `seq` must grow from one command of a sender to the next (an agent refuses a replayed one).
     `hold`: stop and keep station, as the watchdog does; `resume`, `start`: circle again; `set`: a new circle
-    radius and/or yaw rate, taken at the next tick."""
+    radius, yaw rate (its size) and/or direction, taken at the next tick."""
 
     command: Literal["start", "hold", "resume", "set"]
     # strict: JSON true is not a radius of 1 m.
     radius: Annotated[float, Field(gt=0, le=MAX_RADIUS, allow_inf_nan=False, strict=True)] | None = Field(
         None, description="set: r*, the circle's radius (m)")
     yaw_rate: Annotated[float, Field(gt=0, le=MAX_YAW_RATE, allow_inf_nan=False, strict=True)] | None = Field(
-        None, description="set: omega*, the yaw rate of circling (rad/s)")
+        None, description="set: |omega*|, how fast to circle (rad/s); the direction stays unless given")
+    direction: Literal["ccw", "cw"] | None = Field(
+        None, description="set: circle counter-clockwise (ccw) or clockwise (cw), seen from above")
 
     @model_validator(mode="after")
     def _values_with_set(self):
-        given = self.radius is not None or self.yaw_rate is not None
+        given = self.radius is not None or self.yaw_rate is not None or self.direction is not None
         if self.command == "set" and not given:
-            raise ValueError("set needs radius or yaw_rate")
+            raise ValueError("set needs radius, yaw_rate or direction")
         if self.command != "set" and given:
-            raise ValueError(f"{self.command} takes no radius or yaw_rate")
+            raise ValueError(f"{self.command} takes no radius, yaw_rate or direction")
         return self
 
 

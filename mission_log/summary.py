@@ -161,7 +161,7 @@ def mission_commands(records: list[tuple[int, dict]], origin_ns: int = 0) -> lis
     found = []
     for stamp, record in records:
         ack, command = record["ack"], record.get("command") or {}
-        values = {k: command[k] for k in ("radius", "yaw_rate") if command.get(k) is not None}
+        values = {k: command[k] for k in ("radius", "yaw_rate", "direction") if command.get(k) is not None}
         found.append({"time_s": (stamp - origin_ns) * 1e-9, "sender": ack["sender"], "seq": ack["seq"],
                       "command": ack["command"], "values": values, "applied": ack["applied"],
                       "reason": ack["reason"]})
@@ -258,7 +258,8 @@ def _mission_table(vessels: dict) -> list[str]:
     lines = ["## Mission commands", "", "| time (s) | sender | seq | command | applied by | refused by |",
              "|---|---|---|---|---|---|"]
     for c in sorted(commands.values(), key=lambda c: c["time_s"]):
-        what = c["command"] + "".join(f" {k}={v:g}" for k, v in c["values"].items())
+        what = c["command"] + "".join(f" {k}={v:g}" if isinstance(v, float) else f" {k}={v}"
+                                      for k, v in c["values"].items())
         lines.append(f"| {c['time_s']:.1f} | {c['sender']} | {c['seq']} | {what} | "
                      f"{', '.join(c['applied_by']) or 'none'} | "
                      + ("; ".join(f"{', '.join(who)} ({why})" for why, who in c["refused"].items()) or "none") + " |")

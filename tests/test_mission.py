@@ -67,6 +67,46 @@ def test_a_set_changes_the_circle_whole_at_the_next_tick():
     assert [(a.seq, a.applied) for a in mission.acks()] == [(6, True)]    # the latest of the sender
 
 
+def test_a_direction_is_the_sign_of_the_yaw_rate_and_keeps_its_size():
+    mission, _ = orders()
+    params = AgentParams()
+    assert offer(mission, payload("set", seq=1, direction="cw"))
+    clockwise = mission.apply(params, NOW_NS)
+    assert clockwise.control.yaw_rate == -params.control.yaw_rate
+    assert offer(mission, payload("set", seq=2, yaw_rate=0.2))          # a new size keeps the direction
+    assert mission.apply(clockwise, NOW_NS).control.yaw_rate == -0.2
+    assert offer(mission, payload("set", seq=3, direction="ccw", yaw_rate=0.05))
+    assert mission.apply(clockwise, NOW_NS).control.yaw_rate == 0.05
+    assert decode(MissionCommand, payload("set", direction="up"))[0] is None
+
+
+def test_a_fleet_with_a_negative_yaw_rate_circles_clockwise_as_well_as_the_other_way():
+    """omega*'s sign is the direction: the controller, the oscillators and the fusion are symmetric in it."""
+    from pathlib import Path
+
+    import numpy as np
+
+    from agent.config import updated
+    from lab.runner import run
+    from sim_bridge.scenario import select_scenario
+
+    _, scenario = select_scenario(Path(__file__).resolve().parents[1] / "configs" / "scenarios"
+                                  / "table2_estimators.yaml", "mckf")
+    rates, spacing = {}, {}
+    for sign in (1.0, -1.0):
+        base = scenario.agent
+        params = updated(base, control=updated(base.control, yaw_rate=sign * base.control.yaw_rate))
+        trace = run(scenario.model_copy(update={"agent": params}))
+        angles = np.unwrap(np.arctan2(trace.positions[:, :, 1] - trace.target[:, None, 1],
+                                      trace.positions[:, :, 0] - trace.target[:, None, 0]), axis=0)
+        late = trace.time >= 30.0
+        rates[sign] = (angles[-1] - angles[late][0]) / (trace.time[-1] - trace.time[late][0])
+        spacing[sign] = float(np.nanmean(trace.e_c[late]))
+        assert np.all(np.abs(trace.radii[-1] - 5.0) < 0.5)
+    assert np.all(rates[1.0] > 0.09) and np.all(rates[-1.0] < -0.09)
+    assert spacing[-1.0] == pytest.approx(spacing[1.0], abs=0.02) and spacing[-1.0] < 0.15
+
+
 @pytest.mark.parametrize("body, key, kind, words", [
     (payload("set", radius=-3.0), "mission/all", "mission_malformed", "greater than 0"),
     (b'{"stamp_ns": 100000000000, "seq": 1, "sender": "op", "command": "set", "radius": NaN}', "mission/all",

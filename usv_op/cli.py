@@ -2,7 +2,7 @@
 
     usv-op status [--once]                      the live fleet in the terminal, refreshed in place
     usv-op hold | resume | start [--vessel ID]  a mission command, then wait for every live agent's answer
-    usv-op set radius=8 [yaw_rate=0.1] [--vessel ID]
+    usv-op set radius=8 [yaw_rate=0.1] [direction=cw|ccw] [--vessel ID]
     usv-op view [--port 8765]                   the live fleet in Foxglove (its WebSocket protocol)
     usv-op layout [--vessels 1 2 3 4]           the Foxglove layout for the live view and the logs
 
@@ -45,7 +45,7 @@ from usv_op.view import serve
 
 CLOCK_LISTEN = 0.5      # s to listen for a sim clock before stamping with the wall clock
 DISCOVERY = 1.0         # s to wait for the agents' liveliness tokens
-SETTABLE = ("radius", "yaw_rate")
+SETTABLE = ("radius", "yaw_rate", "direction")
 CLOSE_WAIT = 1.0        # s to wait for the session to close before exiting without it
 ONCE_WAIT = 3.0         # s `status --once` waits for a status of every live vessel
 
@@ -138,6 +138,9 @@ def _command(args: argparse.Namespace, stamp_ns: int) -> MissionCommand:
         name, equals, text = item.partition("=")
         if not equals or name not in SETTABLE:
             raise ConfigError(f"{item!r}: give {' or '.join(f'{n}=VALUE' for n in SETTABLE)}")
+        if name == "direction":
+            values[name] = text
+            continue
         try:
             values[name] = float(text)
         except ValueError:
@@ -230,7 +233,7 @@ def build_parser() -> argparse.ArgumentParser:
     layout.add_argument("--vessels", nargs="+", default=["1", "2", "3", "4"], help="the fleet's vessel ids")
     for name, text in (("hold", "every addressed vessel stops and keeps station"),
                        ("resume", "circle again after a hold"), ("start", "start (or go on) circling"),
-                       ("set", "a new radius and/or yaw rate: set radius=8 yaw_rate=0.1")):
+                       ("set", "a new circle: set radius=8 yaw_rate=0.1 direction=cw")):
         sub = commands.add_parser(name, help=text)
         if name == "set":
             sub.add_argument("values", nargs="+", metavar="NAME=VALUE")

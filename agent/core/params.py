@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from typing import Literal
+from typing import Annotated, Literal
 
 from pydantic import Field, model_validator
 
@@ -152,7 +152,9 @@ class ControlParams(StrictModel):
     """Formation control and obstacle avoidance, Sec. IV (Table I)."""
 
     radius: PositiveFloat = Field(5.0, description="r*_io, circumnavigation radius (m)")
-    yaw_rate: PositiveFloat = Field(math.pi / 30, description="omega*_i, desired yaw rate (rad/s)")
+    yaw_rate: Annotated[float, Field(allow_inf_nan=False)] = Field(
+        math.pi / 30, description="omega*_i, desired yaw rate (rad/s); its sign is the direction of circling "
+                                  "(positive: counter-clockwise seen from above)")
     safety_distance: PositiveFloat = Field(3.0, description="d_s (m)")
     max_correction_yaw_rate: PositiveFloat = Field(math.pi / 3, description="U_omega_c (rad/s)")
     max_speed: PositiveFloat = Field(5.0, description="U_v (m/s)")
@@ -183,6 +185,12 @@ class ControlParams(StrictModel):
     oscillator_gain: PositiveFloat = Field(
         1.0, description="K of (28): K_m = K for m <= n/2, 0 above (the paper leaves K_m open)"
     )
+
+    @model_validator(mode="after")
+    def _circling(self) -> ControlParams:
+        if self.yaw_rate == 0.0:
+            raise ValueError("yaw_rate must not be 0: a fleet that does not turn does not circle")
+        return self
 
 
 class FleetParams(StrictModel):

@@ -9,7 +9,7 @@ replayed (its `seq` not above the last one judged from its sender), or addressed
 them in order before it runs the core:
 - `hold`: the tick commands STOP (as the watchdog would) until `resume` or `start`; the core still runs, so
   the estimates stay current;
-- `set`: the tick runs with the new radius and/or yaw rate (r*, omega*).
+- `set`: the tick runs with the new radius, yaw rate and/or direction (r*, and omega*'s size and sign).
 Every judgement is an acknowledgement (`MissionAck`); the status carries the latest one of each sender, and
 the log gets every one.
 """
@@ -94,8 +94,13 @@ class MissionOrders:
             elif message.command in ("resume", "start"):
                 self.held = False
             else:
-                changes = {k: v for k, v in (("radius", message.radius), ("yaw_rate", message.yaw_rate))
-                           if v is not None}
+                changes = {} if message.radius is None else {"radius": message.radius}
+                if message.yaw_rate is not None or message.direction is not None:
+                    # omega*'s sign is the direction (agent/core/params.py): the size and the sign are set apart.
+                    size = abs(params.control.yaw_rate) if message.yaw_rate is None else message.yaw_rate
+                    clockwise = (params.control.yaw_rate < 0 if message.direction is None
+                                 else message.direction == "cw")
+                    changes["yaw_rate"] = -size if clockwise else size
                 try:
                     params = updated(params, control=updated(params.control, **changes))
                 except (ValidationError, ValueError) as error:
