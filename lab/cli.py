@@ -23,6 +23,7 @@ SUBCOMMANDS = {
     "fleet-bench": ("lab.fleet_bench", "Table II Monte Carlo wall time, tick cost by fleet size"),
     "runtime-bench": ("lab.runtime_bench",
                       "Zenoh runtime: sensor-to-command latency, lockstep real-time factor, memory"),
+    "cluster-bench": ("lab.cluster_bench", "the same Monte Carlo campaign on the process pool and a local Dask cluster"),
     "runtime-ab": ("lab.runtime_ab", "what one change to the runtime bought: alternating runs before and after it"),
     "fuzz": ("lab.fuzz_bench", "fuzz campaign over Zenoh: bad payloads on every key one agent reads"),
     "sea-bench": ("lab.sea_bench", "the fleet in the sea mode against the ideal simulation, seed by seed"),

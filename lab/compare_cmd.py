@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import os
 import time
 from pathlib import Path
 
@@ -12,6 +11,7 @@ from agent.core.params import ESTIMATOR_NAMES
 from lab import arguments
 from lab.comparison import LS_TIMES, ComparisonConfig, ComparisonResult, nees_band, run_comparison
 from lab.estimator_plots import LABELS, rmse_figure
+from lab.parallel import add_engine_arguments, campaign_notes, engine_from, report_failures
 from lab.report import invocation, markdown_table
 
 DEFAULT_CONFIG = Path("configs/experiments/estimator_comparison.yaml")
@@ -37,8 +37,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help=f"experiment YAML (default: {DEFAULT_CONFIG} if present, else built-in defaults)")
     parser.add_argument("--runs", type=arguments.positive_int, default=None, help="Monte Carlo runs per noise model")
     parser.add_argument("--seed", type=arguments.seed, default=None, help="root seed of every random number")
-    parser.add_argument("--workers", type=arguments.positive_int, default=os.cpu_count() or 1,
-                        help="processes to use")
+    add_engine_arguments(parser)
     parser.add_argument("--out", type=Path, default=Path("docs/results"), help="where tables and plots go")
     parser.add_argument("--no-diagnosis", action="store_true", help="skip the R_z level sweep")
 
@@ -60,15 +59,16 @@ def run(args: argparse.Namespace) -> int:
     started = time.perf_counter()
     results: dict[str, ComparisonResult] = {}
     diagnosis: dict[tuple[str, str], ComparisonResult] = {}
-    with tqdm(total=total, unit="run", desc="Monte Carlo", dynamic_ncols=True) as bar:
+    with engine_from(args) as engine, tqdm(total=total, unit="run", desc="Monte Carlo", dynamic_ncols=True) as bar:
         for noise_name in config.noise_models:
-            results[noise_name] = run_comparison(config, noise_name, args.workers, bar.update)
+            results[noise_name] = run_comparison(config, noise_name, engine, bar.update)
             for label, variant in variants.items():
-                diagnosis[noise_name, label] = run_comparison(variant, noise_name, args.workers, bar.update)
+                diagnosis[noise_name, label] = run_comparison(variant, noise_name, engine, bar.update)
+        where = engine.where()
     elapsed = time.perf_counter() - started
 
     args.out.mkdir(parents=True, exist_ok=True)
-    sections = [_header(config, elapsed, invocation(args))]
+    sections = [_header(config, elapsed, invocation(args), where, campaign_notes(engine))]
     for noise_name, result in results.items():
         figure = rmse_figure(
             result.time, {n: (result.rmse(n), result.spread(n)) for n in config.estimators},
@@ -83,10 +83,11 @@ def run(args: argparse.Namespace) -> int:
     document = args.out / "estimator_comparison.md"
     document.write_text("\n\n".join(sections) + "\n", encoding="utf-8")
     print(f"\nwrote {document} and {len(results)} figure(s) in {elapsed:.1f} s")
-    return 0
+    return report_failures(engine)
 
 
-def _header(config: ComparisonConfig, elapsed: float, command: str) -> str:
+def _header(config: ComparisonConfig, elapsed: float, command: str, where: str = "this machine",
+            notes: list[str] = ()) -> str:
     return "\n".join([
         "# Experiment 1: inter-vessel estimators under non-Gaussian range noise (paper Figs. 4-5)",
         "",
@@ -106,8 +107,9 @@ def _header(config: ComparisonConfig, elapsed: float, command: str) -> str:
         "uses the ranges themselves, not (12), and assumes "
         + ("each run's noise density (a Gaussian mixture: exact for the GMM, fitted for the log-normal)"
            if config.raw_range_noise == "model" else "the noise_components of its parameters")
-        + f". Wall time {elapsed:.1f} s.",
+        + f". Wall time {elapsed:.1f} s; ran on {where}.",
         "",
+        *([*notes, ""] if notes else []),
         ("The dashed black line in each figure is the posterior Cramér–Rao bound "
          "([lab/bound.py](../../lab/bound.py)): "
          "the floor on the RMSE of any unbiased estimate of p_ij from the same data (the initial estimate, both "

@@ -24,7 +24,7 @@ from agent.core.params import ESTIMATOR_NAMES, AgentParams
 from lab.bound import fisher_information, rms_bound
 from lab.errors import ErrorHistory
 from lab.mixture_fit import em_mixture
-from lab.parallel import map_in_order
+from lab.parallel import Engine
 from sim_bridge.noise import (
     GaussianMixtureNoise,
     GaussianNoise,
@@ -264,14 +264,20 @@ def _run_job(job: tuple[ComparisonConfig, RangeNoise, np.random.SeedSequence]
     return run_once(*job)
 
 
-def run_comparison(config: ComparisonConfig, noise_name: str, workers: int = 1, progress=None
+def run_comparison(config: ComparisonConfig, noise_name: str, engine: Engine | int = 1, progress=None
                    ) -> ComparisonResult:
-    """All Monte Carlo runs for one noise model; `progress(n)` is called as runs finish."""
+    """All Monte Carlo runs for one noise model; `progress(n)` is called as runs finish. A run that raised is
+    left out (`engine.failures` names it). An int `engine` is a process pool of that many workers."""
     noise = config.noise_models[noise_name]
     # One child seed per (noise model, run): adding runs or models never changes an existing run.
     root = np.random.SeedSequence([config.seed, _stable_id(noise_name)])
     jobs = [(config, noise, child) for child in root.spawn(config.runs)]
-    outputs = map_in_order(_run_job, jobs, workers, progress)
+    if isinstance(engine, int):
+        with Engine(engine) as pool:
+            return run_comparison(config, noise_name, pool, progress)
+    outputs = [o for o in engine.map(_run_job, jobs, progress,
+                                     lambda n: f"{noise_name} run {n} (child {n} of seed [{config.seed}, "
+                                               f"{_stable_id(noise_name)}])") if o is not None]
     t, own, other = relative_trajectory(config)
     errors = np.stack([o[0] for o in outputs])  # (runs, estimators, K+1)
     # Every run follows the same true path (the seed draws only the noise and the initial estimate), so the

@@ -1,30 +1,190 @@
-"""Monte Carlo jobs over the machine's cores, results in job order whatever the number of workers."""
+"""Monte Carlo runs over this machine's cores or a Dask cluster, results in job order whatever ran them.
+
+`Engine(workers=N)` is today's process pool on this machine; `Engine(cluster="tcp://host:8786")` sends the
+runs to a Dask scheduler (`dask scheduler`, `dask worker` on each machine: docs/lab.md) and
+`Engine(cluster="local:N")` starts a Dask cluster of N worker processes here. Dask is imported only then
+(the `lab-cluster` extra). Either way each run draws from its own child seed, so the results are the same
+bit for bit whatever ran them, in whatever order.
+
+A run that raises does not stop the campaign: its result is None and `Engine.failures` says which run and
+what it raised, so the command still writes what finished. On a Dask cluster, a worker that dies takes its
+runs to another worker (the scheduler's own retry); `Engine.retried` counts them.
+"""
 
 from __future__ import annotations
 
+import importlib
+import os
+import sys
+import traceback
 from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
-from typing import TypeVar
+from dataclasses import dataclass
+from functools import partial
+from typing import Self, TypeVar
+
+from agent.config import ConfigError
+from lab import arguments
 
 J = TypeVar("J")
 R = TypeVar("R")
+CONNECT_TIMEOUT = "30s"   # to reach a remote scheduler
 
 
-def map_in_order(function: Callable[[J], R], jobs: Sequence[J], workers: int,
-                 progress: Callable[[int], None] | None = None) -> list[R]:
-    """`function` over `jobs` in `workers` processes (in this one when 1), calling `progress(1)` per job."""
-    results: list[R] = []
-    if workers > 1 and len(jobs) > 1:
-        # A few chunks per worker: few round trips, yet a slow chunk at the end does not idle the others.
-        chunk = max(1, len(jobs) // (4 * workers))
-        with ProcessPoolExecutor(max_workers=min(workers, len(jobs))) as pool:
-            for result in pool.map(function, jobs, chunksize=chunk):
-                results.append(result)
+@dataclass(frozen=True)
+class Failure:
+    """A run that raised: which one (the caller's words: variant, run, seed) and what it raised."""
+
+    run: str
+    error: str
+
+
+def _guarded(function: Callable[[J], R], job: J) -> tuple[bool, R | str]:
+    """(True, result), or (False, the exception in a line and its last frame) if `function(job)` raised."""
+    try:
+        return True, function(job)
+    except Exception as error:  # noqa: BLE001  (one run's failure is reported, the campaign goes on)
+        where = traceback.extract_tb(error.__traceback__)[-1]
+        return False, f"{type(error).__name__}: {error} ({os.path.basename(where.filename)}:{where.lineno})"
+
+
+class Engine:
+    """Where a campaign's runs go; a context manager (a Dask client lives from enter to exit)."""
+
+    def __init__(self, workers: int = 1, cluster: str | None = None) -> None:
+        self.workers, self.cluster = workers, cluster
+        self.failures: list[Failure] = []
+        self.retried = 0
+        self._client = self._local = None
+
+    def __enter__(self) -> Self:
+        if self.cluster is None:
+            return self
+        try:
+            import dask
+            from dask.distributed import Client, LocalCluster
+        except ImportError:
+            raise ConfigError("--cluster needs Dask: pip install 'usv-circumnav[lab-cluster]'") from None
+        # The workers' sampling profiler wakes every 10 ms and takes the GIL from runs that are pure Python:
+        # off in the workers started here (docs/lab.md says how to turn it off on a cluster's own).
+        dask.config.set({"distributed.worker.profile.enabled": False})
+        if self.cluster.startswith("local:"):
+            count = self.cluster.partition(":")[2]
+            if not count.isdigit() or int(count) < 1:
+                raise ConfigError(f"--cluster {self.cluster}: give local:N with N worker processes, e.g. local:2")
+            self._local = LocalCluster(n_workers=int(count), threads_per_worker=1, processes=True,
+                                       dashboard_address=None)
+            self._client = Client(self._local)
+        else:
+            try:
+                self._client = Client(self.cluster, timeout=CONNECT_TIMEOUT)
+            except OSError as error:
+                raise ConfigError(f"--cluster {self.cluster}: no Dask scheduler answers there ({error})") from None
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self._client is not None:
+            self._client.close()
+        if self._local is not None:
+            self._local.close()
+
+    def prepare(self, module: str) -> None:
+        """Import `module` in every worker of the cluster now (nothing to do for the pool, whose workers
+        are forks of this process)."""
+        if self._client is not None:
+            self._client.run(importlib.import_module, module)
+
+    def where(self) -> str:
+        """Where the runs went, in words, for a results page."""
+        if self._client is None:
+            return f"this machine, {self.workers} worker process(es)"
+        workers = self._client.scheduler_info().get("workers", {})
+        threads = sum(w.get("nthreads", 0) for w in workers.values())
+        hosts = sorted({w.get("host", "?") for w in workers.values()})
+        started = " (a local cluster the command started)" if self._local is not None else ""
+        return (f"Dask scheduler {self._client.scheduler.address}{started}: {len(workers)} worker(s), {threads} "
+                f"thread(s), on {', '.join(hosts)}")
+
+    def map(self, function: Callable[[J], R], jobs: Sequence[J], progress: Callable[[int], None] | None = None,
+            describe: Callable[[int], str] | None = None) -> list[R | None]:
+        """`function` over `jobs`, results in job order; a run that raised gives None and a `Failure` named
+        by `describe(index)`. `progress(1)` is called as each run finishes."""
+        guarded = partial(_guarded, function)
+        if self._client is not None:
+            outcomes = self._map_dask(guarded, jobs, progress)
+        elif self.workers > 1 and len(jobs) > 1:
+            # A few chunks per worker: few round trips, yet a slow chunk at the end does not idle the others.
+            chunk = max(1, len(jobs) // (4 * self.workers))
+            outcomes = []
+            with ProcessPoolExecutor(max_workers=min(self.workers, len(jobs))) as pool:
+                for outcome in pool.map(guarded, jobs, chunksize=chunk):
+                    outcomes.append(outcome)
+                    if progress:
+                        progress(1)
+        else:
+            outcomes = []
+            for job in jobs:
+                outcomes.append(guarded(job))
                 if progress:
                     progress(1)
-    else:
-        for job in jobs:
-            results.append(function(job))
+        results: list[R | None] = []
+        for index, (ok, value) in enumerate(outcomes):
+            if not ok:
+                self.failures.append(Failure(describe(index) if describe else f"run {index}", value))
+            results.append(value if ok else None)
+        return results
+
+    def _map_dask(self, guarded, jobs: Sequence[J], progress) -> list:
+        from dask.distributed import as_completed
+
+        futures = self._client.map(guarded, list(jobs), pure=False)
+        index = {future.key: n for n, future in enumerate(futures)}
+        outcomes: list = [None] * len(jobs)
+        for future in as_completed(futures):
+            outcomes[index[future.key]] = future.result()
             if progress:
                 progress(1)
-    return results
+        keys = list(index)
+        # A task on a worker that died was run again elsewhere: the scheduler counts it as `suspicious`.
+        self.retried += self._client.run_on_scheduler(_suspicious, keys)
+        self._client.cancel(futures)
+        return outcomes
+
+
+def _suspicious(keys: list, dask_scheduler=None) -> int:
+    """On the scheduler: how many times the tasks `keys` were lost with a worker and run again."""
+    return sum(dask_scheduler.tasks[k].suspicious for k in keys if k in dask_scheduler.tasks)
+
+
+def add_engine_arguments(parser) -> None:
+    """--workers and --cluster, the same on every command that runs Monte Carlo."""
+    parser.add_argument("--workers", type=arguments.positive_int, default=os.cpu_count() or 1,
+                        help="processes of this machine to use (without --cluster)")
+    parser.add_argument("--cluster", default=None, metavar="ADDRESS",
+                        help="run on a Dask cluster: a scheduler's address (tcp://host:8786), or local:N to start "
+                             "one of N worker processes here (needs the lab-cluster extra; docs/lab.md)")
+
+
+def engine_from(args) -> Engine:
+    return Engine(workers=args.workers, cluster=args.cluster)
+
+
+def campaign_notes(engine: Engine) -> list[str]:
+    """Lines a results page adds when the campaign was not plain: runs retried after a worker died, runs
+    that raised (left out of the figures)."""
+    notes = []
+    if engine.retried:
+        notes.append(f"- {engine.retried} run(s) were run again on another worker after theirs died; their "
+                     "results are the same as any run's (each run draws from its own seed)")
+    if engine.failures:
+        notes.append(f"- **{len(engine.failures)} run(s) raised and are left out**: "
+                     + "; ".join(f"{f.run}: {f.error}" for f in engine.failures[:10])
+                     + (" ..." if len(engine.failures) > 10 else ""))
+    return notes
+
+
+def report_failures(engine: Engine) -> int:
+    """Say on stderr which runs raised; the command's exit code (1 if any did)."""
+    for failure in engine.failures:
+        print(f"usv-lab: {failure.run} raised {failure.error}", file=sys.stderr)
+    return 1 if engine.failures else 0

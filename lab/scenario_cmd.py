@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import sys
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -22,7 +23,7 @@ import numpy as np
 from agent.config import ConfigError, updated
 from lab import arguments
 from lab.fleet_plots import error_figure, trajectory_figure
-from lab.parallel import map_in_order
+from lab.parallel import Engine, add_engine_arguments, campaign_notes, engine_from, report_failures
 from lab.report import invocation, markdown_table
 from lab.runner import RunTrace
 from lab.runner import run as run_scenario
@@ -42,8 +43,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="Monte Carlo runs of every variant (default: each file's own)")
     parser.add_argument("--seed", type=arguments.seed, default=None,
                         help="root seed of every variant (default: each file's own)")
-    parser.add_argument("--workers", type=arguments.positive_int, default=os.cpu_count() or 1,
-                        help="processes to use")
+    add_engine_arguments(parser)
     parser.add_argument("--out", type=Path, default=Path("docs/results/scenarios"),
                         help="where the pages and figures go")
     parser.add_argument("--scenarios-dir", type=Path, default=DEFAULT_DIR,
@@ -183,24 +183,36 @@ def _run_job(job: Job) -> RunOutcome:
     return RunOutcome(trace.metrics, errors, closest_approach(trace.positions), trace if keep_trace else None)
 
 
-def run_monte_carlo(files: dict[str, dict[str, Scenario]], workers: int,
+def run_monte_carlo(files: dict[str, dict[str, Scenario]], engine: Engine | int,
                     progress: Callable[[int], None] | None = None) -> dict[str, dict[str, VariantResult]]:
-    """Every run of every variant of `files` ({stem: {variant: scenario}}), results in the same shape."""
-    keys: list[tuple[str, str]] = []
+    """Every run of every variant of `files` ({stem: {variant: scenario}}), results in the same shape. A run
+    that raised is left out (`engine.failures` names it); so is a variant whose run 0 (the figures') did. An int
+    `engine` is a process pool of that many workers."""
+    keys: list[tuple[str, str, int]] = []
     jobs: list[Job] = []
     for stem, scenarios in files.items():
         for variant, scenario in scenarios.items():
             for index, seed in enumerate(np.random.SeedSequence(scenario.seed).spawn(scenario.runs)):
-                keys.append((stem, variant))
+                keys.append((stem, variant, index))
                 jobs.append((scenario, seed, index == 0))
-    outcomes: list[RunOutcome] = map_in_order(_run_job, jobs, workers, progress)
+    if isinstance(engine, int):
+        with Engine(engine) as pool:
+            return run_monte_carlo(files, pool, progress)
 
+    def describe(n: int) -> str:
+        stem, variant, index = keys[n]
+        return f"{stem} variant {variant} run {index} (child {index} of seed {files[stem][variant].seed})"
+
+    outcomes: list[RunOutcome | None] = engine.map(_run_job, jobs, progress, describe)
     grouped: dict[tuple[str, str], list[RunOutcome]] = {}
-    for key, outcome in zip(keys, outcomes):   # map keeps job order, so runs stay in index order
-        grouped.setdefault(key, []).append(outcome)
+    for (stem, variant, _), outcome in zip(keys, outcomes):   # map keeps job order: runs stay in index order
+        if outcome is not None:
+            grouped.setdefault((stem, variant), []).append(outcome)
     results: dict[str, dict[str, VariantResult]] = {}
     for (stem, variant), runs in grouped.items():
         first = runs[0].trace
+        if first is None:   # run 0 keeps its trace for the figures; it failed, and so the variant is left out
+            continue
         results.setdefault(stem, {})[variant] = VariantResult(
             name=variant, scenario=files[stem][variant], time=first.time, metrics=[r.metrics for r in runs],
             errors=np.stack([r.errors for r in runs]), closest=np.array([r.closest for r in runs]),
@@ -221,15 +233,19 @@ def run(args: argparse.Namespace) -> int:
     files = {stem: scenarios for stem, (_, _, scenarios) in loaded.items()}
     total = sum(s.runs for scenarios in files.values() for s in scenarios.values())
     started = time.perf_counter()
-    with tqdm(total=total, unit="run", desc="scenarios", dynamic_ncols=True) as bar:
-        results = run_monte_carlo(files, args.workers, bar.update)
+    with engine_from(args) as engine, tqdm(total=total, unit="run", desc="scenarios", dynamic_ncols=True) as bar:
+        results = run_monte_carlo(files, engine, bar.update)
+        where = engine.where()
     elapsed = time.perf_counter() - started
 
     args.out.mkdir(parents=True, exist_ok=True)
     command = invocation(args)
     index = []
     for stem, (path, spec, _) in loaded.items():
-        variants = results[stem]
+        variants = results.get(stem)
+        if not variants:
+            print(f"\n{stem}: no variant finished its run 0; no page", file=sys.stderr)
+            continue
         trajectories = trajectory_figure(
             {name: (v.first, v.scenario) for name, v in variants.items()},
             f"{spec.name}: trajectories of run 0", args.out / f"{stem}_trajectories.png")
@@ -237,15 +253,15 @@ def run(args: argparse.Namespace) -> int:
             {name: (v.time, v.errors) for name, v in variants.items()}, join_leave_events(variants),
             f"{spec.name}: errors, mean over runs +-1 std", args.out / f"{stem}_errors.png")
         tables = (comparison_table(variants), settling_table(variants))
-        page = render_page(path, spec, variants, tables, command, elapsed, args.workers,
-                           (trajectories.name, errors.name))
+        page = render_page(path, spec, variants, tables, command, elapsed, where,
+                           (trajectories.name, errors.name), campaign_notes(engine))
         (args.out / f"{stem}.md").write_text(page, encoding="utf-8")
         print(f"\n{stem}:\n{tables[0]}\n\n{tables[1]}")
         index.append((stem, spec, variants))
     if "all" in args.names:
         (args.out / "README.md").write_text(render_index(index, command), encoding="utf-8")
     print(f"\nwrote {len(index)} page(s) to {args.out} in {elapsed:.1f} s")
-    return 0
+    return report_failures(engine)
 
 
 def join_leave_events(variants: dict[str, VariantResult]) -> list[tuple[float, str]]:
@@ -338,7 +354,7 @@ def _start(scenario: Scenario) -> str:
 
 
 def render_page(path: Path, spec: ScenarioFile, variants: dict[str, VariantResult], tables: tuple[str, str],
-                command: str, elapsed: float, workers: int, figures: tuple[str, str]) -> str:
+                command: str, elapsed: float, where: str, figures: tuple[str, str], notes: list[str] = ()) -> str:
     paper = _paper_tables(variants)
     heading = (f"Ours vs the paper's Table {', '.join(paper)}" if paper
                else "Ours (the paper gives no numbers)")
@@ -364,8 +380,9 @@ def render_page(path: Path, spec: ScenarioFile, variants: dict[str, VariantResul
         f"r* (m): {_setting(variants, lambda s: s.agent.control.radius)}; "
         f"dt (s): {_setting(variants, lambda s: s.world.dt)}",
         f"- initial estimates: {_setting(variants, _start)}",
-        f"- wall time {elapsed:.1f} s for all the files of the command, {workers} worker process(es), "
+        f"- wall time {elapsed:.1f} s for all the files of the command; ran on {where}; "
         f"os.cpu_count() = {os.cpu_count()}",
+        *notes,
         "",
         f"## {heading}",
         "",

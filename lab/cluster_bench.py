@@ -1,0 +1,86 @@
+"""`usv-lab cluster-bench`: the same Monte Carlo campaign on this machine's process pool and on a local Dask
+cluster with as many worker processes, in one run; what the scheduler costs per run. A benchmark, not a test.
+
+The campaign is a scenario file's variants (Table II by default) with `--runs` runs each. Both engines get
+the same job list and seeds (lab/scenario_cmd.py `run_monte_carlo`), and the command checks that their
+errors agree bit for bit before it writes anything. The cluster's start (its worker processes importing
+the lab) is timed apart from the campaign; the overhead per run is the difference of the two campaigns'
+wall times over the runs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from lab import arguments
+from lab.parallel import Engine
+from lab.report import invocation, machine, markdown_table
+from lab.scenario_cmd import DEFAULT_DIR, load, resolve, run_monte_carlo
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--scenario", default="table2_estimators", help="scenario file stem (configs/scenarios)")
+    parser.add_argument("--runs", type=arguments.positive_int, default=4, help="Monte Carlo runs of every variant")
+    parser.add_argument("--workers", type=arguments.positive_int, default=os.cpu_count() or 1,
+                        help="worker processes of the pool, and of the local Dask cluster")
+    parser.add_argument("--out", type=Path, default=Path("docs/results"), help="where cluster_benchmark.md goes")
+    parser.add_argument("--scenarios-dir", type=Path, default=DEFAULT_DIR, help="where the scenario files are")
+
+
+def _campaign(files, engine: Engine) -> tuple[float, dict]:
+    started = time.perf_counter()
+    results = run_monte_carlo(files, engine)
+    return time.perf_counter() - started, results
+
+
+def run(args: argparse.Namespace) -> int:
+    (path,) = resolve([args.scenario], args.scenarios_dir)
+    _, scenarios = load(path, args.runs)
+    files = {path.stem: scenarios}
+    runs = sum(s.runs for s in scenarios.values())
+    print(f"cluster-bench: {runs} runs of {path.stem} on the process pool ({args.workers} workers)", file=sys.stderr)
+    with Engine(workers=args.workers) as pool:
+        pool_seconds, pool_results = _campaign(files, pool)
+        pool_where = pool.where()
+    print(f"cluster-bench: the same on a local Dask cluster of {args.workers} worker processes", file=sys.stderr)
+    started = time.perf_counter()
+    with Engine(cluster=f"local:{args.workers}") as cluster:
+        # The workers are new interpreters (a pool's are forks of this one): their imports belong to the start.
+        cluster.prepare("lab.scenario_cmd")
+        start_seconds = time.perf_counter() - started
+        cluster_seconds, cluster_results = _campaign(files, cluster)
+        cluster_where = cluster.where()
+    same = all(np.array_equal(cluster_results[path.stem][v].errors, pool_results[path.stem][v].errors,
+                              equal_nan=True)
+               for v in pool_results[path.stem])
+    if not same:
+        print("cluster-bench: the cluster's results differ from the pool's: report this", file=sys.stderr)
+        return 1
+    rows = [["process pool", pool_where, "-", f"{pool_seconds:.1f}", f"{pool_seconds / runs:.3f}", "-"],
+            ["local Dask cluster", cluster_where, f"{start_seconds:.1f}", f"{cluster_seconds:.1f}",
+             f"{cluster_seconds / runs:.3f}", f"{1e3 * (cluster_seconds - pool_seconds) / runs:+.0f}"]]
+    text = "\n".join([
+        "# Monte Carlo on a Dask cluster against the process pool", "",
+        f"Command: `{invocation(args)}`", "",
+        *[f"- {line}" for line in machine()], "",
+        f"The same campaign, {runs} runs ({len(scenarios)} variants of `{path.name}` x {args.runs} runs, "
+        f"{next(iter(scenarios.values())).duration:g} s simulated each), first on this machine's process pool "
+        f"and then on a local Dask cluster with as many worker processes (lab/parallel.py). The errors of every "
+        "run are the same bit for bit on both (checked before this page is written). The cluster's start (its "
+        "worker processes starting and importing the lab, which a pool's forked workers need not) is apart from "
+        "the campaign's wall time; the overhead per run is the difference of the two wall times over the runs, what the scheduler and the transfer of "
+        "jobs and results cost.", "",
+        markdown_table(["engine", "where", "start (s)", "campaign wall time (s)", "per run (s)",
+                        "overhead per run vs the pool (ms)"], rows), "",
+        "On two lab machines the same campaign splits over their cores: docs/lab.md says how to start a "
+        "scheduler and workers and what speed-up to expect.", ""])
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "cluster_benchmark.md").write_text(text, encoding="utf-8")
+    print(text)
+    return 0

@@ -1,0 +1,102 @@
+"""Monte Carlo on a real local Dask cluster (lab/parallel.py): the same results bit for bit as this machine's
+process pool, a worker killed mid-campaign, a run that raises."""
+
+from __future__ import annotations
+
+import os
+import signal
+
+import numpy as np
+import pytest
+from test_scenario_cmd import TINY
+
+from lab import scenario_cmd
+from lab.comparison import ComparisonConfig, run_comparison
+from lab.parallel import Engine
+
+pytest.importorskip("dask.distributed")
+pytestmark = pytest.mark.slow   # worker processes of a Dask cluster
+
+CLUSTER = "local:2"
+
+
+@pytest.fixture
+def tiny(tmp_path):
+    path = tmp_path / "tiny.yaml"
+    path.write_text(TINY.replace("runs: 2", "runs: 6"))
+    return path
+
+
+def _arrays(results) -> dict:
+    return {name: (v.errors, v.closest, [m.settling_time for m in v.metrics]) for name, v in results.items()}
+
+
+def test_scenario_and_compare_give_the_same_numbers_on_the_cluster_as_on_the_pool(tiny):
+    _, scenarios = scenario_cmd.load(tiny)
+    config = ComparisonConfig(runs=6, duration=6.0, estimators=("kf", "mckf", "raw_range"))
+    outcomes = {}
+    for name, engine in (("pool", Engine(workers=2)), ("cluster", Engine(cluster=CLUSTER))):
+        with engine:
+            outcomes[name] = (_arrays(scenario_cmd.run_monte_carlo({"tiny": scenarios}, engine)["tiny"]),
+                              run_comparison(config, "gmm", engine), engine.where())
+    (pool_runs, pool_compare, pool_where), (runs, compare, where) = outcomes["pool"], outcomes["cluster"]
+    assert pool_where == "this machine, 2 worker process(es)"
+    assert where.startswith("Dask scheduler tcp://") and "2 worker(s), 2 thread(s)" in where
+    assert pool_runs.keys() == runs.keys()
+    for name in runs:
+        np.testing.assert_array_equal(runs[name][0], pool_runs[name][0])     # bit for bit
+        np.testing.assert_array_equal(runs[name][1], pool_runs[name][1])
+        assert runs[name][2] == pool_runs[name][2]
+    for estimator in config.estimators:
+        np.testing.assert_array_equal(compare.errors[estimator], pool_compare.errors[estimator])
+    # the scenario file's own variants, each run once per seed child
+    assert all(v[0].shape[0] == 6 for v in runs.values())
+
+
+def test_a_worker_killed_mid_campaign_loses_nothing(tiny):
+    _, scenarios = scenario_cmd.load(tiny)
+    with Engine(workers=2) as pool:
+        expected = _arrays(scenario_cmd.run_monte_carlo({"tiny": scenarios}, pool)["tiny"])
+    with Engine(cluster=CLUSTER) as engine:
+        pids = engine._client.run(os.getpid)     # {worker address: pid}
+        victim = sorted(pids.values())[0]
+        done = []
+
+        def progress(n: int) -> None:
+            done.append(n)
+            if len(done) == 1:          # the first run is in: the others are on the workers now
+                os.kill(victim, signal.SIGKILL)
+
+        results = _arrays(scenario_cmd.run_monte_carlo({"tiny": scenarios}, engine, progress)["tiny"])
+        retried = engine.retried
+    assert sum(done) == 6 * len(scenarios) and not engine.failures
+    assert retried >= 1, "the killed worker's runs were not run again"
+    for name in expected:
+        np.testing.assert_array_equal(results[name][0], expected[name][0])
+
+
+def _raise_on_three(job: int) -> int:
+    if job == 3:
+        raise ValueError("run three is cursed")
+    return job * job
+
+
+@pytest.mark.parametrize("engine", [Engine(workers=2), Engine(cluster=CLUSTER)], ids=["pool", "cluster"])
+def test_a_run_that_raises_is_named_and_the_others_finish(engine):
+    with engine:
+        results = engine.map(_raise_on_three, list(range(6)), describe=lambda n: f"variant v run {n} (seed 7)")
+    assert results == [0, 1, 4, None, 16, 25]
+    (failure,) = engine.failures
+    assert failure.run == "variant v run 3 (seed 7)" and failure.error.startswith("ValueError: run three is cursed")
+
+
+def test_the_commands_take_a_cluster_and_their_pages_say_where_they_ran(tiny, tmp_path):
+    from lab.cli import main
+
+    out = tmp_path / "out"
+    assert main(["scenario", str(tiny), "--out", str(out), "--cluster", CLUSTER]) == 0
+    page = (out / "tiny.md").read_text(encoding="utf-8")
+    assert "ran on Dask scheduler tcp://" in page and "(a local cluster the command started): 2 worker(s)" in page
+    assert main(["compare", "--runs", "4", "--out", str(out), "--no-diagnosis", "--cluster", CLUSTER]) == 0
+    assert "ran on Dask scheduler tcp://" in (out / "estimator_comparison.md").read_text(encoding="utf-8")
+    assert main(["scenario", str(tiny), "--out", str(out), "--cluster", "local:zero"]) == 2
