@@ -348,3 +348,42 @@ def test_in_lockstep_a_hold_received_during_tick_k_stops_every_vessel_from_tick_
     assert np.all(commands[51:81] == 0.0)                     # ticks 51 to 80: STOP, every vessel
     assert np.all(np.any(commands[40:51, :, 0] != 0.0, axis=0))   # moving before ...
     assert np.all(np.any(commands[81:95, :, 0] != 0.0, axis=0))   # ... and again after the resume
+
+
+@pytest.mark.slow   # a lockstep fleet of processes over Zenoh, and usv-op
+def test_a_lockstep_fleet_of_processes_holds_from_the_next_tick_boundary_until_resume(tmp_path):
+    import threading
+    from pathlib import Path
+
+    from conftest import wait_until
+
+    from mission_log.reader import load_run
+    from sim_bridge.fleet import Fleet
+
+    scenarios = Path(__file__).resolve().parents[1] / "configs" / "scenarios"
+    fleet = Fleet(scenarios / "table2_estimators.yaml", "mckf", tmp_path / "runs")
+    said = {}
+
+    def operator() -> None:
+        if wait_until(lambda: fleet._sim_time >= 10.0, timeout=60):
+            said["hold"] = _op(fleet, "hold")
+        if wait_until(lambda: fleet._sim_time >= 25.0, timeout=60):
+            said["resume"] = _op(fleet, "resume")
+
+    thread = threading.Thread(target=operator, daemon=True)
+    thread.start()
+    folder = fleet.run(timeout=180)
+    thread.join(timeout=60)
+    assert said["hold"].returncode == 0 and said["resume"].returncode == 0, said
+    dt_ns = 100_000_000
+    for vessel, log in load_run(folder).vessels.items():
+        records = {m["ack"]["command"]: m for _, m in log.topic("mission") if m["ack"]["sender"] == "operator"}
+        hold, resume = records["hold"], records["resume"]
+        # Applied at the first tick boundary after it came: the tick it came in, or the next.
+        for record in (hold, resume):
+            assert 0 <= record["ack"]["stamp_ns"] - record["received_ns"] <= dt_ns, record
+        start, end = hold["ack"]["stamp_ns"], resume["ack"]["stamp_ns"]
+        commands = [(t, m["surge"], m["yaw_rate"]) for t, m in log.topic("cmd")]
+        assert all((s, w) == (0.0, 0.0) for t, s, w in commands if start <= t < end), vessel
+        assert sum(start <= t < end for t, _, _ in commands) >= 5
+        assert any(s != 0.0 for t, s, _ in commands if t >= end) and any(s != 0.0 for t, s, _ in commands if t < start)

@@ -48,10 +48,11 @@ class MissionOrders:
         self._count = count
         self.held = False
         self._lock = threading.Lock()
-        self._pending: list[MissionCommand] = []
+        self._pending: list[tuple[MissionCommand, int]] = []   # and when each came (agent time, ns)
         self._last_seq: OrderedDict[str, int] = OrderedDict()
         self._acks: OrderedDict[str, MissionAck] = OrderedDict()
-        self._judged: list[tuple[MissionCommand | None, MissionAck]] = []   # for the log, drained by the tick
+        # For the log, drained by the tick: (command, answer, when it came).
+        self._judged: list[tuple[MissionCommand | None, MissionAck, int]] = []
 
     def offer(self, key: str, payload: bytes, now: float | None, now_ns: int, known: Callable[[], frozenset]) -> bool:
         """Judge one payload received on `key` at agent time `now` (None: no clock to judge stamps by);
@@ -79,7 +80,7 @@ class MissionOrders:
             if len(self._pending) >= MAX_PENDING:
                 return self._refuse(message, now_ns, "flood", f"{MAX_PENDING} commands wait already", locked=True)
             self._remember(self._last_seq, message.sender, message.seq)
-            self._pending.append(message)
+            self._pending.append((message, now_ns))
         return True
 
     def apply(self, params: AgentParams, stamp_ns: int) -> AgentParams:
@@ -87,7 +88,7 @@ class MissionOrders:
         parameters to tick with."""
         with self._lock:
             pending, self._pending = self._pending, []
-        for message in pending:
+        for message, received in pending:
             reason = ""
             if message.command == "hold":
                 self.held = True
@@ -106,10 +107,10 @@ class MissionOrders:
                 except (ValidationError, ValueError) as error:
                     reason = f"the controller refuses it: {' '.join(str(error).split())[:200]}"
             if reason:
-                self._refuse(message, stamp_ns, "refused", reason)
+                self._refuse(message, stamp_ns, "refused", reason, received=received)
             else:
                 self._ack(message, MissionAck(sender=message.sender, seq=message.seq, command=message.command,
-                                              applied=True, stamp_ns=stamp_ns))
+                                              applied=True, stamp_ns=stamp_ns), received)
         return params
 
     def acks(self) -> list[MissionAck]:
@@ -117,8 +118,9 @@ class MissionOrders:
         with self._lock:
             return list(self._acks.values())
 
-    def judged(self) -> list[tuple[MissionCommand | None, MissionAck]]:
-        """Every judgement since the last call (command, or None if it could not be read; and the answer)."""
+    def judged(self) -> list[tuple[MissionCommand | None, MissionAck, int]]:
+        """Every judgement since the last call: the command (None if it could not be read), the answer, and
+        when the command came (agent time, ns)."""
         with self._lock:
             judged, self._judged = self._judged, []
         return judged
@@ -131,27 +133,27 @@ class MissionOrders:
 
     # ----- internals -----
     def _refuse(self, message: MissionCommand | None, stamp_ns: int, kind: str, reason: str,
-                locked: bool = False, who: tuple[str, int, str] = ("?", 0, "?")) -> bool:
+                locked: bool = False, who: tuple[str, int, str] = ("?", 0, "?"), received: int | None = None) -> bool:
         """Count and answer a refusal; `who` names an unreadable command's sender, seq and command as far
         as they could be read, so that its sender learns why."""
         self._count(f"mission_{kind}", f"mission: {reason}")
         sender, seq, command = (message.sender, message.seq, message.command) if message is not None else who
         ack = MissionAck(sender=sender, seq=seq, command=command, applied=False, reason=f"{kind}: {reason}"[:300],
                          stamp_ns=max(0, stamp_ns))
-        self._ack(message, ack, locked)
+        self._ack(message, ack, stamp_ns if received is None else received, locked)
         return False
 
-    def _ack(self, message: MissionCommand | None, ack: MissionAck, locked: bool = False) -> None:
+    def _ack(self, message: MissionCommand | None, ack: MissionAck, received: int, locked: bool = False) -> None:
         if locked:
-            self._record(message, ack)
+            self._record(message, ack, received)
         else:
             with self._lock:
-                self._record(message, ack)
+                self._record(message, ack, received)
 
-    def _record(self, message: MissionCommand | None, ack: MissionAck) -> None:
+    def _record(self, message: MissionCommand | None, ack: MissionAck, received: int) -> None:
         self._remember(self._acks, ack.sender, ack)
         if len(self._judged) < MAX_PENDING * 4:
-            self._judged.append((message, ack))
+            self._judged.append((message, ack, max(0, received)))
 
     @staticmethod
     def _remember(table: OrderedDict, sender: str, value) -> None:

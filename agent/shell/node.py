@@ -456,8 +456,8 @@ class AgentNode:
             try:
                 logged = inputs if inputs is not None else TickInputs(time=now, odometry=None)
                 self.tick_log.tick(stamp, logged, output, command, status, wire)
-                for order, ack in self.orders.judged():
-                    self.tick_log.mission(stamp, order, ack)
+                for order, ack, received in self.orders.judged():
+                    self.tick_log.mission(stamp, order, ack, received)
                 every = self.settings.snapshot_every
                 if every and self.ticks % every == 0:
                     # After this tick: replay can start at the next one (agent/core/snapshot.py).

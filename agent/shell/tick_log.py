@@ -54,6 +54,7 @@ class MissionRecord(StrictModel):
 
     command: MissionCommand | None
     ack: MissionAck
+    received_ns: int = Field(ge=0, description="when the command came, in the agent's clock (ns)")
 
 
 def log_topic(vessel: str, name: str) -> str:
@@ -120,11 +121,11 @@ class TickLogger:
             "kind": kind, "message": message, "count": count,
             "inputs": None if inputs is None else inputs_to_json(inputs)}, stamp, schema=TickError)
 
-    def mission(self, stamp: int, command: MissionCommand | None, ack: MissionAck) -> None:
-        """Log one judged mission command at time `stamp` (ns)."""
+    def mission(self, stamp: int, command: MissionCommand | None, ack: MissionAck, received_ns: int) -> None:
+        """Log one judged mission command at time `stamp` (ns); it came at `received_ns`."""
         self.log.log(log_topic(self.id, "mission"), {
             "command": None if command is None else command.model_dump(mode="json"),
-            "ack": ack.model_dump(mode="json")}, stamp, schema=MissionRecord)
+            "ack": ack.model_dump(mode="json"), "received_ns": received_ns}, stamp, schema=MissionRecord)
 
     def summary(self, stamp: int, *, ticks: int, overruns: int, refused: Mapping[str, int], loop_seconds: float,
                 cpu_seconds: float, core_cpu_seconds: float | None = None) -> None:
