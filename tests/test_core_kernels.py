@@ -175,3 +175,72 @@ def test_history_keeps_the_latest_stamps_in_order_without_a_resort():
     assert history.keys() == kept
     assert history.last_values(3) == [history.get(k) for k in kept[-3:]]
     assert history.last_values(10) == [history.get(k) for k in kept]
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_target_fusion_matches_the_matrices_of_one_neighbour_at_a_time(seed):
+    """fuse_targets, which gathers every neighbour's floats into stacks, against the transformations written
+    as 4x4 matrices, one neighbour at a time: x_j carried by C = [I, -age I; 0, I] (and j's velocity), moved
+    to us through p^_ij and v_i, covariance SWAP C P C^T SWAP + blkdiag(P_ij, 0), then equal-weight
+    covariance intersection with ours."""
+    from types import SimpleNamespace
+
+    from agent.core.cooperation import SWAP_VELOCITY, fuse_targets
+
+    rng = np.random.default_rng(seed)
+    now, velocity = 12.3, rng.normal(size=2)
+    own_state, own_cov = rng.normal(size=4), _spd(rng, 4) + 5.0 * np.eye(4)
+    assimilated = []
+    tracker = SimpleNamespace(state=own_state, covariance=own_cov,
+                              assimilate=lambda x, P: assimilated.append((x, P)))
+    neighbours, expected = [], [(own_state, own_cov)]
+    for _ in range(4):
+        pair_cov = _spd(rng, 2)
+        moments = (*rng.normal(size=2), pair_cov[0, 0], 0.5 * (pair_cov[0, 1] + pair_cov[1, 0]), pair_cov[1, 1])
+        share = SimpleNamespace(odometry=SimpleNamespace(stamp=now - rng.uniform(0.0, 0.3)),
+                                target=own_state + 0.1 * rng.normal(size=4), target_covariance=_spd(rng, 4),
+                                velocity=rng.normal(size=2))
+        track = SimpleNamespace(share=share, estimator=object(), moments=lambda m=moments: m)
+        x, y = rng.normal(size=2)
+        neighbours.append((track, x, y))
+        age = now - share.odometry.stamp
+        C = np.block([[np.eye(2), -age * np.eye(2)], [np.zeros((2, 2)), np.eye(2)]])
+        carried = C @ share.target + np.concatenate([age * share.velocity, np.zeros(2)])
+        mean = np.concatenate([carried[:2] + [x, y], velocity - carried[2:]])
+        _, _, p11, p12, p22 = moments
+        cov = SWAP_VELOCITY @ C @ share.target_covariance @ C.T @ SWAP_VELOCITY
+        cov[:2, :2] += [[p11, p12], [p12, p22]]
+        expected.append((mean, cov))
+    state = SimpleNamespace(tracker=tracker, motion=SimpleNamespace(velocity=velocity),
+                            health=SimpleNamespace(target_estimates_gated=0))
+    params = SimpleNamespace(fleet=SimpleNamespace(target_gate=1e9))
+    fuse_targets(params, state, neighbours, now)
+    (x_f, P_f), = assimilated
+    x_r, P_r = _reference_intersection(expected, [1.0 / len(expected)] * len(expected))
+    np.testing.assert_allclose(x_f, x_r, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(P_f, P_r, rtol=1e-9, atol=1e-12)
+
+
+def test_track_estimate_in_floats_is_the_array_one():
+    """estimate_floats_at and estimate_at give the same p^_ij; best() is the matrix form of moments()."""
+    from agent.core.neighbours import History, NeighbourPrior, NeighbourTrack, PairTiming
+    from agent.core.params import AgentParams
+    from agent.core.records import OdometryReading, Share
+
+    params = AgentParams()
+    track = NeighbourTrack("2", params.relative, params.dt, 50, PairTiming.of(params.fleet))
+    own = History(50)
+    for k in range(3):
+        own.put(0.1 * k, np.array([0.5 * k, 0.1]))
+        track.receive(Share("2", OdometryReading(0.1 * k, np.array([0.0, 0.2 * k]), 0.0), np.array([0.0, 2.0]),
+                            0.0), 0.1 * k)
+    assert track.start(NeighbourPrior(np.array([3.0, -1.0]), np.eye(2), 0.1), own) == "started"
+    floats = track.estimate_floats_at(own, 0.2)
+    assert floats == tuple(track.estimate_at(own, 0.2).tolist())
+    # p_ij moves by i's motion minus j's: (3, -1) + (0.5, 0) - (0, 0.2)
+    np.testing.assert_allclose(floats, (3.5, -1.2), rtol=0, atol=1e-12)
+    px, py, p11, p12, p22 = track.moments()
+    position, covariance = track.best()
+    assert position.tolist() == [px, py] and covariance.tolist() == [[p11, p12], [p12, p22]]
+    track.fused = (1.0, 2.0, 3.0, 0.5, 4.0)
+    assert track.best_trace() == 7.0 and track.best()[1].tolist() == [[3.0, 0.5], [0.5, 4.0]]

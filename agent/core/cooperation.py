@@ -53,7 +53,7 @@ def fuse_reciprocal(params: AgentParams, state: VesselState, track: NeighbourTra
     b11, b12, b21, b22 = covariance
     key = stamp_key(stamp)
     if key != track.epoch:
-        if abs(key - track.epoch) > stamp_key(params.fleet.max_odometry_gap):
+        if abs(key - track.epoch) > track.gap_key:       # fleet.max_odometry_gap as a stamp key
             return
         mine_then, theirs_then, why = track.positions_at(state.own, key)
         if why:
@@ -69,43 +69,50 @@ def fuse_reciprocal(params: AgentParams, state: VesselState, track: NeighbourTra
     except np.linalg.LinAlgError:
         state.health.bad_shares += 1
         return
-    if all(map(math.isfinite, (x, y, p11, p12, p22))):
-        track.fused = (np.array([x, y]), np.array([[p11, p12], [p12, p22]]))
+    fused = (x, y, p11, p12, p22)
+    if all(map(math.isfinite, fused)):
+        track.fused = fused
     else:
         state.health.bad_shares += 1
 
 
-def fuse_targets(params: AgentParams, state: VesselState, estimates: dict[str, np.ndarray | None], now: float
-                 ) -> tuple[np.ndarray, np.ndarray]:
+def fuse_targets(params: AgentParams, state: VesselState, neighbours: list[tuple[NeighbourTrack, float, float]],
+                 now: float) -> tuple[np.ndarray, np.ndarray]:
     """Covariance intersection of our target estimate with each neighbour's, moved to us:
     p_io = p^_ij + p^_jo (carried to now with j's commanded velocity), v_io = v_i - v^_o as in (33), with
-    p^_ij of (10). Not in the paper (docs/equations.md, D2).
+    p^_ij of (10). `neighbours` gives each neighbour's track and p^_ij at now (x, y). Not in the paper
+    (docs/equations.md, D2).
     A neighbour whose estimate disagrees with ours beyond `fleet.target_gate` (chi-square, 4 degrees of
     freedom) is left out and counted. Returns the fused state and covariance (ours alone if none fits)."""
     tracker = state.tracker
     own = (tracker.state, tracker.covariance)
-    shared = [(track.share, relative, track) for j, track in state.tracks.items()
-              if track.share is not None and track.share.target is not None
-              and (relative := estimates.get(j)) is not None and track.estimator is not None]
+    shared = [(track.share, x, y, track) for track, x, y in neighbours
+              if track.share is not None and track.share.target is not None and track.estimator is not None]
     if not shared:
         return tracker.state, tracker.covariance
-    # Every neighbour at once, as stacks: per neighbour, numpy's call overhead would be most of the cost.
-    age = np.array([now - share.odometry.stamp for share, _, _ in shared])[:, None]
-    x = np.array([share.target for share, _, _ in shared], dtype=float)
-    P = np.array([share.target_covariance for share, _, _ in shared], dtype=float)
+    # Every neighbour at once, as stacks: per neighbour, numpy's call overhead would be most of the cost. The
+    # floats of each neighbour (the share's age, p^_ij and the symmetric P_ij) go in one array, one row each.
+    floats = np.array([(now - share.odometry.stamp, x, y, *track.moments()[2:]) for share, x, y, track in shared])
+    age = floats[:, :1]
+    x = np.array([share.target for share, _, _, _ in shared], dtype=float)
+    P = np.array([share.target_covariance for share, _, _, _ in shared], dtype=float)
     # p_jo moves with v_j - v_o over the share's age: x <- C x, P <- C P C^T with C = [I, -age I; 0, I],
     # written out by blocks (C's zeros and ones add nothing but rounding-free terms).
     x[:, :2] -= age * x[:, 2:]
-    x[:, :2] += age * np.array([share.velocity for share, _, _ in shared], dtype=float)
+    x[:, :2] += age * np.array([share.velocity for share, _, _, _ in shared], dtype=float)
     P[:, :2, :] -= age[:, :, None] * P[:, 2:, :]
     P[:, :, :2] -= age[:, :, None] * P[:, :, 2:]
     # To our frame: p_io = p^_ij + p_jo, v_io = v_i - v^_o; SWAP_VELOCITY P SWAP_VELOCITY flips the sign of
-    # the off-diagonal blocks, and p^_ij's covariance adds to the position block.
-    x[:, :2] += np.array([relative for _, relative, _ in shared], dtype=float)
+    # the off-diagonal blocks, and p^_ij's covariance [[p11, p12], [p12, p22]] adds to the position block.
+    x[:, :2] += floats[:, 1:3]
     x[:, 2:] = state.motion.velocity - x[:, 2:]
     P[:, :2, 2:] *= -1.0
     P[:, 2:, :2] *= -1.0
-    P[:, :2, :2] += np.array([track.best()[1] for _, _, track in shared], dtype=float)
+    p11, p12, p22 = floats[:, 3], floats[:, 4], floats[:, 5]
+    P[:, 0, 0] += p11
+    P[:, 0, 1] += p12
+    P[:, 1, 0] += p12
+    P[:, 1, 1] += p22
     distances = _gate_distances(x - own[0], own[1] + P)
     keep = distances <= params.fleet.target_gate
     keep |= np.isnan(distances)     # NaN fails the gate test `distance > gate` and so is kept

@@ -64,9 +64,11 @@ class History:
         self._values[key] = value
         if len(self._values) > self.size:
             keys, excess = self.keys(), len(self._values) - self.size
-            for old in keys[:excess]:
+            for old in keys[:excess] if excess > 1 else (keys[0],):     # one, once full: no list for it
                 del self._values[old]
-            self._keys = keys[excess:]     # still sorted: no sort on the next read
+            # Trimmed in place (still sorted, no sort on the next read): a new list per put would be one more
+            # object per neighbour and tick for the garbage collector to walk.
+            del keys[:excess]
 
     def get(self, key: int):
         return self._values.get(key)
@@ -160,23 +162,28 @@ class NeighbourTrack:
         self.updates = 0
         self.rejected = 0
         self.last_iterations = 0
-        self.outcomes: list[tuple[float, float, UpdateOutcome]] = []   # (stamp s, range m, outcome) of the last advance
-        # This tick's p^_ij and covariance at the epoch, our filter's fused with j's own (cooperation.py); None:
-        # not fused this tick. Derived afresh every tick, never fed back into the filter.
-        self.fused: tuple[np.ndarray, np.ndarray] | None = None
+        # (stamp s, range m, outcome) of each update of the last advance: a tuple, which the tick's record
+        # takes as it is (no copy, no list left behind for the garbage collector).
+        self.outcomes: tuple[tuple[float, float, UpdateOutcome], ...] = ()
+        # This tick's p^_ij and covariance at the epoch, our filter's fused with j's own (cooperation.py), as
+        # the floats of `moments`; None: not fused this tick. Derived afresh every tick, never fed back into
+        # the filter.
+        self.fused: tuple[float, float, float, float, float] | None = None
+
+    def moments(self) -> tuple[float, float, float, float, float]:
+        """(px, py, p11, p12, p22) of `best`, in plain floats (for callers doing their 2-D algebra in floats)."""
+        if self.fused is not None:
+            return self.fused
+        return self.estimator.moments()
 
     def best(self) -> tuple[np.ndarray, np.ndarray]:
         """p^_ij and its covariance at the epoch: fused with j's estimate if this tick could, else our filter's."""
-        if self.fused is not None:
-            return self.fused
-        return self.estimator.position, self.estimator.covariance
+        px, py, p11, p12, p22 = self.moments()
+        return np.array([px, py]), np.array([[p11, p12], [p12, p22]])
 
     def best_trace(self) -> float:
         """trace of `best`'s covariance, without building the matrix."""
-        if self.fused is not None:
-            covariance = self.fused[1]
-            return covariance.item(0, 0) + covariance.item(1, 1)
-        _, _, p11, _, p22 = self.estimator.moments()
+        _, _, p11, _, p22 = self.moments()
         return p11 + p22
 
     def receive(self, share: Share, now: float) -> None:
@@ -235,17 +242,18 @@ class NeighbourTrack:
         between the epoch and the range's time predicts (15), and each range paired with the previous one
         updates, (12), (13), (14). Ranges that cannot be used are dropped and counted in `unusable` by
         reason ("unpaired": j's odometry of their time never came; "gap": an odometry gap around them)."""
-        self.outcomes = []
+        self.outcomes = ()
         if self.estimator is None or self.epoch is None:
             return
         latest = self.odometry.latest()
+        now_key = stamp_key(now)
         for key in self.ranges.keys_after(self.epoch):
             if latest is None or key > latest:
                 mine, theirs, why = None, None, "later"     # what positions_at says, without asking
             else:
                 mine, theirs, why = self.positions_at(own, key)
             if why == "later":
-                if stamp_key(now) - key <= self.wait_key:
+                if now_key - key <= self.wait_key:
                     break           # wait for the odometry of its time; later ranges wait behind it
                 why = "unpaired"
             if why:
@@ -267,7 +275,7 @@ class NeighbourTrack:
                 self.last_range = range_now
                 continue
             outcome = self.estimator.update(self.last_range, range_now)
-            self.outcomes.append((key * 1e-6, range_now, outcome))
+            self.outcomes += ((key * 1e-6, range_now, outcome),)    # usually one: () + (x,) is (x,) itself
             self.last_iterations = outcome.iterations
             if outcome.accepted:
                 self.last_range = range_now
@@ -284,13 +292,18 @@ class NeighbourTrack:
     def estimate_at(self, own: History, now: float) -> np.ndarray | None:
         """p^_ij at `now`: the filter's estimate carried forward by i's odometry, j's odometry as far as it is
         known, and j's shared velocity (2) for the rest, as in (15)."""
+        estimate = self.estimate_floats_at(own, now)
+        return None if estimate is None else np.array(estimate)
+
+    def estimate_floats_at(self, own: History, now: float) -> tuple[float, float] | None:
+        """`estimate_at` as two plain floats."""
         if self.estimator is None or self.epoch is None:
             return None
         key = stamp_key(now)
         own_now = own.get(key)
-        position = self.best()[0]
+        px, py, _, _, _ = self.moments()
         if key == self.epoch or own_now is None:
-            return position
+            return px, py
         # In plain floats, as numpy would do it element by element (2-vectors: the call overhead is the cost).
         mx = my = 0.0       # j's motion since the epoch
         latest = self.odometry.latest()
@@ -301,5 +314,5 @@ class NeighbourTrack:
         if self.share is not None:
             (vx, vy), elapsed = np.asarray(self.share.velocity, dtype=float).tolist(), (key - known) * 1e-6
             mx, my = mx + vx * elapsed, my + vy * elapsed
-        (px, py), (ix, iy), (ox, oy) = position.tolist(), own_now.tolist(), self.epoch_own.tolist()
-        return np.array([(px + (ix - ox)) - mx, (py + (iy - oy)) - my])
+        (ix, iy), (ox, oy) = own_now.tolist(), self.epoch_own.tolist()
+        return (px + (ix - ox)) - mx, (py + (iy - oy)) - my

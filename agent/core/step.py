@@ -60,28 +60,45 @@ def step(params: AgentParams, state: VesselState, inputs: TickInputs) -> tuple[V
         store_ranges(params, state, ranges, stamp)
     store_ranges(params, state, inputs.ranges, now if inputs.range_stamp is None else inputs.range_stamp)
     forget_silent(params, state, now)
+    # One pass over the tracks: each pair filter advances over the new ranges and is fused with j's estimate,
+    # then its estimate at now, whether it is localised, its record and what the share tells j of it. (Each
+    # track's results depend on that track alone; one pass builds no per-neighbour dict but those kept.)
     unusable: Counter[str] = Counter()
-    for track in state.tracks.values():
+    fuse_shared = params.fleet.fuse_shared_estimates
+    localised: dict[str, np.ndarray] = {}
+    lent: list[tuple[NeighbourTrack, float, float]] = []   # localised tracks' p^_ij at now, for fuse_targets
+    medians: dict[str, float | None] = {}
+    distances: dict[str, float] = {}
+    records: dict[str, NeighbourRecord] = {}
+    shared: dict[str, tuple[np.ndarray, np.ndarray, float]] = {}
+    for j, track in state.tracks.items():
         if track.estimator is None:
             start_track(params, state, track, now)
         track.advance(state.own, now, unusable)
         track.fused = None
-        if params.fleet.fuse_shared_estimates:
+        if fuse_shared:
             fuse_reciprocal(params, state, track)
+        p_ij = track.estimate_floats_at(state.own, now)
+        if p_ij is None:
+            continue
+        # Only a localised neighbour drives the formation and lends its target estimate: an unconverged pair
+        # estimate would pull the vessel, and move the neighbour's target estimate, to the wrong place.
+        estimate = np.array(p_ij)
+        medians[j] = median = _recent_range(track)
+        distances[j] = distance = math.hypot(*p_ij)
+        is_localised = _localised(params, track, distance, median)
+        if is_localised:
+            localised[j] = estimate
+            lent.append((track, *p_ij))
+        records[j] = _neighbour_record(track, estimate, is_localised)
+        shared[j] = _shared_estimate(track)
     health.ranges_unpaired += unusable["unpaired"]
     health.ranges_gap += unusable["gap"]
 
-    estimates = {j: t.estimate_at(state.own, now) for j, t in state.tracks.items()}
-    # Only a localised neighbour drives the formation and lends its target estimate: an unconverged pair
-    # estimate would pull the vessel, and move the neighbour's target estimate, to the wrong place.
-    medians = {j: _recent_range(t) for j, t in state.tracks.items()}
-    distances = _norms(estimates)
-    localised = {j: e for j, e in estimates.items()
-                 if e is not None and _localised(params, state.tracks[j], distances[j], medians[j])}
     bearing = _bearing(state, inputs.bearing)
     target_state, target_cov, bearing_outcome = track_target(params, state, bearing, velocity_change)
     if target_state is not None and params.fleet.fuse_target_estimates:
-        target_state, target_cov = fuse_targets(params, state, localised, now)
+        target_state, target_cov = fuse_targets(params, state, lent, now)
     if state.phase is None:
         state.phase = math.atan2(target_state[1], target_state[0]) if target_state is not None else 0.0
 
@@ -105,13 +122,11 @@ def step(params: AgentParams, state: VesselState, inputs: TickInputs) -> tuple[V
         sender=state.vessel, odometry=odometry, velocity=command.surge * heading_vector, phase=state.phase,
         target=None if target_state is None else _to_shared(target_state, state.motion.velocity),
         target_covariance=None if target_cov is None else SWAP_VELOCITY @ target_cov @ SWAP_VELOCITY,
-        neighbours={j: _shared_estimate(t) for j, t in state.tracks.items()
-                    if t.estimator is not None and t.epoch is not None},
+        neighbours=shared,
     )
     record = TickRecord(
         time=now, phase=state.phase,
-        neighbours={j: _neighbour_record(t, estimates[j], j in localised) for j, t in state.tracks.items()
-                    if estimates[j] is not None},
+        neighbours=records,
         target_state=target_state, target_covariance=target_cov,
         bearing_used=bearing_outcome is not None and bearing_outcome.accepted, bearing_outcome=bearing_outcome,
         formation_velocity=terms.formation, tracking_velocity=terms.tracking, avoidance_velocity=terms.avoidance,
@@ -143,20 +158,10 @@ def _localised(params: AgentParams, track: NeighbourTrack, distance: float, medi
     pseudo-linear ones) keeps a wrong start for good while its covariance says it is sure: in a restart test
     two vessels that both believed 5.3 m crept to 0.19 m, the guard stopping them only on the ticks the
     ranges' median happened to exceed the limit. Unlocalised, the neighbour is judged by its raw ranges
-    (`_keep_apart`). `distance` is |p^_ij| (`_norms`)."""
+    (`_keep_apart`). `distance` is |p^_ij|."""
     if track.best_trace() > params.fleet.localised_trace:
         return False
     return median is None or abs(median - distance) <= RANGE_DISAGREEMENT
-
-
-def _norms(vectors: dict[str, np.ndarray | None]) -> dict[str, float]:
-    """|v| of each 2-vector that is not None, by one numpy.hypot over all of them (a call per neighbour
-    would cost more than the arithmetic)."""
-    present = [(j, v) for j, v in vectors.items() if v is not None]
-    if not present:
-        return {}
-    stacked = np.array([v for _, v in present], dtype=float)
-    return dict(zip([j for j, _ in present], np.hypot(stacked[:, 0], stacked[:, 1]).tolist()))
 
 
 def _recent_range(track: NeighbourTrack) -> float | None:
@@ -224,8 +229,9 @@ def _shared_estimate(track: NeighbourTrack) -> tuple[np.ndarray, np.ndarray, flo
 
 def _neighbour_record(track: NeighbourTrack, estimate: np.ndarray, localised: bool) -> NeighbourRecord:
     low, high, observability = track.excitation()
+    _, _, p11, p12, p22 = track.moments()
     return NeighbourRecord(
-        position=estimate, covariance=track.best()[1], epoch=track.epoch * 1e-6,
+        position=estimate, covariance=np.array([[p11, p12], [p12, p22]]), epoch=track.epoch * 1e-6,
         updates=track.updates, rejected=track.rejected, iterations=track.last_iterations,
-        outcomes=tuple(track.outcomes), localised=localised, excitation=(low, high), observability=observability,
+        outcomes=track.outcomes, localised=localised, excitation=(low, high), observability=observability,
     )
