@@ -4,7 +4,6 @@
 from __future__ import annotations
 
 import math
-import warnings
 from pathlib import Path
 
 import numpy as np
@@ -123,21 +122,15 @@ def _colours(palette: str, count: int) -> list:
     return [cmap(i % cmap.N) for i in range(count)]
 
 
-def _mean_std(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Mean and std over axis 0, ignoring NaN (an absent vessel, or no estimate yet); NaN where none."""
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)   # all-NaN columns are expected, they stay NaN
-        return np.nanmean(values, axis=0), np.nanstd(values, axis=0)
-
-
-def error_figure(curves: dict[str, tuple[np.ndarray, np.ndarray]], events: list[tuple[float, str]],
+def error_figure(curves: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]], events: list[tuple[float, str]],
                  title: str, path: Path) -> Path:
-    """Three stacked panels e_ij, e_io, e_c over time; `curves` maps a variant to (time (K,), errors
-    (runs, 3, K)); `events` are (time, text) of vessels joining or leaving, drawn as dashed lines."""
+    """Three stacked panels e_ij, e_io, e_c over time; `curves` maps a variant to (time (K,), the mean over
+    runs (3, K), their std (3, K)); `events` are (time, text) of vessels joining or leaving, drawn as dashed
+    lines."""
     plt = _pyplot()
     fig, axes = plt.subplots(3, 1, figsize=(8.0, 8.5), dpi=120, sharex=True, layout="constrained")
     for panel, ax in enumerate(axes):
-        stats = {name: (time, *_mean_std(errors[:, panel, :])) for name, (time, errors) in curves.items()}
+        stats = {name: (time, mean[panel], std[panel]) for name, (time, mean, std) in curves.items()}
         log = _spans_decades([mean for _, mean, _ in stats.values()])
         for index, (name, (time, mean, std)) in enumerate(stats.items()):
             colour, style = variant_style(name, index)

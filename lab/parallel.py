@@ -17,7 +17,7 @@ import importlib
 import os
 import sys
 import traceback
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from functools import partial
@@ -29,6 +29,7 @@ from lab import arguments
 J = TypeVar("J")
 R = TypeVar("R")
 CONNECT_TIMEOUT = "30s"   # to reach a remote scheduler
+RELEASE_BATCH = 64          # finished runs whose results a cluster is told to forget at once
 
 
 @dataclass(frozen=True)
@@ -106,49 +107,70 @@ class Engine:
                 f"thread(s), on {', '.join(hosts)}")
 
     def map(self, function: Callable[[J], R], jobs: Sequence[J], progress: Callable[[int], None] | None = None,
-            describe: Callable[[int], str] | None = None) -> list[R | None]:
+            describe: Callable[[int], str] | None = None,
+            consume: Callable[[int, R | None], None] | None = None) -> list[R | None] | None:
         """`function` over `jobs`, results in job order; a run that raised gives None and a `Failure` named
-        by `describe(index)`. `progress(1)` is called as each run finishes."""
+        by `describe(index)`. `progress(1)` is called as each run finishes. With `consume`, each result is
+        handed to `consume(index, result)` in job order as soon as those before it are in, and not kept:
+        a campaign then holds only the results that came early (None is returned)."""
         guarded = partial(_guarded, function)
+        kept: list[R | None] = []
+        for index, (ok, value) in self._outcomes(guarded, jobs, progress):
+            if not ok:
+                self.failures.append(Failure(describe(index) if describe else f"run {index}", value))
+            result = value if ok else None
+            if consume is None:
+                kept.append(result)
+            else:
+                consume(index, result)
+        return kept if consume is None else None
+
+    def _outcomes(self, guarded, jobs: Sequence[J], progress) -> Iterator[tuple[int, tuple[bool, object]]]:
+        """(index, outcome) of every job, in job order."""
         if self._client is not None:
-            outcomes = self._map_dask(guarded, jobs, progress)
+            yield from self._dask_outcomes(guarded, jobs, progress)
         elif self.workers > 1 and len(jobs) > 1:
             # A few chunks per worker: few round trips, yet a slow chunk at the end does not idle the others.
             chunk = max(1, len(jobs) // (4 * self.workers))
-            outcomes = []
             with ProcessPoolExecutor(max_workers=min(self.workers, len(jobs))) as pool:
-                for outcome in pool.map(guarded, jobs, chunksize=chunk):
-                    outcomes.append(outcome)
+                for index, outcome in enumerate(pool.map(guarded, jobs, chunksize=chunk)):
                     if progress:
                         progress(1)
+                    yield index, outcome
         else:
-            outcomes = []
-            for job in jobs:
-                outcomes.append(guarded(job))
+            for index, job in enumerate(jobs):
+                outcome = guarded(job)
                 if progress:
                     progress(1)
-        results: list[R | None] = []
-        for index, (ok, value) in enumerate(outcomes):
-            if not ok:
-                self.failures.append(Failure(describe(index) if describe else f"run {index}", value))
-            results.append(value if ok else None)
-        return results
+                yield index, outcome
 
-    def _map_dask(self, guarded, jobs: Sequence[J], progress) -> list:
+    def _dask_outcomes(self, guarded, jobs: Sequence[J], progress) -> Iterator[tuple[int, tuple[bool, object]]]:
         from dask.distributed import as_completed
 
         futures = self._client.map(guarded, list(jobs), pure=False)
         index = {future.key: n for n, future in enumerate(futures)}
-        outcomes: list = [None] * len(jobs)
+        early: dict[int, tuple[bool, object]] = {}   # results that came before an earlier job's
+        done: list = []
+        following = 0
         for future in as_completed(futures):
-            outcomes[index[future.key]] = future.result()
+            early[index[future.key]] = future.result()
+            done.append(future)
             if progress:
                 progress(1)
-        keys = list(index)
-        # A task on a worker that died was run again elsewhere: the scheduler counts it as `suspicious`.
-        self.retried += self._client.run_on_scheduler(_suspicious, keys)
-        self._client.cancel(futures)
-        return outcomes
+            if len(done) >= RELEASE_BATCH:
+                self._release(done)
+            while following in early:
+                yield following, early.pop(following)
+                following += 1
+        self._release(done)
+
+    def _release(self, futures: list) -> None:
+        """Count how many of `futures` ran again after their worker died (the scheduler's `suspicious`), then
+        let the cluster forget them and their results."""
+        if futures:
+            self.retried += self._client.run_on_scheduler(_suspicious, [f.key for f in futures])
+            self._client.cancel(futures)
+            futures.clear()
 
 
 def _suspicious(keys: list, dask_scheduler=None) -> int:

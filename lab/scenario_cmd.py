@@ -128,13 +128,18 @@ class RunOutcome:
 
 @dataclass
 class VariantResult:
+    """A variant's runs, reduced as they arrived (in run order): what the pages need and no per-run curve, so
+    a campaign of any size holds a few arrays per variant."""
+
     name: str
     scenario: Scenario
     time: np.ndarray                    # (K,)
     metrics: list[RunMetrics]           # one per run, in run order
-    errors: np.ndarray                  # (runs, 3, K)
+    error_mean: np.ndarray              # (3, K): ERRORS over time, mean over the runs (NaN ticks left out)
+    error_std: np.ndarray               # (3, K): their std
+    settled: dict[str, np.ndarray]      # ERRORS -> each settled run's mean from its settling time on
     closest: np.ndarray                 # (runs,) closest approach of any two vessels
-    first: RunTrace                     # run 0, for the trajectory figure
+    first: RunTrace | None              # run 0, for the trajectory figure
 
     def mean_std(self, field: str) -> tuple[float, float]:
         values = np.array([getattr(m, field) for m in self.metrics], dtype=float)
@@ -147,9 +152,7 @@ class VariantResult:
     def after_settling(self, error: str) -> np.ndarray:
         """Each settled run's time average of `error` (one of ERRORS) from its own settling time to the
         end; the runs that never settle have none."""
-        panel = ERRORS.index(error)
-        return np.array([mean_after(self.time, curves[panel], m.settling_time)
-                         for curves, m in zip(self.errors, self.metrics) if m.settling_time is not None])
+        return self.settled[error]
 
     def summary(self) -> dict[str, float]:
         """The aggregated numbers of the variant; TIMING_KEYS are the only machine-dependent ones."""
@@ -173,6 +176,44 @@ def _nan_mean_std(values: np.ndarray) -> tuple[float, float]:
     return float(finite.mean()), float(finite.std())
 
 
+class RunsGathered:
+    """One variant's runs reduced as they come, in run order (so the sums are the same whoever ran them):
+    the metrics and closest approaches kept, the error curves folded into a running mean and spread per tick
+    (Welford's update; a NaN tick of a run is left out of that tick), each settled run's mean after settling."""
+
+    def __init__(self, time: np.ndarray) -> None:
+        self.time = time
+        self.metrics: list[RunMetrics] = []
+        self.closest: list[float] = []
+        self.settled: dict[str, list[float]] = {error: [] for error in ERRORS}
+        self.first: RunTrace | None = None
+        shape = (len(ERRORS), len(time))
+        self._count, self._mean, self._m2 = np.zeros(shape), np.zeros(shape), np.zeros(shape)
+
+    def add(self, metrics: RunMetrics, errors: np.ndarray, closest: float, trace: RunTrace | None = None) -> None:
+        self.metrics.append(metrics)
+        self.closest.append(closest)
+        if trace is not None and self.first is None:
+            self.first = trace
+        if metrics.settling_time is not None:
+            for panel, error in enumerate(ERRORS):
+                self.settled[error].append(mean_after(self.time, errors[panel], metrics.settling_time))
+        present = ~np.isnan(errors)
+        self._count += present
+        delta = np.where(present, errors - self._mean, 0.0)
+        self._mean += np.where(present, delta / np.maximum(self._count, 1.0), 0.0)
+        self._m2 += np.where(present, delta * (errors - self._mean), 0.0)
+
+    def result(self, name: str, scenario: Scenario) -> VariantResult:
+        seen = self._count > 0
+        mean = np.where(seen, self._mean, np.nan)
+        std = np.where(seen, np.sqrt(self._m2 / np.maximum(self._count, 1.0)), np.nan)
+        return VariantResult(name=name, scenario=scenario, time=self.time, metrics=list(self.metrics),
+                             error_mean=mean, error_std=std,
+                             settled={error: np.array(values) for error, values in self.settled.items()},
+                             closest=np.array(self.closest), first=self.first)
+
+
 Job = tuple[Scenario, np.random.SeedSequence, bool]
 
 
@@ -186,7 +227,8 @@ def _run_job(job: Job) -> RunOutcome:
 def run_monte_carlo(files: dict[str, dict[str, Scenario]], engine: Engine | int,
                     progress: Callable[[int], None] | None = None) -> dict[str, dict[str, VariantResult]]:
     """Every run of every variant of `files` ({stem: {variant: scenario}}), results in the same shape. A run
-    that raised is left out (`engine.failures` names it); so is a variant whose run 0 (the figures') did. An int
+    that raised is left out (`engine.failures` names it); so is a variant whose run 0 (the figures') did. Each
+    run is reduced as it comes (`RunsGathered`), in run order, so the client holds no per-run curve. An int
     `engine` is a process pool of that many workers."""
     keys: list[tuple[str, str, int]] = []
     jobs: list[Job] = []
@@ -203,20 +245,26 @@ def run_monte_carlo(files: dict[str, dict[str, Scenario]], engine: Engine | int,
         stem, variant, index = keys[n]
         return f"{stem} variant {variant} run {index} (child {index} of seed {files[stem][variant].seed})"
 
-    outcomes: list[RunOutcome | None] = engine.map(_run_job, jobs, progress, describe)
-    grouped: dict[tuple[str, str], list[RunOutcome]] = {}
-    for (stem, variant, _), outcome in zip(keys, outcomes):   # map keeps job order: runs stay in index order
-        if outcome is not None:
-            grouped.setdefault((stem, variant), []).append(outcome)
+    gathered: dict[tuple[str, str], RunsGathered] = {}
+    dropped: set[tuple[str, str]] = set()
+
+    def consume(n: int, outcome: RunOutcome | None) -> None:
+        stem, variant, index = keys[n]
+        if outcome is None:
+            if index == 0:   # run 0 keeps its trace for the figures; it failed, and so the variant is left out
+                dropped.add((stem, variant))
+            return
+        runs = gathered.get((stem, variant))
+        if runs is None:
+            time = np.arange(outcome.errors.shape[1]) * files[stem][variant].world.dt   # the runner's time base
+            runs = gathered[stem, variant] = RunsGathered(time)
+        runs.add(outcome.metrics, outcome.errors, outcome.closest, outcome.trace)
+
+    engine.map(_run_job, jobs, progress, describe, consume=consume)
     results: dict[str, dict[str, VariantResult]] = {}
-    for (stem, variant), runs in grouped.items():
-        first = runs[0].trace
-        if first is None:   # run 0 keeps its trace for the figures; it failed, and so the variant is left out
-            continue
-        results.setdefault(stem, {})[variant] = VariantResult(
-            name=variant, scenario=files[stem][variant], time=first.time, metrics=[r.metrics for r in runs],
-            errors=np.stack([r.errors for r in runs]), closest=np.array([r.closest for r in runs]),
-            first=first)
+    for (stem, variant), runs in gathered.items():
+        if (stem, variant) not in dropped:
+            results.setdefault(stem, {})[variant] = runs.result(variant, files[stem][variant])
     return results
 
 
@@ -250,7 +298,7 @@ def run(args: argparse.Namespace) -> int:
             {name: (v.first, v.scenario) for name, v in variants.items()},
             f"{spec.name}: trajectories of run 0", args.out / f"{stem}_trajectories.png")
         errors = error_figure(
-            {name: (v.time, v.errors) for name, v in variants.items()}, join_leave_events(variants),
+            {name: (v.time, v.error_mean, v.error_std) for name, v in variants.items()}, join_leave_events(variants),
             f"{spec.name}: errors, mean over runs +-1 std", args.out / f"{stem}_errors.png")
         tables = (comparison_table(variants), settling_table(variants))
         page = render_page(path, spec, variants, tables, command, elapsed, where,

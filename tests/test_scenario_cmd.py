@@ -87,9 +87,28 @@ def hand_made(scenario: Scenario, curves: list[list[float]], settling: list[floa
     errors = np.stack([2 * e_c, 3 * e_c, e_c], axis=1)             # (runs, ERRORS, K)
     metrics = [RunMetrics(nan_mean(2 * c), nan_mean(3 * c), math.nan, nan_mean(c), t, 0.5, 0.9)
                for c, t in zip(e_c, settling)]
-    time = np.arange(e_c.shape[1]) * 1.0
-    return scenario_cmd.VariantResult(name=scenario.name, scenario=scenario, time=time, metrics=metrics,
-                                      errors=errors, closest=np.array([4.0, 3.0, 5.0]), first=None)
+    runs = scenario_cmd.RunsGathered(np.arange(e_c.shape[1]) * 1.0)
+    for curves_of_run, m, closest in zip(errors, metrics, [4.0, 3.0, 5.0]):
+        runs.add(m, curves_of_run, closest)
+    return runs.result(scenario.name, scenario)
+
+
+def test_runs_reduced_as_they_come_give_the_mean_and_spread_of_all_of_them():
+    """The running mean and std per tick (Welford's update, NaN ticks left out) against numpy's over the
+    stacked runs."""
+    rng = np.random.default_rng(4)
+    errors = rng.gamma(2.0, 0.5, size=(7, 3, 40))
+    errors[rng.random(errors.shape) < 0.2] = np.nan
+    errors[:, :, :3] = np.nan                            # ticks no run has
+    runs = scenario_cmd.RunsGathered(np.arange(40) * 0.1)
+    for curves in errors:
+        runs.add(RunMetrics(1.0, 1.0, 1.0, 1.0, None, 0.5, 0.9), curves, 3.0)
+    result = runs.result("v", None)
+    with np.errstate(invalid="ignore"), pytest.warns(RuntimeWarning):
+        expected_mean, expected_std = np.nanmean(errors, axis=0), np.nanstd(errors, axis=0)
+    np.testing.assert_allclose(result.error_mean, expected_mean, rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(result.error_std, expected_std, rtol=1e-10, atol=1e-14)
+    assert np.all(np.isnan(result.error_mean[:, :3])) and np.all(np.isnan(result.error_std[:, :3]))
 
 
 def test_the_mean_after_settling_starts_at_each_runs_own_settling_time(tiny):
