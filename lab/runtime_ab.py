@@ -180,7 +180,8 @@ def page(record: list[dict]) -> str:
         "in one thread without Zenoh (lab/shell_bench.py), \"fleet over Zenoh\" the lockstep Table II fleet, "
         "bridge and 4 agent processes sharing the 2 cores. The targets of issue #14 are in "
         "runtime_benchmark.md.", "",
-        markdown_table(header, rows), ""])
+        markdown_table(header, rows), "",
+        *[f"- {entry['label']}: {entry['note']}" for entry in record if entry.get("note")], ""])
 
 
 def run(args: argparse.Namespace) -> int:
