@@ -241,12 +241,16 @@ class Fleet:
     def start_again(self, vessel: str) -> None:
         """Start a new agent for a vessel whose agent `stop_for_restart` stopped, without initial estimates:
         its settings, `agent-<id>-restart<n>.yaml`, are the vessel's without the `initial` section (a restarted
-        boat knows nothing of the fleet as it was at launch, and the deploy tooling writes none), and it logs
+        boat knows nothing of the fleet as it was at launch, and the deploy tooling writes none) and with the
+        default look for a namesake, and it logs
         to `agent-<id>-restart<n>.mcap`, so the first log stays whole."""
         restarts = self.restarted[vessel]
         restarts[-1] = (restarts[-1][0], self._sim_time)
         settings = yaml.safe_load((self.folder / f"agent-{vessel}.yaml").read_text())
         settings.pop("initial", None)
+        # The full look for a namesake (the agent's default), not the launch's short one: here an agent with
+        # this id has just been, and a restart that waits that second rejoins as the restart tests measured.
+        settings.pop("id_check", None)
         self.names[vessel] = name = f"agent-{vessel}-restart{len(restarts)}"
         settings["log"] = str(self.folder / f"{name}.mcap")
         (self.folder / f"{name}.yaml").write_text(yaml.safe_dump(settings))
