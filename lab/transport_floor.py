@@ -24,6 +24,7 @@ from sim_bridge.fleet import free_port
 # Bytes of each payload: about those of the Table II mission's messages.
 SIZES = {"sensor": 200, "clock": 150, "share": 700, "cmd": 110, "status": 900}
 READY = b"ready"
+END = b"end"
 START_TIMEOUT = 30.0   # s for every agent process to start and be heard
 TICK_TIMEOUT = 2.0     # s a tick waits for its answers
 WARM_UP = 50           # ticks run before the measured ones: the agents' links to each other come up meanwhile
@@ -35,11 +36,11 @@ def _config(listen: int | None = None, connect: int | None = None):
     return _session_config(listen=listen, connect=connect)
 
 
-def agent(vessel: int, port: int, ticks: int) -> None:
+def agent(vessel: int, port: int, ticks: int, vessels: int) -> None:
     """One agent of the floor (run in its own process): prints its CPU and shares received per measured
     tick as JSON at the end."""
     with zenoh.open(_config(listen=0, connect=port)) as session:   # listening, as agents do: they link up
-        tick = threading.Event()
+        tick, ended = threading.Event(), threading.Event()
         shares = [0]
 
         def take(sample) -> None:
@@ -50,7 +51,8 @@ def agent(vessel: int, port: int, ticks: int) -> None:
             shares[0] += 1
 
         def on_clock(sample) -> None:
-            sample.payload.to_bytes()
+            if sample.payload.to_bytes() == END:
+                ended.set()
             tick.set()
 
         subscribers = [session.declare_subscriber(f"floor/{vessel}/sensor/*", take),
@@ -62,21 +64,27 @@ def agent(vessel: int, port: int, ticks: int) -> None:
         payloads = {name: b"x" * size for name, size in SIZES.items()}
         while not tick.wait(0.1):   # until the first clock: say so (the bridge may miss a first word)
             status.put(READY)
-        done, cpu_started, shares_before = 0, 0.0, 0
-        while True:
-            if done == WARM_UP:
-                cpu_started, shares_before = time.process_time(), shares[0]
+        done, cpu_started, shares_before, measured_from, last, cpu, measured = 0, 0.0, 0, None, 0, 0.0, 0
+        while not ended.is_set():
+            # Measured from the first tick after the warm-up whose tick before brought every other agent's
+            # share: the links between the agents are up by then.
+            if measured_from is None and done >= WARM_UP and shares[0] - last == vessels - 1:
+                measured_from, cpu_started, shares_before = done, time.process_time(), shares[0]
+            last = shares[0]
             tick.clear()
             share.put(payloads["share"])
             cmd.put(payloads["cmd"])
             status.put(payloads["status"])
             done += 1
-            if done == WARM_UP + ticks or not tick.wait(TICK_TIMEOUT):
+            if measured_from is not None and done - measured_from == ticks:   # the measured window ends
+                cpu, measured, shares_before = time.process_time() - cpu_started, ticks, shares[0] - shares_before
+            if not tick.wait(TICK_TIMEOUT):
                 break
-        cpu, measured = time.process_time() - cpu_started, done - WARM_UP
+        if not measured:
+            raise RuntimeError(f"transport floor: agent {vessel} never measured {ticks} ticks with every link up")
         for subscriber in subscribers:
             subscriber.undeclare()
-    print(json.dumps({"cpu_ms": 1e3 * cpu / measured, "shares": (shares[0] - shares_before) / measured}))
+    print(json.dumps({"cpu_ms": 1e3 * cpu / measured, "shares": shares_before / measured}))
 
 
 def transport_floor(vessels: int = 4, ticks: int = 1000) -> dict[str, float]:
@@ -97,18 +105,22 @@ def transport_floor(vessels: int = 4, ticks: int = 1000) -> dict[str, float]:
         sensors = [session.declare_publisher(f"floor/{v}/sensor/{name}")
                    for v in range(vessels) for name in ("odom", "uwb", "bearing", "sonar")]
         clock = session.declare_publisher("floor/clock")
-        code = "from lab.transport_floor import agent; agent({}, {}, {})"
-        children = [subprocess.Popen([sys.executable, "-c", code.format(v, port, ticks)], stdout=subprocess.PIPE,
-                                     text=True) for v in range(vessels)]
+        code = "from lab.transport_floor import agent; agent({}, {}, {}, {})"
+        children = [subprocess.Popen([sys.executable, "-c", code.format(v, port, ticks, vessels)],
+                                     stdout=subprocess.PIPE, text=True) for v in range(vessels)]
         try:
             with answered:
                 if not answered.wait_for(lambda: len(ready) == vessels, timeout=START_TIMEOUT):
                     raise RuntimeError(f"transport floor: {len(ready)} of {vessels} agent processes were heard "
                                        f"within {START_TIMEOUT:.0f} s")
             missed = 0
-            for k in range(WARM_UP + ticks):
+            # The agents measure `ticks` ticks from the first one with every link up; the second warm-up is
+            # the margin for links that come up late.
+            for k in range(2 * WARM_UP + ticks):
                 if k == WARM_UP:
                     started, cpu_started, missed = time.monotonic(), time.process_time(), 0
+                if k == WARM_UP + ticks:
+                    wall, cpu = time.monotonic() - started, time.process_time() - cpu_started
                 with answered:
                     answers.clear()
                 for publisher in sensors:
@@ -117,7 +129,7 @@ def transport_floor(vessels: int = 4, ticks: int = 1000) -> dict[str, float]:
                 with answered:
                     if not answered.wait_for(lambda: len(answers) == vessels, timeout=TICK_TIMEOUT):
                         missed += 1
-            wall, cpu = time.monotonic() - started, time.process_time() - cpu_started
+            clock.put(END)
             agents = [json.loads(child.communicate(timeout=30)[0].strip().splitlines()[-1]) for child in children]
         finally:
             subscriber.undeclare()

@@ -10,9 +10,12 @@ from lab.transport_floor import transport_floor
 
 @pytest.mark.slow   # five processes over Zenoh
 def test_the_transport_floor_carries_the_lockstep_pattern_and_measures_every_process():
-    floor = transport_floor(vessels=3, ticks=40)
+    ticks = 100
+    floor = transport_floor(vessels=3, ticks=ticks)
     assert floor["missed"] == 0
-    assert floor["shares_per_tick"] == pytest.approx(2.0, abs=0.05)   # each agent hears the other two
+    # Each agent hears the other two every tick; a share sent in the window's last tick can come after it,
+    # one sent just before its first tick inside it: at most one per peer at either end.
+    assert abs(floor["shares_per_tick"] - 2.0) <= 2 / ticks + 1e-12
     assert 0.0 < floor["agent_cpu_ms"] < 100.0 and 0.0 < floor["bridge_cpu_ms"] < 100.0 and floor["loop_ms"] > 0.0
 
 
