@@ -57,7 +57,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--record", type=Path, default=Path("docs/results/runtime_changes.json"),
                         help="JSON record the result is appended to")
     parser.add_argument("--out", type=Path, default=Path("docs/results"), help="where runtime_changes.md goes")
-    parser.add_argument("--measure", type=Path, help=argparse.SUPPRESS)   # internal: measure the code at a root
 
 
 # ----------------------------------------------------------------------------------------------- one side
@@ -185,9 +184,6 @@ def page(record: list[dict]) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    if args.measure is not None:
-        print(json.dumps(measure(args.measure)))
-        return 0
     result = compare(args.before, args.after, args.pairs, progress=lambda text: print(text, file=sys.stderr))
     record = json.loads(args.record.read_text()) if args.record.exists() else []
     record.append({"label": args.label, **result})

@@ -48,6 +48,7 @@ DISCOVERY = 1.0         # s to wait for the agents' liveliness tokens
 SETTABLE = ("radius", "yaw_rate", "direction")
 CLOSE_WAIT = 1.0        # s to wait for the session to close before exiting without it
 ONCE_WAIT = 3.0         # s `status --once` waits for a status of every live vessel
+RATE_WINDOW = 2.0       # s of statuses the console's tick rate is counted over
 
 
 def _settings(args: argparse.Namespace) -> ZenohSettings:
@@ -147,9 +148,6 @@ def _command(args: argparse.Namespace, stamp_ns: int) -> MissionCommand:
             raise ConfigError(f"{item!r}: {text!r} is not a number") from None
     return MissionCommand(stamp_ns=stamp_ns, seq=time.time_ns(), sender=args.sender, command=args.command,
                           **values)
-
-
-RATE_WINDOW = 2.0       # s of statuses the console's tick rate is counted over
 
 
 def status_lines(statuses: dict[str, tuple[float, Status]], live: set[str], now: float,

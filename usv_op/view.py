@@ -41,7 +41,7 @@ class LiveView:
         self.refused = 0
         self.sent: dict[str, int] = {}
         self._channels: dict[str, object] = {}
-        self._scenes: dict[str, tuple[float, frames.StaticScene]] = {}   # frame -> (radius, scene)
+        self._scenes: dict[str, tuple[float, frames.StaticScene]] = {}   # topic -> (radius, scene)
         self._next_scene: dict[str, float] = {}
         self._radius: float | None = None
         self._lock = threading.Lock()
@@ -104,9 +104,8 @@ class LiveView:
         with self._lock:
             channel = self._channels.get(topic)
             if channel is None:
-                schema = model.model_json_schema()
-                schema.setdefault("title", model.__name__)   # the schema name the MCAP logs give it
-                channel = self._channels[topic] = self.sdk.Channel(topic, schema=schema)
+                # The schema's title names it, as in the MCAP logs (foxglove.FrameTransforms, Status, ...).
+                channel = self._channels[topic] = self.sdk.Channel(topic, schema=model.model_json_schema())
             self.sent[topic] = self.sent.get(topic, 0) + 1
         channel.log(message if isinstance(message, bytes) else orjson.dumps(message))
 

@@ -41,9 +41,9 @@ import zenoh
 from agent.contract import (
     CLOCK_KEY,
     FLEET_PREFIX,
-    MISSION_PREFIX,
     LIVELINESS,
     MAX_PEERS,
+    MISSION_PREFIX,
     Clock,
     Cmd,
     Status,
@@ -101,7 +101,6 @@ class AgentNode:
         self.clock = SimClock(settings.agent.dt, settings.max_clock_jump, settings.clock_confirm,
                               settings.clock_timeout)
         self.orders = MissionOrders(vessel_id, settings.max_input_age, settings.max_input_future, self.gate.count)
-        self._set_limits()
         self.ticks = 0
         self.overruns = 0
         self.tick_errors = 0
@@ -334,7 +333,6 @@ class AgentNode:
         self.sim_restarts += 1
         self.orders.reset()
         self.params = self.settings.agent   # a new mission starts from the configured circle
-        self._set_limits()
         self.state = initial_state(self.id, self.params, self.settings.initial)
         self._failed_in_a_row = 0
         if self.sim_restarts <= 3 or time.monotonic() - self._restarts_told >= ERROR_REPEAT:
@@ -376,8 +374,7 @@ class AgentNode:
             publishers["status"].put(encode(Status(
                 stamp_ns=0, seq=self._next("status"), sender=self.id, phase=0.0, command=(0.0, 0.0),
                 shared=self._last_shared, peers=sorted(self._live_view), ticked=False,
-                health=self._health(None), held=self.orders.held, radius=self.params.control.radius,
-                mission=self.orders.acks())))
+                health=self._health(None), **self._operator_view())))
         except Exception as error:  # noqa: BLE001  (a heartbeat lost is not worth the process)
             self._tick_failed(error, None, 0)
 
@@ -397,10 +394,7 @@ class AgentNode:
         now = self.now() if clock is None else seconds(clock.stamp_ns)
         stamp = nanoseconds(now)
         inputs = None
-        params = self.orders.apply(self.params, stamp)
-        if params is not self.params:
-            self.params = params
-            self._set_limits()
+        self.params = self.orders.apply(self.params, stamp)
         try:
             if clock is not None:
                 self._deliver_shares(clock)
@@ -442,13 +436,12 @@ class AgentNode:
                 target=None if record is None or record.target_state is None
                 else tuple(float(v) for v in record.target_state),
                 health=self._health(record), weakest_pair=weakest_pair(record),
-                held=self.orders.held, radius=self.params.control.radius, mission=self.orders.acks(),
+                **self._operator_view(),
             )
         except Exception:  # noqa: BLE001  (a non-finite estimate: the status goes without it)
             status = Status(stamp_ns=stamp, seq=self._seq["status"], sender=self.id, phase=0.0,
                             command=(command.surge, command.yaw_rate), shared=shared, peers=sorted(self._live_view),
-                            health=self._health(None), held=self.orders.held, radius=self.params.control.radius,
-                            mission=self.orders.acks())
+                            health=self._health(None), **self._operator_view())
         self._next("status")
         wire["status"] = encode(status)
         publishers["status"].put(wire["status"])
@@ -469,9 +462,15 @@ class AgentNode:
                     print(f"usv-agent {self.id}: logging failed: {type(error).__name__}: {error}", file=sys.stderr)
         self.ticks += 1
 
-    def _set_limits(self) -> None:
+    @property
+    def limits(self) -> tuple[float, float]:
+        """U_v and U_omega_c + |omega*| of the parameters ticking now (a mission `set` changes omega*)."""
         control = self.params.control
-        self.limits = (control.max_speed, control.max_correction_yaw_rate + abs(control.yaw_rate))
+        return control.max_speed, control.max_correction_yaw_rate + abs(control.yaw_rate)
+
+    def _operator_view(self) -> dict:
+        """What every status says for the operator: a hold in force, the circle steered to, the answers."""
+        return {"held": self.orders.held, "radius": self.params.control.radius, "mission": self.orders.acks()}
 
     def _check_command(self, command: Command) -> None:
         """CommandOutOfLimits unless the command is finite and within U_v and U_omega_c + omega* (formation.py's
