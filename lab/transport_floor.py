@@ -16,6 +16,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections import Counter
 
 import zenoh
 
@@ -24,6 +25,8 @@ from sim_bridge.fleet import free_port
 # Bytes of each payload: about those of the Table II mission's messages.
 SIZES = {"sensor": 200, "clock": 150, "share": 700, "cmd": 110, "status": 900}
 READY = b"ready"
+TICK_DIGITS = 9        # a share's first bytes: the tick it was sent in
+STRAGGLERS = 0.3       # s an agent waits after the end for shares still on their way
 END = b"end"
 START_TIMEOUT = 30.0   # s for every agent process to start and be heard
 TICK_TIMEOUT = 2.0     # s a tick waits for its answers
@@ -42,12 +45,13 @@ def agent(vessel: int, port: int, ticks: int, vessels: int) -> None:
     with zenoh.open(_config(listen=0, connect=port)) as session:   # listening, as agents do: they link up
         tick, ended = threading.Event(), threading.Event()
         shares = [0]
+        by_tick: Counter[int] = Counter()   # shares received, by the tick they were sent in
 
         def take(sample) -> None:
             sample.payload.to_bytes()
 
         def take_share(sample) -> None:
-            sample.payload.to_bytes()
+            by_tick[int(sample.payload.to_bytes()[:TICK_DIGITS])] += 1
             shares[0] += 1
 
         def on_clock(sample) -> None:
@@ -64,27 +68,31 @@ def agent(vessel: int, port: int, ticks: int, vessels: int) -> None:
         payloads = {name: b"x" * size for name, size in SIZES.items()}
         while not tick.wait(0.1):   # until the first clock: say so (the bridge may miss a first word)
             status.put(READY)
-        done, cpu_started, shares_before, measured_from, last, cpu, measured = 0, 0.0, 0, None, 0, 0.0, 0
+        done, cpu_started, measured_from, last, cpu, measured = 0, 0.0, None, 0, 0.0, 0
         while not ended.is_set():
             # Measured from the first tick after the warm-up whose tick before brought every other agent's
             # share: the links between the agents are up by then.
             if measured_from is None and done >= WARM_UP and shares[0] - last == vessels - 1:
-                measured_from, cpu_started, shares_before = done, time.process_time(), shares[0]
+                measured_from, cpu_started = done, time.process_time()
             last = shares[0]
             tick.clear()
-            share.put(payloads["share"])
+            # Each share says the tick it was sent in: the ones of the measured ticks are counted wherever they
+            # come, a share being free to arrive after the receiver has moved on.
+            share.put(f"{done:0{TICK_DIGITS}d}".encode() + payloads["share"][TICK_DIGITS:])
             cmd.put(payloads["cmd"])
             status.put(payloads["status"])
             done += 1
             if measured_from is not None and done - measured_from == ticks:   # the measured window ends
-                cpu, measured, shares_before = time.process_time() - cpu_started, ticks, shares[0] - shares_before
+                cpu, measured = time.process_time() - cpu_started, ticks
             if not tick.wait(TICK_TIMEOUT):
                 break
         if not measured:
             raise RuntimeError(f"transport floor: agent {vessel} never measured {ticks} ticks with every link up")
+        time.sleep(STRAGGLERS)
+        heard = sum(by_tick[k] for k in range(measured_from, measured_from + ticks))
         for subscriber in subscribers:
             subscriber.undeclare()
-    print(json.dumps({"cpu_ms": 1e3 * cpu / measured, "shares": shares_before / measured}))
+    print(json.dumps({"cpu_ms": 1e3 * cpu / measured, "shares": heard / measured}))
 
 
 def transport_floor(vessels: int = 4, ticks: int = 1000) -> dict[str, float]:
