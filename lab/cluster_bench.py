@@ -6,6 +6,11 @@ the same job list and seeds (lab/scenario_cmd.py `run_monte_carlo`), and the com
 errors agree bit for bit before it writes anything. The cluster's start (its worker processes importing
 the lab) is timed apart from the campaign; the overhead per run is the difference of the two campaigns'
 wall times over the runs.
+
+Then the client's memory: Experiment 1 (`usv-lab compare`, short runs) with N and 8N runs on the same local
+cluster, the client's peak of traced Python allocations (tracemalloc; the workers are other processes). Each
+run is folded into running sums as it arrives and at most a window of runs is out at once, so the peak should
+not grow with N.
 """
 
 from __future__ import annotations
@@ -14,14 +19,24 @@ import argparse
 import os
 import sys
 import time
+import tracemalloc
 from pathlib import Path
 
 import numpy as np
 
 from lab import arguments
+from lab.comparison import ComparisonConfig, run_comparison
 from lab.parallel import Engine
 from lab.report import invocation, machine, markdown_table
 from lab.scenario_cmd import DEFAULT_DIR, load, resolve, run_monte_carlo
+
+MEMORY_DURATION = 10.0   # simulated seconds of each run of the client-memory part
+
+
+def _curve_bytes() -> int:
+    """What one run's curves would take if held: error and NEES per estimator per epoch, float64."""
+    config = ComparisonConfig(duration=MEMORY_DURATION)
+    return 2 * len(config.estimators) * (round(MEMORY_DURATION / config.agent.dt) + 1) * 8
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -31,12 +46,27 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="worker processes of the pool, and of the local Dask cluster")
     parser.add_argument("--out", type=Path, default=Path("docs/results"), help="where cluster_benchmark.md goes")
     parser.add_argument("--scenarios-dir", type=Path, default=DEFAULT_DIR, help="where the scenario files are")
+    parser.add_argument("--memory-runs", type=arguments.positive_int, default=100,
+                        help="N of the client-memory part: Experiment 1 with N and 8N runs")
 
 
 def _campaign(files, engine: Engine) -> tuple[float, dict]:
     started = time.perf_counter()
     results = run_monte_carlo(files, engine)
     return time.perf_counter() - started, results
+
+
+def _client_peak(engine: Engine, runs: int) -> tuple[float, float]:
+    """Experiment 1 (one noise model, 10 s runs) on `engine`: the client's peak traced allocations (MB) and
+    the wall time (s)."""
+    config = ComparisonConfig(runs=runs, duration=MEMORY_DURATION)
+    tracemalloc.start()
+    started = time.perf_counter()
+    try:
+        run_comparison(config, "gmm", engine)
+        return tracemalloc.get_traced_memory()[1] / 1e6, time.perf_counter() - started
+    finally:
+        tracemalloc.stop()
 
 
 def run(args: argparse.Namespace) -> int:
@@ -56,6 +86,10 @@ def run(args: argparse.Namespace) -> int:
         start_seconds = time.perf_counter() - started
         cluster_seconds, cluster_results = _campaign(files, cluster)
         cluster_where = cluster.where()
+        print(f"cluster-bench: client memory, Experiment 1 with {args.memory_runs} and {8 * args.memory_runs} "
+              "runs", file=sys.stderr)
+        cluster.prepare("lab.comparison")
+        memory = [(n, *_client_peak(cluster, n)) for n in (args.memory_runs, 8 * args.memory_runs)]
     ours, theirs = pool_results[path.stem], cluster_results[path.stem]
     same = all(np.array_equal(getattr(theirs[v], field), getattr(ours[v], field), equal_nan=True)
                for v in ours for field in ("error_mean", "error_std", "closest"))
@@ -78,6 +112,14 @@ def run(args: argparse.Namespace) -> int:
         "what the scheduler and the transfer of jobs and results cost.", "",
         markdown_table(["engine", "where", "start (s)", "campaign wall time (s)", "per run (s)",
                         "overhead per run vs the pool (ms)"], rows), "",
+        "## The client's memory", "",
+        f"Experiment 1 (`usv-lab compare`'s runs: two vessels, six estimators, {MEMORY_DURATION:g} s simulated "
+        "each, GMM range noise) on the same local cluster with N and 8N runs; the client's peak of traced Python "
+        "allocations over the campaign (tracemalloc; the runs themselves are in the workers' processes). "
+        "Held whole, each run's error and NEES curves would add "
+        f"{_curve_bytes() / 1e3:.1f} kB a run.", "",
+        markdown_table(["runs", "client peak traced memory (MB)", "wall time (s)"],
+                       [[n, f"{peak:.2f}", f"{seconds:.1f}"] for n, peak, seconds in memory]), "",
         "On two lab machines the same campaign splits over their cores: docs/lab.md says how to start a "
         "scheduler and workers and what speed-up to expect.", ""])
     args.out.mkdir(parents=True, exist_ok=True)

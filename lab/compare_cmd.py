@@ -9,7 +9,14 @@ from pathlib import Path
 from agent.config import load_yaml, updated
 from agent.core.params import ESTIMATOR_NAMES
 from lab import arguments
-from lab.comparison import LS_TIMES, ComparisonConfig, ComparisonResult, nees_band, run_comparison
+from lab.comparison import (
+    LS_TIMES,
+    WORST_RUN_FROM,
+    ComparisonConfig,
+    ComparisonResult,
+    nees_band,
+    run_comparison,
+)
 from lab.estimator_plots import LABELS, rmse_figure
 from lab.parallel import add_engine_arguments, campaign_notes, engine_from, report_failures
 from lab.report import invocation, markdown_table
@@ -19,9 +26,6 @@ DEFAULT_CONFIG = Path("configs/experiments/estimator_comparison.yaml")
 # of R_z (the filters' range variance times a factor) and the ranges R_z is evaluated at. A diagnosis of
 # the result, never used to pick the reported numbers.
 DIAGNOSTIC_SCALES = (0.1, 0.01, 0.001)
-# The worst run's RMSE is taken from here on (s): past the fix, where a run far above the bound is a fault of
-# the estimator and not a slow start.
-WORST_RUN_FROM = 30.0
 
 
 def diagnostic_variants(config: ComparisonConfig) -> dict[str, ComparisonConfig]:
@@ -150,7 +154,7 @@ def _bound_table(config: ComparisonConfig, result: ComparisonResult) -> str:
             rmse = result.rmse_at(name, t)
             row += [rmse, f"{rmse / result.bound_at(t):.1f}"]
         rows.append(row)
-    ls = (result.least_squares ** 2).mean(axis=0) ** 0.5
+    ls = result.least_squares.rms
     row = ["batch least squares (offline)"]
     for t in times:
         rmse = float(ls[LS_TIMES.index(t)])
@@ -167,8 +171,8 @@ def _consistency_table(config: ComparisonConfig, result: ComparisonResult) -> st
     header = ["estimator", f"worst run's RMSE after {WORST_RUN_FROM:g} s / bound",
               *(f"mean NEES at {t:g} s" for t in times)]
     rows = []
-    for name in sorted(config.estimators, key=lambda n: result.worst_run_ratio(n, WORST_RUN_FROM)):
-        rows.append([LABELS.get(name, name), f"{result.worst_run_ratio(name, WORST_RUN_FROM):.2f}",
+    for name in sorted(config.estimators, key=result.worst_run_ratio):
+        rows.append([LABELS.get(name, name), f"{result.worst_run_ratio(name):.2f}",
                      *(_nees_cell(result.mean_nees_at(name, t), low, high) for t in times)])
     return "\n".join([
         (f"Consistency, over the {result.runs} runs: a run's RMSE from {WORST_RUN_FROM:g} s on against the bound's "
@@ -192,9 +196,7 @@ def _noise_section(config: ComparisonConfig, result: ComparisonResult, figure: s
     lowest, highest = min(paper, key=paper.get), max(paper, key=paper.get)
     overall = min(averages, key=averages.get)
     model = config.noise_models[result.noise_name]
-    iterations = result.iterations[result.iterations > 0]
-    ls = result.least_squares
-    ls_rmse = ", ".join(f"{t:g} s: {v:.3f} m" for t, v in zip(LS_TIMES, (ls ** 2).mean(axis=0) ** 0.5))
+    ls_rmse = ", ".join(f"{t:g} s: {v:.3f} m" for t, v in zip(LS_TIMES, result.least_squares.rms))
     return "\n".join([
         f"## {result.noise_name}: {model.model_dump()}",
         "",
@@ -210,7 +212,7 @@ def _noise_section(config: ComparisonConfig, result: ComparisonResult, figure: s
         f"The paper's claim (MCKF lowest, RLS highest) "
         f"{'holds' if (lowest, highest) == ('mckf', 'rls') else 'does not hold'} here.",
         "",
-        f"MCKF fixed-point iterations per update: mean {iterations.mean():.2f}, max {int(iterations.max())} "
+        f"MCKF fixed-point iterations per update: mean {result.mean_iterations:.2f}, max {result.iteration_max} "
         f"(L_max = {config.agent.relative.mckf.max_iterations}).",
         "",
         f"Offline reference, unweighted batch least squares of all equations (12) so far (RMSE over runs): "

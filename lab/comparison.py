@@ -22,7 +22,7 @@ from agent.core.checks import valid_range
 from agent.core.estimators import make_relative_estimator
 from agent.core.params import ESTIMATOR_NAMES, AgentParams
 from lab.bound import fisher_information, rms_bound
-from lab.errors import ErrorHistory
+from lab.errors import ErrorHistory, RunningMoments, moments_by_name
 from lab.mixture_fit import em_mixture
 from lab.parallel import Engine
 from sim_bridge.noise import (
@@ -73,18 +73,42 @@ class ComparisonConfig(StrictModel):
     agent: AgentParams = AgentParams()
 
 
+# A run's RMSE is judged against the bound from here on (s): past the fix, where a run far above the bound is a
+# fault of the estimator and not a slow start.
+WORST_RUN_FROM = 30.0
+
+
 @dataclass
 class ComparisonResult(ErrorHistory):
-    """Per-time errors of every estimator over every run, for one noise model."""
+    """Every estimator over the runs of one noise model, reduced as the runs arrive (`add_run`): per-epoch
+    moments of the error norms and of the NEES, and per run only what the page needs of it."""
 
     noise_name: str
-    iterations: np.ndarray            # (runs, K) MCKF iterations per update (0 if MCKF not run)
     range_bias: float                 # mean of the range noise model
     filter_range_variance: float
-    least_squares: np.ndarray         # (runs, len(LS_TIMES)) batch least-squares error at LS_TIMES
     fisher: float                     # Fisher information of the range noise as a location family (m^-2)
     bound: np.ndarray                 # (K+1,) posterior Cramér–Rao bound on the RMSE over runs (m)
-    nees: dict[str, np.ndarray]       # estimator -> (runs, K+1) e^T P^-1 e with the estimator's own P
+    nees: dict[str, RunningMoments]   # estimator -> e^T P^-1 e with the estimator's own P, at each epoch
+    least_squares: RunningMoments     # (len(LS_TIMES),) batch least-squares error at LS_TIMES
+    worst_late: dict[str, float]      # estimator -> the largest over runs of a run's RMSE from WORST_RUN_FROM on
+    iteration_sum: int = 0            # MCKF fixed-point iterations over every update that iterated
+    iteration_count: int = 0
+    iteration_max: int = 0
+
+    def add_run(self, errors: np.ndarray, iterations: np.ndarray, least_squares: np.ndarray, nees: np.ndarray
+                ) -> None:
+        """One run as `run_once` returns it."""
+        self.add_errors(errors)
+        late = self.time >= WORST_RUN_FROM - 1e-9
+        for e, name in enumerate(self.moments):
+            self.nees[name].add(nees[e])
+            if late.any():
+                self.worst_late[name] = max(self.worst_late[name], float(np.sqrt(np.mean(errors[e, late] ** 2))))
+        self.least_squares.add(least_squares)
+        iterated = iterations[iterations > 0]
+        self.iteration_sum += int(iterated.sum())
+        self.iteration_count += len(iterated)
+        self.iteration_max = max(self.iteration_max, int(iterated.max(initial=0)))
 
     def bound_at(self, t: float) -> float:
         """The bound at the epoch nearest to time t (s)."""
@@ -96,14 +120,17 @@ class ComparisonResult(ErrorHistory):
 
     def mean_nees_at(self, name: str, t: float) -> float:
         """The mean over runs of one estimator's NEES at the epoch nearest to time t (s); 2 if consistent."""
-        return float(np.mean(self.nees[name][:, int(np.argmin(np.abs(self.time - t)))]))
+        return float(self.nees[name].mean[int(np.argmin(np.abs(self.time - t)))])
 
-    def worst_run_ratio(self, name: str, start: float) -> float:
-        """The largest over runs of one run's RMSE over time from `start` on, divided by the bound's RMS over
-        the same epochs: how far the worst run strays from the bound."""
-        late = self.time >= start - 1e-9
-        per_run = np.sqrt(np.mean(self.errors[name][:, late] ** 2, axis=1))
-        return float(per_run.max() / math.sqrt(np.mean(self.bound[late] ** 2)))
+    def worst_run_ratio(self, name: str) -> float:
+        """The largest over runs of one run's RMSE over time from WORST_RUN_FROM on, divided by the bound's RMS
+        over the same epochs: how far the worst run strays from the bound."""
+        late = self.time >= WORST_RUN_FROM - 1e-9
+        return self.worst_late[name] / math.sqrt(np.mean(self.bound[late] ** 2))
+
+    @property
+    def mean_iterations(self) -> float:
+        return self.iteration_sum / self.iteration_count if self.iteration_count else math.nan
 
 
 def nees_band(runs: int, dof: int = 2, level: float = 0.95) -> tuple[float, float]:
@@ -266,35 +293,34 @@ def _run_job(job: tuple[ComparisonConfig, RangeNoise, np.random.SeedSequence]
 
 def run_comparison(config: ComparisonConfig, noise_name: str, engine: Engine | int = 1, progress=None
                    ) -> ComparisonResult:
-    """All Monte Carlo runs for one noise model; `progress(n)` is called as runs finish. A run that raised is
-    left out (`engine.failures` names it). An int `engine` is a process pool of that many workers."""
+    """All Monte Carlo runs for one noise model, each folded into the result as it arrives, in run order;
+    `progress(n)` is called as runs finish. A run that raised is left out (`engine.failures` names it). An
+    int `engine` is a process pool of that many workers."""
+    if isinstance(engine, int):
+        with Engine(engine) as pool:
+            return run_comparison(config, noise_name, pool, progress)
     noise = config.noise_models[noise_name]
     # One child seed per (noise model, run): adding runs or models never changes an existing run.
     root = np.random.SeedSequence([config.seed, _stable_id(noise_name)])
     jobs = [(config, noise, child) for child in root.spawn(config.runs)]
-    if isinstance(engine, int):
-        with Engine(engine) as pool:
-            return run_comparison(config, noise_name, pool, progress)
-    outputs = [o for o in engine.map(_run_job, jobs, progress,
-                                     lambda n: f"{noise_name} run {n} (child {n} of seed [{config.seed}, "
-                                               f"{_stable_id(noise_name)}])") if o is not None]
     t, own, other = relative_trajectory(config)
-    errors = np.stack([o[0] for o in outputs])  # (runs, estimators, K+1)
     # Every run follows the same true path (the seed draws only the noise and the initial estimate), so the
     # RMS over runs of the per-run bound is the bound of that one path: computed once.
     fisher, bound = position_bound(config, noise, [own - other])
-    return ComparisonResult(
-        noise_name=noise_name,
-        time=t,
-        errors={name: errors[:, e, :] for e, name in enumerate(config.estimators)},
-        iterations=np.stack([o[1] for o in outputs]),
-        range_bias=noise.mean,
-        filter_range_variance=filter_variance(noise, config),
-        least_squares=np.stack([o[2] for o in outputs]),
-        fisher=fisher,
-        bound=bound,
-        nees={name: np.stack([o[3][e] for o in outputs]) for e, name in enumerate(config.estimators)},
-    )
+    result = ComparisonResult(
+        time=t, moments=moments_by_name(config.estimators, len(t)), noise_name=noise_name,
+        range_bias=noise.mean, filter_range_variance=filter_variance(noise, config), fisher=fisher, bound=bound,
+        nees=moments_by_name(config.estimators, len(t)), least_squares=RunningMoments(len(LS_TIMES)),
+        worst_late=dict.fromkeys(config.estimators, 0.0))
+
+    def consume(_: int, output) -> None:
+        if output is not None:
+            result.add_run(*output)
+
+    engine.map(_run_job, jobs, progress,
+               lambda n: f"{noise_name} run {n} (child {n} of seed [{config.seed}, {_stable_id(noise_name)}])",
+               consume=consume)
+    return result
 
 
 def _stable_id(text: str) -> int:

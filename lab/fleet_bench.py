@@ -11,7 +11,6 @@
 from __future__ import annotations
 
 import argparse
-import os
 import time
 from pathlib import Path
 
@@ -20,6 +19,7 @@ import numpy as np
 from agent.config import ConfigError, deep_merge, parse_mapping
 from agent.core.params import ESTIMATOR_NAMES
 from lab import arguments
+from lab.parallel import add_engine_arguments, campaign_notes, engine_from, report_failures
 from lab.report import invocation, machine, markdown_table
 from lab.runner import run as run_scenario
 from lab.scenario_cmd import DEFAULT_DIR, load, resolve, run_monte_carlo
@@ -34,8 +34,7 @@ TARGET_CLEARANCE = 3.0  # and this far from the target, as the Table IV file's d
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--runs", type=arguments.positive_int, default=None,
                         help="Monte Carlo runs per estimator (default: the Table II file's own)")
-    parser.add_argument("--workers", type=arguments.positive_int, default=os.cpu_count() or 1,
-                        help="processes for the Monte Carlo part")
+    add_engine_arguments(parser)   # for the Monte Carlo part; the tick-time part runs here
     parser.add_argument("--out", type=Path, default=Path("docs/results"),
                         help="where fleet_benchmark.md goes")
     parser.add_argument("--sizes", type=arguments.positive_int, nargs="+", default=[4, 12, 50],
@@ -109,17 +108,20 @@ def run(args: argparse.Namespace) -> int:
                                            name)]
 
     jobs = sum(s.runs for s in mc_variants.values())
-    started = time.perf_counter()
-    with tqdm(total=jobs, unit="run", desc="Monte Carlo", dynamic_ncols=True) as bar:
-        run_monte_carlo({mc_path.stem: mc_variants}, args.workers, bar.update)
-    mc_seconds = time.perf_counter() - started
+    with engine_from(args) as engine, tqdm(total=jobs, unit="run", desc="Monte Carlo", dynamic_ncols=True) as bar:
+        engine.prepare("lab.scenario_cmd")   # a cluster's workers import before the clock runs, as a fork has
+        started = time.perf_counter()
+        run_monte_carlo({mc_path.stem: mc_variants}, engine, bar.update)
+        mc_seconds = time.perf_counter() - started
+        where = engine.where()
     runs = sorted({s.runs for s in mc_variants.values()})
     mc_table = markdown_table(
-        ["scenario file", "variants", "runs per variant", "runs", "simulated s per run", "workers",
-         "os.cpu_count()", "wall time (s)", "wall time per run (s)"],
+        ["scenario file", "variants", "runs per variant", "runs", "simulated s per run", "ran on",
+         "wall time (s)", "wall time per run (s)"],
         [[mc_path.name, len(mc_variants), "/".join(map(str, runs)), jobs,
-          "/".join(f"{d:g}" for d in sorted({s.duration for s in mc_variants.values()})), args.workers,
-          os.cpu_count(), f"{mc_seconds:.1f}", f"{mc_seconds / jobs:.2f}"]])
+          "/".join(f"{d:g}" for d in sorted({s.duration for s in mc_variants.values()})), where,
+          f"{mc_seconds:.1f}", f"{mc_seconds / jobs:.2f}"]])
+    mc_table = "\n".join([mc_table, *campaign_notes(engine)])
 
     rows = []
     for name, n, scenario, source, paper in fleets:
@@ -142,7 +144,7 @@ def run(args: argparse.Namespace) -> int:
     path = args.out / "fleet_benchmark.md"
     path.write_text(document, encoding="utf-8")
     print(f"\n{mc_table}\n\n{tick_table}\n\nwrote {path}")
-    return 0
+    return report_failures(engine)
 
 
 def render(command: str, mc_table: str, tick_table: str, args: argparse.Namespace, scale_path: Path) -> str:
@@ -161,8 +163,9 @@ def render(command: str, mc_table: str, tick_table: str, args: argparse.Namespac
         "",
         "## Table II Monte Carlo",
         "",
-        "Every run of every estimator variant through the process pool of `usv-lab scenario` (the same job "
-        "list, seeds and chunking), timed from the first job to the last result; no pages or figures.",
+        "Every run of every estimator variant through the engine of `usv-lab scenario` (the same job "
+        "list, seeds and chunking; this machine's process pool unless --cluster), timed from the first job to "
+        "the last result; no pages or figures.",
         "",
         mc_table,
         "",

@@ -30,6 +30,8 @@ J = TypeVar("J")
 R = TypeVar("R")
 CONNECT_TIMEOUT = "30s"   # to reach a remote scheduler
 RELEASE_BATCH = 64          # finished runs whose results a cluster is told to forget at once
+WINDOW_PER_THREAD = 8       # runs out on a cluster at once, per worker thread
+LOW_LEVEL_LOG = 50          # Dask's debugging logs of recent messages and transitions, in entries
 
 
 @dataclass(frozen=True)
@@ -68,7 +70,11 @@ class Engine:
             raise ConfigError("--cluster needs Dask: pip install 'usv-circumnav[lab-cluster]'") from None
         # The workers' sampling profiler wakes every 10 ms and takes the GIL from runs that are pure Python:
         # off in the workers started here (docs/lab.md says how to turn it off on a cluster's own).
-        dask.config.set({"distributed.worker.profile.enabled": False})
+        dask.config.set({"distributed.worker.profile.enabled": False,
+                         # Dask keeps the last this-many messages (each run's task, pickled) and transitions
+                         # for debugging; at its default of 1000 that is megabytes on the client of a long
+                         # campaign, and in the scheduler of a local cluster.
+                         "distributed.admin.low-level-log-length": LOW_LEVEL_LOG})
         if self.cluster.startswith("local:"):
             count = self.cluster.partition(":")[2]
             if not count.isdigit() or int(count) < 1:
@@ -145,16 +151,31 @@ class Engine:
                 yield index, outcome
 
     def _dask_outcomes(self, guarded, jobs: Sequence[J], progress) -> Iterator[tuple[int, tuple[bool, object]]]:
+        """Outcomes of `jobs` on the cluster. At most `_window()` runs are out at once, more sent as they
+        finish, so the client holds a bounded number of futures and early results however long the campaign."""
         from dask.distributed import as_completed
 
-        futures = self._client.map(guarded, list(jobs), pure=False)
-        index = {future.key: n for n, future in enumerate(futures)}
+        index: dict = {}
+        pending = as_completed()
+        sent = 0
+
+        def send() -> None:
+            nonlocal sent
+            future = self._client.submit(guarded, jobs[sent], pure=False)
+            index[future.key] = sent
+            pending.add(future)
+            sent += 1
+
+        for _ in range(min(self._window(), len(jobs))):
+            send()
         early: dict[int, tuple[bool, object]] = {}   # results that came before an earlier job's
         done: list = []
         following = 0
-        for future in as_completed(futures):
-            early[index[future.key]] = future.result()
+        for future in pending:
+            early[index.pop(future.key)] = future.result()
             done.append(future)
+            if sent < len(jobs):
+                send()
             if progress:
                 progress(1)
             if len(done) >= RELEASE_BATCH:
@@ -163,6 +184,11 @@ class Engine:
                 yield following, early.pop(following)
                 following += 1
         self._release(done)
+
+    def _window(self) -> int:
+        """Runs out on the cluster at once: enough to keep every worker thread busy with a queue behind it."""
+        threads = sum(w.get("nthreads", 0) for w in self._client.scheduler_info().get("workers", {}).values())
+        return max(WINDOW_PER_THREAD * threads, RELEASE_BATCH)
 
     def _release(self, futures: list) -> None:
         """Count how many of `futures` ran again after their worker died (the scheduler's `suspicious`), then

@@ -42,8 +42,9 @@ from agent.config import ConfigError, load_yaml, updated
 from agent.core.estimators import make_relative_estimator
 from agent.core.params import ESTIMATOR_NAMES, AgentParams, RelativeEstimationParams
 from lab import arguments
-from lab.errors import ErrorHistory
+from lab.errors import ErrorHistory, RunningMoments, moments_by_name
 from lab.estimator_plots import LABELS, rmse_figure
+from lab.parallel import Engine, add_engine_arguments, campaign_notes, engine_from, report_failures
 from lab.report import invocation, markdown_table
 from sim_bridge.noise import IsotropicGaussianNoise
 
@@ -202,9 +203,10 @@ NOISE_TRUTH = "truth-derived"
 
 @dataclass
 class RangeReplayResult(ErrorHistory):
-    """Per-epoch errors of every estimator over every run, and what the filters were given."""
+    """Every estimator over the runs added so far (per-epoch moments of its errors), and what the filters
+    were given."""
 
-    rejected: dict[str, np.ndarray]   # estimator -> (runs,) updates the estimator refused
+    rejected: RunningMoments          # (estimators,) updates each estimator refused, over runs
     range_variance: float             # the pseudo-linear filters' range variance (m^2)
     noise_source: str                 # NOISE_CONFIG, NOISE_GIVEN or NOISE_TRUTH
     range_bias: float                 # mean range residual of the data (m)
@@ -215,6 +217,9 @@ class RangeReplayResult(ErrorHistory):
     @property
     def tuned_on_truth(self) -> bool:
         return self.noise_source == NOISE_TRUTH
+
+    def rejected_per_run(self, name: str) -> float:
+        return float(self.rejected.mean[list(self.moments).index(name)])
 
 
 def filter_params(params: AgentParams, range_variance: float) -> RelativeEstimationParams:
@@ -290,6 +295,25 @@ def run_estimators(
     return errors, rejected
 
 
+@dataclass(frozen=True)
+class ReplayJob:
+    """What one Monte Carlo run of a replay needs; the run draws from its own child seed."""
+
+    log: RangeLog
+    relative: RelativeEstimationParams
+    dt: float
+    names: tuple[str, ...]
+    seed: np.random.SeedSequence
+
+
+def replay_run(job: ReplayJob) -> tuple[np.ndarray, np.ndarray]:
+    """One run: its own odometry noise and initial estimate p0 ~ N(p(t0), P0), then every estimator."""
+    rng = np.random.default_rng(job.seed)
+    initial = job.log.truth[0] + rng.normal(0.0, math.sqrt(job.relative.initial_covariance), size=2)
+    displacement = synthesise_displacements(job.log, job.relative.displacement_variance, job.dt, rng)
+    return run_estimators(job.log, job.relative, job.dt, displacement, initial, job.names)
+
+
 def replay(
     log: RangeLog,
     params: AgentParams,
@@ -299,39 +323,46 @@ def replay(
     names: Sequence[str] = ESTIMATOR_NAMES,
     progress: Callable[[int], None] | None = None,
     truth_variance: bool = False,
+    engine: Engine | None = None,
 ) -> RangeReplayResult:
-    """All Monte Carlo runs of every estimator on `log`; `progress(1)` is called after each run.
+    """All Monte Carlo runs of every estimator on `log`, each folded into the result as it arrives, in run
+    order; `progress(1)` is called after each run. The runs go to `engine` (this process if None).
 
     The range noise is the config's (`params`) unless `range_variance` (the pseudo-linear filters' only) or
     `truth_variance` (every filter, from the residuals against the truth) says otherwise; see the module.
     """
     if runs < 1:
         raise ConfigError(f"runs must be at least 1, got {runs}")
+    if engine is None:
+        with Engine() as here:
+            result = replay(log, params, runs, seed, range_variance, names, progress, truth_variance, here)
+        if here.failures:      # nobody to report them to: a library call fails as a whole
+            raise RuntimeError(f"{here.failures[0].run} raised {here.failures[0].error}")
+        return result
     bias, residual_variance = range_residual_stats(log)
     relative, source = noise_params(log, params, range_variance, truth_variance)
-    dt = params.dt
-    truth0 = log.truth[0]
-    errors = np.empty((runs, len(names), len(log)))
-    rejected = np.empty((runs, len(names)), dtype=np.int64)
-    for run, child in enumerate(np.random.SeedSequence(seed).spawn(runs)):
-        rng = np.random.default_rng(child)
-        initial = truth0 + rng.normal(0.0, math.sqrt(relative.initial_covariance), size=2)
-        displacement = synthesise_displacements(log, relative.displacement_variance, dt, rng)
-        errors[run], rejected[run] = run_estimators(log, relative, dt, displacement, initial, names)
-        if progress:
-            progress(1)
-    return RangeReplayResult(
-        time=log.elapsed,
-        errors={name: errors[:, e, :] for e, name in enumerate(names)},
-        rejected={name: rejected[:, e] for e, name in enumerate(names)},
-        range_variance=float(relative.range_variance),
-        noise_source=source,
-        range_bias=bias,
+    names = tuple(names)
+    result = RangeReplayResult(
+        time=log.elapsed, moments=moments_by_name(names, len(log)), rejected=RunningMoments(len(names)),
+        range_variance=float(relative.range_variance), noise_source=source, range_bias=bias,
         residual_variance=residual_variance,
         raw_range_components=tuple(tuple(float(v) for v in c) for c in relative.raw_range.noise_components),
         raw_range_gross=(float(relative.raw_range.gross_error_fraction),
                          float(relative.raw_range.gross_error_variance)),
     )
+
+    def consume(_: int, output) -> None:
+        if output is not None:
+            errors, rejected = output
+            result.add_errors(errors)
+            result.rejected.add(rejected)
+
+    jobs = [ReplayJob(log, relative, params.dt, names, child) for child in np.random.SeedSequence(seed).spawn(runs)]
+    engine.map(replay_run, jobs, progress, lambda n: f"{log.source} run {n} (child {n} of seed {seed})",
+               consume=consume)
+    if engine.failures and result.runs == 0:
+        raise ConfigError(f"every replay run of {log.source} raised: {engine.failures[0].error}")
+    return result
 
 
 # ----------------------------------------------------------------------------------------------- command
@@ -359,6 +390,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                             "the output is labelled so")
     parser.add_argument("--out", type=Path, default=Path(DEFAULT_OUT),
                         help=f"directory of the table and figure (default {DEFAULT_OUT})")
+    add_engine_arguments(parser)
 
 
 def density_text(components: Sequence[Sequence[float]]) -> str:
@@ -397,15 +429,17 @@ def run(args: argparse.Namespace) -> int:
     steps = np.diff(log.t)
     print(f"{args.csv}: {len(log)} ranges over {duration:.3f} s (interval median {np.median(steps):.3f} s, "
           f"max {np.max(steps):.3f} s)")
-    with tqdm(total=args.runs, desc="replay runs", unit="run", file=sys.stderr) as bar:
+    with engine_from(args) as engine, tqdm(total=args.runs, desc="replay runs", unit="run", file=sys.stderr) as bar:
         result = replay(log, params, runs=args.runs, seed=args.seed, range_variance=args.range_variance,
-                        truth_variance=args.truth_variance, progress=bar.update)
+                        truth_variance=args.truth_variance, progress=bar.update, engine=engine)
+        where = engine.where()
     summary = [
         f"mean range bias (range - |a - b|): {result.range_bias:+.4f} m (not removed)",
         f"range residual sample variance: {result.residual_variance:.4g} m^2",
         *noise_lines(result, args.config),
         (f"displacement variance: {params.relative.displacement_variance:g} m^2 per dt = {params.dt:g} s, "
-         f"per end; runs: {args.runs}, seed: {args.seed}"),
+         f"per end; runs: {result.runs} of {args.runs}, seed: {args.seed}; ran on {where}"),
+        *(note.removeprefix("- ") for note in campaign_notes(engine)),
     ]
     for line in summary:
         print(line)
@@ -414,7 +448,7 @@ def run(args: argparse.Namespace) -> int:
     header = ["estimator", "time-avg RMSE (m)", f"time-avg RMSE after {settle:g} s (m)", "final RMSE (m)",
               "rejected updates per run"]
     rows = [[LABELS.get(name, name), result.time_averaged_rmse(name), result.time_averaged_rmse(name, settle),
-             result.final_rmse(name), float(np.mean(result.rejected[name]))] for name in result.errors]
+             result.final_rmse(name), result.rejected_per_run(name)] for name in result.moments]
     table = markdown_table(header, rows)
     print(table)
 
@@ -443,7 +477,7 @@ def run(args: argparse.Namespace) -> int:
         "",
     ])
     markdown_path.write_text(markdown, encoding="utf-8")
-    rmse_figure(result.time, {name: (result.rmse(name), result.spread(name)) for name in result.errors},
+    rmse_figure(result.time, {name: (result.rmse(name), result.spread(name)) for name in result.moments},
                 f"Replay of {Path(args.csv).name} ({args.runs} runs)", figure_path)
     print(f"wrote {markdown_path} and {figure_path}")
-    return 0
+    return report_failures(engine)

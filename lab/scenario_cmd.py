@@ -22,6 +22,7 @@ import numpy as np
 
 from agent.config import ConfigError, updated
 from lab import arguments
+from lab.errors import RunningMoments
 from lab.fleet_plots import error_figure, trajectory_figure
 from lab.parallel import Engine, add_engine_arguments, campaign_notes, engine_from, report_failures
 from lab.report import invocation, markdown_table
@@ -187,8 +188,7 @@ class RunsGathered:
         self.closest: list[float] = []
         self.settled: dict[str, list[float]] = {error: [] for error in ERRORS}
         self.first: RunTrace | None = None
-        shape = (len(ERRORS), len(time))
-        self._count, self._mean, self._m2 = np.zeros(shape), np.zeros(shape), np.zeros(shape)
+        self._errors = RunningMoments((len(ERRORS), len(time)))
 
     def add(self, metrics: RunMetrics, errors: np.ndarray, closest: float, trace: RunTrace | None = None) -> None:
         self.metrics.append(metrics)
@@ -198,18 +198,11 @@ class RunsGathered:
         if metrics.settling_time is not None:
             for panel, error in enumerate(ERRORS):
                 self.settled[error].append(mean_after(self.time, errors[panel], metrics.settling_time))
-        present = ~np.isnan(errors)
-        self._count += present
-        delta = np.where(present, errors - self._mean, 0.0)
-        self._mean += np.where(present, delta / np.maximum(self._count, 1.0), 0.0)
-        self._m2 += np.where(present, delta * (errors - self._mean), 0.0)
+        self._errors.add(errors)
 
     def result(self, name: str, scenario: Scenario) -> VariantResult:
-        seen = self._count > 0
-        mean = np.where(seen, self._mean, np.nan)
-        std = np.where(seen, np.sqrt(self._m2 / np.maximum(self._count, 1.0)), np.nan)
         return VariantResult(name=name, scenario=scenario, time=self.time, metrics=list(self.metrics),
-                             error_mean=mean, error_std=std,
+                             error_mean=self._errors.mean, error_std=self._errors.std,
                              settled={error: np.array(values) for error, values in self.settled.items()},
                              closest=np.array(self.closest), first=self.first)
 

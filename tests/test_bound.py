@@ -295,8 +295,9 @@ def test_nees_of_each_run_uses_the_estimators_own_covariance():
     result = run_comparison(config, "gmm")
     assert set(result.nees) == {"kf", "raw_range"}
     for name in ("kf", "raw_range"):
-        assert result.nees[name].shape == result.errors[name].shape
-        assert np.all(result.nees[name] >= 0)
-    # At the start every estimator holds the initial estimate with P_0 = initial_covariance * I.
+        assert result.nees[name].count.tolist() == [3] * len(result.time)
+        assert np.all(result.nees[name].mean >= 0)
+    # At the start every estimator holds the initial estimate with P_0 = initial_covariance * I: the mean
+    # NEES is the mean squared error over P_0.
     p0 = config.agent.relative.initial_covariance
-    np.testing.assert_allclose(result.nees["kf"][:, 0], result.errors["kf"][:, 0] ** 2 / p0, rtol=1e-12)
+    assert result.mean_nees_at("kf", 0.0) == pytest.approx(result.rmse("kf")[0] ** 2 / p0, rel=1e-12)

@@ -8,11 +8,14 @@ import signal
 
 import numpy as np
 import pytest
+from test_range_replay import circle_scenario, write_csv
 from test_scenario_cmd import TINY
 
+from agent.core.params import AgentParams
 from lab import scenario_cmd
 from lab.comparison import ComparisonConfig, run_comparison
 from lab.parallel import Engine
+from lab.range_replay import RangeLog, replay
 
 pytest.importorskip("dask.distributed")
 pytestmark = pytest.mark.slow   # worker processes of a Dask cluster
@@ -35,12 +38,14 @@ def _arrays(results) -> dict:
 def test_scenario_and_compare_give_the_same_numbers_on_the_cluster_as_on_the_pool(tiny):
     _, scenarios = scenario_cmd.load(tiny)
     config = ComparisonConfig(runs=6, duration=6.0, estimators=("kf", "mckf", "raw_range"))
+    log = RangeLog("walk", *circle_scenario(seed=3, range_std=0.1, duration=8.0))
     outcomes = {}
     for name, engine in (("pool", Engine(workers=2)), ("cluster", Engine(cluster=CLUSTER))):
         with engine:
             outcomes[name] = (_arrays(scenario_cmd.run_monte_carlo({"tiny": scenarios}, engine)["tiny"]),
-                              run_comparison(config, "gmm", engine), engine.where())
-    (pool_runs, pool_compare, pool_where), (runs, compare, where) = outcomes["pool"], outcomes["cluster"]
+                              run_comparison(config, "gmm", engine), engine.where(),
+                              replay(log, AgentParams(), runs=5, seed=3, engine=engine))
+    (pool_runs, pool_compare, pool_where, pool_replay), (runs, compare, where, replayed) = outcomes.values()
     assert pool_where == "this machine, 2 worker process(es)"
     assert where.startswith("Dask scheduler tcp://") and "2 worker(s), 2 thread(s)" in where
     assert pool_runs.keys() == runs.keys()
@@ -49,9 +54,19 @@ def test_scenario_and_compare_give_the_same_numbers_on_the_cluster_as_on_the_poo
         np.testing.assert_array_equal(runs[name][1], pool_runs[name][1])
         assert runs[name][2] == pool_runs[name][2]
     for estimator in config.estimators:
-        np.testing.assert_array_equal(compare.errors[estimator], pool_compare.errors[estimator])
+        for summary in ("rmse", "spread"):
+            np.testing.assert_array_equal(getattr(compare, summary)(estimator), getattr(pool_compare, summary)(estimator))
+        np.testing.assert_array_equal(compare.nees[estimator].mean, pool_compare.nees[estimator].mean)
+        assert compare.worst_late == pool_compare.worst_late
     # every run of every variant is in
     assert all(len(v[1]) == 6 for v in runs.values())
+    assert replayed.runs == pool_replay.runs == 5
+    for estimator in replayed.moments:
+        np.testing.assert_array_equal(replayed.rmse(estimator), pool_replay.rmse(estimator))
+        np.testing.assert_array_equal(replayed.spread(estimator), pool_replay.spread(estimator))
+    # ... and the same as one process, run after run
+    alone = replay(log, AgentParams(), runs=5, seed=3)
+    np.testing.assert_array_equal(alone.rmse("raw_range"), replayed.rmse("raw_range"))
 
 
 def test_a_worker_killed_mid_campaign_loses_nothing(tiny):
@@ -100,4 +115,8 @@ def test_the_commands_take_a_cluster_and_their_pages_say_where_they_ran(tiny, tm
     assert "ran on Dask scheduler tcp://" in page and "(a local cluster the command started): 2 worker(s)" in page
     assert main(["compare", "--runs", "4", "--out", str(out), "--no-diagnosis", "--cluster", CLUSTER]) == 0
     assert "ran on Dask scheduler tcp://" in (out / "estimator_comparison.md").read_text(encoding="utf-8")
+    csv_path = write_csv(tmp_path / "walk.csv", *circle_scenario(seed=3, range_std=0.1, duration=15.0))
+    assert main(["replay", str(csv_path), "--runs", "3", "--out", str(out), "--cluster", CLUSTER]) == 0
+    page = (out / "replay_walk.md").read_text(encoding="utf-8")
+    assert "runs: 3 of 3" in page and "ran on Dask scheduler tcp://" in page
     assert main(["scenario", str(tiny), "--out", str(out), "--cluster", "local:zero"]) == 2

@@ -12,6 +12,7 @@ import pytest
 from agent.config import ConfigError
 from agent.core.params import ESTIMATOR_NAMES, AgentParams
 from lab import cli
+from lab.errors import RunningMoments, moments_by_name
 from lab.range_replay import (
     NOISE_CONFIG,
     NOISE_GIVEN,
@@ -162,11 +163,11 @@ def test_estimators_converge_on_a_noisy_irregular_log_with_a_gap():
     # The filters are tuned on the truth here (explicitly), so that the KF's consistency can be checked.
     result = replay(log, params, runs=5, seed=4, truth_variance=True)
 
-    assert set(result.errors) == set(ESTIMATOR_NAMES)
+    assert set(result.moments) == set(ESTIMATOR_NAMES) and result.runs == 5
     for name in ESTIMATOR_NAMES:
-        assert result.errors[name].shape == (5, len(t))
-        assert np.isfinite(result.errors[name]).all(), name
-        assert (result.rejected[name] == 0).all(), name
+        assert result.moments[name].count.tolist() == [5] * len(t), name
+        assert np.isfinite(result.rmse(name)).all() and math.isfinite(result.largest_error(name)), name
+        assert result.rejected.maximum[list(result.moments).index(name)] == 0, name
         assert math.isfinite(result.time_averaged_rmse(name, 10.0))
 
     # The range variance came from the data: range_std^2 = 0.01 m^2, estimated from ~1000 residuals, and
@@ -177,7 +178,7 @@ def test_estimators_converge_on_a_noisy_irregular_log_with_a_gap():
     assert abs(result.range_bias) < 0.02
 
     # Every run starts from p0 ~ N(p, 25 I): an RMS error of sqrt(50) = 7.1 m.
-    initial = np.sqrt(np.mean(result.errors["kf"][:, 0] ** 2))
+    initial = result.rmse("kf")[0]
     assert 3.0 < initial < 12.0
     # The KF is consistent here (Gaussian ranges with the right variance). After two turns of 0.52 m/s
     # motion with 0.1 m range noise its final error is a few decimetres (median 0.16 m, worst 0.78 m over
@@ -203,7 +204,7 @@ def test_exact_data_keeps_every_estimator_on_the_truth_across_the_gap():
     result = replay(log, params, runs=2, seed=5, range_variance=1e-4)
     assert result.noise_source == NOISE_GIVEN and result.range_variance == 1e-4
     for name in ESTIMATOR_NAMES:
-        assert np.max(result.errors[name]) < 1e-5, name
+        assert result.largest_error(name) < 1e-5, name
 
 
 def test_a_refused_range_keeps_the_last_accepted_one_for_the_next_pair():
@@ -216,8 +217,8 @@ def test_a_refused_range_keeps_the_last_accepted_one_for_the_next_pair():
     result = replay(log, params, runs=1, seed=5, range_variance=1e-4)
     for name in ESTIMATOR_NAMES:
         # Exactly the two bad ranges are refused; pairing the next range with a refused one would refuse more.
-        assert result.rejected[name].tolist() == [2], name
-        assert np.max(result.errors[name]) < 1e-5, name
+        assert result.rejected_per_run(name) == 2, name
+        assert result.largest_error(name) < 1e-5, name
 
 
 def test_estimators_are_driven_epoch_by_epoch_with_the_interval_lengths(monkeypatch):
@@ -300,18 +301,19 @@ def test_a_config_sets_the_noise_raw_range_assumes():
     narrow = replay(log, with_relative(raw_range={"noise_components": [(1.0, 0.0, 0.01)]}), runs=2, seed=6,
                     names=("raw_range", "kf"))
     other_variance = replay(log, with_relative(range_variance=0.01), runs=2, seed=6, names=("raw_range", "kf"))
-    assert not np.array_equal(table_two.errors["raw_range"], narrow.errors["raw_range"])
-    np.testing.assert_array_equal(table_two.errors["kf"], narrow.errors["kf"])
-    np.testing.assert_array_equal(table_two.errors["raw_range"], other_variance.errors["raw_range"])
-    assert not np.array_equal(table_two.errors["kf"], other_variance.errors["kf"])
+    assert not np.array_equal(table_two.rmse("raw_range"), narrow.rmse("raw_range"))
+    np.testing.assert_array_equal(table_two.rmse("kf"), narrow.rmse("kf"))
+    np.testing.assert_array_equal(table_two.rmse("raw_range"), other_variance.rmse("raw_range"))
+    assert not np.array_equal(table_two.rmse("kf"), other_variance.rmse("kf"))
 
 
 def test_rmse_summaries_weight_irregular_epochs_by_time():
     # Two runs with errors 3 and 4 at each epoch -> RMSE sqrt(12.5); then the last epoch has RMSE 10.
-    errors = np.array([[3.0, 3.0, 10.0], [4.0, 4.0, 10.0]])
-    result = RangeReplayResult(time=np.array([0.0, 1.0, 10.0]), errors={"kf": errors},
-                               rejected={"kf": np.zeros(2)}, range_variance=1.0, noise_source=NOISE_GIVEN,
+    result = RangeReplayResult(time=np.array([0.0, 1.0, 10.0]), moments=moments_by_name(["kf"], 3),
+                               rejected=RunningMoments(1), range_variance=1.0, noise_source=NOISE_GIVEN,
                                range_bias=0.0, residual_variance=1.0)
+    for run in ([3.0, 3.0, 10.0], [4.0, 4.0, 10.0]):
+        result.add_errors(np.array([run]))
     rmse = math.sqrt(12.5)
     np.testing.assert_allclose(result.rmse("kf"), [rmse, rmse, 10.0])
     np.testing.assert_allclose(result.spread("kf"), [0.5, 0.5, 0.0])
@@ -329,10 +331,11 @@ def test_same_seed_same_errors_and_another_seed_differs():
     again = replay(log, AgentParams(), runs=3, seed=11)
     other = replay(log, AgentParams(), runs=3, seed=12)
     for name in ESTIMATOR_NAMES:
-        np.testing.assert_array_equal(first.errors[name], again.errors[name])
-        assert not np.array_equal(first.errors[name], other.errors[name])
+        for summary in ("rmse", "spread"):
+            np.testing.assert_array_equal(getattr(first, summary)(name), getattr(again, summary)(name))
+            assert not np.array_equal(getattr(first, summary)(name), getattr(other, summary)(name))
     # Runs of one replay draw different initial estimates.
-    assert len(set(first.errors["kf"][:, 0].tolist())) == 3
+    assert first.spread("kf")[0] > 0.0
 
 
 # ----------------------------------------------------------------------------------------------- command
