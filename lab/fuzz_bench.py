@@ -3,7 +3,9 @@
 One `usv-agent` process runs on sim time and listens on loopback. A Zenoh session plays its world: a small
 genuine mission (vessel 1, the agent's, and two neighbours 2 and 3 with live liveliness tokens, circling a
 target at the origin), and between each tick's genuine messages a batch of bad payloads on every key the
-agent subscribes to: its four sensor keys, every vessel's share (`usv/*/share`) and `sim/clock`. The payloads
+agent subscribes to: its four sensor keys, every vessel's share (`usv/*/share`), `sim/clock` and the
+operator's mission keys (`mission/all`, `mission/1`; a genuine body is a harmless `set` of the radius and
+direction the mission already has). The payloads
 come from one seeded numpy Generator, in these classes:
 
 - `random_bytes`: random bytes, some starting like JSON;
@@ -13,7 +15,7 @@ come from one seeded numpy Generator, in these classes:
 - `seq_poison` and `stamp_poison`: seq 10^9, 2^63, 10^400, -1, ...; stamps 0, 2^62, 2^63, 10^400, +-10 s,
   and just inside the freshness window (on the clock also a few forged timelines of three clocks);
 - `phantom`: shares from ids without a liveliness token, senders that are not the key's vessel, ranges to
-  and clocks listing hundreds of unknown vessels;
+  and clocks listing hundreds of unknown vessels, mission commands to vessels that do not exist;
 - `flood`: bursts of hundreds of messages on one key as fast as Zenoh takes them (shares from new ids).
 
 Every command the agent publishes is recorded and checked (finite, |surge| <= U_v, |yaw rate| <= U_omega_c +
@@ -48,7 +50,9 @@ from lab.report import invocation, machine, markdown_table
 
 VESSEL = "1"
 PEERS = ("2", "3")
-KEYS = ("sensor/odom", "sensor/uwb", "sensor/bearing", "sensor/sonar", "share", "sim/clock")
+KEYS = ("sensor/odom", "sensor/uwb", "sensor/bearing", "sensor/sonar", "share", "sim/clock", "mission/all",
+        f"mission/{VESSEL}")
+OPERATOR = "op"
 CLASSES = ("random_bytes", "wrong_types", "extremes", "non_spd", "seq_poison", "stamp_poison", "phantom", "flood")
 RADIUS = 5.0
 OMEGA = math.pi / 30
@@ -141,6 +145,11 @@ class World:
             "neighbours": {VESSEL: {"position": (me - self.position(VESSEL, t)).tolist(),
                                     "covariance": [0.04, 0.0, 0.04]}}}
 
+    def mission(self, k: int) -> dict:
+        """An operator's `set` that changes nothing: the radius and direction the mission has."""
+        return {"stamp_ns": round(k * DT * SECOND), "seq": k, "sender": OPERATOR, "command": "set",
+                "radius": RADIUS, "direction": "ccw"}
+
     def clock(self, k: int) -> dict:
         return {"stamp_ns": round(k * DT * SECOND), "seq": k, "sender": "sim",
                 "previous_ns": round((k - 1) * DT * SECOND) if k else None, "vessels": list(self.ids),
@@ -176,11 +185,13 @@ class Fuzzer:
             return self.world.share(self._pick(PEERS), k)
         if topic == "sim/clock":
             return self.world.clock(k)
+        if topic.startswith("mission/"):
+            return self.world.mission(k)
         return self.world.sensors(k)[topic]
 
     def key_of(self, topic: str, body: dict | None = None) -> str:
-        if topic == "sim/clock":
-            return "sim/clock"
+        if topic == "sim/clock" or topic.startswith("mission/"):
+            return topic
         if topic == "share":
             sender = body.get("sender") if isinstance(body, dict) else None
             return f"usv/{sender if isinstance(sender, str) and sender in PEERS else self._pick(PEERS)}/share"
@@ -313,6 +324,10 @@ class Fuzzer:
                 return key, json.dumps(body | {"vessels": [VESSEL, *[self._id() for _ in range(255)]],
                                                "senders": [self._id() for _ in range(200)]}).encode()
             return key, json.dumps(body | {"lost": [[self._id(), VESSEL] for _ in range(2000)]}).encode()
+        if topic.startswith("mission/"):
+            if rng.random() < 0.6:
+                return f"mission/{self._id()}", json.dumps(body).encode()
+            return key, json.dumps(body | {"sender": self._id() * 20}).encode()
         if topic == "sensor/uwb" and rng.random() < 0.7:
             return key, json.dumps(body | {"ranges": {self._id(): float(rng.uniform(0, 50)) for _ in range(256)}}).encode()
         return key, json.dumps(body | {"sender": self._pick(PEERS)}).encode()
@@ -399,7 +414,7 @@ def run_campaign(per_key: int = 5000, seed: int = 1, folder: Path | None = None,
     def put(key: str, payload: bytes) -> None:
         """Publish without dropping anything: a declared publisher for the genuine keys, a put for the rest."""
         publisher = publishers.get(key)
-        if publisher is None and (key == "sim/clock" or key.split("/")[1] in world.ids):
+        if publisher is None and (key == "sim/clock" or key.split("/")[1] in (*world.ids, "all")):
             publisher = publishers[key] = session.declare_publisher(
                 key, congestion_control=zenoh.CongestionControl.BLOCK)
         if publisher is not None:
@@ -535,7 +550,7 @@ def run(args: argparse.Namespace) -> int:
 
 def render(command: str, results: Results, baseline: Results) -> str:
     per_key = results.per_key()
-    rows = [[key if key == "sim/clock" else f"usv/{'*' if key == 'share' else VESSEL}/{key}",
+    rows = [[key if key == "sim/clock" or key.startswith("mission/") else f"usv/{'*' if key == 'share' else VESSEL}/{key}",
              *[results.payloads[key][c] for c in CLASSES], per_key[key]] for key in KEYS]
     payload_table = markdown_table(["key", *CLASSES, "total"], rows)
     refused = sorted(((k[len("rejected_"):], v) for k, v in results.health.items() if k.startswith("rejected_")),

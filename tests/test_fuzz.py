@@ -1,11 +1,11 @@
 """A fuzz storm over real Zenoh against one real agent process (lab/fuzz_bench.py describes the campaign).
 
-5,000 bad payloads on each key the agent subscribes to (its four sensor keys, every vessel's share and
-sim/clock), from a seeded Generator, in the classes of the issue: random bytes, wrong types, extremes (1e308,
+5,000 bad payloads on each key the agent subscribes to (its four sensor keys, every vessel's share,
+sim/clock and the operator's mission keys), from a seeded Generator, in the classes of the issue: random bytes, wrong types, extremes (1e308,
 1e-308, 1e400, NaN, 2^63, 10^400), covariances that are not symmetric positive semi-definite, seq and stamp
 poisoning, phantom ids and floods. What must hold: the agent is alive at the end and stops cleanly, no tick
 failed, every command it published is finite and within the controller's limits, its memory stays bounded,
-and once the storm is over it commands the vessel again. About 45 s on 2 cores.
+and once the storm is over it commands the vessel again. About 60 s on 2 cores.
 
 The memory bound. The genuine mission alone peaks at about 70 MB (VmHWM: Python, numpy, pydantic, Zenoh, the
 MCAP writer); the issue's flood of shares from new ids took an agent from 74 to 335 MB. What the agent keeps
@@ -23,7 +23,7 @@ import json
 import numpy as np
 import pytest
 
-from agent.contract import TOPICS, Clock, decode
+from agent.contract import TOPICS, Clock, MissionCommand, decode
 from lab.fuzz_bench import CLASSES, KEYS, Fuzzer, World, run_campaign
 
 PER_KEY = 5000
@@ -33,6 +33,8 @@ SECOND_HALF_GROWTH_MB = 10.0
 
 
 def model(topic: str):
+    if topic.startswith("mission/"):
+        return MissionCommand
     return Clock if topic == "sim/clock" else TOPICS[topic]
 
 
@@ -79,4 +81,5 @@ def test_a_fuzz_storm_over_zenoh_neither_crashes_the_agent_nor_gets_past_its_lim
     # The storm met every line of defence.
     refused = {k[len("rejected_"):] for k, v in results.health.items() if k.startswith("rejected_") and v > 0}
     assert {"malformed", "sender_mismatch", "unknown_sender", "unknown_peer", "duplicate_or_reordered", "stale",
-            "future", "rate_limited", "malformed_clock", "clock_jump", "clock_reordered"} <= refused, refused
+            "future", "rate_limited", "malformed_clock", "clock_jump", "clock_reordered", "mission_malformed",
+            "mission_unknown_vessel", "mission_replayed", "mission_stale", "mission_future"} <= refused, refused
