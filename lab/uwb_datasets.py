@@ -38,11 +38,12 @@ from pathlib import Path
 
 import numpy as np
 
-from agent.config import ConfigError, load_yaml, updated
+from agent.config import ConfigError, load_yaml
 from agent.core.params import ESTIMATOR_NAMES, AgentParams
 from lab import arguments
 from lab.estimator_plots import LABELS
 from lab.mixture_fit import em_mixture
+from lab.parallel import Engine, add_engine_arguments, campaign_notes, engine_from, report_failures
 from lab.range_replay import RangeLog, parse_csv, replay
 from lab.report import markdown_table
 
@@ -501,29 +502,17 @@ class Outcome:
     spread: float                   # 1.4826 x median absolute deviation of those residuals (m): likewise
     rmse: dict[str, float]          # time-averaged RMSE over the whole run (m)
     late: dict[str, float]          # time-averaged RMSE from LATE s on (m)
-    rescaled: float | None          # DEFAULT_ESTIMATOR with its range counts on the agent's time base, if it lost
-    debiased: float | None          # the same, on ranges less the truth-derived bias: a diagnostic only
+    debiased: float | None          # DEFAULT_ESTIMATOR on ranges less the truth-derived bias, if it lost: a
+                                    # diagnostic only
 
     @property
     def winner(self) -> str:
         return min(self.rmse, key=self.rmse.get)
 
 
-def time_base_params(params: AgentParams, interval: float) -> AgentParams:
-    """raw_range's range-count parameters scaled so that they span the time they span at the agent's tick:
-    at dt = 0.1 s, 20 ranges before the first solve is 2 s, at one range a second it is 20 s. Uses only the
-    data's time stamps, never its truth."""
-    factor = min(params.dt / interval, 1.0)
-    raw = params.relative.raw_range
-    min_ranges = max(3, round(raw.min_ranges * factor))
-    scaled = updated(raw, min_ranges=min_ranges, solve_every=max(1, round(raw.solve_every * factor)),
-                     window=max(min_ranges, round(raw.window * factor)),
-                     monitor_length=max(10, round(raw.monitor_length * factor)))
-    return updated(params, relative=updated(params.relative, raw_range=scaled))
-
-
 def score(entry: Entry, params: AgentParams, runs: int, seed: int) -> Outcome:
-    """Replay `entry` with the config's noise (never the truth's) and summarise it."""
+    """Replay `entry` with the config's noise (never the truth's) and summarise it (one process: the page's
+    engine spreads the entries)."""
     log = parse_csv(entry.path)
     result = replay(log, params, runs=runs, seed=seed)
     rmse = {name: result.time_averaged_rmse(name) for name in ESTIMATOR_NAMES}
@@ -531,17 +520,18 @@ def score(entry: Entry, params: AgentParams, runs: int, seed: int) -> Outcome:
     interval = float(np.median(np.diff(log.t)))
     residual = log.range - np.linalg.norm(log.truth, axis=1)
     spread = 1.4826 * float(np.median(np.abs(residual - np.median(residual))))
-    rescaled = debiased = None
+    debiased = None
     if min(rmse, key=rmse.get) != DEFAULT_ESTIMATOR:
-        scaled = time_base_params(params, interval)
-        rescaled = replay(log, scaled, runs=runs, seed=seed, names=(DEFAULT_ESTIMATOR,)).time_averaged_rmse(
-            DEFAULT_ESTIMATOR)
         # What a known bias would be worth: the truth's mean residual taken off the ranges. Diagnostic only.
         unbiased = RangeLog(log.source, log.t, np.maximum(log.range - result.range_bias, 0.0), log.a, log.b)
-        debiased = replay(unbiased, scaled, runs=runs, seed=seed, names=(DEFAULT_ESTIMATOR,)).time_averaged_rmse(
+        debiased = replay(unbiased, params, runs=runs, seed=seed, names=(DEFAULT_ESTIMATOR,)).time_averaged_rmse(
             DEFAULT_ESTIMATOR)
     return Outcome(entry, len(log), float(log.elapsed[-1]), interval, result.range_bias, spread, rmse, late,
-                   rescaled, debiased)
+                   debiased)
+
+
+def _score_job(job: tuple[Entry, AgentParams, int, int]) -> Outcome:
+    return score(*job)
 
 
 def _label(name: str) -> str:
@@ -597,15 +587,12 @@ def _losses(outcomes: Sequence[Outcome], params: AgentParams) -> list[str]:
     lost = [o for o in outcomes if o.winner != DEFAULT_ESTIMATOR]
     if not lost:
         return [f"{DEFAULT_ESTIMATOR} has the lowest time-averaged RMSE on every run."]
-    raw = params.relative.raw_range
-    header = ["run", "interval (s)", "first solve after (s)", "bias (m)*", f"{DEFAULT_ESTIMATOR}", "lowest",
-              f"{DEFAULT_ESTIMATOR} from {LATE:g} s", f"lowest from {LATE:g} s", f"{DEFAULT_ESTIMATOR}, time base",
-              f"{DEFAULT_ESTIMATOR}, time base, bias removed*"]
-    rows = [[f"{o.entry.dataset}/{o.entry.path.stem}", f"{o.interval:.2f}", f"{raw.min_ranges * o.interval:.1f}",
+    header = ["run", "interval (s)", "bias (m)*", f"{DEFAULT_ESTIMATOR}", "lowest",
+              f"{DEFAULT_ESTIMATOR} from {LATE:g} s", f"lowest from {LATE:g} s", f"{DEFAULT_ESTIMATOR}, bias removed*"]
+    rows = [[f"{o.entry.dataset}/{o.entry.path.stem}", f"{o.interval:.2f}",
              f"{o.bias:+.3f}", o.rmse[DEFAULT_ESTIMATOR], f"{_label(o.winner)} {o.rmse[o.winner]:.3f}",
-             o.late[DEFAULT_ESTIMATOR], o.late[o.winner], o.rescaled, o.debiased] for o in lost]
+             o.late[DEFAULT_ESTIMATOR], o.late[o.winner], o.debiased] for o in lost]
     slow = [o for o in lost if o.interval > 1.5 * params.dt]
-    fixed = [o for o in lost if o.rescaled is not None and o.rescaled < o.rmse[o.winner]]
     late = [o for o in lost if o.late[DEFAULT_ESTIMATOR] <= o.late[o.winner]]
     both = [o for o in lost if o.debiased is not None and o.debiased < o.rmse[o.winner]]
     won = [o for o in outcomes if o.winner == DEFAULT_ESTIMATOR]
@@ -618,18 +605,13 @@ def _losses(outcomes: Sequence[Outcome], params: AgentParams) -> list[str]:
          "below say about why:"),
         "",
         (f"- Time base: {len(slow)} of them have ranges further apart than the agent's tick (median interval above "
-         f"{1.5 * params.dt:g} s). raw_range counts ranges, not seconds: its first solve waits for "
-         f"min_ranges = {raw.min_ranges} ranges, {raw.min_ranges * params.dt:g} s at the tick, and until then it "
-         f"holds the initial estimate. With its range counts scaled to span the same time (column \"time base\"; "
-         f"min_ranges, solve_every, window and monitor_length times dt / interval, from the time stamps only) it "
-         f"would be lowest on {len(fixed)} of the {len(lost)}."),
+         f"{1.5 * params.dt:g} s)."),
         (f"- After the start: from {LATE:g} s on, {DEFAULT_ESTIMATOR} is at or below the run's lowest estimator "
          f"on {len(late)} of the {len(lost)}."),
         (f"- Range bias: the median |mean residual| is {bias(lost):.3f} m on these runs and {bias(won):.3f} m on "
-         f"the runs {DEFAULT_ESTIMATOR} wins; the config's density does not model a bias of the run's own. With "
-         f"the time base scaled and each run's truth-derived mean residual taken off its ranges (last column, a "
-         f"diagnostic that uses the truth, never a setting) {DEFAULT_ESTIMATOR} would be lowest on {len(both)} "
-         f"of the {len(lost)}."),
+         f"the runs {DEFAULT_ESTIMATOR} wins. With each run's truth-derived mean residual taken off its ranges (last "
+         f"column, a diagnostic that uses the truth, never a setting) {DEFAULT_ESTIMATOR} would be lowest on "
+         f"{len(both)} of the {len(lost)}."),
         "",
         markdown_table(header, rows),
     ]
@@ -660,8 +642,12 @@ def _config_comment(path: Path | None) -> list[str]:
 
 
 def write_page(manifests: Sequence[Sequence[Entry]], configs: Sequence[tuple[Path | None, AgentParams]],
-               runs: int, seed: int, out: Path, argv: Sequence[str]) -> Path:
-    """Replay every run of `manifests` with each config and write the page to `out`."""
+               runs: int, seed: int, out: Path, argv: Sequence[str], engine: Engine | None = None) -> Path:
+    """Replay every run of `manifests` with each config, the runs spread over `engine` (this process if None),
+    and write the page to `out`."""
+    if engine is None:
+        with Engine() as here:
+            return write_page(manifests, configs, runs, seed, out, argv, here)
     entries = [entry for manifest in manifests for entry in manifest]
     if not entries:
         raise ConfigError("no runs: the manifests are empty")
@@ -670,10 +656,17 @@ def write_page(manifests: Sequence[Sequence[Entry]], configs: Sequence[tuple[Pat
     outcomes_first: list[Outcome] = []
     for path, params in configs:
         label = f"`{path}`" if path is not None else "the default config (configs/agent.yaml)"
-        outcomes = []
-        for number, entry in enumerate(entries, 1):
-            print(f"[{number}/{len(entries)}] {entry.dataset}/{entry.path.name} ({label})", file=sys.stderr)
-            outcomes.append(score(entry, params, runs, seed))
+        done = []
+
+        def progress(_: int, label=label) -> None:
+            done.append(1)
+            print(f"[{len(done)}/{len(entries)}] replayed ({label})", file=sys.stderr)
+
+        outcomes = [o for o in engine.map(_score_job, [(e, params, runs, seed) for e in entries], progress,
+                                          lambda n: f"{entries[n].dataset}/{entries[n].path.name} ({label})")
+                    if o is not None]
+        if not outcomes:
+            raise ConfigError(f"every run raised with {label}: {engine.failures[0].error}")
         outcomes_first = outcomes_first or outcomes
         wins = _wins(outcomes)[DEFAULT_ESTIMATOR]
         raw = params.relative.raw_range
@@ -709,9 +702,10 @@ def write_page(manifests: Sequence[Sequence[Entry]], configs: Sequence[tuple[Pat
          "each drawing its own synthetic odometry noise and initial estimate p0 ~ N(p, P0). The filters' range "
          "noise comes from the config named, never from the runs' ground truth. The score is the RMSE over the "
          "Monte Carlo runs at each range epoch, averaged over the whole run by time (the start included). "
-         f"The default estimator is `{DEFAULT_ESTIMATOR}`."),
+         f"The default estimator is `{DEFAULT_ESTIMATOR}`. Ran on {engine.where()}."),
         "",
         *totals,
+        *campaign_notes(engine),
         "",
         "## Data sets",
         "",
@@ -760,6 +754,7 @@ def _add_page(commands) -> None:
                         help="Monte Carlo runs per replay (default 10)")
     parser.add_argument("--seed", type=arguments.seed, default=1)
     parser.add_argument("--out", type=Path, default=Path("docs/results/real_uwb.md"))
+    add_engine_arguments(parser)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -790,8 +785,11 @@ def main(argv: list[str] | None = None) -> int:
         else:
             params = [(path, load_yaml(AgentParams, path)) for path in args.config] if args.config else [
                 (None, AgentParams())]
-            write_page([read_manifest(d) for d in args.dirs], params, args.runs, args.seed, args.out, argv)
+            with engine_from(args) as engine:
+                write_page([read_manifest(d) for d in args.dirs], params, args.runs, args.seed, args.out, argv,
+                           engine)
             print(f"wrote {args.out}")
+            return report_failures(engine)
     except ConfigError as error:
         print(f"uwb_datasets {args.command}: {error}", file=sys.stderr)
         return 2

@@ -229,3 +229,80 @@ def test_in_the_agent_a_saved_and_restored_fleet_runs_on_bit_for_bit(monkeypatch
         np.testing.assert_array_equal(getattr(again, name), getattr(original, name), err_msg=name)
     assert sorted(saved) == ["1", "2", "3", "4"]
     assert np.nanmean(original.e_ij[60:]) < 1.0
+
+
+# ----------------------------------------------------------------------------------------------- range bias
+def test_a_bias_state_recovers_a_known_range_bias_on_a_curved_path():
+    # Ranges 0.3 m long on a full circle about the other vessel: the odometry puts the anchors on a circle of
+    # radius |p| = 10 m about p, so the radius (and with it b = r - 10) is known from the path's shape alone.
+    path = circle(60.0)
+    rng = np.random.default_rng(21)
+    ranges = np.linalg.norm(path, axis=1) + 0.3 + rng.normal(0.0, 0.05, len(path))
+    gaussian = ((1.0, 0.0, 0.0025),)
+    with_bias = run(RawRange(params(gaussian, bias_variance=0.09), (0.0, 0.0), NO_PRIOR), path, ranges)
+    without = run(RawRange(params(gaussian), (0.0, 0.0), NO_PRIOR), path, ranges)
+    assert with_bias.fixed and abs(with_bias.bias - 0.3) < 0.03
+    assert without.bias == 0.0
+    error = np.linalg.norm(with_bias.position - path[-1])
+    assert error < 0.05 and error < np.linalg.norm(without.position - path[-1]) / 3
+
+
+def test_without_a_bias_variance_there_is_no_bias_state():
+    path = circle(30.0)
+    ranges = np.linalg.norm(path, axis=1) + 0.3
+    estimator = run(RawRange(params(), (0.0, 0.0), NO_PRIOR), path, ranges)
+    assert estimator.bias == 0.0 and estimator.export_state()["extra"]["bias"] == [0.0, 0.0, 0.0, 0.0]
+
+
+# ----------------------------------------------------------------------------------------------- time base
+def _first_solve(every: int, seconds: float = 30.0) -> float:
+    """Time (s) of the first batch solve with one range each `every` ticks of DT (noise-free ranges)."""
+    path = circle(seconds)
+    ranges = np.linalg.norm(path, axis=1)
+    estimator = RawRange(params(), (0.0, 0.0), NO_PRIOR)
+    estimator.mark_range_epoch()
+    for k in range(every, len(path), every):
+        estimator.predict(path[k] - path[k - every], intervals=float(every))
+        if estimator.update(ranges[k - every], ranges[k]).reason != "collecting":
+            return k * DT
+    raise AssertionError("no solve")
+
+
+def test_a_sensor_slower_than_the_tick_solves_first_when_one_at_the_tick_does():
+    raw = params().raw_range
+    stagger = int(np.linalg.norm(circle(0.0)[0]) * 1e3) % raw.solve_every
+    at_tick = _first_solve(1)
+    assert at_tick == pytest.approx((raw.min_ranges - 1 + stagger) * DT)
+    for every in (2, 10):       # 5 Hz and 1 Hz: the first range at or after the same moment, not 10 times later
+        assert 0.0 <= _first_solve(every) - at_tick < every * DT
+
+
+def test_before_the_first_solve_a_range_updates_the_prior_as_an_ekf_step():
+    # With a Gaussian density (no gross-error component) moment matching is the EKF's step exactly:
+    # p+ = p + P u (r - |p|) / (u^T P u + s2), P+ = P - P u u^T P / (u^T P u + s2).
+    s2 = 0.25
+    p = params(((1.0, 0.0, s2),), gross_error_fraction=0.0)
+    estimator = RawRange(p, (8.0, 3.0), 4.0 * np.eye(2))
+    estimator.mark_range_epoch()
+    estimator.predict((0.5, -0.2))
+    prior, covariance = estimator.position, estimator.covariance
+    outcome = estimator.update(9.0, 9.5)
+    assert outcome.reason == "collecting"
+    u = prior / np.linalg.norm(prior)
+    gain = covariance @ u / (u @ covariance @ u + s2)
+    np.testing.assert_allclose(estimator.position, prior + gain * (9.5 - np.linalg.norm(prior)), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(estimator.covariance, covariance - np.outer(gain, covariance @ u), rtol=0, atol=1e-12)
+
+
+def test_with_a_bias_state_a_saved_and_restored_estimator_continues_identically():
+    path = circle(30.0)
+    ranges = np.linalg.norm(path, axis=1) + 0.2 + np.random.default_rng(8).normal(0.0, 0.05, len(path))
+    p = params(((1.0, 0.0, 0.0025),), bias_variance=0.04)
+    original = run(RawRange(p, (0.0, 0.0), NO_PRIOR), path, ranges, until=200)
+    copy = RawRange(p, (1.0, 2.0), np.eye(2))
+    copy.restore_state(json.loads(json.dumps(original.export_state())))
+    for estimator in (original, copy):
+        run(estimator, path, ranges, start=200)
+    assert original.fixed and original.bias == copy.bias != 0.0
+    assert np.array_equal(original.position, copy.position)
+    assert np.array_equal(original.covariance, copy.covariance)

@@ -211,13 +211,6 @@ def test_committed_real_config_sets_the_noise_and_nothing_else():
 
 
 # ----------------------------------------------------------------------------------------------- page
-def test_time_base_params_span_the_same_time():
-    params = AgentParams()
-    slow = uwb.time_base_params(params, interval=1.0).relative.raw_range
-    assert (slow.min_ranges, slow.solve_every, slow.window, slow.monitor_length) == (3, 1, 30, 10)
-    assert uwb.time_base_params(params, interval=0.05) == params   # never more ranges than the defaults
-
-
 def test_page_scores_config_noise_and_counts_wins(tmp_path):
     rng = np.random.default_rng(4)
     rows = []
@@ -239,7 +232,7 @@ def test_page_scores_config_noise_and_counts_wins(tmp_path):
     assert "never from the runs' ground truth" in text and "TRUTH" not in text
     assert "| one |" in text and "| two |" in text
     assert "- Noise from the default config (configs/agent.yaml): **raw_range lowest on" in text
-    assert "0.8 N(0, 0.4) + 0.2 N(0, 10)" in text
+    assert "0.8 N(0, 0.4) + 0.2 N(0, 10)" in text and "Ran on this machine, 1 worker process(es)." in text
 
 
 def test_the_data_sets_are_described_where_users_look_for_them():

@@ -86,6 +86,10 @@ class RawRangeParams(StrictModel):
     monitor_sigmas: PositiveFloat = Field(
         5.0, description="the fix is dropped (phase 1 again, from no prior) once the monitor's mean negative "
                          "log-likelihood exceeds the density's entropy by this many standard errors + 0.2 nats")
+    bias_variance: NonNegativeFloat = Field(
+        0.0, description="prior variance (m^2) of a constant range bias b of the pair, r = |p| + b + noise, "
+                         "estimated with p in the batch and in tracking (a UWB pair's antenna delays give "
+                         "tens of cm); 0: no bias state, the noise density's means alone")
 
 
 class RelativeEstimationParams(StrictModel):

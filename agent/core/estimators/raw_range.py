@@ -50,6 +50,21 @@ Two phases.
    density's entropy by far, the fix is dropped and phase 1 starts again from no prior (a wrong fix, or a
    jump in the relative position the odometry did not see).
 
+Time base. `min_ranges` and `solve_every` count ranges at one range per tick (dt); a sensor slower than the
+tick is counted by the ticks its ranges span (`_due`), so a 1 Hz sensor at dt = 0.1 s solves first after about
+2 s, as a 10 Hz one does, not after 20 s (and then at every range). `window` and `monitor_length` stay counts:
+they are amounts of information, not of time. Until the first solve each range updates the prior N(p_0, P_0),
+carried by odometry, as tracking does (the estimate would otherwise stand still until then; the batch itself
+still starts from the prior).
+
+Range bias (`bias_variance` > 0, off by default). A UWB pair's antenna delays give it a constant bias of tens
+of cm, r = |p| + b + noise. b, with the prior N(0, bias_variance), is estimated with p in the batch (the
+unknowns (p, b); Newton's and EM's matrices gain b's row (sum c u^T, sum c + 1 / bias_variance)) and carried
+into tracking as a third state (H = (u^T, 1)). Without it the density's component means are the only bias
+model. It is observable only as far as the range along the path varies in a way |p| cannot explain (a curved
+relative path); on Experiment 1's circle it costs information: the log-normal's RMSE at 30 s rises from 1.2
+to 2.0 times the bound with bias_variance = 0.04 m^2 (seed 2024), hence off by default (docs/estimation.md §9).
+
 `range_prev` of `update` is used once, for the first range of the sequence (the one `mark_range_epoch`
 declared); after that each update uses only `range_now`, at the state already moved by `predict`.
 
@@ -88,9 +103,62 @@ SCOUT_ITERATIONS = 3
 SCOUTED_KEPT = 2
 
 
+def _due(ranges: int, ticks: float, count: int, least: int = 1) -> bool:
+    """A solve is due once `count` ranges have come, or, from a sensor slower than the tick, once the ranges
+    span `count` ticks (and are at least `least`): the schedule is set in ranges at one range per tick, so
+    that a 1 Hz sensor at dt = 0.1 s solves first after 2 s, as a 10 Hz one does, not after 20 s."""
+    return ranges >= count or (ranges >= least and ticks >= count - 1e-6)
+
+
 def _inverse(a11: float, a12: float, a22: float) -> tuple[float, float, float]:
     det = a11 * a22 - a12 * a12
     return a22 / det, -a12 / det, a11 / det
+
+
+def _inverse3(a11: float, a12: float, a22: float, c1: float, c2: float,
+              c3: float) -> tuple[float, float, float, float, float, float]:
+    """The inverse of the symmetric [[A, c], [c^T, c3]], A = [[a11, a12], [a12, a22]], by b's Schur complement
+    s = c3 - c^T A^-1 c: (A^-1 + A^-1 c c^T A^-1 / s, -A^-1 c / s, 1 / s) as (x11, x12, x22, xb1, xb2, xbb)."""
+    j11, j12, j22 = _inverse(a11, a12, a22)
+    k1, k2 = j11 * c1 + j12 * c2, j12 * c1 + j22 * c2          # A^-1 c
+    s = c3 - c1 * k1 - c2 * k2
+    return j11 + k1 * k1 / s, j12 + k1 * k2 / s, j22 + k2 * k2 / s, -k1 / s, -k2 / s, 1.0 / s
+
+
+def _step(a11: float, a12: float, a22: float, bias_row: tuple[float, float, float] | None, g1: float, g2: float,
+          g3: float, damp: bool) -> tuple[float, float, float] | None:
+    """The step s solving M s = g, M = [[A, c], [c^T, c3]] (A the 2x2 matrix of p, (c, c3) = bias_row; A alone
+    without b). b is eliminated first: (A - c c^T / c3) s_p = g_p - c g3 / c3, s_b = (g3 - c^T s_p) / c3.
+    None if M is not positive definite, unless `damp`, which then adds 1e-6 of its scale to the diagonal."""
+    if bias_row is not None:
+        c1, c2, c3 = bias_row
+        if not c3 > 0.0:
+            return None
+        a11, a12, a22 = a11 - c1 * c1 / c3, a12 - c1 * c2 / c3, a22 - c2 * c2 / c3
+        g1, g2 = g1 - c1 * g3 / c3, g2 - c2 * g3 / c3
+    det = a11 * a22 - a12 * a12
+    if not (a11 > 0.0 and det > 1e-12 * a11 * a22):
+        if not damp:
+            return None
+        if not det > 1e-12 * max(a11 * a22, 1e-300):
+            damping = 1e-6 * max(a11, a22, 1e-12)
+            a11 += damping
+            a22 += damping
+            det = a11 * a22 - a12 * a12
+    sx = (a22 * g1 - a12 * g2) / det
+    sy = (a11 * g2 - a12 * g1) / det
+    if bias_row is None:
+        return sx, sy, 0.0
+    return sx, sy, (g3 - c1 * sx - c2 * sy) / c3
+
+
+def _sandwich(psi2: float, dpsi: float, fisher: float) -> float:
+    """Information per range for the covariance: the sandwich (mean psi')^2 / mean psi^2, which is I_f when the
+    assumed density is the noise's and less when it is only an approximation (a fitted mixture, a bias), kept
+    within [I_f / 20, I_f]."""
+    if dpsi <= 0.0 or psi2 <= 0.0:
+        return fisher / 20.0
+    return min(max(dpsi * dpsi / psi2, fisher / 20.0), fisher)
 
 
 def _largest_eigenvalue(a11: float, a12: float, a22: float) -> float:
@@ -99,91 +167,109 @@ def _largest_eigenvalue(a11: float, a12: float, a22: float) -> float:
 
 
 class BatchWindow:
-    """Negative log-likelihood of the window's ranges plus a Gaussian prior, and its minimiser (numpy)."""
+    """Negative log-likelihood of the window's ranges plus a Gaussian prior, and its minimiser (numpy).
+
+    With a range bias (`bias_variance` > 0) the unknowns are x = (p, b), the ranges r_m = |p - a_m| + b + noise
+    and b has the prior N(0, bias_variance); without one b = 0 and the arithmetic is that of p alone."""
 
     def __init__(self, ranges: np.ndarray, anchors: np.ndarray, density: RangeDensity,
-                 prior: tuple[float, ...]) -> None:
+                 prior: tuple[float, ...], bias_variance: float = 0.0) -> None:
         self.r = ranges                       # (N,)
         self.a = anchors                      # (N, 2): p_m = p - a_m
         self.density = density
         qx, qy, q11, q12, q22 = prior
         self.q = (qx, qy)
         self.i11, self.i12, self.i22 = _inverse(q11, q12, q22)
+        self.ib = 1.0 / bias_variance if bias_variance > 0.0 else 0.0   # prior information of b; 0: no b
 
-    def prior_term(self, px: float, py: float) -> float:
+    def prior_term(self, px: float, py: float, b: float = 0.0) -> float:
         ex, ey = px - self.q[0], py - self.q[1]
-        return 0.5 * (self.i11 * ex * ex + 2 * self.i12 * ex * ey + self.i22 * ey * ey)
+        return 0.5 * (self.i11 * ex * ex + 2 * self.i12 * ex * ey + self.i22 * ey * ey + self.ib * b * b)
 
-    def evaluate(self, px: float, py: float) -> tuple[float, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
-                                                        np.ndarray, np.ndarray]:
-        """At p: (cost, unit vectors ux, uy of p - a_m, distances d, the residuals' score psi = -(ln f)'(e) and
-        its derivative psi', EM precision w = sum_c gamma_c / sigma_c^2), arrays of N."""
+    def evaluate(self, px: float, py: float, b: float = 0.0) -> tuple[float, np.ndarray, np.ndarray, np.ndarray,
+                                                                      np.ndarray, np.ndarray, np.ndarray]:
+        """At (p, b): (cost, unit vectors ux, uy of p - a_m, distances d, the residuals' score
+        psi = -(ln f)'(e), e = r - d - b, and its derivative psi', EM precision w = sum_c gamma_c / sigma_c^2),
+        arrays of N."""
         dx = px - self.a[:, 0]
         dy = py - self.a[:, 1]
         d = np.maximum(np.hypot(dx, dy), MIN_DISTANCE)
-        nll, psi, dpsi, w = self.density.evaluate(self.r - d)
-        return float(nll.sum()) + self.prior_term(px, py), dx / d, dy / d, d, psi, dpsi, w
+        nll, psi, dpsi, w = self.density.evaluate(self.r - d - b if self.ib else self.r - d)
+        return float(nll.sum()) + self.prior_term(px, py, b), dx / d, dy / d, d, psi, dpsi, w
 
-    def solve(self, px: float, py: float, iterations: int, tolerance: float) -> tuple[float, float, float]:
-        """EM steps from p, then Newton's method once a step is shorter than NEWTON_REACH, with step halving;
-        (px, py, cost) at the end. Both use the exact gradient sum psi u - P^-1 (p - p_0). EM's matrix
-        sum w u u^T + P^-1 is positive definite everywhere and its steps are safe far from a minimum, but
-        converge only linearly; the Hessian sum psi' u u^T - sum (psi / d) (I - u u^T) + P^-1 converges
-        quadratically near one (it halves the cost of a solve) and is used there while positive definite."""
-        cost, ux, uy, d, psi, dpsi, w = self.evaluate(px, py)
+    def solve(self, px: float, py: float, iterations: int, tolerance: float,
+              b: float = 0.0) -> tuple[float, float, float, float]:
+        """EM steps from (p, b), then Newton's method once a step is shorter than NEWTON_REACH, with step
+        halving; (px, py, b, cost) at the end. Both use the exact gradient sum psi u - P^-1 (p - p_0) (and
+        sum psi - b / bias_variance for b). EM's matrix sum w u u^T + P^-1 is positive definite everywhere and
+        its steps are safe far from a minimum, but converge only linearly; the Hessian
+        sum psi' u u^T - sum (psi / d) (I - u u^T) + P^-1 converges quadratically near one (it halves the cost
+        of a solve) and is used there while positive definite. With b, each matrix gains the row
+        (sum c u^T, sum c + 1 / bias_variance), c = psi' or w, and b is eliminated first (_step)."""
+        cost, ux, uy, d, psi, dpsi, w = self.evaluate(px, py, b)
         newton = False
         for _ in range(iterations):
             g1 = float((psi * ux).sum()) + self.i11 * (self.q[0] - px) + self.i12 * (self.q[1] - py)
             g2 = float((psi * uy).sum()) + self.i12 * (self.q[0] - px) + self.i22 * (self.q[1] - py)
+            g3 = float(psi.sum()) - self.ib * b if self.ib else 0.0
             uxx, uxy, uyy = ux * ux, ux * uy, uy * uy
+            step_p = None
             if newton:
                 bend = psi / d
                 a11 = float((dpsi * uxx - bend * uyy).sum()) + self.i11
                 a12 = float(((dpsi + bend) * uxy).sum()) + self.i12
                 a22 = float((dpsi * uyy - bend * uxx).sum()) + self.i22
-                det = a11 * a22 - a12 * a12
-            if not (newton and a11 > 0.0 and det > 1e-12 * a11 * a22):
+                bias_row = self._bias_row(dpsi, ux, uy)
+                step_p = _step(a11, a12, a22, bias_row, g1, g2, g3, damp=False)
+            if step_p is None:
                 a11 = float((w * uxx).sum()) + self.i11
                 a12 = float((w * uxy).sum()) + self.i12
                 a22 = float((w * uyy).sum()) + self.i22
-                det = a11 * a22 - a12 * a12
-                if not det > 1e-12 * max(a11 * a22, 1e-300):
-                    damping = 1e-6 * max(a11, a22, 1e-12)
-                    a11 += damping
-                    a22 += damping
-                    det = a11 * a22 - a12 * a12
-            sx = (a22 * g1 - a12 * g2) / det
-            sy = (a11 * g2 - a12 * g1) / det
+                step_p = _step(a11, a12, a22, self._bias_row(w, ux, uy), g1, g2, g3, damp=True)
+                if step_p is None:
+                    break
+            sx, sy, sb = step_p
             step = 1.0
             for _ in range(MAX_HALVINGS):
-                trial = self.evaluate(px + step * sx, py + step * sy)
+                trial = self.evaluate(px + step * sx, py + step * sy, b + step * sb)
                 if trial[0] <= cost + 1e-12 * abs(cost):
                     break
                 step *= 0.5
             else:
                 break
-            px, py = px + step * sx, py + step * sy
+            px, py, b = px + step * sx, py + step * sy, b + step * sb
             cost, ux, uy, d, psi, dpsi, w = trial
-            length = step * math.hypot(sx, sy)
+            length = step * math.hypot(sx, sy, sb)
             if length <= tolerance:
                 break
             newton = newton or length <= NEWTON_REACH
-        return px, py, cost
+        return px, py, b, cost
 
-    def score_moments(self, px: float, py: float) -> tuple[float, float, int]:
-        """(sum of psi^2, sum of psi', N) of the ranges' residuals at p under the assumed density: the two
+    def _bias_row(self, c: np.ndarray, ux: np.ndarray, uy: np.ndarray) -> tuple[float, float, float] | None:
+        """(sum c ux, sum c uy, sum c + 1 / bias_variance): b's row of the matrix; None without b."""
+        if not self.ib:
+            return None
+        return float((c * ux).sum()), float((c * uy).sum()), float(c.sum()) + self.ib
+
+    def score_moments(self, px: float, py: float, b: float = 0.0) -> tuple[float, float, int]:
+        """(sum of psi^2, sum of psi', N) of the ranges' residuals at (p, b) under the assumed density: the two
         estimates of the Fisher information the sandwich compares (module docstring)."""
-        _, _, _, _, psi, dpsi, _ = self.evaluate(px, py)
+        _, _, _, _, psi, dpsi, _ = self.evaluate(px, py, b)
         return float((psi * psi).sum()), float(dpsi.sum()), len(psi)
 
-    def covariance(self, px: float, py: float, fisher: float) -> tuple[float, float, float]:
-        """(P^-1 + I_f sum u u^T)^-1 at p."""
+    def covariance(self, px: float, py: float, fisher: float) -> tuple[float, ...]:
+        """The inverse of P^-1 + I_f sum u u^T at p: (c11, c12, c22); with b, of the information of (p, b),
+        I_f sum (u, 1)(u, 1)^T + diag(P^-1, 1 / bias_variance): (c11, c12, c22, cxb, cyb, cbb)."""
         dx = px - self.a[:, 0]
         dy = py - self.a[:, 1]
         d = np.maximum(np.hypot(dx, dy), MIN_DISTANCE)
         ux, uy = dx / d, dy / d
-        return _inverse(fisher * float((ux * ux).sum()) + self.i11, fisher * float((ux * uy).sum()) + self.i12,
-                        fisher * float((uy * uy).sum()) + self.i22)
+        a11, a12 = fisher * float((ux * ux).sum()) + self.i11, fisher * float((ux * uy).sum()) + self.i12
+        a22 = fisher * float((uy * uy).sum()) + self.i22
+        if not self.ib:
+            return _inverse(a11, a12, a22)
+        f1, f2, f3 = fisher * float(ux.sum()), fisher * float(uy.sum()), fisher * len(ux) + self.ib
+        return _inverse3(a11, a12, a22, f1, f2, f3)
 
     def line(self) -> tuple[float, float, float, float]:
         """Centroid (cx, cy) and unit direction (tx, ty) of the anchors' principal line."""
@@ -246,6 +332,11 @@ class RawRange(RelativePositionEstimator):
         return None if self._alt is None or self._fixed else np.array(self._alt)
 
     @property
+    def bias(self) -> float:
+        """The estimated range bias b (m): 0 unless `bias_variance` > 0."""
+        return self._b
+
+    @property
     def refixes(self) -> int:
         """How many times a fix was dropped by the tracking monitor."""
         return self._refixes
@@ -263,16 +354,26 @@ class RawRange(RelativePositionEstimator):
         self._prior = (self._px, self._py, self._p11, self._p12, self._p22)   # carried to now by odometry
         self._alt: tuple[float, float] | None = None
         self._unsolved = 0                             # ranges since the last batch solve
+        self._unsolved_ticks = 0.0                     # and ticks (dt) they span
         self._solves = 0
         self._evidence = 0.0                           # other minimum's cost minus the best's (nats)
         self._consistent = False                       # the last batch solution passed the goodness-of-fit test
         self._monitor = 0.0                            # running mean of the tracking residuals' NLL (nats)
         self._tracked = 0                              # ranges since the fix
         self._refixes = 0
+        self._reset_bias()
+
+    def _reset_bias(self) -> None:
+        """The range bias b and its covariance with p (pxb, pyb) and its own (pbb): b's prior N(0, bias_variance);
+        all 0, and b out of every equation, without one."""
+        self._b = self._pxb = self._pyb = 0.0
+        self._pbb = self.params.raw_range.bias_variance
 
     def assimilate(self, position: np.ndarray, covariance: np.ndarray) -> bool:
         if not super().assimilate(position, covariance):
             return False
+        # The fused position's correlation with b is unknown: dropped (the 3x3 stays positive definite).
+        self._pxb = self._pyb = 0.0
         if not self._fixed:
             self._prior = (self._px, self._py, self._p11, self._p12, self._p22)
             self._alt = None
@@ -323,44 +424,55 @@ class RawRange(RelativePositionEstimator):
         if len(self._window) > p.window:
             del self._window[: len(self._window) - p.window]
         self._unsolved += 1
+        self._unsolved_ticks += self._pair_steps
         if self._solves == 0:
             # Pairs that start together would solve on the same ticks; the first solve waits up to
             # solve_every - 1 more ranges, by the millimetres of the pair's first range, which differ.
-            waiting = len(self._window) < p.min_ranges + int(self._window[0][0] * 1e3) % p.solve_every
+            stagger = int(self._window[0][0] * 1e3) % p.solve_every
+            waiting = not _due(len(self._window), self._unsolved_ticks + 1, p.min_ranges + stagger, 3)
         else:
-            waiting = self._unsolved < p.solve_every
+            waiting = not _due(self._unsolved, self._unsolved_ticks, p.solve_every)
         if waiting:
+            if self._solves == 0:
+                # Not ambiguous (before the first solve, or the last solve found one minimum): the range
+                # updates the current Gaussian as in tracking, so that the estimate does not stand still until
+                # the next solve, which starts from the prior again. At one range a second that is seconds.
+                self._moment_match(r)
             return UpdateOutcome(accepted=True, reason="collecting")
         self._unsolved = 0
+        self._unsolved_ticks = 0.0
         return self._solve()
 
     def _solve(self) -> UpdateOutcome:
         p = self.params.raw_range
         data = np.array(self._window)
         anchors = np.column_stack([self._cx - data[:, 1], self._cy - data[:, 2]])
-        batch = BatchWindow(data[:, 0], anchors, self._density, self._prior)
+        batch = BatchWindow(data[:, 0], anchors, self._density, self._prior, p.bias_variance)
         starts = []
         if self._solves > 0:
-            starts.append((self._px, self._py))
+            starts.append((self._px, self._py, self._b))
             if self._alt is not None:
-                starts.append(self._alt)
+                starts.append((*self._alt, self._b))
         if self._solves == 0 or not self._consistent:
             # Cold: both line candidates, the points straight across the anchors' centroid, the prior's mean.
-            starts += [*batch.line_candidates(), *batch.centroid_candidates(), self._prior[:2]]
+            starts += [(x, y, 0.0) for x, y in (*batch.line_candidates(), *batch.centroid_candidates(),
+                                                self._prior[:2])]
         if len(starts) > SCOUTED_KEPT:
             # A few iterations from every cold start point, then only the most promising are solved fully.
-            scouted = sorted((batch.solve(x, y, SCOUT_ITERATIONS, p.tolerance) for x, y in starts),
-                             key=lambda s: s[2])
-            starts = [s[:2] for s in scouted[:SCOUTED_KEPT]]
-        solutions = [batch.solve(x, y, p.batch_iterations, p.tolerance) for x, y in starts]
-        bx, by, best = min(solutions, key=lambda s: s[2])
+            scouted = sorted((batch.solve(x, y, SCOUT_ITERATIONS, p.tolerance, b) for x, y, b in starts),
+                             key=lambda s: s[3])
+            starts = [s[:3] for s in scouted[:SCOUTED_KEPT]]
+        solutions = [batch.solve(x, y, p.batch_iterations, p.tolerance, b) for x, y, b in starts]
+        bx, by, bb, best = min(solutions, key=lambda s: s[3])
         mx, my = batch.mirror(bx, by)
-        mirror = batch.solve(mx, my, p.batch_iterations, p.tolerance)
-        psi2, dpsi, n = batch.score_moments(bx, by)
+        mirror = batch.solve(mx, my, p.batch_iterations, p.tolerance, bb)
+        psi2, dpsi, n = batch.score_moments(bx, by, bb)
         self._psi2 = (SANDWICH_PRIOR * self._fisher + psi2) / (SANDWICH_PRIOR + n)
         self._dpsi = (SANDWICH_PRIOR * self._fisher + dpsi) / (SANDWICH_PRIOR + n)
         self._info = self._sandwich()
-        c11, c12, c22 = batch.covariance(bx, by, self._info)
+        c11, c12, c22, *bias = batch.covariance(bx, by, self._info)
+        self._b = bb
+        self._pxb, self._pyb, self._pbb = bias or (0.0, 0.0, 0.0)
         largest = _largest_eigenvalue(c11, c12, c22)
         smallest = c11 + c22 - largest
         # Another local minimum, however near: one the solver from the mirror point did not leave. Only when
@@ -372,10 +484,10 @@ class RawRange(RelativePositionEstimator):
         # entropy, with 4 standard errors and 0.2 nats of slack for a density that is only approximate. A
         # point that explains the ranges only as gross errors (a wrong basin) fails it.
         n = len(data)
-        nll = (best - batch.prior_term(bx, by)) / n
+        nll = (best - batch.prior_term(bx, by, bb)) / n
         self._consistent = nll <= self._entropy + 0.2 + 4.0 * self._nll_spread / math.sqrt(n)
         if separate:
-            ax, ay, alt_cost = min(separate, key=lambda s: s[2])
+            ax, ay, _, alt_cost = min(separate, key=lambda s: s[3])
             evidence = alt_cost - best
         else:
             ax = ay = None
@@ -403,38 +515,52 @@ class RawRange(RelativePositionEstimator):
 
     def _track(self, r: float) -> UpdateOutcome:
         """Phase 2: the moment-matching update of a Gaussian prior N(p^-, P) by one range (module docstring)."""
-        px, py, p11, p12, p22 = self._px, self._py, self._p11, self._p12, self._p22
-        d = math.hypot(px, py)
-        if d < MIN_DISTANCE:
+        step = self._moment_match(r)
+        if step is None:
             return UpdateOutcome(accepted=True, reason="at the origin: range direction undefined")
-        ux, uy = px / d, py / d
-        hx = p11 * ux + p12 * uy                     # P H^T, H = u^T
-        hy = p12 * ux + p22 * uy
-        h = ux * hx + uy * hy                        # the prior's variance along the range
-        innovation = r - d
-        nll, psi, dpsi = self._density.predictive(innovation, h)
-        self._psi2 += (psi * psi - self._psi2) / SANDWICH_LENGTH
-        self._dpsi += (dpsi - self._dpsi) / SANDWICH_LENGTH
-        self._info = info = self._sandwich()
-        # Where the assumed density only approximates the noise, the sandwich says how much of its
-        # information a range really carries; the covariance shrinks by that share only.
-        shrink = dpsi * info / self._fisher
-        self._px, self._py = px + hx * psi, py + hy * psi
-        self._p11, self._p12, self._p22 = p11 - hx * hx * shrink, p12 - hx * hy * shrink, p22 - hy * hy * shrink
+        nll, dpsi, innovation, h = step
         self._tracked += 1
         reason = "fix dropped: the ranges no longer fit" if self._watch(nll) else ""
         # weight: the share of the prior's variance along the range this range removed, h psi' (for a Gaussian
         # noise the Kalman gain's h / (sigma^2 + h); about 0 for a gross error).
         return UpdateOutcome(accepted=True, reason=reason, iterations=1, innovation=innovation,
-                             innovation_variance=h + 1.0 / info, weight=dpsi * h if h > 0.0 else 1.0)
+                             innovation_variance=h + 1.0 / self._info, weight=dpsi * h if h > 0.0 else 1.0)
+
+    def _moment_match(self, r: float) -> tuple[float, float, float, float] | None:
+        """The moment-matching update of N((p, b), P) by one range r = |p| + b + noise, linearised at p^-:
+        H = (u^T, 1), k = P H^T, h = H k, e = r - |p^-| - b^-, psi and psi' the score of f_h at e:
+            (p, b)^+ = (p, b)^- + k psi(e),    P^+ = P - k k^T psi'(e) I / I_f
+        with I / I_f the sandwich share (tracking updates the sandwich's running means first). Without b,
+        H = u^T and the b terms are 0. Plain floats. Returns (-ln f_h(e), psi', e, h), or None at the origin,
+        where u is undefined."""
+        px, py, p11, p12, p22 = self._px, self._py, self._p11, self._p12, self._p22
+        pxb, pyb, pbb = self._pxb, self._pyb, self._pbb
+        d = math.hypot(px, py)
+        if d < MIN_DISTANCE:
+            return None
+        ux, uy = px / d, py / d
+        hx = p11 * ux + p12 * uy + pxb               # P H^T
+        hy = p12 * ux + p22 * uy + pyb
+        hb = pxb * ux + pyb * uy + pbb
+        h = ux * hx + uy * hy + hb                   # the prior's variance along the range
+        innovation = r - d - self._b
+        nll, psi, dpsi = self._density.predictive(innovation, h)
+        if self._fixed:
+            self._psi2 += (psi * psi - self._psi2) / SANDWICH_LENGTH
+            self._dpsi += (dpsi - self._dpsi) / SANDWICH_LENGTH
+            self._info = self._sandwich()
+        # Where the assumed density only approximates the noise, the sandwich says how much of its
+        # information a range really carries; the covariance shrinks by that share only.
+        shrink = dpsi * self._info / self._fisher
+        self._px, self._py = px + hx * psi, py + hy * psi
+        self._p11, self._p12, self._p22 = p11 - hx * hx * shrink, p12 - hx * hy * shrink, p22 - hy * hy * shrink
+        if pbb > 0.0:
+            self._b += hb * psi
+            self._pxb, self._pyb, self._pbb = pxb - hx * hb * shrink, pyb - hy * hb * shrink, pbb - hb * hb * shrink
+        return nll, dpsi, innovation, h
 
     def _sandwich(self) -> float:
-        """Information per range for the covariance: the sandwich (mean psi')^2 / mean psi^2, which is I_f when
-        the assumed density is the noise's and less when it is only an approximation (a fitted mixture, a
-        bias), kept within [I_f / 20, I_f]."""
-        if self._dpsi <= 0.0 or self._psi2 <= 0.0:
-            return self._fisher / 20.0
-        return min(max(self._dpsi * self._dpsi / self._psi2, self._fisher / 20.0), self._fisher)
+        return _sandwich(self._psi2, self._dpsi, self._fisher)
 
     def _watch(self, nll: float) -> bool:
         """Tracking monitor: an exponential mean over about `monitor_length` ranges of the predicted residuals'
@@ -456,10 +582,12 @@ class RawRange(RelativePositionEstimator):
         self._alt = None
         self._solves = 0
         self._unsolved = 0
+        self._unsolved_ticks = 0.0
         self._consistent = False
         self._p11 = self._p22 = NO_PRIOR_VARIANCE
         self._p12 = 0.0
         self._prior = (self._px, self._py, self._p11, self._p12, self._p22)
+        self._reset_bias()
         return True
 
     # ----- saving and restoring -----
@@ -468,9 +596,11 @@ class RawRange(RelativePositionEstimator):
             "fixed": self._fixed, "cumulative": [self._cx, self._cy],
             "window": [list(entry) for entry in self._window], "prior": list(self._prior),
             "mirror": None if self._alt is None else list(self._alt), "unsolved": self._unsolved,
+            "unsolved_ticks": self._unsolved_ticks,
             "solves": self._solves, "evidence": None if math.isinf(self._evidence) else self._evidence,
             "consistent": self._consistent, "monitor": self._monitor, "tracked": self._tracked,
             "refixes": self._refixes, "sandwich": [self._psi2, self._dpsi, self._info],
+            "bias": [self._b, self._pxb, self._pyb, self._pbb],
         }
 
     def _restore_extra(self, extra: dict) -> None:
@@ -480,6 +610,7 @@ class RawRange(RelativePositionEstimator):
         self._prior = tuple(float(v) for v in extra["prior"])
         self._alt = None if extra["mirror"] is None else (float(extra["mirror"][0]), float(extra["mirror"][1]))
         self._unsolved = int(extra["unsolved"])
+        self._unsolved_ticks = float(extra.get("unsolved_ticks", self._unsolved))
         self._solves = int(extra["solves"])
         self._evidence = math.inf if extra["evidence"] is None else float(extra["evidence"])
         self._consistent = bool(extra["consistent"])
@@ -487,3 +618,5 @@ class RawRange(RelativePositionEstimator):
         self._tracked = int(extra["tracked"])
         self._refixes = int(extra["refixes"])
         self._psi2, self._dpsi, self._info = (float(v) for v in extra["sandwich"])
+        if "bias" in extra:
+            self._b, self._pxb, self._pyb, self._pbb = (float(v) for v in extra["bias"])
