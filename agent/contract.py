@@ -29,6 +29,7 @@ import numpy as np
 from pydantic import Field, ValidationError, field_validator, model_validator
 
 from agent.config import StrictModel
+from agent.core.checks import cholesky_succeeds
 from agent.core.observability import VERDICTS
 from agent.core.records import OdometryReading, Share
 
@@ -89,33 +90,12 @@ def covariance_problem(values, size: int) -> str | None:
         a, b, c = values[0], 0.5 * (values[1] + values[2]), values[3]
         smallest = 0.5 * (a + c) - math.hypot(0.5 * (a - c), b)
         return "is not positive semi-definite" if smallest < -tolerance else None
-    if _shifted_cholesky_succeeds(values, size, tolerance):
+    if cholesky_succeeds(values, size, tolerance):
         return None
     matrix = np.array(values, dtype=float).reshape(size, size)
     if float(np.linalg.eigvalsh(0.5 * (matrix + matrix.T))[0]) < -tolerance:
         return "is not positive semi-definite"
     return None
-
-
-def _shifted_cholesky_succeeds(values, size: int, shift: float) -> bool:
-    """True if the symmetric part of the matrix plus `shift` I is positive definite (every Cholesky pivot
-    positive), which proves its smallest eigenvalue is above -shift. False says nothing either way."""
-    lower: list[list[float]] = []
-    for i in range(size):
-        row = []
-        for j in range(i + 1):
-            entry = 0.5 * (values[i * size + j] + values[j * size + i]) + (shift if i == j else 0.0)
-            other = lower[j] if j < i else row
-            for k in range(j):
-                entry -= row[k] * other[k]
-            if i == j:
-                if not entry > 0.0:
-                    return False
-                row.append(math.sqrt(entry))
-            else:
-                row.append(entry / lower[j][j])
-        lower.append(row)
-    return True
 
 
 # ----- keys -----

@@ -183,14 +183,26 @@ def _frozen(array: np.ndarray) -> np.ndarray:
     return array
 
 
+# What the sonar sees of a world without islands, every tick: one read-only array shared by every reading.
+_NO_POINTS = _frozen(np.zeros((0, 2)))
+
+
+def _fixed(x: float, y: float) -> np.ndarray:
+    """A new read-only 2-vector. A vessel's arrays are replaced every step, never changed in place, and read-only,
+    so the readings and the truth can hand them out without a copy."""
+    array = np.array([x, y])
+    array.setflags(write=False)
+    return array
+
+
 class _Vessel:
     """Mutable true and dead-reckoned state of one vessel while it is live."""
 
     def __init__(self, spec: VesselSpec) -> None:
-        self.position = np.array(spec.position, dtype=float)
+        self.position = _frozen(spec.position)
         self.heading = float(wrap_angle(spec.heading))
-        self.velocity = np.zeros(2)
-        self.odometry_position = np.zeros(2)
+        self.velocity = _fixed(0.0, 0.0)
+        self.odometry_position = _fixed(0.0, 0.0)
         self.odometry_heading = self.heading
 
 
@@ -206,6 +218,7 @@ class World:
         self.bad_commands = 0
         self._rng = rng
         self._vessels: dict[str, _Vessel] = {}
+        self._live: list[str] = []         # ids of the live vessels in config order, set when a tick begins
         self._departed: set[str] = set()
         self._target = make_target(config.target)
         self._islands = _islands(config)
@@ -217,7 +230,7 @@ class World:
 
     def live(self) -> list[str]:
         """Ids of the vessels present now, in config order."""
-        return [spec.id for spec in self.config.vessels if spec.id in self._vessels]
+        return list(self._live)
 
     def sense(self) -> dict[str, Reading]:
         """Every live vessel's readings at the current time (drawn once per tick; repeat calls agree)."""
@@ -231,20 +244,22 @@ class World:
         """
         config = self.config
         dt = config.dt
-        for vessel_id in self.live():
+        for vessel_id in self._live:
             vessel = self._vessels[vessel_id]
             surge, yaw_rate = self._checked(commands.get(vessel_id))
             surge = min(max(surge, -config.max_speed), config.max_speed)
             yaw_rate = min(max(yaw_rate, -config.max_yaw_rate), config.max_yaw_rate)
-            # (1), (2): move along the heading held over the period, then turn.
-            vessel.velocity = surge * np.array([math.cos(vessel.heading), math.sin(vessel.heading)])
-            displacement = vessel.velocity * dt
-            vessel.position = vessel.position + displacement
+            # (1), (2): move along the heading held over the period, then turn. In plain floats, the same
+            # element-wise operations numpy would do on these 2-vectors (its per-call overhead is the cost).
+            vx, vy = surge * math.cos(vessel.heading), surge * math.sin(vessel.heading)
+            vessel.velocity = _fixed(vx, vy)
+            dx, dy = vx * dt, vy * dt
+            (x, y), (ox, oy) = vessel.position.tolist(), vessel.odometry_position.tolist()
+            vessel.position = _fixed(x + dx, y + dy)
             vessel.heading = float(wrap_angle(vessel.heading + yaw_rate * dt))
             # (5): odometry accumulates the true displacement plus its per-step noise.
-            vessel.odometry_position = vessel.odometry_position + displacement + self._displacement_noise.sample(
-                self._rng
-            )
+            nx, ny = self._displacement_noise.sample(self._rng).tolist()
+            vessel.odometry_position = _fixed((ox + dx) + nx, (oy + dy) + ny)
             vessel.odometry_heading = self._noisy_heading(vessel.heading)
         self._target.step(dt, self._rng)
         self.tick += 1
@@ -258,9 +273,9 @@ class World:
         live = self.live()
         return Truth(
             time=self.time,
-            positions={i: _frozen(self._vessels[i].position) for i in live},
+            positions={i: self._vessels[i].position for i in live},        # read-only (`_fixed`)
             headings={i: self._vessels[i].heading for i in live},
-            velocities={i: _frozen(self._vessels[i].velocity) for i in live},
+            velocities={i: self._vessels[i].velocity for i in live},
             target_position=_frozen(self._target.position),
             target_velocity=_frozen(self._target.velocity),
         )
@@ -294,18 +309,27 @@ class World:
                 vessel = _Vessel(spec)
                 vessel.odometry_heading = self._noisy_heading(vessel.heading)
                 self._vessels[spec.id] = vessel
-        self._readings = {vessel_id: self._read(vessel_id) for vessel_id in self.live()}
+        self._live = [spec.id for spec in self.config.vessels if spec.id in self._vessels]
+        # Every true range of the tick at once: row i holds |p_j - p_i| for each j, the element-wise
+        # operations of a norm along axis 1 (rounded as one vessel's row alone would be).
+        positions = np.array([self._vessels[v].position for v in self._live]).reshape(-1, 2)
+        differences = positions[None, :, :] - positions[:, None, :]
+        distances = np.sqrt(np.add.reduce(differences * differences, axis=2))
+        count = len(self._live)
+        # Row n without its diagonal entry: vessel n's true ranges to the others, in live order.
+        others = distances[~np.eye(count, dtype=bool)].reshape(count, count - 1)
+        self._readings = {vessel_id: self._read(n, vessel_id, others[n]) for n, vessel_id in enumerate(self._live)}
 
-    def _read(self, vessel_id: str) -> Reading:
+    def _read(self, index: int, vessel_id: str, true_ranges: np.ndarray) -> Reading:
         """One vessel's readings at this tick: ranges (6) with the range noise (7) or (8), the bearing (9),
-        its cumulative odometry (5) and the sonar's island points (the obstacle points of (34))."""
+        its cumulative odometry (5) and the sonar's island points (the obstacle points of (34)). The vessel
+        is `index` in `_live`; `true_ranges` its true distances to the other live vessels, in live order."""
         vessel = self._vessels[vessel_id]
         here = vessel.position
-        others = [j for j in self.live() if j != vessel_id]
+        live = self._live
+        others = live[:index] + live[index + 1:]
         # (6): each ordered pair gets its own draw, as each vessel ranges on its own.
         noise = self.config.range_noise.sample(self._rng, len(others))
-        other_positions = np.array([self._vessels[j].position for j in others]).reshape(-1, 2)
-        true_ranges = np.linalg.norm(other_positions - here, axis=1)
         # A UWB module never reports a negative range.
         measured = np.maximum(true_ranges + noise, 0.0)
         ranges = dict(zip(others, measured.tolist()))
@@ -313,13 +337,14 @@ class World:
         bearing_noise = self._bearing_noise.sample(self._rng)
         bearing, occluded = _bearing(here, self._target.position, bearing_noise, self._islands)
         odometry = OdometryReading(
-            stamp=self.time, position=_frozen(vessel.odometry_position), heading=vessel.odometry_heading
+            stamp=self.time, position=vessel.odometry_position, heading=vessel.odometry_heading
         )
         return Reading(
             odometry=odometry,
             ranges=ranges,
             bearing=bearing,
-            obstacle_points=_sonar(self._boundary, here, self.config.sonar_range),
+            obstacle_points=_sonar(self._boundary, here, self.config.sonar_range) if len(self._boundary)
+            else _NO_POINTS,
             occluded=occluded,
         )
 
@@ -339,13 +364,14 @@ def _bearing(here: np.ndarray, target: np.ndarray, noise: np.ndarray, islands: l
     """(9): the noisy unit vector from the target to the vessel, None when an island blocks the line of sight
     or the vessel is on the target; and whether it is blocked."""
     offset = here - target
-    distance = float(np.linalg.norm(offset))
+    # sqrt(x . x): numpy.linalg.norm's own computation of a vector's norm, without its checks.
+    distance = math.sqrt(offset.dot(offset))
     occluded = any(segment_intersects_polygon(here, target, island) for island in islands)
     if occluded or distance == 0.0:
         return None, occluded
     # (9) is a direction plus noise; the camera reports it as a unit vector (the contract's form).
     noisy = offset / distance + noise
-    return _frozen(noisy / np.linalg.norm(noisy)), occluded
+    return _frozen(noisy / math.sqrt(noisy.dot(noisy))), occluded
 
 
 def _sonar(boundary: np.ndarray, here: np.ndarray, sonar_range: float) -> np.ndarray:
@@ -540,6 +566,8 @@ def lost_shares(seed: int, senders: list[str], receivers: list[str], joined: set
     if not 0.0 <= probability <= 1.0:
         raise ValueError(f"probability must be in [0, 1], got {probability}")
     # With no loss no hash is needed: every share of a listening receiver arrives (a uniform is never < 0).
+    if probability == 0.0 and not joined:
+        return []
     return [(j, i) for j in senders for i in receivers
             if j != i and (i in joined or (probability > 0.0 and message_lost(seed, j, i, tick, probability)))]
 

@@ -244,3 +244,96 @@ def test_track_estimate_in_floats_is_the_array_one():
     assert position.tolist() == [px, py] and covariance.tolist() == [[p11, p12], [p12, p22]]
     track.fused = (1.0, 2.0, 3.0, 0.5, 4.0)
     assert track.best_trace() == 7.0 and track.best()[1].tolist() == [[3.0, 0.5], [0.5, 4.0]]
+
+
+# ----- issue 14, round 3: element-wise work in floats gives numpy's very numbers -----
+
+def _shared_targets(rng: np.random.Generator, m: int, now: float):
+    from types import SimpleNamespace
+
+    shared = []
+    for _ in range(m):
+        pair_cov = _spd(rng, 2)
+        moments = (*rng.normal(size=2), pair_cov[0, 0], 0.5 * (pair_cov[0, 1] + pair_cov[1, 0]), pair_cov[1, 1])
+        share = SimpleNamespace(odometry=SimpleNamespace(stamp=now - rng.uniform(0.0, 0.3)),
+                                target=rng.normal(size=4) * 10, target_covariance=_spd(rng, 4),
+                                velocity=rng.normal(size=2))
+        track = SimpleNamespace(moments=lambda m=moments: m)
+        shared.append((share, *rng.normal(size=2).tolist(), track))
+    return shared
+
+
+@pytest.mark.parametrize("seed", RNG_SEEDS)
+def test_target_estimates_moved_in_floats_are_the_stacks_bit_for_bit(seed):
+    """moved_target_estimates for a few neighbours (floats) and for many (numpy stacks) are the same
+    element-wise operations: the switch between them at FLOAT_NEIGHBOURS changes no bit."""
+    from agent.core.cooperation import FLOAT_NEIGHBOURS, _moved_target_stacks, moved_target_estimates
+
+    rng = np.random.default_rng(seed)
+    now, velocity = 12.3, rng.normal(size=2)
+    shared = _shared_targets(rng, int(rng.integers(1, FLOAT_NEIGHBOURS + 1)), now)
+    x, P = moved_target_estimates(shared, now, velocity)
+    x_s, P_s = _moved_target_stacks(shared, now, velocity)
+    np.testing.assert_array_equal(x, x_s)
+    np.testing.assert_array_equal(P, P_s)
+
+
+def test_swapping_the_velocity_block_is_the_matrix_product():
+    from agent.core.cooperation import SWAP_VELOCITY, swap_velocity
+
+    rng = np.random.default_rng(3)
+    for _ in range(50):
+        P = _spd(rng, 4) * rng.uniform(0.01, 100.0)
+        np.testing.assert_array_equal(swap_velocity(P), SWAP_VELOCITY @ P @ SWAP_VELOCITY)
+
+
+@pytest.mark.parametrize("seed", RNG_SEEDS)
+def test_the_cholesky_check_in_floats_keeps_numpys_verdict(seed):
+    from agent.core.checks import cholesky_succeeds
+
+    rng = np.random.default_rng(seed)
+    for _ in range(20):
+        k = int(rng.integers(1, 6))
+        M = rng.normal(size=(k, k))
+        S = 0.5 * (M + M.T) + rng.uniform(-2.0, 2.0) * np.eye(k)
+        low = float(np.linalg.eigvalsh(S)[0])
+        shift = float(rng.uniform(0.0, 0.5))
+        for given, verdict in ((0.0, low > 0.0), (shift, low > -shift)):
+            if abs(low + given) < 1e-9:
+                continue    # at the boundary either verdict is round-off
+            # the symmetric part is what is judged: an antisymmetric addition changes nothing
+            A = M - M.T
+            assert cholesky_succeeds((S + A).ravel().tolist(), k, given) == verdict
+
+
+def test_world_ranges_are_the_per_vessel_norms():
+    """The world's ranges of one tick (all pairs at once) are np.linalg.norm of each vessel's row, as they
+    were computed one vessel at a time."""
+    positions = np.random.default_rng(5).uniform(-30.0, 30.0, (12, 2))
+    differences = positions[None, :, :] - positions[:, None, :]
+    distances = np.sqrt(np.add.reduce(differences * differences, axis=2))
+    rows = distances[~np.eye(12, dtype=bool)].reshape(12, 11)
+    for i, here in enumerate(positions):
+        others = np.delete(positions, i, axis=0)
+        np.testing.assert_array_equal(rows[i], np.linalg.norm(others - here, axis=1))
+
+
+@pytest.mark.parametrize("seed", RNG_SEEDS)
+def test_oscillator_uses_the_harmonics_coupling_gains_leaves_non_zero(seed):
+    """oscillator_step's count of harmonics (floor(n/2), none for a zero gain) is where coupling_gains puts its
+    first zero, and the step is the one computed with that list of gains, bit for bit."""
+    rng = np.random.default_rng(seed)
+    neighbours = rng.uniform(-math.pi, math.pi, int(rng.integers(0, 60))).tolist()
+    phase, gain = float(rng.uniform(-math.pi, math.pi)), float(rng.choice([0.0, 0.3, 1.0]))
+    n = len(neighbours) + 1
+    gains = coupling_gains(n, gain)
+    used = gains.index(0.0) if 0.0 in gains else len(gains)
+    assert used == (0 if gain == 0.0 else n // 2)
+    coupling = 0.0
+    if used:
+        harmonics = np.arange(1.0, used + 1.0)
+        sines = np.sin(harmonics[:, None] * (phase - np.asarray(neighbours, dtype=float)))
+        terms = np.array(gains[:used]) / (harmonics * n) * np.cumsum(sines, axis=1)[:, -1]
+        coupling = 0.0 + float(np.cumsum(terms)[-1])
+    from agent.angles import wrap_angle
+    assert oscillator_step(phase, neighbours, 0.1, 0.1, gain) == wrap_angle(phase + 0.1 * 0.1 + 0.1 * coupling)

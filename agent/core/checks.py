@@ -34,12 +34,17 @@ def finite_array(value, shape: tuple[int, ...]) -> bool:
 def finite_floats(value, shape: tuple[int, ...]) -> list[float] | None:
     """The elements of `value` as a flat list of floats if it passes `finite_array`, else None: the check and
     the conversion a caller doing its algebra in floats needs, in one pass."""
-    if type(value) is np.ndarray and value.dtype == FLOAT64:
+    if type(value) is np.ndarray and (value.dtype is FLOAT64 or value.dtype == FLOAT64):
         # The common case, without a conversion: math.isfinite over a few elements costs less than numpy's
         # isfinite-and-reduce, and these checks run several times per share and neighbour each tick.
         if value.shape != shape:
             return None
         values = value.ravel().tolist()
+        # Any inf or NaN makes the sum non-finite, so a finite sum settles it in one call; only a sum that
+        # overflowed (or a non-finite element) needs the element-wise look.
+        total = sum(values)
+        if total - total == 0.0:
+            return values
     else:
         try:
             array = np.asarray(value, dtype=float)
@@ -49,6 +54,29 @@ def finite_floats(value, shape: tuple[int, ...]) -> list[float] | None:
             return None
         values = array.ravel().tolist()
     return values if all(map(math.isfinite, values)) else None
+
+
+def cholesky_succeeds(values: list[float], size: int, shift: float = 0.0) -> bool:
+    """True if the symmetric part of the size x size matrix of `values` (row-major, finite) plus `shift` I is
+    positive definite: every pivot of its Cholesky factorisation positive, in plain floats (cheaper than numpy's
+    eigenvalues on a 4x4). It proves the smallest eigenvalue is above -shift; at the boundary the verdict is
+    round-off."""
+    lower: list[list[float]] = []
+    for i in range(size):
+        row: list[float] = []
+        for j in range(i + 1):
+            entry = 0.5 * (values[i * size + j] + values[j * size + i]) + (shift if i == j else 0.0)
+            other = lower[j] if j < i else row
+            for k in range(j):
+                entry -= row[k] * other[k]
+            if i == j:
+                if not entry > 0.0:
+                    return False
+                row.append(math.sqrt(entry))
+            else:
+                row.append(entry / lower[j][j])
+        lower.append(row)
+    return True
 
 
 def valid_range(value, max_range: float) -> bool:
@@ -67,7 +95,8 @@ def valid_share(share: object, receiver: str) -> bool:
             and (share.target is None or (finite_floats(share.target, (4,)) is not None
                                           and share.target_covariance is not None
                                           and _finite_4x4(share.target_covariance)))
-            and isinstance(share.neighbours, Mapping) and valid_pair_entry(share.neighbours.get(receiver)))
+            and (type(share.neighbours) is dict or isinstance(share.neighbours, Mapping))
+            and valid_pair_entry(share.neighbours.get(receiver)))
 
 
 def _finite_4x4(value) -> bool:

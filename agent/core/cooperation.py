@@ -19,6 +19,14 @@ from agent.core.state import VesselState
 
 # x = [p_io; v_io] <-> shared [p_io; v_o] with v_o = v_i - v_io: flips the velocity block's sign.
 SWAP_VELOCITY = np.diag([1.0, 1.0, -1.0, -1.0])
+# SWAP_VELOCITY P SWAP_VELOCITY element by element: the off-diagonal blocks change sign. One exact multiply
+# instead of two matrix products (which give the same numbers: each element is one term times +-1).
+SWAP_SIGNS = np.outer(np.diag(SWAP_VELOCITY), np.diag(SWAP_VELOCITY))
+
+
+def swap_velocity(covariance: np.ndarray) -> np.ndarray:
+    """SWAP_VELOCITY @ covariance @ SWAP_VELOCITY, for a 4x4 covariance of [p; v]."""
+    return covariance * SWAP_SIGNS
 
 
 def fuse_reciprocal(params: AgentParams, state: VesselState, track: NeighbourTrack) -> None:
@@ -90,37 +98,17 @@ def fuse_targets(params: AgentParams, state: VesselState, neighbours: list[tuple
               if track.share is not None and track.share.target is not None and track.estimator is not None]
     if not shared:
         return tracker.state, tracker.covariance
-    # Every neighbour at once, as stacks: per neighbour, numpy's call overhead would be most of the cost. The
-    # floats of each neighbour (the share's age, p^_ij and the symmetric P_ij) go in one array, one row each.
-    floats = np.array([(now - share.odometry.stamp, x, y, *track.moments()[2:]) for share, x, y, track in shared])
-    age = floats[:, :1]
-    x = np.array([share.target for share, _, _, _ in shared], dtype=float)
-    P = np.array([share.target_covariance for share, _, _, _ in shared], dtype=float)
-    # p_jo moves with v_j - v_o over the share's age: x <- C x, P <- C P C^T with C = [I, -age I; 0, I],
-    # written out by blocks (C's zeros and ones add nothing but rounding-free terms).
-    x[:, :2] -= age * x[:, 2:]
-    x[:, :2] += age * np.array([share.velocity for share, _, _, _ in shared], dtype=float)
-    P[:, :2, :] -= age[:, :, None] * P[:, 2:, :]
-    P[:, :, :2] -= age[:, :, None] * P[:, :, 2:]
-    # To our frame: p_io = p^_ij + p_jo, v_io = v_i - v^_o; SWAP_VELOCITY P SWAP_VELOCITY flips the sign of
-    # the off-diagonal blocks, and p^_ij's covariance [[p11, p12], [p12, p22]] adds to the position block.
-    x[:, :2] += floats[:, 1:3]
-    x[:, 2:] = state.motion.velocity - x[:, 2:]
-    P[:, :2, 2:] *= -1.0
-    P[:, 2:, :2] *= -1.0
-    p11, p12, p22 = floats[:, 3], floats[:, 4], floats[:, 5]
-    P[:, 0, 0] += p11
-    P[:, 0, 1] += p12
-    P[:, 1, 0] += p12
-    P[:, 1, 1] += p22
-    distances = _gate_distances(x - own[0], own[1] + P)
-    keep = distances <= params.fleet.target_gate
-    keep |= np.isnan(distances)     # NaN fails the gate test `distance > gate` and so is kept
-    state.health.target_estimates_gated += int(keep.size - np.count_nonzero(keep))
-    if not keep.any():
-        return tracker.state, tracker.covariance
-    means = np.concatenate([own[0][None], x[keep]])
-    covariances = np.concatenate([own[1][None], P[keep]])
+    x, P = moved_target_estimates(shared, now, state.motion.velocity)
+    gate = params.fleet.target_gate
+    # NaN fails the gate test `distance > gate` and so is kept.
+    keep = [k for k, distance in enumerate(_gate_distances(x - own[0], own[1] + P).tolist()) if not distance > gate]
+    state.health.target_estimates_gated += len(x) - len(keep)
+    if not keep:
+        return own
+    if len(keep) < len(x):
+        x, P = x[keep], P[keep]
+    means = np.concatenate([own[0][None], x])
+    covariances = np.concatenate([own[1][None], P])
     try:
         fused, fused_covariance = covariance_intersection_stacked(means, covariances,
                                                                   np.full(len(means), 1.0 / len(means)))
@@ -130,6 +118,75 @@ def fuse_targets(params: AgentParams, state: VesselState, neighbours: list[tuple
     return tracker.state, tracker.covariance
 
 
+# Up to this many neighbours their target estimates are moved in plain floats, above it as numpy stacks: both
+# give the same numbers (element-wise operations, rounded alike); per-call overhead decides which costs less.
+FLOAT_NEIGHBOURS = 8
+
+
+def moved_target_estimates(shared: list, now: float, velocity: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each neighbour's shared target estimate moved to us, as `fuse_targets` fuses them: the means (m, 4) and
+    covariances (m, 4, 4). `shared` holds (share, x, y, track) with p^_ij = (x, y) at now; `velocity` is v_i.
+    p_jo moves with v_j - v_o over the share's age: x <- C x, P <- C P C^T with C = [I, -age I; 0, I]; then to
+    our frame, p_io = p^_ij + p_jo and v_io = v_i - v^_o, SWAP_VELOCITY's sign flip of P's off-diagonal blocks
+    and p^_ij's covariance added to the position block."""
+    if len(shared) > FLOAT_NEIGHBOURS:
+        return _moved_target_stacks(shared, now, velocity)
+    targets = np.array([share.target for share, _, _, _ in shared], dtype=float).tolist()
+    matrices = np.array([share.target_covariance for share, _, _, _ in shared], dtype=float).reshape(-1, 16).tolist()
+    velocities = np.array([share.velocity for share, _, _, _ in shared], dtype=float).tolist()
+    vx, vy = np.asarray(velocity, dtype=float).tolist()
+    means, covariances = [], []
+    for (share, px, py, track), (t0, t1, t2, t3), P, (ux, uy) in zip(shared, targets, matrices, velocities):
+        age = now - share.odometry.stamp
+        _, _, p11, p12, p22 = track.moments()
+        means.append((((t0 - age * t2) + age * ux) + px, ((t1 - age * t3) + age * uy) + py, vx - t2, vy - t3))
+        covariances.append(carried_target_covariance(P, age, p11, p12, p22))
+    return np.array(means), np.array(covariances).reshape(-1, 4, 4)
+
+
+def _moved_target_stacks(shared: list, now: float, velocity: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """`moved_target_estimates` for every neighbour at once, as stacks: per neighbour, numpy's call overhead
+    would be most of the cost. The floats of each neighbour (the share's age, p^_ij and the symmetric P_ij)
+    go in one array, one row each."""
+    floats = np.array([(now - share.odometry.stamp, x, y, *track.moments()[2:]) for share, x, y, track in shared])
+    age = floats[:, :1]
+    x = np.array([share.target for share, _, _, _ in shared], dtype=float)
+    P = np.array([share.target_covariance for share, _, _, _ in shared], dtype=float)
+    # C's zeros and ones add nothing but rounding-free terms: written out by blocks.
+    x[:, :2] -= age * x[:, 2:]
+    x[:, :2] += age * np.array([share.velocity for share, _, _, _ in shared], dtype=float)
+    P[:, :2, :] -= age[:, :, None] * P[:, 2:, :]
+    P[:, :, :2] -= age[:, :, None] * P[:, :, 2:]
+    x[:, :2] += floats[:, 1:3]
+    x[:, 2:] = velocity - x[:, 2:]
+    P[:, :2, 2:] *= -1.0
+    P[:, 2:, :2] *= -1.0
+    p11, p12, p22 = floats[:, 3], floats[:, 4], floats[:, 5]
+    P[:, 0, 0] += p11
+    P[:, 0, 1] += p12
+    P[:, 1, 0] += p12
+    P[:, 1, 1] += p22
+    return x, P
+
+
+def carried_target_covariance(P: list[float], age: float, p11: float, p12: float, p22: float) -> list[float]:
+    """A neighbour's shared target covariance (4x4, row-major floats, of [p_jo; v_o]) carried over the share's
+    age and moved to our frame, as `fuse_targets` does: C P C^T with C = [I, -age I; 0, I] (rows 0, 1 less age
+    times rows 2, 3, then likewise the columns), SWAP_VELOCITY's sign flip of the off-diagonal blocks, and
+    P_ij = [[p11, p12], [p12, p22]] added to the position block. Element-wise, in numpy's order of operations."""
+    P = list(P)
+    for r in (0, 4):
+        for c in range(4):
+            P[r + c] = P[r + c] - age * P[r + 8 + c]
+    for r in (0, 4, 8, 12):
+        P[r] = P[r] - age * P[r + 2]
+        P[r + 1] = P[r + 1] - age * P[r + 3]
+    for i in (2, 3, 6, 7, 8, 9, 12, 13):
+        P[i] = -P[i]
+    P[0], P[1], P[4], P[5] = P[0] + p11, P[1] + p12, P[4] + p12, P[5] + p22
+    return P
+
+
 def _gate_distances(differences: np.ndarray, covariances: np.ndarray) -> np.ndarray:
     """d_k^T S_k^-1 d_k for each row d_k and matrix S_k (the chi-square statistic of the gate); inf where
     S_k is singular."""
@@ -137,7 +194,7 @@ def _gate_distances(differences: np.ndarray, covariances: np.ndarray) -> np.ndar
         solved = np.linalg.solve(covariances, differences[:, :, None])[:, :, 0]
     except np.linalg.LinAlgError:
         return np.array([_gate_distance(d, S) for d, S in zip(differences, covariances)])
-    return np.einsum("ij,ij->i", differences, solved)
+    return np.add.reduce(differences * solved, axis=1)
 
 
 def _gate_distance(difference: np.ndarray, covariance: np.ndarray) -> float:

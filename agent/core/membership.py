@@ -18,7 +18,8 @@ def receive_shares(params: AgentParams, state: VesselState, shares: Mapping[str,
     """Keep each valid share in its neighbour's track; a share from a new id starts a track (a join)."""
     # In sender order, not arrival order: new tracks, and so every sum over neighbours, come out in the
     # same order whichever way the shares travelled.
-    for sender, share in sorted(shares.items(), key=lambda item: str(item[0])):
+    for sender in sorted(shares, key=str):
+        share = shares[sender]
         if sender == state.vessel or not valid_share(share, state.vessel):
             state.health.bad_shares += 1
             continue

@@ -55,7 +55,7 @@ class History:
         self._keys: list[int] | None = []      # sorted keys, rebuilt when a put comes out of order
 
     def put(self, stamp: float, value: object) -> None:
-        key = stamp_key(stamp)
+        key = int(round(stamp * 1e6))       # stamp_key, inline: a put per neighbour and tick
         if key not in self._values and self._keys is not None:
             if self._keys and key < self._keys[-1]:
                 self._keys = None
@@ -188,11 +188,12 @@ class NeighbourTrack:
 
     def receive(self, share: Share, now: float) -> None:
         """Keep j's odometry and what it shares; shares may repeat or arrive out of order."""
-        self.odometry.put(share.odometry.stamp, np.asarray(share.odometry.position, dtype=float))
-        if self.share is None or share.odometry.stamp >= self.share.odometry.stamp:
+        stamp = share.odometry.stamp
+        self.odometry.put(stamp, np.asarray(share.odometry.position, dtype=float))
+        if self.share is None or stamp >= self.share.odometry.stamp:
             self.share = share
-        self.last_heard = max(self.last_heard, share.odometry.stamp)
-        self.first_heard = min(self.first_heard, share.odometry.stamp)
+        self.last_heard = max(self.last_heard, stamp)
+        self.first_heard = min(self.first_heard, stamp)
 
     def positions_at(self, own: History, key: int) -> tuple[np.ndarray | None, np.ndarray | None, str]:
         """(i's odometry, j's odometry, why not) at stamp `key`, interpolated where needed."""

@@ -12,10 +12,12 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from agent.core.estimators.plkf import BearingOutcome
+if TYPE_CHECKING:   # an annotation only; the filter's module needs the checks, which need these records
+    from agent.core.estimators.plkf import BearingOutcome
 
 
 @dataclass(frozen=True)

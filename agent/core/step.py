@@ -23,7 +23,7 @@ import numpy as np
 from agent.core.checks import finite_vector, obstacle_array, valid_range
 from agent.core.command import control_command
 from agent.core.control.oscillator import oscillator_step
-from agent.core.cooperation import SWAP_VELOCITY, fuse_reciprocal, fuse_targets
+from agent.core.cooperation import fuse_reciprocal, fuse_targets, swap_velocity
 from agent.core.membership import forget_silent, receive_shares, start_track, store_ranges
 from agent.core.neighbours import NeighbourTrack
 from agent.core.params import AgentParams
@@ -117,11 +117,13 @@ def step(params: AgentParams, state: VesselState, inputs: TickInputs) -> tuple[V
         # Never publish a non-finite command, whatever went wrong upstream.
         health.non_finite_commands += 1
         command = STOP
-    heading_vector = np.array([math.cos(odometry.heading), math.sin(odometry.heading)])
+    surge = command.surge
     share = Share(
-        sender=state.vessel, odometry=odometry, velocity=command.surge * heading_vector, phase=state.phase,
+        sender=state.vessel, odometry=odometry,
+        velocity=np.array([surge * math.cos(odometry.heading), surge * math.sin(odometry.heading)]),
+        phase=state.phase,
         target=None if target_state is None else _to_shared(target_state, state.motion.velocity),
-        target_covariance=None if target_cov is None else SWAP_VELOCITY @ target_cov @ SWAP_VELOCITY,
+        target_covariance=None if target_cov is None else swap_velocity(target_cov),
         neighbours=shared,
     )
     record = TickRecord(

@@ -26,6 +26,15 @@ def saturate(bound: float, vector: np.ndarray) -> np.ndarray:
     return vector * (bound / norm)
 
 
+def saturate_floats(bound: float, x: float, y: float) -> tuple[float, float]:
+    """`saturate` of the vector (x, y) in plain floats: the same operations, the same numbers."""
+    norm = math.hypot(x, y)
+    if norm <= bound:
+        return x, y
+    scale = bound / norm
+    return x * scale, y * scale
+
+
 def desired_offset(radius: float, phase: float) -> np.ndarray:
     """(27): p*_io = r* [cos phi_i, sin phi_i]. The desired pair offset (30) is the difference of two of
     these, p*_ij = p*_io - p*_jo."""

@@ -29,14 +29,14 @@ def oscillator_step(phase: float, neighbour_phases: Sequence[float], yaw_rate: f
     """(28): phi_{i,k+1} = phi_{i,k} + omega* dt + dt sum_j sum_m K_m / (m n) sin(m (phi_i - phi_j)),
     with n the fleet size including vessel i; the result is wrapped to (-pi, pi]."""
     n = len(neighbour_phases) + 1
-    gains = coupling_gains(n, gain)
-    used = gains.index(0.0) if 0.0 in gains else len(gains)   # K_m is zero for every m above n/2
+    # The harmonics with a non-zero K_m of `coupling_gains`: m = 1..floor(n/2), none when the gain is zero.
+    used = 0 if gain == 0.0 else n // 2
     coupling = 0.0
     if used:
         # All sin(m (phi_i - phi_j)) in one numpy call: a 50-vessel fleet has 25 x 49 of them per tick.
         # cumsum adds in order, left to right, as a loop over the neighbours and then the harmonics would.
         harmonics = np.arange(1.0, used + 1.0)
         sines = np.sin(harmonics[:, None] * (phase - np.asarray(neighbour_phases, dtype=float)))
-        terms = np.array(gains[:used]) / (harmonics * n) * np.cumsum(sines, axis=1)[:, -1]
+        terms = gain / (harmonics * n) * np.cumsum(sines, axis=1)[:, -1]
         coupling = 0.0 + float(np.cumsum(terms)[-1])
     return wrap_angle(phase + yaw_rate * dt + dt * coupling)

@@ -52,6 +52,8 @@ REJECTED_NUMERICS = "update produced a non-finite or indefinite state"
 
 def _real(value: object) -> float:
     """The value as a float if it is a real number (not a string or a bool), else NaN."""
+    if type(value) is float:        # the usual case, several times per pair update: no isinstance chain
+        return value
     if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
         return math.nan
     return float(value)

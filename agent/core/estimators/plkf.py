@@ -11,6 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from agent.core.checks import cholesky_succeeds, finite_floats
 from agent.core.params import TargetEstimationParams
 
 # A measured bearing whose norm is this far from 1 is not a direction: a sensor fault, not noise.
@@ -26,6 +27,10 @@ class BearingOutcome:
     reason: str = ""
     innovation: float = 0.0
     innovation_variance: float = 0.0
+
+
+_I4 = np.eye(4)
+_I4.setflags(write=False)
 
 
 def transition(dt: float) -> np.ndarray:
@@ -72,19 +77,25 @@ def plkf_update(x: np.ndarray, P: np.ndarray, bearing: np.ndarray, bearing_varia
     Returns (x+, P+, innovation, innovation variance) with the innovation along q, the unit normal of the
     bearing the gain uses.
     """
-    r = max(math.hypot(x[0], x[1]), min_range)
-    gain_direction = bearing
-    if gain_bearing == "predicted" and math.hypot(x[0], x[1]) >= min_range:
-        gain_direction = x[:2] / r
-    G_measured = np.eye(2) - np.outer(bearing, bearing)
-    G = np.eye(2) - np.outer(gain_direction, gain_direction)
-    H = np.zeros((2, 4))
-    H[:, :2] = G
+    # The element-wise pieces (G = I - u u^T, H, q q^T) are built from floats, the same numbers numpy's eye and
+    # outer give; the matrix products stay numpy's.
+    x0, x1 = float(x[0]), float(x[1])
+    distance = math.hypot(x0, x1)
+    r = max(distance, min_range)
+    b0, b1 = float(bearing[0]), float(bearing[1])
+    u0, u1 = b0, b1                     # the gain's direction
+    if gain_bearing == "predicted" and distance >= min_range:
+        u0, u1 = x0 / r, x1 / r
+    G_measured = np.array([[1.0 - b0 * b0, 0.0 - b0 * b1], [0.0 - b1 * b0, 1.0 - b1 * b1]])
+    g00, g01, g10, g11 = 1.0 - u0 * u0, 0.0 - u0 * u1, 0.0 - u1 * u0, 1.0 - u1 * u1
+    G = np.array([[g00, g01], [g10, g11]])
+    H = np.array([[g00, g01, 0.0, 0.0], [g10, g11, 0.0, 0.0]])
     Rz = (r * r * bearing_variance) * (G @ G.T)
-    q = np.array([-gain_direction[1], gain_direction[0]])
+    q0, q1 = -u1, u0
+    q = np.array([q0, q1])
     s = float(q @ P[:2, :2] @ q) + r * r * bearing_variance
-    K = P @ H.T @ np.outer(q, q) / s
-    I_KH = np.eye(4) - K @ H
+    K = P @ H.T @ np.array([[q0 * q0, q0 * q1], [q1 * q0, q1 * q1]]) / s
+    I_KH = _I4 - K @ H
     x_post = x - K @ (G_measured @ x[:2])
     P_post = I_KH @ P @ I_KH.T + K @ Rz @ K.T
     return x_post, 0.5 * (P_post + P_post.T), float(q @ G_measured @ x[:2]), s
@@ -139,7 +150,8 @@ class PLKF:
         x = np.asarray(state, dtype=float).reshape(4)
         P = np.asarray(covariance, dtype=float).reshape(4, 4)
         P = 0.5 * (P + P.T)
-        if not (np.isfinite(x).all() and np.isfinite(P).all() and np.all(np.linalg.eigvalsh(P) > 0)):
+        values = finite_floats(P, (4, 4))
+        if not (finite_floats(x, (4,)) is not None and values is not None and cholesky_succeeds(values, 4)):
             self.rejected += 1
             return False
         self._x, self._P = x.copy(), P
@@ -150,7 +162,7 @@ class PLKF:
         accepted = True
         if own_velocity_change is not None:
             dv = np.asarray(own_velocity_change, dtype=float).reshape(2)
-            if not np.isfinite(dv).all():
+            if finite_floats(dv, (2,)) is None:
                 self.rejected += 1
                 dv, accepted = None, False
             own_velocity_change = dv
@@ -177,7 +189,7 @@ class PLKF:
             self._x, self._P, b / norm, self.params.bearing_variance, self.params.min_range,
             self.params.gain_bearing,
         )
-        if not (np.isfinite(x).all() and np.isfinite(P).all()):
+        if finite_floats(x, (4,)) is None or finite_floats(P, (4, 4)) is None:
             self.rejected += 1
             return BearingOutcome(accepted=False, reason="update produced a non-finite state")
         self._x, self._P = x, P
