@@ -180,7 +180,7 @@ def render(command: str, mc_table: str, tick_table: str, args: argparse.Namespac
         "sequential, in the main process, after the Monte Carlo pool has shut down.",
         "",
         "A vessel tick is one core `step` (its n - 1 inter-vessel estimators, the target tracker, "
-        "the controller) timed with time.perf_counter by the runner; mean and p99 are over all vessel ticks "
+        "the controller) timed by the runner as the CPU time of its thread (time.thread_time, so that other processes on the machine do not inflate it); mean and p99 are over all vessel ticks "
         "of the run. A fleet step is the sum over the vessels of one sampling period (what one computer "
         "simulating the whole fleet pays per 0.1 s). The paper's Avg. Run Time (Table IV, same n and r*) is "
         "per iteration on its own machine and language; compare how it grows with n, not its level.",

@@ -29,6 +29,7 @@ from lab import arguments
 J = TypeVar("J")
 R = TypeVar("R")
 CONNECT_TIMEOUT = "30s"   # to reach a remote scheduler
+CHUNKS_PER_WORKER = 16      # the pool's runs go out in about this many chunks per worker process
 RELEASE_BATCH = 64          # finished runs whose results a cluster is told to forget at once
 WINDOW_PER_THREAD = 8       # runs out on a cluster at once, per worker thread
 LOW_LEVEL_LOG = 50          # Dask's debugging logs of recent messages and transitions, in entries
@@ -136,8 +137,9 @@ class Engine:
         if self._client is not None:
             yield from self._dask_outcomes(guarded, jobs, progress)
         elif self.workers > 1 and len(jobs) > 1:
-            # A few chunks per worker: few round trips, yet a slow chunk at the end does not idle the others.
-            chunk = max(1, len(jobs) // (4 * self.workers))
+            # Chunks of a few runs: few round trips, yet the last chunks are short, so that one worker does not
+            # finish a long chunk alone (runs of different variants differ twice in cost).
+            chunk = max(1, len(jobs) // (CHUNKS_PER_WORKER * self.workers))
             with ProcessPoolExecutor(max_workers=min(self.workers, len(jobs))) as pool:
                 for index, outcome in enumerate(pool.map(guarded, jobs, chunksize=chunk)):
                     if progress:

@@ -432,8 +432,8 @@ def render_page(path: Path, spec: ScenarioFile, variants: dict[str, VariantResul
         "centre's distance to the target; a tick at which no vessel has an estimate yet does not count). "
         "Settling: first time from which every radius stays within ±10 % of r* to the end; mean ± std over "
         "the settled runs only, whose count is the last column. Tick: mean compute time of one vessel's tick "
-        "(all its estimators and its controller), measured here while the worker processes shared the "
-        f"machine.{paper_time}",
+        "(all its estimators and its controller), the CPU time of the worker's thread on this machine."
+        f"{paper_time}",
         "",
         tables[0],
         "",
