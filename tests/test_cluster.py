@@ -106,15 +106,36 @@ def test_a_run_that_raises_is_named_and_the_others_finish(engine):
     assert failure.run == "variant v run 3 (seed 7)" and failure.error.startswith("ValueError: run three is cursed")
 
 
+def _tables(page: str) -> list[list[str]]:
+    """The page's table rows, cell by cell, without the columns of compute times (which differ run to run)."""
+    rows, timed = [], set()
+    for line in page.splitlines():
+        if not line.startswith("|"):
+            timed = set()
+            continue
+        cells = [cell.strip() for cell in line.strip().strip("|").split("|")]
+        if not timed and not rows or line.startswith("| variant") or line.startswith("| estimator"):
+            timed = {n for n, cell in enumerate(cells) if "tick" in cell or "run time" in cell}
+        rows.append([cell for n, cell in enumerate(cells) if n not in timed])
+    return rows
+
+
 def test_the_commands_take_a_cluster_and_their_pages_say_where_they_ran(tiny, tmp_path):
     from lab.cli import main
 
-    out = tmp_path / "out"
+    out, pool = tmp_path / "out", tmp_path / "pool"
     assert main(["scenario", str(tiny), "--out", str(out), "--cluster", CLUSTER]) == 0
     page = (out / "tiny.md").read_text(encoding="utf-8")
     assert "ran on Dask scheduler tcp://" in page and "(a local cluster the command started): 2 worker(s)" in page
     assert main(["compare", "--runs", "4", "--out", str(out), "--no-diagnosis", "--cluster", CLUSTER]) == 0
-    assert "ran on Dask scheduler tcp://" in (out / "estimator_comparison.md").read_text(encoding="utf-8")
+    compared = (out / "estimator_comparison.md").read_text(encoding="utf-8")
+    assert "ran on Dask scheduler tcp://" in compared
+    # The pool's pages have the same tables, digit for digit.
+    assert main(["scenario", str(tiny), "--out", str(pool), "--workers", "2"]) == 0
+    assert main(["compare", "--runs", "4", "--out", str(pool), "--no-diagnosis", "--workers", "2"]) == 0
+    for name, cluster_page in (("tiny.md", page), ("estimator_comparison.md", compared)):
+        pool_tables = _tables((pool / name).read_text(encoding="utf-8"))
+        assert len(pool_tables) >= 6 and _tables(cluster_page) == pool_tables, name
     csv_path = write_csv(tmp_path / "walk.csv", *circle_scenario(seed=3, range_std=0.1, duration=15.0))
     assert main(["replay", str(csv_path), "--runs", "3", "--out", str(out), "--cluster", CLUSTER]) == 0
     page = (out / "replay_walk.md").read_text(encoding="utf-8")
