@@ -7,16 +7,19 @@ errors agree bit for bit before it writes anything. The cluster's start (its wor
 the lab) is timed apart from the campaign; the overhead per run is the difference of the two campaigns'
 wall times over the runs.
 
-Then the client's memory: Experiment 1 (`usv-lab compare`, short runs) with N and 8N runs on the same local
-cluster, the client's peak of traced Python allocations (tracemalloc; the workers are other processes). Each
-run is folded into running sums as it arrives and at most a window of runs is out at once, so the peak should
-not grow with N.
+Then the client's memory: Experiment 1 (`usv-lab compare`, short runs) with N and 8N runs on a cluster started
+as docs/lab.md starts one (`dask scheduler` and `dask worker` processes), the client's peak of traced Python
+allocations (tracemalloc; the scheduler and the workers are other processes, as on real machines). Each run is
+folded into running sums as it arrives and at most a window of runs is out at once, so the peak should not
+grow with N.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
+import subprocess
 import sys
 import time
 import tracemalloc
@@ -29,6 +32,7 @@ from lab.comparison import ComparisonConfig, run_comparison
 from lab.parallel import Engine
 from lab.report import invocation, machine, markdown_table
 from lab.scenario_cmd import DEFAULT_DIR, load, resolve, run_monte_carlo
+from sim_bridge.fleet import free_port
 
 MEMORY_DURATION = 10.0   # simulated seconds of each run of the client-memory part
 
@@ -69,6 +73,35 @@ def _client_peak(engine: Engine, runs: int) -> tuple[float, float]:
         tracemalloc.stop()
 
 
+@contextlib.contextmanager
+def _scheduler_and_workers(workers: int):
+    """A Dask scheduler and `workers` worker processes (one thread each) on loopback, as `dask scheduler` and
+    `dask worker` start them on lab machines; yields the scheduler's address."""
+    port = free_port()
+    address = f"tcp://127.0.0.1:{port}"
+    environment = dict(os.environ, DASK_DISTRIBUTED__WORKER__PROFILE__ENABLED="False")
+    quiet = {"stdout": subprocess.DEVNULL, "stderr": subprocess.DEVNULL, "env": environment}
+    processes = [subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_scheduler", "--host", "127.0.0.1",
+                                   "--port", str(port), "--dashboard-address", ":0"], **quiet)]
+    try:
+        processes.append(subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_worker", address,
+                                           "--nworkers", str(workers), "--nthreads", "1", "--no-dashboard"], **quiet))
+        from dask.distributed import Client
+
+        with Client(address, timeout="60s") as client:
+            client.wait_for_workers(workers, timeout=120)
+        yield address
+    finally:
+        for process in reversed(processes):
+            process.terminate()
+        for process in processes:
+            try:
+                process.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                process.kill()
+                process.wait()
+
+
 def run(args: argparse.Namespace) -> int:
     (path,) = resolve([args.scenario], args.scenarios_dir)
     _, scenarios = load(path, args.runs)
@@ -86,10 +119,11 @@ def run(args: argparse.Namespace) -> int:
         start_seconds = time.perf_counter() - started
         cluster_seconds, cluster_results = _campaign(files, cluster)
         cluster_where = cluster.where()
-        print(f"cluster-bench: client memory, Experiment 1 with {args.memory_runs} and {8 * args.memory_runs} "
-              "runs", file=sys.stderr)
-        cluster.prepare("lab.comparison")
-        memory = [(n, *_client_peak(cluster, n)) for n in (args.memory_runs, 8 * args.memory_runs)]
+    print(f"cluster-bench: client memory, Experiment 1 with {args.memory_runs} and {8 * args.memory_runs} runs "
+          f"on a scheduler and {args.workers} workers started as processes", file=sys.stderr)
+    with _scheduler_and_workers(args.workers) as address, Engine(cluster=address) as remote:
+        remote.prepare("lab.comparison")
+        memory = [(n, *_client_peak(remote, n)) for n in (args.memory_runs, 8 * args.memory_runs)]
     ours, theirs = pool_results[path.stem], cluster_results[path.stem]
     same = all(np.array_equal(getattr(theirs[v], field), getattr(ours[v], field), equal_nan=True)
                for v in ours for field in ("error_mean", "error_std", "closest"))
@@ -114,8 +148,10 @@ def run(args: argparse.Namespace) -> int:
                         "overhead per run vs the pool (ms)"], rows), "",
         "## The client's memory", "",
         f"Experiment 1 (`usv-lab compare`'s runs: two vessels, six estimators, {MEMORY_DURATION:g} s simulated "
-        "each, GMM range noise) on the same local cluster with N and 8N runs; the client's peak of traced Python "
-        "allocations over the campaign (tracemalloc; the runs themselves are in the workers' processes). "
+        f"each, GMM range noise) with N and 8N runs on a `dask scheduler` and `dask worker --nworkers "
+        f"{args.workers} --nthreads 1` started as processes on this machine (as docs/lab.md starts them on lab "
+        "machines); the client's peak of traced Python allocations over the campaign (tracemalloc: the command's "
+        "own process; the scheduler and the runs are in others). "
         "Held whole, each run's error and NEES curves would add "
         f"{_curve_bytes() / 1e3:.1f} kB a run.", "",
         markdown_table(["runs", "client peak traced memory (MB)", "wall time (s)"],
