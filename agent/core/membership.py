@@ -4,6 +4,7 @@ starts once there is a prior for it (a deployment estimate, both vessels' target
 from __future__ import annotations
 
 from collections.abc import Mapping
+from statistics import median
 
 import numpy as np
 
@@ -100,7 +101,8 @@ def _agrees_with_range(params: AgentParams, track: NeighbourTrack, prior: Neighb
     near = [track.ranges.get(k) for k in track.ranges.keys() if abs(k - key) <= window]
     if not near:
         return True
-    measured = float(np.median(near))
+    # statistics', not numpy's: np.median imports numpy.ma (1.5 MB) on its first call, for a handful of floats
+    measured = float(median(near))
     position = np.asarray(prior.position, dtype=float)
     distance = float(np.hypot(*position))
     if distance == 0.0:
@@ -198,4 +200,4 @@ def _agrees_with_ranges_kept(params: AgentParams, state: VesselState, track: Nei
             misses.append(measured - float(np.hypot(*(position + (mine - mine_then) - (theirs - theirs_then)))))
     if not misses:
         return True
-    return float(np.median(misses)) ** 2 <= 16.0 * params.relative.range_variance / len(misses)
+    return float(median(misses)) ** 2 <= 16.0 * params.relative.range_variance / len(misses)
