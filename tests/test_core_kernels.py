@@ -108,7 +108,7 @@ def test_formation_terms_match_the_loop_of_33(seed):
     total = np.zeros(2)
     for gain, error in zip(gains, errors):
         total += gain * error
-    np.testing.assert_array_equal(formation_velocity(gains, errors), total)
+    np.testing.assert_array_equal(formation_velocity(zip(gains, errors[:, 0], errors[:, 1])), total)
 
 
 def _oscillator_loop(phase, neighbour_phases, yaw_rate, dt, gain):

@@ -55,7 +55,7 @@ class History:
         self._keys: list[int] | None = []      # sorted keys, rebuilt when a put comes out of order
 
     def put(self, stamp: float, value: object) -> None:
-        key = int(round(stamp * 1e6))       # stamp_key, inline: a put per neighbour and tick
+        key = stamp_key(stamp)
         if key not in self._values and self._keys is not None:
             if self._keys and key < self._keys[-1]:
                 self._keys = None

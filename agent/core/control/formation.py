@@ -35,10 +35,10 @@ def saturate_floats(bound: float, x: float, y: float) -> tuple[float, float]:
     return x * scale, y * scale
 
 
-def desired_offset(radius: float, phase: float) -> np.ndarray:
+def desired_offset(radius: float, phase: float) -> tuple[float, float]:
     """(27): p*_io = r* [cos phi_i, sin phi_i]. The desired pair offset (30) is the difference of two of
     these, p*_ij = p*_io - p*_jo."""
-    return np.array([radius * math.cos(phase), radius * math.sin(phase)])
+    return radius * math.cos(phase), radius * math.sin(phase)
 
 
 def desired_offsets(radius: float, phases: np.ndarray) -> np.ndarray:
@@ -46,9 +46,10 @@ def desired_offsets(radius: float, phases: np.ndarray) -> np.ndarray:
     return np.stack([radius * np.cos(phases), radius * np.sin(phases)], axis=1)
 
 
-def desired_velocity(radius: float, phase: float, next_phase: float, dt: float) -> np.ndarray:
+def desired_velocity(radius: float, phase: float, next_phase: float, dt: float) -> tuple[float, float]:
     """(29): v*_io = (p*_io,k+1 - p*_io,k) / dt."""
-    return (desired_offset(radius, next_phase) - desired_offset(radius, phase)) / dt
+    (ox, oy), (nx, ny) = desired_offset(radius, phase), desired_offset(radius, next_phase)
+    return (nx - ox) / dt, (ny - oy) / dt
 
 
 def neighbour_gain(count: int, gain: float, total_cap: float | None) -> float:
@@ -66,16 +67,20 @@ def neighbour_gain(count: int, gain: float, total_cap: float | None) -> float:
     return total_cap / count
 
 
-def formation_velocity(gains: np.ndarray, offset_errors: np.ndarray) -> np.ndarray:
-    """(33) first line: v^f = sum_j kappa_ij (p*_ij - p^_ij), given the gains kappa (m,) and the offset
-    errors p*_ij - p^_ij (m, 2) over the neighbours and the target, summed in their order."""
-    return np.zeros(2) + np.add.reduce(np.asarray(gains, dtype=float)[:, None] * offset_errors, axis=0)
+def formation_velocity(terms) -> tuple[float, float]:
+    """(33) first line: v^f = sum_j kappa_ij (p*_ij - p^_ij), given (kappa, x error, y error) per neighbour and
+    for the target, summed in their order (plain floats: numpy's per-call cost was most of the tick's)."""
+    fx = fy = 0.0
+    for gain, ex, ey in terms:
+        fx, fy = fx + gain * ex, fy + gain * ey
+    return fx, fy
 
 
-def tracking_velocity(target_velocity_estimate: np.ndarray, desired_relative_velocity: np.ndarray,
-                      max_target_speed: float) -> np.ndarray:
+def tracking_velocity(target_velocity_estimate: tuple[float, float], desired_relative_velocity: tuple[float, float],
+                      max_target_speed: float) -> tuple[float, float]:
     """(33) second line: v^t = sat(U_vo, v^_o) + v*_io."""
-    return saturate(max_target_speed, target_velocity_estimate) + desired_relative_velocity
+    sx, sy = saturate_floats(max_target_speed, *target_velocity_estimate)
+    return sx + desired_relative_velocity[0], sy + desired_relative_velocity[1]
 
 
 def surge_and_yaw_rate(velocity_command: np.ndarray, heading: float, yaw_rate: float, dt: float,

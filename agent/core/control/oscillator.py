@@ -19,6 +19,11 @@ import numpy as np
 from agent.angles import wrap_angle
 
 
+def coupled_harmonics(n: int, gain: float) -> int:
+    """How many of the first harmonics m = 1, 2, ... have K_m != 0: floor(n / 2), none when the gain is 0."""
+    return 0 if gain == 0.0 else n // 2
+
+
 def coupling_gains(n: int, gain: float) -> list[float]:
     """K_1..K_n of (28): `gain` for m <= floor(n / 2), 0 above."""
     return [gain if m <= n // 2 else 0.0 for m in range(1, n + 1)]
@@ -29,8 +34,7 @@ def oscillator_step(phase: float, neighbour_phases: Sequence[float], yaw_rate: f
     """(28): phi_{i,k+1} = phi_{i,k} + omega* dt + dt sum_j sum_m K_m / (m n) sin(m (phi_i - phi_j)),
     with n the fleet size including vessel i; the result is wrapped to (-pi, pi]."""
     n = len(neighbour_phases) + 1
-    # The harmonics with a non-zero K_m of `coupling_gains`: m = 1..floor(n/2), none when the gain is zero.
-    used = 0 if gain == 0.0 else n // 2
+    used = coupled_harmonics(n, gain)
     coupling = 0.0
     if used:
         # All sin(m (phi_i - phi_j)) in one numpy call: a 50-vessel fleet has 25 x 49 of them per tick.
