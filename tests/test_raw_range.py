@@ -277,9 +277,11 @@ def test_a_sensor_slower_than_the_tick_solves_first_when_one_at_the_tick_does():
         assert 0.0 <= _first_solve(every) - at_tick < every * DT
 
 
-def test_before_the_first_solve_a_range_updates_the_prior_as_an_ekf_step():
-    # With a Gaussian density (no gross-error component) moment matching is the EKF's step exactly:
-    # p+ = p + P u (r - |p|) / (u^T P u + s2), P+ = P - P u u^T P / (u^T P u + s2).
+def test_before_the_first_solve_a_range_moves_the_mean_as_a_second_order_ekf_step_and_keeps_the_covariance():
+    # With a Gaussian density (no gross-error component) moment matching is the EKF's step with the range's
+    # curvature counted as noise (the Gaussian second-order filter's variance term, without its mean shift):
+    # S = u^T P u + s2 + (v^T P v / |p|)^2 / 2, v normal to u; p+ = p + P u (r - |p|) / S. Before the first
+    # solve P stays the prior's.
     s2 = 0.25
     p = params(((1.0, 0.0, s2),), gross_error_fraction=0.0)
     estimator = RawRange(p, (8.0, 3.0), 4.0 * np.eye(2))
@@ -289,9 +291,39 @@ def test_before_the_first_solve_a_range_updates_the_prior_as_an_ekf_step():
     outcome = estimator.update(9.0, 9.5)
     assert outcome.reason == "collecting"
     u = prior / np.linalg.norm(prior)
-    gain = covariance @ u / (u @ covariance @ u + s2)
+    v = np.array([-u[1], u[0]])
+    bend = 0.5 * (v @ covariance @ v / np.linalg.norm(prior)) ** 2
+    gain = covariance @ u / (u @ covariance @ u + s2 + bend)
     np.testing.assert_allclose(estimator.position, prior + gain * (9.5 - np.linalg.norm(prior)), rtol=0, atol=1e-12)
-    np.testing.assert_allclose(estimator.covariance, covariance - np.outer(gain, covariance @ u), rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(estimator.covariance, covariance)
+
+
+def test_once_fixed_a_range_updates_mean_and_covariance_as_a_second_order_ekf_step():
+    s2 = 0.25
+    p = params(((1.0, 0.0, s2),), gross_error_fraction=0.0)
+    path = circle(20.0)
+    ranges = np.linalg.norm(path, axis=1) + np.random.default_rng(3).normal(0.0, 0.5, len(path))
+    estimator = RawRange(p, tuple(path[0] + 1.0), NO_PRIOR)
+    estimator.mark_range_epoch()
+    k = 1
+    while not estimator.fixed:
+        estimator.predict(path[k] - path[k - 1])
+        estimator.update(ranges[k - 1], ranges[k])
+        k += 1
+    estimator.predict(path[k] - path[k - 1])
+    prior, covariance = estimator.position, estimator.covariance
+    estimator.update(ranges[k - 1], ranges[k])
+    u = prior / np.linalg.norm(prior)
+    v = np.array([-u[1], u[0]])
+    s = u @ covariance @ u + s2 + 0.5 * (v @ covariance @ v / np.linalg.norm(prior)) ** 2
+    gain = covariance @ u / s
+    np.testing.assert_allclose(estimator.position, prior + gain * (ranges[k] - np.linalg.norm(prior)), rtol=0, atol=1e-12)
+    # The covariance shrinks by the EKF step times the sandwich share I / I_f (I_f = 1 / s2), with I as this
+    # update left it.
+    share = estimator._info * s2
+    assert 0.5 < share <= 1.0
+    np.testing.assert_allclose(estimator.covariance, covariance - share * np.outer(gain, covariance @ u),
+                               rtol=0, atol=1e-12)
 
 
 def test_with_a_bias_state_a_saved_and_restored_estimator_continues_identically():

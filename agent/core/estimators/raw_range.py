@@ -40,7 +40,13 @@ Two phases.
    (h = H P H^T) and psi, psi' its score -(ln f_h)' and the score's derivative,
        p^+ = p^- + P H^T psi(e),    P^+ = P - P H^T psi'(e) H P
    (C. J. Masreliez, IEEE Trans. Automatic Control 20(1), 1975): the posterior's exact mean and covariance
-   for the linearised measurement, so the covariance stays consistent whatever the noise's shape. A range
+   for the linearised measurement, so the covariance stays consistent whatever the noise's shape. What the
+   linearisation leaves out is the range's curvature across it: |p| bends by (v^T P v) / (2 |p|) over the
+   prior's spread v^T P v across the range (v the unit vector normal to u), which the Gaussian second-order
+   filter counts as the extra variance (v^T P v / |p|)^2 / 2 in f_h (its mean shift is not taken: it would
+   pull p towards the origin, off the circle the range describes). Negligible once fixed; before the first
+   solve, from a prior as wide as the range itself, it keeps one range from claiming a radial precision the
+   unknown bearing does not allow. A range
    far in the tails has psi ~ 0 and psi' ~ 0 and changes nothing; one between the mixture's components can
    have psi' < 0 and widen P, as the true posterior does. psi' is scaled by I / I_f, the sandwich share
    above, over the last ~200 ranges. One pass of plain-float arithmetic per range, no numpy. The fix waits
@@ -55,7 +61,11 @@ tick is counted by the ticks its ranges span (`_due`), so a 1 Hz sensor at dt = 
 2 s, as a 10 Hz one does, not after 20 s (and then at every range). `window` and `monitor_length` stay counts:
 they are amounts of information, not of time. Until the first solve each range updates the prior N(p_0, P_0),
 carried by odometry, as tracking does (the estimate would otherwise stand still until then; the batch itself
-still starts from the prior).
+still starts from the prior). Only the mean moves: the covariance stays the prior's until the first solve.
+Before it the posterior is a ring or an arc, which a Gaussian step would summarise as radially precise along
+whatever bearing the prior guessed; a fleet's joiner starts from the range along x with a spread of the range
+itself, and two such estimates, fused, met far off (with the covariance updated too, the cold-start fleet's
+whole-run e_ij rose from 0.46 to 0.83 m and its closest approach fell from 4.35 to 3.60 m).
 
 Range bias (`bias_variance` > 0, off by default). A UWB pair's antenna delays give it a constant bias of tens
 of cm, r = |p| + b + noise. b, with the prior N(0, bias_variance), is estimated with p in the batch (the
@@ -434,10 +444,9 @@ class RawRange(RelativePositionEstimator):
             waiting = not _due(self._unsolved, self._unsolved_ticks, p.solve_every)
         if waiting:
             if self._solves == 0:
-                # Not ambiguous (before the first solve, or the last solve found one minimum): the range
-                # updates the current Gaussian as in tracking, so that the estimate does not stand still until
-                # the next solve, which starts from the prior again. At one range a second that is seconds.
-                self._moment_match(r)
+                # Before the first solve the range moves the estimate as in tracking, so that it does not stand
+                # still for seconds at one range a second; the covariance stays the prior's (module docstring).
+                self._moment_match(r, shrink=False)
             return UpdateOutcome(accepted=True, reason="collecting")
         self._unsolved = 0
         self._unsolved_ticks = 0.0
@@ -526,13 +535,14 @@ class RawRange(RelativePositionEstimator):
         return UpdateOutcome(accepted=True, reason=reason, iterations=1, innovation=innovation,
                              innovation_variance=h + 1.0 / self._info, weight=dpsi * h if h > 0.0 else 1.0)
 
-    def _moment_match(self, r: float) -> tuple[float, float, float, float] | None:
+    def _moment_match(self, r: float, shrink: bool = True) -> tuple[float, float, float, float] | None:
         """The moment-matching update of N((p, b), P) by one range r = |p| + b + noise, linearised at p^-:
-        H = (u^T, 1), k = P H^T, h = H k, e = r - |p^-| - b^-, psi and psi' the score of f_h at e:
+        H = (u^T, 1), k = P H^T, h = H k, e = r - |p^-| - b^-, psi and psi' the score at e of f_h widened by
+        the range's curvature (v^T P v / |p|)^2 / 2 (module docstring):
             (p, b)^+ = (p, b)^- + k psi(e),    P^+ = P - k k^T psi'(e) I / I_f
         with I / I_f the sandwich share (tracking updates the sandwich's running means first). Without b,
-        H = u^T and the b terms are 0. Plain floats. Returns (-ln f_h(e), psi', e, h), or None at the origin,
-        where u is undefined."""
+        H = u^T and the b terms are 0. Without `shrink` only the mean moves. Plain floats. Returns
+        (-ln f_h(e), psi', e, h), or None at the origin, where u is undefined."""
         px, py, p11, p12, p22 = self._px, self._py, self._p11, self._p12, self._p22
         pxb, pyb, pbb = self._pxb, self._pyb, self._pbb
         d = math.hypot(px, py)
@@ -543,20 +553,24 @@ class RawRange(RelativePositionEstimator):
         hy = p12 * ux + p22 * uy + pyb
         hb = pxb * ux + pyb * uy + pbb
         h = ux * hx + uy * hy + hb                   # the prior's variance along the range
+        across = uy * uy * p11 - 2.0 * ux * uy * p12 + ux * ux * p22
         innovation = r - d - self._b
-        nll, psi, dpsi = self._density.predictive(innovation, h)
+        nll, psi, dpsi = self._density.predictive(innovation, h + 0.5 * (across / d) ** 2)
         if self._fixed:
             self._psi2 += (psi * psi - self._psi2) / SANDWICH_LENGTH
             self._dpsi += (dpsi - self._dpsi) / SANDWICH_LENGTH
             self._info = self._sandwich()
-        # Where the assumed density only approximates the noise, the sandwich says how much of its
-        # information a range really carries; the covariance shrinks by that share only.
-        shrink = dpsi * self._info / self._fisher
         self._px, self._py = px + hx * psi, py + hy * psi
-        self._p11, self._p12, self._p22 = p11 - hx * hx * shrink, p12 - hx * hy * shrink, p22 - hy * hy * shrink
         if pbb > 0.0:
             self._b += hb * psi
-            self._pxb, self._pyb, self._pbb = pxb - hx * hb * shrink, pyb - hy * hb * shrink, pbb - hb * hb * shrink
+        if not shrink:
+            return nll, dpsi, innovation, h
+        # Where the assumed density only approximates the noise, the sandwich says how much of its
+        # information a range really carries; the covariance shrinks by that share only.
+        share = dpsi * self._info / self._fisher
+        self._p11, self._p12, self._p22 = p11 - hx * hx * share, p12 - hx * hy * share, p22 - hy * hy * share
+        if pbb > 0.0:
+            self._pxb, self._pyb, self._pbb = pxb - hx * hb * share, pyb - hy * hb * share, pbb - hb * hb * share
         return nll, dpsi, innovation, h
 
     def _sandwich(self) -> float:
