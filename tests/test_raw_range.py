@@ -117,6 +117,76 @@ def test_the_mirror_ambiguity_is_flagged_on_a_straight_line_and_resolved_after_t
     assert np.linalg.norm(estimator.position - path[-1]) < 0.1
 
 
+def _window_cost(p, ranges, anchors, prior_mean, prior_variance):
+    """The batch cost written out independently: -ln of the Table II mixture at each residual, plus the prior."""
+    e = ranges - np.hypot(p[0] - anchors[:, 0], p[1] - anchors[:, 1])
+    f = sum(w / math.sqrt(2 * math.pi * v) * np.exp(-0.5 * e * e / v) for w, _, v in TABLE_II)
+    return float(-np.log(f).sum() + 0.5 * np.sum((np.asarray(p) - prior_mean) ** 2) / prior_variance)
+
+
+@pytest.mark.parametrize("start_offset, near", [((0.05, -0.03), True), ((0.05, -0.03), False), ((3.0, 2.0), False)])
+def test_a_batch_solve_reaches_the_minimum_an_independent_minimiser_finds(start_offset, near):
+    # Newton from near the minimum (`near`), EM first from farther: the same point and cost as scipy's
+    # Nelder-Mead on the cost written out above, the solver's last step (taken without a new evaluation)
+    # included.
+    from scipy.optimize import minimize
+
+    from agent.core.estimators.range_density import RangeDensity
+    from agent.core.estimators.raw_range import BatchWindow
+
+    rng = np.random.default_rng(11)
+    path = circle(12.0)
+    anchors = path[-1] - path                     # p_m = p_K - a_m: the anchors of the window's ranges
+    ranges = np.linalg.norm(path, axis=1) + gmm(rng, len(path))
+    prior_mean, prior_variance = path[-1] + np.array([1.0, -1.0]), 25.0
+    batch = BatchWindow(ranges, anchors, RangeDensity(TABLE_II), (*prior_mean, prior_variance, 0.0, prior_variance))
+    reference = minimize(_window_cost, path[-1], args=(ranges, anchors, prior_mean, prior_variance),
+                         method="Nelder-Mead", options={"xatol": 1e-9, "fatol": 1e-12, "maxiter": 10_000})
+    start = reference.x + np.array(start_offset)
+    px, py, _, cost = batch.solve(*start, 20, 1e-6, near=near)
+    assert np.hypot(px - reference.x[0], py - reference.x[1]) < 1e-5
+    assert cost == pytest.approx(reference.fun, abs=1e-8)
+    assert cost == pytest.approx(_window_cost((px, py), ranges, anchors, prior_mean, prior_variance), abs=1e-8)
+
+
+def test_skipping_the_mirror_solve_that_starts_on_a_solution_changes_no_decision(monkeypatch):
+    # The best solution's mirror point is not solved again when it lies on another solution already; with
+    # every mirror point solved (MIRROR_FOUND = 0) the estimator takes the same course, to rounding. Along the
+    # straight part the two candidates explain the ranges equally (to rounding), so which of them is held
+    # is arbitrary: the pair is compared there.
+    from agent.core.estimators import raw_range
+
+    straight = np.column_stack([-5.0 + np.arange(101) * DT, np.full(101, 5.0)])
+    angle = np.arange(1, 151) * DT * 0.2
+    path = np.vstack([straight, np.column_stack([5.0 + 5.0 * np.sin(angle), 10.0 - 5.0 * np.cos(angle)])])
+    ranges = np.linalg.norm(path, axis=1) + gmm(np.random.default_rng(5), len(path))
+    courses, solves = [], []
+    solve = raw_range.BatchWindow.solve
+
+    def counted(*args, **kwargs):
+        solves[-1] += 1
+        return solve(*args, **kwargs)
+
+    monkeypatch.setattr(raw_range.BatchWindow, "solve", counted)
+    for share in (raw_range.MIRROR_FOUND, 0.0):
+        monkeypatch.setattr(raw_range, "MIRROR_FOUND", share)
+        solves.append(0)
+        estimator = RawRange(params(), (0.0, 0.0), NO_PRIOR)
+        estimator.mark_range_epoch()
+        course = []
+        for k in range(1, len(path)):
+            estimator.predict(path[k] - path[k - 1])
+            outcome = estimator.update(ranges[k - 1], ranges[k])
+            held = [tuple(estimator.position)] + ([] if estimator.mirror is None else [tuple(estimator.mirror)])
+            course.append((outcome.reason, estimator.fixed, sorted(held, key=lambda q: q[1])))
+        courses.append(course)
+    assert [c[:2] for c in courses[0]] == [c[:2] for c in courses[1]]
+    assert courses[0][-1][1]                      # fixed after the turn
+    assert solves[0] < solves[1]                  # and mirror solves were left out
+    for (_, _, one), (_, _, other) in zip(*courses):
+        np.testing.assert_allclose(np.array(one), np.array(other), rtol=0, atol=1e-6)
+
+
 def test_a_gross_outlier_barely_moves_the_estimate():
     path = circle(20.0)
     rng = np.random.default_rng(11)

@@ -34,20 +34,22 @@ class RangeDensity:
         self.components = components
         self.mean = np.array([c[1] for c in components])[:, None]
         self.var = np.array([c[2] for c in components])[:, None]
+        self.precision = 1.0 / self.var
         self.log_norm = np.log(np.array([c[0] for c in components]))[:, None] - 0.5 * (LOG_2PI + np.log(self.var))
         self.fisher, self.entropy, self.spread = _statistics(components)
 
     def evaluate(self, e: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """At residuals e (N,): (-ln f(e), psi, psi', EM precision w = sum gamma_c / sigma_c^2), each (N,)."""
-        logs = self.log_norm - 0.5 * (e - self.mean) ** 2 / self.var      # (K, N)
+        sc = (e - self.mean) * self.precision                              # (K, N) scores s_c
+        logs = self.log_norm - 0.5 * (e - self.mean) * sc
         top = logs.max(axis=0)
         g = np.exp(logs - top)
         total = g.sum(axis=0)
         g /= total
-        sc = (e - self.mean) / self.var
         psi = (g * sc).sum(axis=0)
-        dpsi = (g * (1.0 / self.var - sc * sc)).sum(axis=0) + psi * psi
-        return -(top + np.log(total)), psi, dpsi, (g / self.var).sum(axis=0)
+        w = (g * self.precision).sum(axis=0)
+        dpsi = w - (g * sc * sc).sum(axis=0) + psi * psi
+        return -(top + np.log(total)), psi, dpsi, w
 
     def predictive(self, e: float, h: float) -> tuple[float, float, float]:
         """The predictive density f_h = f * N(0, h) at one residual e: (-ln f_h(e), its score psi, psi').

@@ -111,6 +111,9 @@ NEWTON_REACH = 0.05
 # Cold start points are scouted with this many iterations each, and the best SCOUTED_KEPT solved fully.
 SCOUT_ITERATIONS = 3
 SCOUTED_KEPT = 2
+# The mirror point of the best solution is not solved again when it lies this close to another solution,
+# as a share of that solution's distance from the best.
+MIRROR_FOUND = 0.1
 
 
 def _due(ranges: int, ticks: float, count: int, least: int = 1) -> bool:
@@ -171,6 +174,12 @@ def _sandwich(psi2: float, dpsi: float, fisher: float) -> float:
     return min(max(dpsi * dpsi / psi2, fisher / 20.0), fisher)
 
 
+def _moments(c: np.ndarray, ux: np.ndarray, uy: np.ndarray) -> tuple[float, float, float]:
+    """sum c u u^T over the window as (xx, xy, yy)."""
+    cx = c * ux
+    return float(cx @ ux), float(cx @ uy), float((c * uy) @ uy)
+
+
 def _largest_eigenvalue(a11: float, a12: float, a22: float) -> float:
     half = 0.5 * (a11 + a22)
     return half + math.sqrt(max(0.25 * (a11 - a22) ** 2 + a12 * a12, 0.0))
@@ -208,7 +217,7 @@ class BatchWindow:
         return float(nll.sum()) + self.prior_term(px, py, b), dx / d, dy / d, d, psi, dpsi, w
 
     def solve(self, px: float, py: float, iterations: int, tolerance: float,
-              b: float = 0.0) -> tuple[float, float, float, float]:
+              b: float = 0.0, near: bool = False) -> tuple[float, float, float, float]:
         """EM steps from (p, b), then Newton's method once a step is shorter than NEWTON_REACH, with step
         halving; (px, py, b, cost) at the end. Both use the exact gradient sum psi u - P^-1 (p - p_0) (and
         sum psi - b / bias_variance for b). EM's matrix sum w u u^T + P^-1 is positive definite everywhere and
@@ -217,28 +226,30 @@ class BatchWindow:
         of a solve) and is used there while positive definite. With b, each matrix gains the row
         (sum c u^T, sum c + 1 / bias_variance), c = psi' or w, and b is eliminated first (_step)."""
         cost, ux, uy, d, psi, dpsi, w = self.evaluate(px, py, b)
-        newton = False
+        newton = near
         for _ in range(iterations):
-            g1 = float((psi * ux).sum()) + self.i11 * (self.q[0] - px) + self.i12 * (self.q[1] - py)
-            g2 = float((psi * uy).sum()) + self.i12 * (self.q[0] - px) + self.i22 * (self.q[1] - py)
+            g1 = float(psi @ ux) + self.i11 * (self.q[0] - px) + self.i12 * (self.q[1] - py)
+            g2 = float(psi @ uy) + self.i12 * (self.q[0] - px) + self.i22 * (self.q[1] - py)
             g3 = float(psi.sum()) - self.ib * b if self.ib else 0.0
-            uxx, uxy, uyy = ux * ux, ux * uy, uy * uy
             step_p = None
             if newton:
-                bend = psi / d
-                a11 = float((dpsi * uxx - bend * uyy).sum()) + self.i11
-                a12 = float(((dpsi + bend) * uxy).sum()) + self.i12
-                a22 = float((dpsi * uyy - bend * uxx).sum()) + self.i22
+                c11, c12, c22 = _moments(dpsi, ux, uy)
+                b11, b12, b22 = _moments(psi / d, ux, uy)
                 bias_row = self._bias_row(dpsi, ux, uy)
-                step_p = _step(a11, a12, a22, bias_row, g1, g2, g3, damp=False)
+                step_p = _step(c11 - b22 + self.i11, c12 + b12 + self.i12, c22 - b11 + self.i22, bias_row,
+                               g1, g2, g3, damp=False)
             if step_p is None:
-                a11 = float((w * uxx).sum()) + self.i11
-                a12 = float((w * uxy).sum()) + self.i12
-                a22 = float((w * uyy).sum()) + self.i22
-                step_p = _step(a11, a12, a22, self._bias_row(w, ux, uy), g1, g2, g3, damp=True)
+                a11, a12, a22 = _moments(w, ux, uy)
+                step_p = _step(a11 + self.i11, a12 + self.i12, a22 + self.i22, self._bias_row(w, ux, uy),
+                               g1, g2, g3, damp=True)
                 if step_p is None:
                     break
             sx, sy, sb = step_p
+            if math.hypot(sx, sy, sb) <= tolerance:
+                # Converged: the last step is taken without evaluating the cost there (the cost returned is
+                # the one before it, off by about the gradient times the tolerance).
+                px, py, b = px + sx, py + sy, b + sb
+                break
             step = 1.0
             for _ in range(MAX_HALVINGS):
                 trial = self.evaluate(px + step * sx, py + step * sy, b + step * sb)
@@ -259,7 +270,7 @@ class BatchWindow:
         """(sum c ux, sum c uy, sum c + 1 / bias_variance): b's row of the matrix; None without b."""
         if not self.ib:
             return None
-        return float((c * ux).sum()), float((c * uy).sum()), float(c.sum()) + self.ib
+        return float(c @ ux), float(c @ uy), float(c.sum()) + self.ib
 
     def score_moments(self, px: float, py: float, b: float = 0.0) -> tuple[float, float, int]:
         """(sum of psi^2, sum of psi', N) of the ranges' residuals at (p, b) under the assumed density: the two
@@ -274,8 +285,8 @@ class BatchWindow:
         dy = py - self.a[:, 1]
         d = np.maximum(np.hypot(dx, dy), MIN_DISTANCE)
         ux, uy = dx / d, dy / d
-        a11, a12 = fisher * float((ux * ux).sum()) + self.i11, fisher * float((ux * uy).sum()) + self.i12
-        a22 = fisher * float((uy * uy).sum()) + self.i22
+        s11, s12, s22 = float(ux @ ux), float(ux @ uy), float(uy @ uy)
+        a11, a12, a22 = fisher * s11 + self.i11, fisher * s12 + self.i12, fisher * s22 + self.i22
         if not self.ib:
             return _inverse(a11, a12, a22)
         f1, f2, f3 = fisher * float(ux.sum()), fisher * float(uy.sum()), fisher * len(ux) + self.ib
@@ -471,10 +482,15 @@ class RawRange(RelativePositionEstimator):
             scouted = sorted((batch.solve(x, y, SCOUT_ITERATIONS, p.tolerance, b) for x, y, b in starts),
                              key=lambda s: s[3])
             starts = [s[:3] for s in scouted[:SCOUTED_KEPT]]
-        solutions = [batch.solve(x, y, p.batch_iterations, p.tolerance, b) for x, y, b in starts]
+        warm = len(starts) if self._solves > 0 and self._consistent else 0
+        solutions = [batch.solve(x, y, p.batch_iterations, p.tolerance, b, near=n < warm)
+                     for n, (x, y, b) in enumerate(starts)]
         bx, by, bb, best = min(solutions, key=lambda s: s[3])
         mx, my = batch.mirror(bx, by)
-        mirror = batch.solve(mx, my, p.batch_iterations, p.tolerance, bb)
+        # The mirror point's own solve, unless it starts on another solution already, relative to the two
+        # solutions' distance (then it would converge there: it did in every case measured, docs/estimation.md).
+        found = [s for s in solutions if math.hypot(s[0] - mx, s[1] - my) <= MIRROR_FOUND * math.hypot(s[0] - bx, s[1] - by)]
+        mirror = found[0] if found else batch.solve(mx, my, p.batch_iterations, p.tolerance, bb, near=warm > 0)
         psi2, dpsi, n = batch.score_moments(bx, by, bb)
         self._psi2 = (SANDWICH_PRIOR * self._fisher + psi2) / (SANDWICH_PRIOR + n)
         self._dpsi = (SANDWICH_PRIOR * self._fisher + dpsi) / (SANDWICH_PRIOR + n)
