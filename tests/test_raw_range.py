@@ -149,44 +149,6 @@ def test_a_batch_solve_reaches_the_minimum_an_independent_minimiser_finds(start_
     assert cost == pytest.approx(_window_cost((px, py), ranges, anchors, prior_mean, prior_variance), abs=1e-8)
 
 
-def test_skipping_the_mirror_solve_that_starts_on_a_solution_changes_no_decision(monkeypatch):
-    # The best solution's mirror point is not solved again when it lies on another solution already; with
-    # every mirror point solved (MIRROR_FOUND = 0) the estimator takes the same course, to rounding. Along the
-    # straight part the two candidates explain the ranges equally (to rounding), so which of them is held
-    # is arbitrary: the pair is compared there.
-    from agent.core.estimators import raw_range
-
-    straight = np.column_stack([-5.0 + np.arange(101) * DT, np.full(101, 5.0)])
-    angle = np.arange(1, 151) * DT * 0.2
-    path = np.vstack([straight, np.column_stack([5.0 + 5.0 * np.sin(angle), 10.0 - 5.0 * np.cos(angle)])])
-    ranges = np.linalg.norm(path, axis=1) + gmm(np.random.default_rng(5), len(path))
-    courses, solves = [], []
-    solve = raw_range.BatchWindow.solve
-
-    def counted(*args, **kwargs):
-        solves[-1] += 1
-        return solve(*args, **kwargs)
-
-    monkeypatch.setattr(raw_range.BatchWindow, "solve", counted)
-    for share in (raw_range.MIRROR_FOUND, 0.0):
-        monkeypatch.setattr(raw_range, "MIRROR_FOUND", share)
-        solves.append(0)
-        estimator = RawRange(params(), (0.0, 0.0), NO_PRIOR)
-        estimator.mark_range_epoch()
-        course = []
-        for k in range(1, len(path)):
-            estimator.predict(path[k] - path[k - 1])
-            outcome = estimator.update(ranges[k - 1], ranges[k])
-            held = [tuple(estimator.position)] + ([] if estimator.mirror is None else [tuple(estimator.mirror)])
-            course.append((outcome.reason, estimator.fixed, sorted(held, key=lambda q: q[1])))
-        courses.append(course)
-    assert [c[:2] for c in courses[0]] == [c[:2] for c in courses[1]]
-    assert courses[0][-1][1]                      # fixed after the turn
-    assert solves[0] < solves[1]                  # and mirror solves were left out
-    for (_, _, one), (_, _, other) in zip(*courses):
-        np.testing.assert_allclose(np.array(one), np.array(other), rtol=0, atol=1e-6)
-
-
 def test_a_gross_outlier_barely_moves_the_estimate():
     path = circle(20.0)
     rng = np.random.default_rng(11)
@@ -387,7 +349,8 @@ def test_once_fixed_a_range_updates_mean_and_covariance_as_a_second_order_ekf_st
     v = np.array([-u[1], u[0]])
     s = u @ covariance @ u + s2 + 0.5 * (v @ covariance @ v / np.linalg.norm(prior)) ** 2
     gain = covariance @ u / s
-    np.testing.assert_allclose(estimator.position, prior + gain * (ranges[k] - np.linalg.norm(prior)), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(estimator.position, prior + gain * (ranges[k] - np.linalg.norm(prior)),
+                               rtol=0, atol=1e-12)
     # The covariance shrinks by the EKF step times the sandwich share I / I_f (I_f = 1 / s2), with I as this
     # update left it.
     share = estimator._info * s2

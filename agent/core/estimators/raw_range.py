@@ -111,9 +111,6 @@ NEWTON_REACH = 0.05
 # Cold start points are scouted with this many iterations each, and the best SCOUTED_KEPT solved fully.
 SCOUT_ITERATIONS = 3
 SCOUTED_KEPT = 2
-# The mirror point of the best solution is not solved again when it lies this close to another solution,
-# as a share of that solution's distance from the best.
-MIRROR_FOUND = 0.1
 
 
 def _due(ranges: int, ticks: float, count: int, least: int = 1) -> bool:
@@ -487,10 +484,7 @@ class RawRange(RelativePositionEstimator):
                      for n, (x, y, b) in enumerate(starts)]
         bx, by, bb, best = min(solutions, key=lambda s: s[3])
         mx, my = batch.mirror(bx, by)
-        # The mirror point's own solve, unless it starts on another solution already, relative to the two
-        # solutions' distance (then it would converge there: it did in every case measured, docs/estimation.md).
-        found = [s for s in solutions if math.hypot(s[0] - mx, s[1] - my) <= MIRROR_FOUND * math.hypot(s[0] - bx, s[1] - by)]
-        mirror = found[0] if found else batch.solve(mx, my, p.batch_iterations, p.tolerance, bb, near=warm > 0)
+        mirror = batch.solve(mx, my, p.batch_iterations, p.tolerance, bb, near=warm > 0)
         psi2, dpsi, n = batch.score_moments(bx, by, bb)
         self._psi2 = (SANDWICH_PRIOR * self._fisher + psi2) / (SANDWICH_PRIOR + n)
         self._dpsi = (SANDWICH_PRIOR * self._fisher + dpsi) / (SANDWICH_PRIOR + n)
