@@ -67,7 +67,7 @@ def fuse_reciprocal(params: AgentParams, state: VesselState, track: NeighbourTra
         if why:
             return
         (mx, my), (tx, ty) = mine_then.tolist(), theirs_then.tolist()
-        (ox, oy), (ex, ey) = track.epoch_own.tolist(), track.epoch_other.tolist()
+        (ox, oy), (ex, ey) = track.epoch_own, track.epoch_other
         bx, by = (bx + (ox - mx)) - (ex - tx), (by + (oy - my)) - (ey - ty)
         grown = 2.0 * params.relative.displacement_variance * (abs(key - track.epoch) * 1e-6 / params.dt)
         b11, b22 = b11 + grown, b22 + grown

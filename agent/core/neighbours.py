@@ -153,8 +153,9 @@ class NeighbourTrack:
         self.ranges = History(history)     # ranges to j measured by i, by their stamps
         self.estimator: RelativePositionEstimator | None = None
         self.epoch: int | None = None      # stamp key the filter state refers to
-        self.epoch_own: np.ndarray | None = None     # i's odometry at the epoch
-        self.epoch_other: np.ndarray | None = None   # j's odometry at the epoch
+        # i's and j's odometry at the epoch as (x, y) floats: every tick reads them in floats, several times
+        self.epoch_own: tuple[float, float] | None = None
+        self.epoch_other: tuple[float, float] | None = None
         self.last_range: float | None = None
         self.share: Share | None = None    # latest share received
         self.last_heard = -math.inf
@@ -228,7 +229,7 @@ class NeighbourTrack:
             position = position + own_moved - np.asarray(self.share.velocity, dtype=float) * ((first - key) * 1e-6)
             key = first
         self.estimator = make_relative_estimator(self.params, position, prior.covariance, dt=self.dt)
-        self.epoch, self.epoch_own, self.epoch_other = key, mine, theirs
+        self.epoch, self.epoch_own, self.epoch_other = key, tuple(mine.tolist()), tuple(theirs.tolist())
         self.last_range = None
         self.spread = PathSpread()
         range_now = self.ranges.get(key)
@@ -264,13 +265,13 @@ class NeighbourTrack:
             range_now = self.ranges.get(key)
             # (5), (11) in plain floats: numpy's per-call overhead would be most of the cost of 2-vectors.
             (mx, my), (tx, ty) = mine.tolist(), theirs.tolist()
-            (ox, oy), (ex, ey) = self.epoch_own.tolist(), self.epoch_other.tolist()
+            (ox, oy), (ex, ey) = self.epoch_own, self.epoch_other
             displacement = ((mx - ox) - (tx - ex), (my - oy) - (ty - ey))
             if not self.estimator.predict(displacement, intervals=(key - self.epoch) * 1e-6 / self.dt):
                 self.ranges.pop(key)
                 continue
             self.spread.add(*displacement, (key - self.epoch) * 1e-6, self.observability.window)
-            self.epoch, self.epoch_own, self.epoch_other = key, mine, theirs
+            self.epoch, self.epoch_own, self.epoch_other = key, (mx, my), (tx, ty)
             if self.last_range is None:
                 self.estimator.mark_range_epoch()
                 self.last_range = range_now
@@ -310,10 +311,10 @@ class NeighbourTrack:
         latest = self.odometry.latest()
         known = latest if latest is not None and self.epoch < latest < key else self.epoch
         if known != self.epoch:
-            (kx, ky), (ex, ey) = self.odometry.get(known).tolist(), self.epoch_other.tolist()
+            (kx, ky), (ex, ey) = self.odometry.get(known).tolist(), self.epoch_other
             mx, my = kx - ex, ky - ey
         if self.share is not None:
             (vx, vy), elapsed = np.asarray(self.share.velocity, dtype=float).tolist(), (key - known) * 1e-6
             mx, my = mx + vx * elapsed, my + vy * elapsed
-        (ix, iy), (ox, oy) = own_now.tolist(), self.epoch_own.tolist()
+        (ix, iy), (ox, oy) = own_now.tolist(), self.epoch_own
         return (px + (ix - ox)) - mx, (py + (iy - oy)) - my

@@ -70,6 +70,12 @@ def _vector(value) -> np.ndarray:
     return np.array(value, dtype=float)
 
 
+def _point(value) -> tuple[float, float]:
+    """An (x, y) the track keeps as floats."""
+    x, y = _vector(value).tolist()
+    return x, y
+
+
 def _history_to_json(history: History) -> list:
     return [[key, floats(value) if isinstance(value, np.ndarray) else value] for key, value in history.items()]
 
@@ -108,8 +114,8 @@ def _track_from_json(neighbour: str, data: dict, params: AgentParams) -> Neighbo
         track.estimator = make_relative_estimator(params.relative, np.zeros(2), np.eye(2), dt=params.dt)
         track.estimator.restore_state(data["estimator"])
     track.epoch = data["epoch"]
-    track.epoch_own = None if data["epoch_own"] is None else _vector(data["epoch_own"])
-    track.epoch_other = None if data["epoch_other"] is None else _vector(data["epoch_other"])
+    track.epoch_own = None if data["epoch_own"] is None else _point(data["epoch_own"])
+    track.epoch_other = None if data["epoch_other"] is None else _point(data["epoch_other"])
     track.last_range = data["last_range"]
     track.share = None if data["share"] is None else share_from_json(data["share"])
     track.last_heard = data["last_heard"]
