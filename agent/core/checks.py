@@ -86,17 +86,26 @@ def valid_range(value, max_range: float) -> bool:
 
 
 def valid_share(share: object, receiver: str) -> bool:
+    return checked_share(share, receiver) is not None
+
+
+def checked_share(share: object, receiver: str) -> tuple[float, ...] | None:
+    """`valid_share`'s check, giving what a receiver takes from the share beside its own record: its estimate
+    of the receiver's pair as `pair_entry_floats` gives it, () if it carries none; None if the share is not
+    valid. The entry is checked and converted once, where the share comes in, not again where it is fused."""
     if not isinstance(share, Share):
-        return False
+        return None
     odometry = share.odometry
-    return (finite_floats(odometry.position, (2,)) is not None and isinstance(odometry.stamp, (int, float))
+    if not (finite_floats(odometry.position, (2,)) is not None and isinstance(odometry.stamp, (int, float))
             and math.isfinite(odometry.stamp) and math.isfinite(share.phase)
             and finite_floats(share.velocity, (2,)) is not None
             and (share.target is None or (finite_floats(share.target, (4,)) is not None
                                           and share.target_covariance is not None
                                           and _finite_4x4(share.target_covariance)))
-            and (type(share.neighbours) is dict or isinstance(share.neighbours, Mapping))
-            and valid_pair_entry(share.neighbours.get(receiver)))
+            and (type(share.neighbours) is dict or isinstance(share.neighbours, Mapping))):
+        return None
+    entry = share.neighbours.get(receiver)
+    return () if entry is None else pair_entry_floats(entry)
 
 
 def _finite_4x4(value) -> bool:
@@ -109,14 +118,24 @@ def _finite_4x4(value) -> bool:
 def valid_pair_entry(entry) -> bool:
     """The only entry of a share's `neighbours` a receiver uses is its own: check that one (O(1) per share,
     where checking them all would cost O(n^2) per tick in a large fleet)."""
-    if entry is None:
-        return True
+    return entry is None or pair_entry_floats(entry) is not None
+
+
+def pair_entry_floats(entry) -> tuple[float, ...] | None:
+    """A share's (position, covariance, stamp) of one pair as the floats (px, py, c11, c12, c21, c22, stamp),
+    the covariance row by row; None unless the position and covariance are finite and the stamp is a finite
+    float."""
     try:
         position, covariance, stamp = entry
     except (TypeError, ValueError):
-        return False
-    return (finite_floats(position, (2,)) is not None and finite_floats(covariance, (2, 2)) is not None
-            and isinstance(stamp, float) and math.isfinite(stamp))
+        return None
+    position = finite_floats(position, (2,))
+    if position is None:
+        return None
+    covariance = finite_floats(covariance, (2, 2))
+    if covariance is None or not (isinstance(stamp, float) and math.isfinite(stamp)):
+        return None
+    return (*position, *covariance, stamp)
 
 
 def obstacle_array(points) -> tuple[np.ndarray | None, bool]:

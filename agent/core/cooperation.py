@@ -11,7 +11,6 @@ import math
 
 import numpy as np
 
-from agent.core.checks import finite_floats
 from agent.core.fusion import covariance_intersection_2d, covariance_intersection_stacked
 from agent.core.neighbours import NeighbourTrack, stamp_key
 from agent.core.params import AgentParams
@@ -44,21 +43,13 @@ def fuse_reciprocal(params: AgentParams, state: VesselState, track: NeighbourTra
     grown by the displacement noise of (15), if the two times are at most `fleet.max_odometry_gap` apart.
     Only measured motion enters: a commanded velocity the vessel did not follow (a boat held at the start, a
     thruster lagging) would otherwise be taken as truth."""
-    share = track.share
-    if track.estimator is None or share is None:
+    # j's estimate as the floats checked where its share came in (membership.py receive_shares)
+    if track.estimator is None or track.share is None or not track.reciprocal:
         return
-    theirs = share.neighbours.get(state.vessel)
-    if theirs is None:
-        return
-    position, covariance, stamp = theirs
     # In plain floats: a handful of 2-D operations per neighbour, where numpy's per-call overhead would be
     # most of the cost.
-    position, covariance = finite_floats(position, (2,)), finite_floats(covariance, (2, 2))
-    if position is None or covariance is None or not math.isfinite(stamp):
-        state.health.bad_shares += 1
-        return
-    bx, by = -position[0], -position[1]
-    b11, b12, b21, b22 = covariance
+    px, py, b11, b12, b21, b22, stamp = track.reciprocal
+    bx, by = -px, -py
     key = stamp_key(stamp)
     if key != track.epoch:
         if abs(key - track.epoch) > track.gap_key:       # fleet.max_odometry_gap as a stamp key

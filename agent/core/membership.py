@@ -8,7 +8,7 @@ from statistics import median
 
 import numpy as np
 
-from agent.core.checks import valid_range, valid_share
+from agent.core.checks import checked_share, valid_range
 from agent.core.neighbours import NeighbourPrior, NeighbourTrack, PairTiming, stamp_key
 from agent.core.params import AgentParams
 from agent.core.records import Share
@@ -21,7 +21,8 @@ def receive_shares(params: AgentParams, state: VesselState, shares: Mapping[str,
     # same order whichever way the shares travelled.
     for sender in sorted(shares, key=str):
         share = shares[sender]
-        if sender == state.vessel or not valid_share(share, state.vessel):
+        estimate = None if sender == state.vessel else checked_share(share, state.vessel)
+        if estimate is None:
             state.health.bad_shares += 1
             continue
         track = state.tracks.get(sender)
@@ -32,7 +33,7 @@ def receive_shares(params: AgentParams, state: VesselState, shares: Mapping[str,
                                    PairTiming.of(params.fleet))
             state.tracks[sender] = track
             state.health.neighbours_joined += 1
-        track.receive(share, now)
+        track.receive(share, now, estimate)
 
 
 def store_ranges(params: AgentParams, state: VesselState, ranges: Mapping[str, float], stamp: float) -> None:

@@ -158,6 +158,9 @@ class NeighbourTrack:
         self.epoch_other: tuple[float, float] | None = None
         self.last_range: float | None = None
         self.share: Share | None = None    # latest share received
+        # That share's estimate of our pair, checked and as floats (agent/core/checks.py pair_entry_floats);
+        # (): it carries none.
+        self.reciprocal: tuple[float, ...] = ()
         self.last_heard = -math.inf
         self.first_heard = math.inf
         self.updates = 0
@@ -187,12 +190,13 @@ class NeighbourTrack:
         _, _, p11, _, p22 = self.moments()
         return p11 + p22
 
-    def receive(self, share: Share, now: float) -> None:
-        """Keep j's odometry and what it shares; shares may repeat or arrive out of order."""
+    def receive(self, share: Share, now: float, reciprocal: tuple[float, ...] = ()) -> None:
+        """Keep j's odometry and what it shares; shares may repeat or arrive out of order. `reciprocal` is the
+        share's estimate of our pair as `checked_share` gives it (() if it carries none)."""
         stamp = share.odometry.stamp
         self.odometry.put(stamp, np.asarray(share.odometry.position, dtype=float))
         if self.share is None or stamp >= self.share.odometry.stamp:
-            self.share = share
+            self.share, self.reciprocal = share, reciprocal
         self.last_heard = max(self.last_heard, stamp)
         self.first_heard = min(self.first_heard, stamp)
 

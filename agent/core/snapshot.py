@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from agent.core.checks import checked_share
 from agent.core.estimators import PLKF, make_relative_estimator
 from agent.core.neighbours import History, NeighbourPrior, NeighbourTrack, PairTiming
 from agent.core.params import AgentParams
@@ -56,7 +57,7 @@ def state_from_json(data: dict, params: AgentParams) -> VesselState:
         own=_history_from_json(data["own"], params.fleet.history_ticks, _vector),
         motion=OwnMotion(velocity=np.array(motion["velocity"], dtype=float), stamp=motion["stamp"],
                          position=None if motion["position"] is None else np.array(motion["position"], dtype=float)),
-        tracks={j: _track_from_json(j, t, params) for j, t in data["tracks"].items()},
+        tracks={j: _track_from_json(j, t, params, data["vessel"]) for j, t in data["tracks"].items()},
         priors={j: NeighbourPrior(np.array(p["position"], dtype=float),
                                   np.array(p["covariance"], dtype=float).reshape(2, 2), p["stamp"])
                 for j, p in data["priors"].items()},
@@ -105,7 +106,7 @@ def _track_to_json(track: NeighbourTrack) -> dict:
     }
 
 
-def _track_from_json(neighbour: str, data: dict, params: AgentParams) -> NeighbourTrack:
+def _track_from_json(neighbour: str, data: dict, params: AgentParams, vessel: str) -> NeighbourTrack:
     history = params.fleet.history_ticks
     track = NeighbourTrack(neighbour, params.relative, params.dt, history, PairTiming.of(params.fleet))
     track.odometry = _history_from_json(data["odometry"], history, _vector)
@@ -117,7 +118,13 @@ def _track_from_json(neighbour: str, data: dict, params: AgentParams) -> Neighbo
     track.epoch_own = None if data["epoch_own"] is None else _point(data["epoch_own"])
     track.epoch_other = None if data["epoch_other"] is None else _point(data["epoch_other"])
     track.last_range = data["last_range"]
-    track.share = None if data["share"] is None else share_from_json(data["share"])
+    if data["share"] is not None:
+        # Checked as it was when it came in: the track keeps its estimate of our pair as checked floats.
+        track.share = share_from_json(data["share"])
+        reciprocal = checked_share(track.share, vessel)
+        if reciprocal is None:
+            raise ValueError(f"the share of neighbour {neighbour!r} is one the vessel would have refused")
+        track.reciprocal = reciprocal
     track.last_heard = data["last_heard"]
     track.first_heard = data["first_heard"]
     track.updates = data["updates"]
