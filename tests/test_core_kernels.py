@@ -11,7 +11,7 @@ import math
 import numpy as np
 import pytest
 
-from agent.core.checks import finite_floats, finite_matrix, finite_vector, valid_pair_entry
+from agent.core.checks import finite_floats, finite_matrix, finite_vector, pair_entry_floats, valid_pair_entry
 from agent.core.control.formation import desired_offset, desired_offsets, formation_velocity
 from agent.core.control.oscillator import coupling_gains, oscillator_step
 from agent.core.cooperation import _gate_distances
@@ -162,6 +162,8 @@ def test_pair_entry_check():
     assert not valid_pair_entry((np.array([0.0, np.nan]), np.eye(2), 1.0))
     assert not valid_pair_entry((np.zeros(2), np.full((2, 2), np.inf), 1.0))
     assert not valid_pair_entry((np.zeros(2), np.eye(2)))
+    # what the receiver fuses: position, covariance row by row, stamp
+    assert pair_entry_floats((np.array([1.0, 2.0]), np.array([[3.0, 4.0], [5.0, 6.0]]), 7.0)) == (1, 2, 3, 4, 5, 6, 7.0)
 
 
 def test_history_keeps_the_latest_stamps_in_order_without_a_resort():
