@@ -225,6 +225,7 @@ def test_target_fusion_matches_the_matrices_of_one_neighbour_at_a_time(seed):
 
 def test_track_estimate_in_floats_is_the_array_one():
     """estimate_floats_at and estimate_at give the same p^_ij; best() is the matrix form of moments()."""
+    from agent.core.checks import checked_share
     from agent.core.neighbours import History, NeighbourPrior, NeighbourTrack, PairTiming
     from agent.core.params import AgentParams
     from agent.core.records import OdometryReading, Share
@@ -233,9 +234,9 @@ def test_track_estimate_in_floats_is_the_array_one():
     track = NeighbourTrack("2", params.relative, params.dt, 50, PairTiming.of(params.fleet))
     own = History(50)
     for k in range(3):
-        own.put(0.1 * k, np.array([0.5 * k, 0.1]))
-        track.receive(Share("2", OdometryReading(0.1 * k, np.array([0.0, 0.2 * k]), 0.0), np.array([0.0, 2.0]),
-                            0.0), 0.1 * k)
+        own.put(0.1 * k, (0.5 * k, 0.1))
+        share = Share("2", OdometryReading(0.1 * k, np.array([0.0, 0.2 * k]), 0.0), np.array([0.0, 2.0]), 0.0)
+        track.receive(share, 0.1 * k, checked_share(share, "1"))
     assert track.start(NeighbourPrior(np.array([3.0, -1.0]), np.eye(2), 0.1), own) == "started"
     floats = track.estimate_floats_at(own, 0.2)
     assert floats == tuple(track.estimate_at(own, 0.2).tolist())

@@ -64,7 +64,7 @@ def _vessel_two(target_error, neighbours, ticks: int = 50):
                                                         target_variance=0.1))
     for k in range(ticks):
         now = k * DT
-        state.own.put(now, np.zeros(2))
+        state.own.put(now, (0.0, 0.0))
         state.motion.stamp = now
         receive_shares(params, state, {j: Share(j, OdometryReading(now, np.zeros(2), 0.0), np.zeros(2), 0.0,
                                                 target=np.array([*p, 0.0, 0.0]), target_covariance=np.eye(4) * 0.01)

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from agent.core.build import InitialEstimates, initial_state
+from agent.core.checks import checked_share
 from agent.core.neighbours import History, NeighbourPrior, NeighbourTrack, PairTiming, stamp_key
 from agent.core.params import AgentParams, RelativeEstimationParams
 from agent.core.records import OdometryReading, Share, TickInputs
@@ -20,9 +21,9 @@ TIMING = PairTiming(max_gap=0.5, wait=1.0)
 
 def test_history_gives_samples_exactly_and_interpolates_between_them():
     history = History(10)
-    history.put(1.0, np.array([0.0, 10.0]))
-    history.put(1.2, np.array([4.0, 6.0]))
-    history.put(1.1, np.array([1.0, 9.0]))          # out of order: still sorted
+    history.put(1.0, (0.0, 10.0))
+    history.put(1.2, (4.0, 6.0))
+    history.put(1.1, (1.0, 9.0))          # out of order: still sorted
     gap = stamp_key(0.5)
     np.testing.assert_array_equal(history.at(stamp_key(1.1), gap)[0], [1.0, 9.0])
     # 1.175 lies three quarters of the way from 1.1 to 1.2: 1 + 0.75 * 3 = 3.25, 9 - 0.75 * 3 = 6.75
@@ -55,12 +56,13 @@ def run_pair(offset: float, range_phase: float, seconds: float = 30.0, estimator
     steps = int(seconds / DT)
     for k in range(steps + 1):
         now = k * DT
-        own.put(now, own_path(now) - own_path(0.0))
+        own.put(now, tuple((own_path(now) - own_path(0.0)).tolist()))
         if k >= 1:
             sent = (k - 1) * DT
             if not (lose_every and k % lose_every == 0):
-                track.receive(Share("2", OdometryReading(sent + offset, other_path(sent) - other_path(0.0), 0.0),
-                                    velocity, 0.0), now)
+                share = Share("2", OdometryReading(sent + offset, other_path(sent) - other_path(0.0), 0.0),
+                              velocity, 0.0)
+                track.receive(share, now, checked_share(share, "1"))
             measured = sent + range_phase
             track.ranges.put(measured, float(np.hypot(*(own_path(measured) - other_path(measured)))))
         if k >= 1 and track.estimator is None:     # as the agent does: retried until j's odometry is in
@@ -152,8 +154,8 @@ def test_ranges_that_wait_too_long_are_counted_as_unpaired():
     track = NeighbourTrack("2", RelativeEstimationParams(), DT, 50, PairTiming(max_gap=0.5, wait=0.3))
     own = History(50)
     for k in range(3):
-        own.put(k * DT, np.zeros(2))
-        track.odometry.put(k * DT, np.zeros(2))
+        own.put(k * DT, (0.0, 0.0))
+        track.odometry.put(k * DT, (0.0, 0.0))
     track.share = Share("2", OdometryReading(0.2, np.zeros(2), 0.0), np.zeros(2), 0.0)
     assert track.start(NeighbourPrior(np.array([5.0, 0.0]), np.eye(2), 0.0), own) == "started"
     track.ranges.put(0.25, 5.0)              # j's odometry after 0.2 s never comes
@@ -162,9 +164,9 @@ def test_ranges_that_wait_too_long_are_counted_as_unpaired():
     assert not unusable and track.ranges.get(stamp_key(0.25)) == 5.0     # still waiting at 0.25 s old
     track.advance(own, 0.6, unusable)
     assert unusable == Counter(unpaired=1) and track.ranges.get(stamp_key(0.25)) is None
-    own.put(0.3, np.zeros(2))
-    own.put(1.0, np.zeros(2))
-    track.odometry.put(1.0, np.zeros(2))
+    own.put(0.3, (0.0, 0.0))
+    own.put(1.0, (0.0, 0.0))
+    track.odometry.put(1.0, (0.0, 0.0))
     track.ranges.put(0.6, 5.0)               # between odometry samples 0.3 and 1.0 s apart: a gap
     track.advance(own, 1.0, unusable)
     assert unusable == Counter(unpaired=1, gap=1)

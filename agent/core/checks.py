@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
+from typing import NamedTuple
 
 import numpy as np
 
@@ -89,23 +90,38 @@ def valid_share(share: object, receiver: str) -> bool:
     return checked_share(share, receiver) is not None
 
 
-def checked_share(share: object, receiver: str) -> tuple[float, ...] | None:
-    """`valid_share`'s check, giving what a receiver takes from the share beside its own record: its estimate
-    of the receiver's pair as `pair_entry_floats` gives it, () if it carries none; None if the share is not
-    valid. The entry is checked and converted once, where the share comes in, not again where it is fused."""
+class CheckedShare(NamedTuple):
+    """What a receiver takes from a valid share beside the share itself, as the floats its check gave: the
+    track reads them every tick, so they are converted once, where the share comes in."""
+
+    position: tuple[float, float]      # the sender's odometry position
+    velocity: tuple[float, float]      # its commanded velocity (2)
+    reciprocal: tuple[float, ...]      # its estimate of the receiver's pair (`pair_entry_floats`), () if none
+
+
+def checked_share(share: object, receiver: str) -> CheckedShare | None:
+    """`valid_share`'s check, giving what a receiver takes from the share (`CheckedShare`); None if the share
+    is not valid. The pair entry is checked and converted once, where the share comes in, not again where it
+    is fused."""
     if not isinstance(share, Share):
         return None
     odometry = share.odometry
-    if not (finite_floats(odometry.position, (2,)) is not None and isinstance(odometry.stamp, (int, float))
+    # One chain that keeps the floats it checks: a check after a failed one is still not evaluated.
+    if not ((position := finite_floats(odometry.position, (2,))) is not None
+            and isinstance(odometry.stamp, (int, float))
             and math.isfinite(odometry.stamp) and math.isfinite(share.phase)
-            and finite_floats(share.velocity, (2,)) is not None
+            and (velocity := finite_floats(share.velocity, (2,))) is not None
             and (share.target is None or (finite_floats(share.target, (4,)) is not None
                                           and share.target_covariance is not None
                                           and _finite_4x4(share.target_covariance)))
             and (type(share.neighbours) is dict or isinstance(share.neighbours, Mapping))):
         return None
     entry = share.neighbours.get(receiver)
-    return () if entry is None else pair_entry_floats(entry)
+    reciprocal = () if entry is None else pair_entry_floats(entry)
+    if reciprocal is None:
+        return None
+    (px, py), (vx, vy) = position, velocity
+    return CheckedShare((px, py), (vx, vy), reciprocal)
 
 
 def _finite_4x4(value) -> bool:

@@ -57,7 +57,7 @@ def fuse_reciprocal(params: AgentParams, state: VesselState, track: NeighbourTra
         mine_then, theirs_then, why = track.positions_at(state.own, key)
         if why:
             return
-        (mx, my), (tx, ty) = mine_then.tolist(), theirs_then.tolist()
+        (mx, my), (tx, ty) = mine_then, theirs_then
         (ox, oy), (ex, ey) = track.epoch_own, track.epoch_other
         bx, by = (bx + (ox - mx)) - (ex - tx), (by + (oy - my)) - (ey - ty)
         grown = 2.0 * params.relative.displacement_variance * (abs(key - track.epoch) * 1e-6 / params.dt)

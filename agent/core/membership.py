@@ -21,8 +21,8 @@ def receive_shares(params: AgentParams, state: VesselState, shares: Mapping[str,
     # same order whichever way the shares travelled.
     for sender in sorted(shares, key=str):
         share = shares[sender]
-        estimate = None if sender == state.vessel else checked_share(share, state.vessel)
-        if estimate is None:
+        checked = None if sender == state.vessel else checked_share(share, state.vessel)
+        if checked is None:
             state.health.bad_shares += 1
             continue
         track = state.tracks.get(sender)
@@ -33,7 +33,7 @@ def receive_shares(params: AgentParams, state: VesselState, shares: Mapping[str,
                                    PairTiming.of(params.fleet))
             state.tracks[sender] = track
             state.health.neighbours_joined += 1
-        track.receive(share, now, estimate)
+        track.receive(share, now, checked)
 
 
 def store_ranges(params: AgentParams, state: VesselState, ranges: Mapping[str, float], stamp: float) -> None:
@@ -149,7 +149,7 @@ def _route(state: VesselState, track: NeighbourTrack) -> NeighbourPrior | None:
         return None
     stamp = share.odometry.stamp
     own_then, own_now = state.own.get(stamp_key(stamp)), state.own.get(stamp_key(state.motion.stamp))
-    shift = own_now - own_then if own_then is not None and own_now is not None else np.zeros(2)
+    shift = np.subtract(own_now, own_then) if own_then is not None and own_now is not None else np.zeros(2)
     mine = state.tracker.state[:2] - shift
     theirs = np.asarray(share.target, dtype=float)[:2]
     covariance = state.tracker.covariance[:2, :2] + np.asarray(share.target_covariance, dtype=float)[:2, :2]
@@ -198,7 +198,9 @@ def _agrees_with_ranges_kept(params: AgentParams, state: VesselState, track: Nei
     for key, measured in track.ranges.items():
         mine, theirs, why = track.positions_at(state.own, key)
         if not why:
-            misses.append(measured - float(np.hypot(*(position + (mine - mine_then) - (theirs - theirs_then)))))
+            # (the histories keep (x, y) floats; as arrays here, where these sums run once per prior tried)
+            carried = position + np.subtract(mine, mine_then) - np.subtract(theirs, theirs_then)
+            misses.append(measured - float(np.hypot(*carried)))
     if not misses:
         return True
     return float(median(misses)) ** 2 <= 16.0 * params.relative.range_variance / len(misses)

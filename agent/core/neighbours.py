@@ -25,6 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from agent.core.checks import CheckedShare
 from agent.core.estimators import RelativePositionEstimator, make_relative_estimator
 from agent.core.estimators.base import UpdateOutcome
 from agent.core.observability import PathSpread, verdict
@@ -47,7 +48,8 @@ class NeighbourPrior:
 
 
 class History:
-    """Values by stamp (keyed in microseconds), keeping the most recent `size` stamps."""
+    """Values by stamp (keyed in microseconds), keeping the most recent `size` stamps. Positions are kept as
+    (x, y) float tuples, not arrays: every tick reads several of them per neighbour in floats."""
 
     def __init__(self, size: int) -> None:
         self.size = size
@@ -90,9 +92,9 @@ class History:
         keys = self.keys()
         return keys[-1] if keys else None
 
-    def at(self, key: int, max_gap: int) -> tuple[np.ndarray | None, str]:
-        """The value at `key`: the sample itself, or the straight line between the samples around it when
-        they are at most `max_gap` apart. (None, why) otherwise: "later" (no sample at or after it yet),
+    def at(self, key: int, max_gap: int) -> tuple[tuple[float, float] | None, str]:
+        """The (x, y) value at `key`: the sample itself, or the straight line between the samples around it
+        when they are at most `max_gap` apart. (None, why) otherwise: "later" (no sample at or after it yet),
         "before" (older than every sample kept) or "gap" (the samples around it are too far apart)."""
         value = self._values.get(key)
         if value is not None:
@@ -107,8 +109,9 @@ class History:
         if after - before > max_gap:
             return None, "gap"
         fraction = (key - before) / (after - before)
-        low, high = self._values[before], self._values[after]
-        return low + fraction * (high - low), ""
+        (lx, ly), (hx, hy) = self._values[before], self._values[after]
+        # numpy's low + fraction * (high - low), element by element
+        return (lx + fraction * (hx - lx), ly + fraction * (hy - ly)), ""
 
     def items(self) -> list[tuple[int, object]]:
         return [(key, self._values[key]) for key in self.keys()]
@@ -149,7 +152,7 @@ class NeighbourTrack:
         self.wait_key = stamp_key(timing.wait)
         self.observability = params.observability
         self.spread = PathSpread()         # the relative path at the range epochs, (41)
-        self.odometry = History(history)   # j's cumulative odometry by its stamps
+        self.odometry = History(history)   # j's cumulative odometry by its stamps, (x, y)
         self.ranges = History(history)     # ranges to j measured by i, by their stamps
         self.estimator: RelativePositionEstimator | None = None
         self.epoch: int | None = None      # stamp key the filter state refers to
@@ -161,6 +164,7 @@ class NeighbourTrack:
         # That share's estimate of our pair, checked and as floats (agent/core/checks.py pair_entry_floats);
         # (): it carries none.
         self.reciprocal: tuple[float, ...] = ()
+        self.velocity: tuple[float, float] | None = None     # that share's velocity (2), checked, as floats
         self.last_heard = -math.inf
         self.first_heard = math.inf
         self.updates = 0
@@ -190,17 +194,18 @@ class NeighbourTrack:
         _, _, p11, _, p22 = self.moments()
         return p11 + p22
 
-    def receive(self, share: Share, now: float, reciprocal: tuple[float, ...] = ()) -> None:
-        """Keep j's odometry and what it shares; shares may repeat or arrive out of order. `reciprocal` is the
-        share's estimate of our pair as `checked_share` gives it (() if it carries none)."""
+    def receive(self, share: Share, now: float, checked: CheckedShare) -> None:
+        """Keep j's odometry and what it shares; shares may repeat or arrive out of order. `checked` is what
+        `checked_share` gave for the share."""
         stamp = share.odometry.stamp
-        self.odometry.put(stamp, np.asarray(share.odometry.position, dtype=float))
+        self.odometry.put(stamp, checked.position)
         if self.share is None or stamp >= self.share.odometry.stamp:
-            self.share, self.reciprocal = share, reciprocal
+            self.share, self.reciprocal, self.velocity = share, checked.reciprocal, checked.velocity
         self.last_heard = max(self.last_heard, stamp)
         self.first_heard = min(self.first_heard, stamp)
 
-    def positions_at(self, own: History, key: int) -> tuple[np.ndarray | None, np.ndarray | None, str]:
+    def positions_at(self, own: History, key: int) -> tuple[tuple[float, float] | None,
+                                                            tuple[float, float] | None, str]:
         """(i's odometry, j's odometry, why not) at stamp `key`, interpolated where needed."""
         mine, why_mine = own.at(key, self.gap_key)
         theirs, why_theirs = self.odometry.at(key, self.gap_key)
@@ -225,15 +230,15 @@ class NeighbourTrack:
             gap = stamp_key(self.timing.max_gap)
             first = next((k for k in self.odometry.keys_after(key) if k - key <= gap
                           and self.positions_at(own, k)[2] == ""), None)
-            if first is None or self.share is None:
+            if first is None or self.velocity is None:
                 return "stale"
             mine, theirs, _ = self.positions_at(own, first)
             mine_then = own.at(key, gap)[0]
-            own_moved = np.zeros(2) if mine_then is None else mine - mine_then
-            position = position + own_moved - np.asarray(self.share.velocity, dtype=float) * ((first - key) * 1e-6)
+            own_moved = np.zeros(2) if mine_then is None else np.subtract(mine, mine_then)
+            position = position + own_moved - np.array(self.velocity) * ((first - key) * 1e-6)
             key = first
         self.estimator = make_relative_estimator(self.params, position, prior.covariance, dt=self.dt)
-        self.epoch, self.epoch_own, self.epoch_other = key, tuple(mine.tolist()), tuple(theirs.tolist())
+        self.epoch, self.epoch_own, self.epoch_other = key, mine, theirs
         self.last_range = None
         self.spread = PathSpread()
         range_now = self.ranges.get(key)
@@ -268,7 +273,7 @@ class NeighbourTrack:
                 continue
             range_now = self.ranges.get(key)
             # (5), (11) in plain floats: numpy's per-call overhead would be most of the cost of 2-vectors.
-            (mx, my), (tx, ty) = mine.tolist(), theirs.tolist()
+            (mx, my), (tx, ty) = mine, theirs
             (ox, oy), (ex, ey) = self.epoch_own, self.epoch_other
             displacement = ((mx - ox) - (tx - ex), (my - oy) - (ty - ey))
             if not self.estimator.predict(displacement, intervals=(key - self.epoch) * 1e-6 / self.dt):
@@ -315,10 +320,10 @@ class NeighbourTrack:
         latest = self.odometry.latest()
         known = latest if latest is not None and self.epoch < latest < key else self.epoch
         if known != self.epoch:
-            (kx, ky), (ex, ey) = self.odometry.get(known).tolist(), self.epoch_other
+            (kx, ky), (ex, ey) = self.odometry.get(known), self.epoch_other
             mx, my = kx - ex, ky - ey
-        if self.share is not None:
-            (vx, vy), elapsed = np.asarray(self.share.velocity, dtype=float).tolist(), (key - known) * 1e-6
+        if self.velocity is not None:
+            (vx, vy), elapsed = self.velocity, (key - known) * 1e-6
             mx, my = mx + vx * elapsed, my + vy * elapsed
-        (ix, iy), (ox, oy) = own_now.tolist(), self.epoch_own
+        (ix, iy), (ox, oy) = own_now, self.epoch_own
         return (px + (ix - ox)) - mx, (py + (iy - oy)) - my

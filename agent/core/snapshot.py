@@ -54,7 +54,7 @@ def state_from_json(data: dict, params: AgentParams) -> VesselState:
         tracker.restore_state(data["tracker"])
     return VesselState(
         vessel=data["vessel"],
-        own=_history_from_json(data["own"], params.fleet.history_ticks, _vector),
+        own=_history_from_json(data["own"], params.fleet.history_ticks, _point),
         motion=OwnMotion(velocity=np.array(motion["velocity"], dtype=float), stamp=motion["stamp"],
                          position=None if motion["position"] is None else np.array(motion["position"], dtype=float)),
         tracks={j: _track_from_json(j, t, params, data["vessel"]) for j, t in data["tracks"].items()},
@@ -78,7 +78,7 @@ def _point(value) -> tuple[float, float]:
 
 
 def _history_to_json(history: History) -> list:
-    return [[key, floats(value) if isinstance(value, np.ndarray) else value] for key, value in history.items()]
+    return [[key, value if isinstance(value, float) else floats(value)] for key, value in history.items()]
 
 
 def _history_from_json(pairs: list, size: int, convert) -> History:
@@ -109,7 +109,7 @@ def _track_to_json(track: NeighbourTrack) -> dict:
 def _track_from_json(neighbour: str, data: dict, params: AgentParams, vessel: str) -> NeighbourTrack:
     history = params.fleet.history_ticks
     track = NeighbourTrack(neighbour, params.relative, params.dt, history, PairTiming.of(params.fleet))
-    track.odometry = _history_from_json(data["odometry"], history, _vector)
+    track.odometry = _history_from_json(data["odometry"], history, _point)
     track.ranges = _history_from_json(data["ranges"], history, float)
     if data["estimator"] is not None:
         track.estimator = make_relative_estimator(params.relative, np.zeros(2), np.eye(2), dt=params.dt)
@@ -121,10 +121,10 @@ def _track_from_json(neighbour: str, data: dict, params: AgentParams, vessel: st
     if data["share"] is not None:
         # Checked as it was when it came in: the track keeps its estimate of our pair as checked floats.
         track.share = share_from_json(data["share"])
-        reciprocal = checked_share(track.share, vessel)
-        if reciprocal is None:
+        checked = checked_share(track.share, vessel)
+        if checked is None:
             raise ValueError(f"the share of neighbour {neighbour!r} is one the vessel would have refused")
-        track.reciprocal = reciprocal
+        track.reciprocal, track.velocity = checked.reciprocal, checked.velocity
     track.last_heard = data["last_heard"]
     track.first_heard = data["first_heard"]
     track.updates = data["updates"]

@@ -52,7 +52,8 @@ def step(params: AgentParams, state: VesselState, inputs: TickInputs) -> tuple[V
         return state, TickOutput(STOP, None, None)
     position = np.asarray(odometry.position, dtype=float).reshape(2)
     elapsed = _elapsed(params, state.motion.stamp, now)
-    state.own.put(now, position)
+    x, y = position.tolist()
+    state.own.put(now, (x, y))     # as (x, y) floats (History)
     velocity_change = own_motion(state, now, position)
 
     receive_shares(params, state, inputs.shares, now)
