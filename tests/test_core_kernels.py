@@ -226,7 +226,7 @@ def test_target_fusion_matches_the_matrices_of_one_neighbour_at_a_time(seed):
 def test_track_estimate_in_floats_is_the_array_one():
     """estimate_floats_at and estimate_at give the same p^_ij; best() is the matrix form of moments()."""
     from agent.core.checks import checked_share
-    from agent.core.neighbours import History, NeighbourPrior, NeighbourTrack, PairTiming
+    from agent.core.neighbours import History, NeighbourPrior, NeighbourTrack, PairTiming, stamp_key
     from agent.core.params import AgentParams
     from agent.core.records import OdometryReading, Share
 
@@ -238,8 +238,8 @@ def test_track_estimate_in_floats_is_the_array_one():
         share = Share("2", OdometryReading(0.1 * k, np.array([0.0, 0.2 * k]), 0.0), np.array([0.0, 2.0]), 0.0)
         track.receive(share, 0.1 * k, checked_share(share, "1"))
     assert track.start(NeighbourPrior(np.array([3.0, -1.0]), np.eye(2), 0.1), own) == "started"
-    floats = track.estimate_floats_at(own, 0.2)
-    assert floats == tuple(track.estimate_at(own, 0.2).tolist())
+    floats = track.estimate_floats_at(own, stamp_key(0.2))
+    assert floats == tuple(track.estimate_at(own, stamp_key(0.2)).tolist())
     # p_ij moves by i's motion minus j's: (3, -1) + (0.5, 0) - (0, 0.2)
     np.testing.assert_allclose(floats, (3.5, -1.2), rtol=0, atol=1e-12)
     px, py, p11, p12, p22 = track.moments()

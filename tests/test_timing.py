@@ -67,7 +67,7 @@ def run_pair(offset: float, range_phase: float, seconds: float = 30.0, estimator
             track.ranges.put(measured, float(np.hypot(*(own_path(measured) - other_path(measured)))))
         if k >= 1 and track.estimator is None:     # as the agent does: retried until j's odometry is in
             assert track.start(NeighbourPrior(truth + np.array([1.5, -1.0]), np.eye(2), 0.0), own) != "stale"
-        track.advance(own, now, unusable)
+        track.advance(own, stamp_key(now), unusable)
     now = steps * DT
     return track, unusable, own_path(now) - other_path(now), own, now
 
@@ -76,7 +76,7 @@ def test_a_three_millisecond_clock_offset_no_longer_stops_range_updates():
     """The defect of exact stamp matching: with j's clock 3 ms ahead no stamp met, and no update ran."""
     track, unusable, truth, own, now = run_pair(offset=0.003, range_phase=0.0)
     assert track.updates >= 280 and not unusable
-    error = np.hypot(*(track.estimate_at(own, now) - truth))
+    error = np.hypot(*(track.estimate_at(own, stamp_key(now)) - truth))
     assert error < 0.02      # j moves 0.22 m/s: 3 ms of clock error is 0.7 mm of position
 
 
@@ -85,13 +85,13 @@ def test_ranges_between_ticks_and_clocks_fifty_milliseconds_apart_converge(offse
     track, unusable, truth, own, now = run_pair(offset=offset, range_phase=phase)
     assert track.updates >= 280 and not unusable
     # The 50 ms offset misplaces j by 0.22 m/s * 0.05 s = 11 mm in every pairing.
-    assert np.hypot(*(track.estimate_at(own, now) - truth)) < 0.05
+    assert np.hypot(*(track.estimate_at(own, stamp_key(now)) - truth)) < 0.05
 
 
 def test_a_lost_share_is_bridged_by_interpolating_the_neighbours_odometry():
     lost, unusable, truth, own, now = run_pair(offset=0.0, range_phase=0.0, lose_every=7)
     assert not unusable and lost.updates >= 280          # the ranges of lost shares' times are used too
-    assert np.hypot(*(lost.estimate_at(own, now) - truth)) < 0.02
+    assert np.hypot(*(lost.estimate_at(own, stamp_key(now)) - truth)) < 0.02
 
 
 def test_late_unpaired_and_gapped_ranges_are_counted_not_used():
@@ -160,15 +160,15 @@ def test_ranges_that_wait_too_long_are_counted_as_unpaired():
     assert track.start(NeighbourPrior(np.array([5.0, 0.0]), np.eye(2), 0.0), own) == "started"
     track.ranges.put(0.25, 5.0)              # j's odometry after 0.2 s never comes
     unusable: Counter = Counter()
-    track.advance(own, 0.5, unusable)
+    track.advance(own, stamp_key(0.5), unusable)
     assert not unusable and track.ranges.get(stamp_key(0.25)) == 5.0     # still waiting at 0.25 s old
-    track.advance(own, 0.6, unusable)
+    track.advance(own, stamp_key(0.6), unusable)
     assert unusable == Counter(unpaired=1) and track.ranges.get(stamp_key(0.25)) is None
     own.put(0.3, (0.0, 0.0))
     own.put(1.0, (0.0, 0.0))
     track.odometry.put(1.0, (0.0, 0.0))
     track.ranges.put(0.6, 5.0)               # between odometry samples 0.3 and 1.0 s apart: a gap
-    track.advance(own, 1.0, unusable)
+    track.advance(own, stamp_key(1.0), unusable)
     assert unusable == Counter(unpaired=1, gap=1)
 
 

@@ -248,23 +248,23 @@ class NeighbourTrack:
             self.spread.add(0.0, 0.0, 0.0, self.observability.window)
         return "started"
 
-    def advance(self, own: History, now: float, unusable: Counter) -> None:
+    def advance(self, own: History, now: int, unusable: Counter) -> None:
         """Run the filter over the ranges after the epoch, in time order: the relative displacement (5), (11)
         between the epoch and the range's time predicts (15), and each range paired with the previous one
         updates, (12), (13), (14). Ranges that cannot be used are dropped and counted in `unusable` by
-        reason ("unpaired": j's odometry of their time never came; "gap": an odometry gap around them)."""
+        reason ("unpaired": j's odometry of their time never came; "gap": an odometry gap around them).
+        `now` is the tick's time as a stamp key (`stamp_key`), computed once for all the tracks."""
         self.outcomes = ()
         if self.estimator is None or self.epoch is None:
             return
         latest = self.odometry.latest()
-        now_key = stamp_key(now)
         for key in self.ranges.keys_after(self.epoch):
             if latest is None or key > latest:
                 mine, theirs, why = None, None, "later"     # what positions_at says, without asking
             else:
                 mine, theirs, why = self.positions_at(own, key)
             if why == "later":
-                if now_key - key <= self.wait_key:
+                if now - key <= self.wait_key:
                     break           # wait for the odometry of its time; later ranges wait behind it
                 why = "unpaired"
             if why:
@@ -300,17 +300,16 @@ class NeighbourTrack:
         low, high = self.spread.eigenvalues()
         return low, high, verdict(low, high, self.observability.min_width)
 
-    def estimate_at(self, own: History, now: float) -> np.ndarray | None:
-        """p^_ij at `now`: the filter's estimate carried forward by i's odometry, j's odometry as far as it is
-        known, and j's shared velocity (2) for the rest, as in (15)."""
+    def estimate_at(self, own: History, now: int) -> np.ndarray | None:
+        """p^_ij at `now` (a stamp key): the filter's estimate carried forward by i's odometry, j's odometry as
+        far as it is known, and j's shared velocity (2) for the rest, as in (15)."""
         estimate = self.estimate_floats_at(own, now)
         return None if estimate is None else np.array(estimate)
 
-    def estimate_floats_at(self, own: History, now: float) -> tuple[float, float] | None:
+    def estimate_floats_at(self, own: History, key: int) -> tuple[float, float] | None:
         """`estimate_at` as two plain floats."""
         if self.estimator is None or self.epoch is None:
             return None
-        key = stamp_key(now)
         own_now = own.get(key)
         px, py, _, _, _ = self.moments()
         if key == self.epoch or own_now is None:

@@ -25,7 +25,7 @@ from agent.core.command import control_command
 from agent.core.control.oscillator import oscillator_step
 from agent.core.cooperation import fuse_reciprocal, fuse_targets, swap_velocity
 from agent.core.membership import forget_silent, receive_shares, start_track, store_ranges
-from agent.core.neighbours import NeighbourTrack
+from agent.core.neighbours import NeighbourTrack, stamp_key
 from agent.core.params import AgentParams
 from agent.core.records import STOP, Command, NeighbourRecord, Share, TickInputs, TickOutput, TickRecord
 from agent.core.state import VesselState
@@ -72,14 +72,15 @@ def step(params: AgentParams, state: VesselState, inputs: TickInputs) -> tuple[V
     distances: dict[str, float] = {}
     records: dict[str, NeighbourRecord] = {}
     shared: dict[str, tuple[np.ndarray, np.ndarray, float]] = {}
+    now_key = stamp_key(now)     # the tracks take the tick's time as a history key: converted once, not per track
     for j, track in state.tracks.items():
         if track.estimator is None:
             start_track(params, state, track, now)
-        track.advance(state.own, now, unusable)
+        track.advance(state.own, now_key, unusable)
         track.fused = None
         if fuse_shared:
             fuse_reciprocal(params, state, track)
-        p_ij = track.estimate_floats_at(state.own, now)
+        p_ij = track.estimate_floats_at(state.own, now_key)
         if p_ij is None:
             continue
         # Only a localised neighbour drives the formation and lends its target estimate: an unconverged pair
