@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from typing import NamedTuple
 
 import numpy as np
 
@@ -90,19 +89,17 @@ def valid_share(share: object, receiver: str) -> bool:
     return checked_share(share, receiver) is not None
 
 
-class CheckedShare(NamedTuple):
-    """What a receiver takes from a valid share beside the share itself, as the floats its check gave: the
-    track reads them every tick, so they are converted once, where the share comes in."""
-
-    position: tuple[float, float]      # the sender's odometry position
-    velocity: tuple[float, float]      # its commanded velocity (2)
-    reciprocal: tuple[float, ...]      # its estimate of the receiver's pair (`pair_entry_floats`), () if none
+# What a receiver takes from a valid share beside the share itself, as the floats its check gave: (the
+# sender's odometry position, its commanded velocity (2), its estimate of the receiver's pair as
+# `pair_entry_floats` gives it or () if none). A plain tuple: a NamedTuple's constructor, per share and tick,
+# would cost about as much as the conversions it saves.
+CheckedShare = tuple[tuple[float, float], tuple[float, float], tuple[float, ...]]
 
 
 def checked_share(share: object, receiver: str) -> CheckedShare | None:
     """`valid_share`'s check, giving what a receiver takes from the share (`CheckedShare`); None if the share
-    is not valid. The pair entry is checked and converted once, where the share comes in, not again where it
-    is fused."""
+    is not valid. The track reads these floats every tick: they are checked and converted once, where the
+    share comes in."""
     if not isinstance(share, Share):
         return None
     odometry = share.odometry
@@ -121,7 +118,7 @@ def checked_share(share: object, receiver: str) -> CheckedShare | None:
     if reciprocal is None:
         return None
     (px, py), (vx, vy) = position, velocity
-    return CheckedShare((px, py), (vx, vy), reciprocal)
+    return (px, py), (vx, vy), reciprocal
 
 
 def _finite_4x4(value) -> bool:

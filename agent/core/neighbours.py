@@ -197,10 +197,10 @@ class NeighbourTrack:
     def receive(self, share: Share, now: float, checked: CheckedShare) -> None:
         """Keep j's odometry and what it shares; shares may repeat or arrive out of order. `checked` is what
         `checked_share` gave for the share."""
-        stamp = share.odometry.stamp
-        self.odometry.put(stamp, checked.position)
+        stamp, (position, velocity, reciprocal) = share.odometry.stamp, checked
+        self.odometry.put(stamp, position)
         if self.share is None or stamp >= self.share.odometry.stamp:
-            self.share, self.reciprocal, self.velocity = share, checked.reciprocal, checked.velocity
+            self.share, self.reciprocal, self.velocity = share, reciprocal, velocity
         self.last_heard = max(self.last_heard, stamp)
         self.first_heard = min(self.first_heard, stamp)
 

@@ -124,7 +124,7 @@ def _track_from_json(neighbour: str, data: dict, params: AgentParams, vessel: st
         checked = checked_share(track.share, vessel)
         if checked is None:
             raise ValueError(f"the share of neighbour {neighbour!r} is one the vessel would have refused")
-        track.reciprocal, track.velocity = checked.reciprocal, checked.velocity
+        _, track.velocity, track.reciprocal = checked
     track.last_heard = data["last_heard"]
     track.first_heard = data["first_heard"]
     track.updates = data["updates"]
