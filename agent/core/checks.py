@@ -39,7 +39,8 @@ def finite_floats(value, shape: tuple[int, ...]) -> list[float] | None:
         # isfinite-and-reduce, and these checks run several times per share and neighbour each tick.
         if value.shape != shape:
             return None
-        values = value.ravel().tolist()
+        # A vector is flat already: ravel's view would only add a call (a share brings three vectors a tick)
+        values = value.tolist() if len(shape) == 1 else value.ravel().tolist()
         # Any inf or NaN makes the sum non-finite, so a finite sum settles it in one call; only a sum that
         # overflowed (or a non-finite element) needs the element-wise look.
         total = sum(values)
