@@ -50,7 +50,7 @@ def store_ranges(params: AgentParams, state: VesselState, ranges: Mapping[str, f
         if track.epoch is not None and key <= track.epoch:
             state.health.ranges_late += 1
             continue
-        track.ranges.put(stamp, float(value))
+        track.ranges.put_key(key, float(value))
 
 
 def forget_silent(params: AgentParams, state: VesselState, now: float) -> None:

@@ -57,7 +57,10 @@ class History:
         self._keys: list[int] | None = []      # sorted keys, rebuilt when a put comes out of order
 
     def put(self, stamp: float, value: object) -> None:
-        key = stamp_key(stamp)
+        self.put_key(stamp_key(stamp), value)
+
+    def put_key(self, key: int, value: object) -> None:
+        """`put` for a caller that has the stamp's key already (`store_ranges`, once for all its ranges)."""
         if key not in self._values and self._keys is not None:
             if self._keys and key < self._keys[-1]:
                 self._keys = None
