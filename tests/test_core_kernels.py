@@ -166,6 +166,24 @@ def test_pair_entry_check():
     assert pair_entry_floats((np.array([1.0, 2.0]), np.array([[3.0, 4.0], [5.0, 6.0]]), 7.0)) == (1, 2, 3, 4, 5, 6, 7.0)
 
 
+def test_a_checked_share_gives_the_floats_the_track_keeps():
+    """checked_share: the share's odometry position and velocity as float tuples and its entry for the receiver
+    as pair_entry_floats gives it ((): none); None for a share the receiver refuses."""
+    from agent.core.checks import checked_share
+    from agent.core.records import OdometryReading, Share
+
+    entry = (np.array([1.0, 2.0]), np.array([[3.0, 4.0], [5.0, 6.0]]), 7.0)
+    share = Share("2", OdometryReading(0.5, np.array([8.0, 9.0]), 0.0), np.array([0.25, -0.5]), 0.0,
+                  neighbours={"1": entry})
+    checked = checked_share(share, "1")
+    assert checked == ((8.0, 9.0), (0.25, -0.5), pair_entry_floats(entry))
+    assert all(type(x) is float for x in (*checked[0], *checked[1]))
+    assert checked_share(share, "3") == ((8.0, 9.0), (0.25, -0.5), ())
+    bad = Share("2", share.odometry, share.velocity, 0.0, neighbours={"1": (np.zeros(2), np.eye(2), 1)})
+    assert checked_share(bad, "1") is None
+    assert checked_share(Share("2", share.odometry, np.array([np.nan, 0.0]), 0.0), "1") is None
+
+
 def test_history_keeps_the_latest_stamps_in_order_without_a_resort():
     from agent.core.neighbours import History
 
