@@ -11,7 +11,7 @@ import math
 import numpy as np
 import pytest
 
-from agent.core.checks import finite_floats, finite_matrix, finite_vector, pair_entry_floats, valid_pair_entry
+from agent.core.checks import finite_floats, finite_matrix, finite_vector, pair_entry_floats
 from agent.core.control.formation import desired_offset, desired_offsets, formation_velocity
 from agent.core.control.oscillator import coupling_gains, oscillator_step
 from agent.core.cooperation import _gate_distances
@@ -156,12 +156,12 @@ def test_finite_checks_keep_numpys_verdicts(value, shape):
 
 
 def test_pair_entry_check():
-    assert valid_pair_entry(None)
-    assert valid_pair_entry((np.zeros(2), np.eye(2), 1.0))
-    assert not valid_pair_entry((np.zeros(2), np.eye(2), 1))           # a stamp is a float
-    assert not valid_pair_entry((np.array([0.0, np.nan]), np.eye(2), 1.0))
-    assert not valid_pair_entry((np.zeros(2), np.full((2, 2), np.inf), 1.0))
-    assert not valid_pair_entry((np.zeros(2), np.eye(2)))
+    # (a share without an entry for the receiver is valid: test_a_checked_share_gives_the_floats_the_track_keeps)
+    assert pair_entry_floats((np.zeros(2), np.eye(2), 1.0)) is not None
+    assert pair_entry_floats((np.zeros(2), np.eye(2), 1)) is None           # a stamp is a float
+    assert pair_entry_floats((np.array([0.0, np.nan]), np.eye(2), 1.0)) is None
+    assert pair_entry_floats((np.zeros(2), np.full((2, 2), np.inf), 1.0)) is None
+    assert pair_entry_floats((np.zeros(2), np.eye(2))) is None
     # what the receiver fuses: position, covariance row by row, stamp
     assert pair_entry_floats((np.array([1.0, 2.0]), np.array([[3.0, 4.0], [5.0, 6.0]]), 7.0)) == (1, 2, 3, 4, 5, 6, 7.0)
 

@@ -86,10 +86,6 @@ def valid_range(value, max_range: float) -> bool:
             and math.isfinite(value) and 0.0 <= value <= max_range)
 
 
-def valid_share(share: object, receiver: str) -> bool:
-    return checked_share(share, receiver) is not None
-
-
 # What a receiver takes from a valid share beside the share itself, as the floats its check gave: (the
 # sender's odometry position, its commanded velocity (2), its estimate of the receiver's pair as
 # `pair_entry_floats` gives it or () if none). A plain tuple: a NamedTuple's constructor, per share and tick,
@@ -98,9 +94,10 @@ CheckedShare = tuple[tuple[float, float], tuple[float, float], tuple[float, ...]
 
 
 def checked_share(share: object, receiver: str) -> CheckedShare | None:
-    """`valid_share`'s check, giving what a receiver takes from the share (`CheckedShare`); None if the share
-    is not valid. The track reads these floats every tick: they are checked and converted once, where the
-    share comes in."""
+    """What a receiver takes from a share (`CheckedShare`), or None if the share is not valid. Of the share's
+    `neighbours` only the receiver's own entry is checked (O(1) per share, where checking them all would cost
+    O(n^2) per tick in a large fleet). The track reads these floats every tick: they are checked and converted
+    once, where the share comes in."""
     if not isinstance(share, Share):
         return None
     odometry = share.odometry
@@ -127,12 +124,6 @@ def _finite_4x4(value) -> bool:
     if type(value) is np.ndarray and value.dtype == FLOAT64:
         return finite_floats(value, (4, 4)) is not None
     return np.shape(value) == (4, 4) and bool(np.isfinite(value).all())
-
-
-def valid_pair_entry(entry) -> bool:
-    """The only entry of a share's `neighbours` a receiver uses is its own: check that one (O(1) per share,
-    where checking them all would cost O(n^2) per tick in a large fleet)."""
-    return entry is None or pair_entry_floats(entry) is not None
 
 
 def pair_entry_floats(entry) -> tuple[float, ...] | None:

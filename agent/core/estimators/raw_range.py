@@ -479,12 +479,12 @@ class RawRange(RelativePositionEstimator):
             scouted = sorted((batch.solve(x, y, SCOUT_ITERATIONS, p.tolerance, b) for x, y, b in starts),
                              key=lambda s: s[3])
             starts = [s[:3] for s in scouted[:SCOUTED_KEPT]]
-        warm = len(starts) if self._solves > 0 and self._consistent else 0
-        solutions = [batch.solve(x, y, p.batch_iterations, p.tolerance, b, near=n < warm)
-                     for n, (x, y, b) in enumerate(starts)]
+        # Warm (the last solve consistent): the starts are that solve's points, so Newton steps from the first.
+        warm = self._solves > 0 and self._consistent
+        solutions = [batch.solve(x, y, p.batch_iterations, p.tolerance, b, near=warm) for x, y, b in starts]
         bx, by, bb, best = min(solutions, key=lambda s: s[3])
         mx, my = batch.mirror(bx, by)
-        mirror = batch.solve(mx, my, p.batch_iterations, p.tolerance, bb, near=warm > 0)
+        mirror = batch.solve(mx, my, p.batch_iterations, p.tolerance, bb, near=warm)
         psi2, dpsi, n = batch.score_moments(bx, by, bb)
         self._psi2 = (SANDWICH_PRIOR * self._fisher + psi2) / (SANDWICH_PRIOR + n)
         self._dpsi = (SANDWICH_PRIOR * self._fisher + dpsi) / (SANDWICH_PRIOR + n)
