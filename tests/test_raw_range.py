@@ -124,6 +124,33 @@ def _window_cost(p, ranges, anchors, prior_mean, prior_variance):
     return float(-np.log(f).sum() + 0.5 * np.sum((np.asarray(p) - prior_mean) ** 2) / prior_variance)
 
 
+@pytest.mark.parametrize("components", [TABLE_II, ((0.5, -0.1, 0.01), (0.3, 0.2, 0.04), (0.2, 0.9, 0.5))])
+def test_the_density_gives_its_log_likelihood_score_and_curvature(components):
+    # Against scipy's normal density and central differences of -ln f: the summed -ln f, psi = -(ln f)',
+    # psi' = -(ln f)'' and the EM precision sum_c gamma_c / sigma_c^2 with gamma_c = w_c f_c / f.
+    from scipy.stats import norm
+
+    from agent.core.estimators.range_density import RangeDensity
+
+    density = RangeDensity(components)
+    e = np.array([-3.0, -0.4, 0.0, 0.15, 0.7, 2.5, 12.0])
+
+    def nll(x):
+        return -np.log(sum(w * norm.pdf(x, m, math.sqrt(v)) for w, m, v in components))
+
+    total, g, sc = density.evaluate(e)
+    psi, weighted = density.score(g, sc)
+    w = density.em_precision(g)
+    curvature = density.curvature(weighted, sc, psi, w)
+    h = 1e-4
+    assert total == pytest.approx(nll(e).sum(), rel=1e-12)
+    np.testing.assert_allclose(psi, (nll(e + h) - nll(e - h)) / (2 * h), rtol=1e-6, atol=1e-8)
+    np.testing.assert_allclose(curvature, (nll(e + h) - 2 * nll(e) + nll(e - h)) / h**2, rtol=1e-4, atol=1e-5)
+    pdfs = np.array([wc * norm.pdf(e, m, math.sqrt(v)) for wc, m, v in components])
+    expected_w = ((pdfs / pdfs.sum(axis=0)) / np.array([v for _, _, v in components])[:, None]).sum(axis=0)
+    np.testing.assert_allclose(w, expected_w, rtol=1e-12)
+
+
 @pytest.mark.parametrize("start_offset, near", [((0.05, -0.03), True), ((0.05, -0.03), False), ((3.0, 2.0), False)])
 def test_a_batch_solve_reaches_the_minimum_an_independent_minimiser_finds(start_offset, near):
     # Newton from near the minimum (`near`), EM first from farther: the same point and cost as scipy's
@@ -143,7 +170,7 @@ def test_a_batch_solve_reaches_the_minimum_an_independent_minimiser_finds(start_
     reference = minimize(_window_cost, path[-1], args=(ranges, anchors, prior_mean, prior_variance),
                          method="Nelder-Mead", options={"xatol": 1e-9, "fatol": 1e-12, "maxiter": 10_000})
     start = reference.x + np.array(start_offset)
-    px, py, _, cost = batch.solve(*start, 20, 1e-6, near=near)
+    px, py, _, cost, _ = batch.solve(*start, 20, 1e-6, near=near)
     assert np.hypot(px - reference.x[0], py - reference.x[1]) < 1e-5
     assert cost == pytest.approx(reference.fun, abs=1e-8)
     assert cost == pytest.approx(_window_cost((px, py), ranges, anchors, prior_mean, prior_variance), abs=1e-8)

@@ -25,6 +25,8 @@ from agent.core.params import RawRangeParams
 
 LOG_2PI = math.log(2.0 * math.pi)
 _trapezoid = getattr(np, "trapezoid", None) or np.trapz
+# ndarray.sum and .max without their Python wrappers (the same reductions): called some 40 times per solve
+_sum, _max = np.add.reduce, np.maximum.reduce
 
 
 class RangeDensity:
@@ -38,18 +40,33 @@ class RangeDensity:
         self.log_norm = np.log(np.array([c[0] for c in components]))[:, None] - 0.5 * (LOG_2PI + np.log(self.var))
         self.fisher, self.entropy, self.spread = _statistics(components)
 
-    def evaluate(self, e: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """At residuals e (N,): (-ln f(e), psi, psi', EM precision w = sum gamma_c / sigma_c^2), each (N,)."""
-        sc = (e - self.mean) * self.precision                              # (K, N) scores s_c
-        logs = self.log_norm - 0.5 * (e - self.mean) * sc
-        top = logs.max(axis=0)
+    def evaluate(self, e: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+        """At residuals e (N,): (-ln f summed over e, the responsibilities gamma_c (K, N), the scores s_c (K, N)).
+        The solver asks `score`, `em_precision` and `curvature` of these only where it needs them: a line
+        search's rejected trial needs the cost alone."""
+        diff = e - self.mean                                               # (K, N)
+        sc = diff * self.precision                                         # scores s_c
+        logs = self.log_norm - 0.5 * diff * sc
+        top = _max(logs, axis=0)
         g = np.exp(logs - top)
-        total = g.sum(axis=0)
+        total = _sum(g, axis=0)
         g /= total
-        psi = (g * sc).sum(axis=0)
-        w = (g * self.precision).sum(axis=0)
-        dpsi = w - (g * sc * sc).sum(axis=0) + psi * psi
-        return -(top + np.log(total)), psi, dpsi, w
+        return float(_sum(-(top + np.log(total)))), g, sc
+
+    def em_precision(self, g: np.ndarray) -> np.ndarray:
+        """w = sum_c gamma_c / sigma_c^2 (N,): each residual's precision for an EM step."""
+        return _sum(g * self.precision, axis=0)
+
+    @staticmethod
+    def score(g: np.ndarray, sc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(psi, gamma_c s_c): the mixture's score (N,) and the product `curvature` takes again."""
+        weighted = g * sc
+        return _sum(weighted, axis=0), weighted
+
+    @staticmethod
+    def curvature(weighted: np.ndarray, sc: np.ndarray, psi: np.ndarray, w: np.ndarray) -> np.ndarray:
+        """psi' = w - sum_c gamma_c s_c^2 + psi^2 (N,), from `score`'s product and `em_precision`'s w."""
+        return w - _sum(weighted * sc, axis=0) + psi * psi
 
     def predictive(self, e: float, h: float) -> tuple[float, float, float]:
         """The predictive density f_h = f * N(0, h) at one residual e: (-ln f_h(e), its score psi, psi').

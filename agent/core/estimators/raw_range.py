@@ -192,6 +192,7 @@ class BatchWindow:
                  prior: tuple[float, ...], bias_variance: float = 0.0) -> None:
         self.r = ranges                       # (N,)
         self.a = anchors                      # (N, 2): p_m = p - a_m
+        self.ax, self.ay = anchors[:, 0].copy(), anchors[:, 1].copy()    # contiguous: every evaluation reads them
         self.density = density
         qx, qy, q11, q12, q22 = prior
         self.q = (qx, qy)
@@ -202,39 +203,53 @@ class BatchWindow:
         ex, ey = px - self.q[0], py - self.q[1]
         return 0.5 * (self.i11 * ex * ex + 2 * self.i12 * ex * ey + self.i22 * ey * ey + self.ib * b * b)
 
-    def evaluate(self, px: float, py: float, b: float = 0.0) -> tuple[float, np.ndarray, np.ndarray, np.ndarray,
-                                                                      np.ndarray, np.ndarray, np.ndarray]:
-        """At (p, b): (cost, unit vectors ux, uy of p - a_m, distances d, the residuals' score
-        psi = -(ln f)'(e), e = r - d - b, and its derivative psi', EM precision w = sum_c gamma_c / sigma_c^2),
-        arrays of N."""
-        dx = px - self.a[:, 0]
-        dy = py - self.a[:, 1]
+    def evaluate(self, px: float, py: float, b: float = 0.0) -> tuple[float, tuple]:
+        """The cost at (p, b), and what `derivatives` needs to go on from there (a line search's rejected trial
+        needs the cost alone)."""
+        dx = px - self.ax
+        dy = py - self.ay
         d = np.maximum(np.hypot(dx, dy), MIN_DISTANCE)
-        nll, psi, dpsi, w = self.density.evaluate(self.r - d - b if self.ib else self.r - d)
-        return float(nll.sum()) + self.prior_term(px, py, b), dx / d, dy / d, d, psi, dpsi, w
+        nll, g, sc = self.density.evaluate(self.r - d - b if self.ib else self.r - d)
+        return nll + self.prior_term(px, py, b), (dx, dy, d, g, sc)
+
+    def derivatives(self, at: tuple) -> tuple[np.ndarray, ...]:
+        """From `evaluate`'s state: the unit vectors ux, uy of p - a_m, the distances d, the residuals' score
+        psi = -(ln f)'(e), e = r - d - b, and the density's (g, sc, gamma_c s_c) for `em_precision` and
+        `curvature` (range_density.py), arrays of N (K by N)."""
+        dx, dy, d, g, sc = at
+        psi, weighted = self.density.score(g, sc)
+        return dx / d, dy / d, d, psi, g, sc, weighted
 
     def solve(self, px: float, py: float, iterations: int, tolerance: float,
-              b: float = 0.0, near: bool = False) -> tuple[float, float, float, float]:
+              b: float = 0.0, near: bool = False) -> tuple[float, float, float, float, tuple]:
         """EM steps from (p, b), then Newton's method once a step is shorter than NEWTON_REACH, with step
-        halving; (px, py, b, cost) at the end. Both use the exact gradient sum psi u - P^-1 (p - p_0) (and
-        sum psi - b / bias_variance for b). EM's matrix sum w u u^T + P^-1 is positive definite everywhere and
-        its steps are safe far from a minimum, but converge only linearly; the Hessian
-        sum psi' u u^T - sum (psi / d) (I - u u^T) + P^-1 converges quadratically near one (it halves the cost
-        of a solve) and is used there while positive definite. With b, each matrix gains the row
-        (sum c u^T, sum c + 1 / bias_variance), c = psi' or w, and b is eliminated first (_step)."""
-        cost, ux, uy, d, psi, dpsi, w = self.evaluate(px, py, b)
+        halving; (px, py, b, cost, state) at the end, state `evaluate`'s at the last point evaluated (within one
+        converged step of the end). Both use the exact gradient sum psi u - P^-1 (p - p_0) (and
+        sum psi - b / bias_variance for b). EM's matrix sum w u u^T + P^-1 (w = sum_c gamma_c / sigma_c^2) is
+        positive definite everywhere and its steps are safe far from a minimum, but converge only linearly;
+        the Hessian sum psi' u u^T - sum (psi / d) (I - u u^T) + P^-1 converges quadratically near one (it
+        halves the cost of a solve) and is used there while positive definite. With b, each matrix gains the
+        row (sum c u^T, sum c + 1 / bias_variance), c = psi' or w, and b is eliminated first (_step)."""
+        density = self.density
+        cost, at = self.evaluate(px, py, b)
+        ux, uy, d, psi, g, sc, weighted = self.derivatives(at)
         newton = near
+        full_newton, last = False, math.inf     # the last step a whole Newton step, and its length
         for _ in range(iterations):
             g1 = float(psi @ ux) + self.i11 * (self.q[0] - px) + self.i12 * (self.q[1] - py)
             g2 = float(psi @ uy) + self.i12 * (self.q[0] - px) + self.i22 * (self.q[1] - py)
             g3 = float(psi.sum()) - self.ib * b if self.ib else 0.0
-            step_p = None
+            step_p = newton_step = None
+            w = density.em_precision(g)
             if newton:
-                c11, c12, c22 = _moments(dpsi, ux, uy)
-                b11, b12, b22 = _moments(psi / d, ux, uy)
+                dpsi = density.curvature(weighted, sc, psi, w)
+                # sum psi' u u^T - sum (psi / d)(I - u u^T) = sum (psi' + psi / d) u u^T - (sum psi / d) I
+                bend = psi / d
+                c11, c12, c22 = _moments(dpsi + bend, ux, uy)
+                turn = float(bend.sum())
                 bias_row = self._bias_row(dpsi, ux, uy)
-                step_p = _step(c11 - b22 + self.i11, c12 + b12 + self.i12, c22 - b11 + self.i22, bias_row,
-                               g1, g2, g3, damp=False)
+                step_p = newton_step = _step(c11 - turn + self.i11, c12 + self.i12, c22 - turn + self.i22,
+                                             bias_row, g1, g2, g3, damp=False)
             if step_p is None:
                 a11, a12, a22 = _moments(w, ux, uy)
                 step_p = _step(a11 + self.i11, a12 + self.i12, a22 + self.i22, self._bias_row(w, ux, uy),
@@ -242,26 +257,33 @@ class BatchWindow:
                 if step_p is None:
                     break
             sx, sy, sb = step_p
-            if math.hypot(sx, sy, sb) <= tolerance:
-                # Converged: the last step is taken without evaluating the cost there (the cost returned is
-                # the one before it, off by about the gradient times the tolerance).
+            length = math.hypot(sx, sy, sb)
+            if length <= tolerance or (full_newton and length < last and length ** 3 <= tolerance * last * last):
+                # Converged: the step is below the tolerance, or Newton's quadratic convergence, its rate
+                # measured on the last two full steps (next ~ length^3 / last^2), puts the next one below it.
+                # The step is taken without evaluating the cost there: for a Newton step (s = H^-1 g) the
+                # quadratic model gives it, the cost less g^T s / 2, to the third order in the step; for an EM
+                # step (below the tolerance) the cost before it is as near.
                 px, py, b = px + sx, py + sy, b + sb
+                if step_p is newton_step:
+                    cost -= 0.5 * (g1 * sx + g2 * sy + g3 * sb)
                 break
             step = 1.0
             for _ in range(MAX_HALVINGS):
-                trial = self.evaluate(px + step * sx, py + step * sy, b + step * sb)
-                if trial[0] <= cost + 1e-12 * abs(cost):
+                trial, trial_at = self.evaluate(px + step * sx, py + step * sy, b + step * sb)
+                if trial <= cost + 1e-12 * abs(cost):
                     break
                 step *= 0.5
             else:
                 break
             px, py, b = px + step * sx, py + step * sy, b + step * sb
-            cost, ux, uy, d, psi, dpsi, w = trial
-            length = step * math.hypot(sx, sy, sb)
-            if length <= tolerance:
+            cost, at = trial, trial_at
+            ux, uy, d, psi, g, sc, weighted = self.derivatives(at)
+            full_newton, last = newton and step == 1.0 and step_p is newton_step, step * length
+            if last <= tolerance:
                 break
-            newton = newton or length <= NEWTON_REACH
-        return px, py, b, cost
+            newton = newton or last <= NEWTON_REACH
+        return px, py, b, cost, at
 
     def _bias_row(self, c: np.ndarray, ux: np.ndarray, uy: np.ndarray) -> tuple[float, float, float] | None:
         """(sum c ux, sum c uy, sum c + 1 / bias_variance): b's row of the matrix; None without b."""
@@ -269,10 +291,11 @@ class BatchWindow:
             return None
         return float(c @ ux), float(c @ uy), float(c.sum()) + self.ib
 
-    def score_moments(self, px: float, py: float, b: float = 0.0) -> tuple[float, float, int]:
-        """(sum of psi^2, sum of psi', N) of the ranges' residuals at (p, b) under the assumed density: the two
-        estimates of the Fisher information the sandwich compares (module docstring)."""
-        _, _, _, _, psi, dpsi, _ = self.evaluate(px, py, b)
+    def score_moments(self, at: tuple) -> tuple[float, float, int]:
+        """(sum of psi^2, sum of psi', N) of the ranges' residuals at a point `evaluate` gave `at` for, under the
+        assumed density: the two estimates of the Fisher information the sandwich compares (module docstring)."""
+        _, _, _, psi, g, sc, weighted = self.derivatives(at)
+        dpsi = self.density.curvature(weighted, sc, psi, self.density.em_precision(g))
         return float((psi * psi).sum()), float(dpsi.sum()), len(psi)
 
     def covariance(self, px: float, py: float, fisher: float) -> tuple[float, ...]:
@@ -482,10 +505,10 @@ class RawRange(RelativePositionEstimator):
         # Warm (the last solve consistent): the starts are that solve's points, so Newton steps from the first.
         warm = self._solves > 0 and self._consistent
         solutions = [batch.solve(x, y, p.batch_iterations, p.tolerance, b, near=warm) for x, y, b in starts]
-        bx, by, bb, best = min(solutions, key=lambda s: s[3])
+        bx, by, bb, best, at = min(solutions, key=lambda s: s[3])
         mx, my = batch.mirror(bx, by)
         mirror = batch.solve(mx, my, p.batch_iterations, p.tolerance, bb, near=warm)
-        psi2, dpsi, n = batch.score_moments(bx, by, bb)
+        psi2, dpsi, n = batch.score_moments(at)     # at the best solution's last evaluated point
         self._psi2 = (SANDWICH_PRIOR * self._fisher + psi2) / (SANDWICH_PRIOR + n)
         self._dpsi = (SANDWICH_PRIOR * self._fisher + dpsi) / (SANDWICH_PRIOR + n)
         self._info = self._sandwich()
@@ -506,7 +529,7 @@ class RawRange(RelativePositionEstimator):
         nll = (best - batch.prior_term(bx, by, bb)) / n
         self._consistent = nll <= self._entropy + 0.2 + 4.0 * self._nll_spread / math.sqrt(n)
         if separate:
-            ax, ay, _, alt_cost = min(separate, key=lambda s: s[3])
+            ax, ay, _, alt_cost, _ = min(separate, key=lambda s: s[3])
             evidence = alt_cost - best
         else:
             ax = ay = None
