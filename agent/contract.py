@@ -67,6 +67,14 @@ Vec2 = tuple[Coordinate, Coordinate]
 Velocity = tuple[SpeedComponent, SpeedComponent]
 
 
+def _mirrored(size: int) -> tuple[tuple[int, int], ...]:
+    """The row-major indices of each entry above the diagonal of a size x size matrix and of its mirror image."""
+    return tuple((i * size + j, j * size + i) for i in range(size) for j in range(i + 1, size))
+
+
+_MIRRORED = {size: _mirrored(size) for size in (2, 3, 4)}     # the sizes of the contract's covariances
+
+
 def covariance_problem(values, size: int) -> str | None:
     """Why `values` (size x size, row-major) is not a covariance: not symmetric, or not positive semi-definite
     (both up to COVARIANCE_TOLERANCE of its largest entry); None if it is one. The entries are already finite
@@ -81,21 +89,32 @@ def covariance_problem(values, size: int) -> str | None:
     if scale == 0.0:
         return None
     tolerance = COVARIANCE_TOLERANCE * scale
-    for i in range(size):
-        for j in range(i + 1, size):
-            if abs(values[i * size + j] - values[j * size + i]) > tolerance:
-                return "is not symmetric"
+    for upper, lower in _MIRRORED.get(size) or _mirrored(size):
+        if abs(values[upper] - values[lower]) > tolerance:
+            return "is not symmetric"
     if size == 2:
-        # Closed form: the smaller eigenvalue of [[a, b], [b, c]].
-        a, b, c = values[0], 0.5 * (values[1] + values[2]), values[3]
-        smallest = 0.5 * (a + c) - math.hypot(0.5 * (a - c), b)
-        return "is not positive semi-definite" if smallest < -tolerance else None
+        return _semi_definite_2x2(values[0], 0.5 * (values[1] + values[2]), values[3], tolerance)
     if cholesky_succeeds(values, size, tolerance):
         return None
     matrix = np.array(values, dtype=float).reshape(size, size)
     if float(np.linalg.eigvalsh(0.5 * (matrix + matrix.T))[0]) < -tolerance:
         return "is not positive semi-definite"
     return None
+
+
+def pair_covariance_problem(p11: float, p12: float, p22: float) -> str | None:
+    """`covariance_problem` of the symmetric [[p11, p12], [p12, p22]] given by its three numbers (a share's pair
+    estimate, n - 1 of them in every share): symmetric by construction, so only the eigenvalue is judged."""
+    scale = max(abs(p11), abs(p12), abs(p22))
+    if scale == 0.0:
+        return None
+    return _semi_definite_2x2(p11, p12, p22, COVARIANCE_TOLERANCE * scale)
+
+
+def _semi_definite_2x2(a: float, b: float, c: float, tolerance: float) -> str | None:
+    # Closed form: the smaller eigenvalue of [[a, b], [b, c]].
+    smallest = 0.5 * (a + c) - math.hypot(0.5 * (a - c), b)
+    return "is not positive semi-definite" if smallest < -tolerance else None
 
 
 # ----- keys -----
@@ -190,8 +209,7 @@ class PairEstimate(StrictModel):
     @field_validator("covariance")
     @classmethod
     def _semi_definite(cls, value):
-        p11, p12, p22 = value
-        problem = covariance_problem((p11, p12, p12, p22), 2)
+        problem = pair_covariance_problem(*value)
         if problem:
             raise ValueError(f"covariance {problem}")
         return value

@@ -26,6 +26,7 @@ from agent.contract import (
     every,
     key,
     message_from_share,
+    pair_covariance_problem,
     share_from_message,
     vessel_of,
 )
@@ -423,6 +424,22 @@ def test_the_covariance_check_gives_the_eigenvalue_verdict(size):
         assert covariance_problem(values, size) == _eigenvalue_verdict(values, size)
     assert covariance_problem([1.0, 2.0, 2.0, 1.0], 2) == "is not positive semi-definite"   # eigenvalues 3, -1
     assert covariance_problem([0.0] * size * size, size) is None
+
+
+def test_a_pair_estimate_is_judged_as_its_full_matrix():
+    """A share's pair covariance, given by (p11, p12, p22), gets the verdict of the whole symmetric matrix."""
+    rng = np.random.default_rng(12)
+    for _ in range(2000):
+        scale = 10 ** rng.uniform(-8, 8)
+        p11, p22 = rng.uniform(-0.1, 1.0, 2) * scale
+        # off-diagonals from well inside to a hair either side of the semi-definite limit sqrt(p11 p22)
+        limit = math.sqrt(max(p11 * p22, 0.0))
+        p12 = float(rng.choice([-1.0, 1.0]) * limit * rng.choice([0.3, 1.0 - 1e-12, 1.0 + 1e-12, 1.5]))
+        values = [p11, p12, p12, p22]
+        verdict = _eigenvalue_verdict(values, 2)
+        assert pair_covariance_problem(p11, p12, p22) == covariance_problem(values, 2) == verdict
+    assert pair_covariance_problem(0.0, 0.0, 0.0) is None
+    assert pair_covariance_problem(1.0, 2.0, 1.0) == "is not positive semi-definite"
 
 
 def test_the_contract_accepts_what_the_core_shares():

@@ -61,7 +61,12 @@ def cholesky_succeeds(values: list[float], size: int, shift: float = 0.0) -> boo
     """True if the symmetric part of the size x size matrix of `values` (row-major, finite) plus `shift` I is
     positive definite: every pivot of its Cholesky factorisation positive, in plain floats (cheaper than numpy's
     eigenvalues on a 4x4). It proves the smallest eigenvalue is above -shift; at the boundary the verdict is
-    round-off."""
+    round-off. Sizes 3 and 4 (an odometry's and a target's covariance, checked per message) are written out:
+    the same operations in the same order as the loops, at a third of their cost."""
+    if size == 4:
+        return _cholesky_4(values, shift)
+    if size == 3:
+        return _cholesky_3(values, shift)
     lower: list[list[float]] = []
     for i in range(size):
         row: list[float] = []
@@ -78,6 +83,39 @@ def cholesky_succeeds(values: list[float], size: int, shift: float = 0.0) -> boo
                 row.append(entry / lower[j][j])
         lower.append(row)
     return True
+
+
+def _cholesky_4(v, shift: float) -> bool:
+    """`cholesky_succeeds` of a 4x4: pivots d_i and factors l_ij of the symmetric part (a_ij + a_ji) / 2."""
+    d0 = v[0] + shift
+    if not d0 > 0.0:
+        return False
+    r0 = math.sqrt(d0)
+    l10, l20, l30 = 0.5 * (v[4] + v[1]) / r0, 0.5 * (v[8] + v[2]) / r0, 0.5 * (v[12] + v[3]) / r0
+    d1 = v[5] + shift - l10 * l10
+    if not d1 > 0.0:
+        return False
+    r1 = math.sqrt(d1)
+    l21, l31 = (0.5 * (v[9] + v[6]) - l20 * l10) / r1, (0.5 * (v[13] + v[7]) - l30 * l10) / r1
+    d2 = v[10] + shift - l20 * l20 - l21 * l21
+    if not d2 > 0.0:
+        return False
+    l32 = (0.5 * (v[14] + v[11]) - l30 * l20 - l31 * l21) / math.sqrt(d2)
+    return v[15] + shift - l30 * l30 - l31 * l31 - l32 * l32 > 0.0
+
+
+def _cholesky_3(v, shift: float) -> bool:
+    """`cholesky_succeeds` of a 3x3, as `_cholesky_4`."""
+    d0 = v[0] + shift
+    if not d0 > 0.0:
+        return False
+    r0 = math.sqrt(d0)
+    l10, l20 = 0.5 * (v[3] + v[1]) / r0, 0.5 * (v[6] + v[2]) / r0
+    d1 = v[4] + shift - l10 * l10
+    if not d1 > 0.0:
+        return False
+    l21 = (0.5 * (v[7] + v[5]) - l20 * l10) / math.sqrt(d1)
+    return v[8] + shift - l20 * l20 - l21 * l21 > 0.0
 
 
 def valid_range(value, max_range: float) -> bool:
