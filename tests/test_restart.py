@@ -162,7 +162,7 @@ def _formation_from_localised(params: AgentParams, estimates: dict, shares: dict
     localised alone (agent/core/command.py)."""
     c = params.control
     phase = estimates["phase"]
-    offset = desired_offset(c.radius, phase)
+    offset = np.array(desired_offset(c.radius, phase))
     localised = [j for j, n in estimates["neighbours"].items() if n["localised"]]
     gain = neighbour_gain(len(localised), c.gain_neighbour, c.neighbour_gain_cap)
     total = np.zeros(2)
