@@ -23,7 +23,7 @@ docs/contract.md is the page a driver-bridge author follows.
 from __future__ import annotations
 
 import math
-from typing import Annotated, Literal
+from typing import Annotated, Any, ClassVar, Literal
 
 import numpy as np
 from pydantic import Field, ValidationError, field_validator, model_validator
@@ -215,8 +215,8 @@ class PairEstimate(StrictModel):
         return value
 
 
-class ShareMessage(Header):
-    """Share of tick_io, on the wire: odometry at `stamp_ns`, commanded velocity, phase, estimates."""
+class _ShareBody(Header):
+    """What a share carries besides its pair estimates, and its checks."""
 
     position: Vec2
     heading: Angle
@@ -225,7 +225,6 @@ class ShareMessage(Header):
     target: tuple[Coordinate, Coordinate, SpeedComponent, SpeedComponent] | None = None
     target_covariance: tuple[Variance, ...] | None = Field(
         None, max_length=16, description="4x4, row-major: symmetric, positive semi-definite")
-    neighbours: dict[VesselId, PairEstimate] = Field(default_factory=dict, max_length=MAX_PEERS)
 
     @field_validator("target_covariance")
     @classmethod
@@ -239,10 +238,49 @@ class ShareMessage(Header):
     def _target_with_covariance(self):
         if (self.target is None) != (self.target_covariance is None):
             raise ValueError("target and target_covariance come together")
-        later = [j for j, e in self.neighbours.items() if e.stamp_ns is not None and e.stamp_ns > self.stamp_ns]
+        return self
+
+    def _not_later(self, estimates) -> list[str]:
+        return [j for j, e in estimates if e.stamp_ns is not None and e.stamp_ns > self.stamp_ns]
+
+
+class ShareMessage(_ShareBody):
+    """Share of tick_io, on the wire: odometry at `stamp_ns`, commanded velocity, phase, estimates. What a
+    sender builds, and the schema of the key; a receiver decodes it as `ReceivedShare`."""
+
+    neighbours: dict[VesselId, PairEstimate] = Field(default_factory=dict, max_length=MAX_PEERS)
+
+    @model_validator(mode="after")
+    def _estimates_not_later(self):
+        later = self._not_later(self.neighbours.items())
         if later:
             raise ValueError(f"estimates of {later[:3]} refer to a time after the share's stamp")
         return self
+
+
+class ReceivedShare(_ShareBody):
+    """A share as one receiver decodes it: everything checked as in `ShareMessage` except the pair estimates
+    of other vessels, which only those vessels use (and check). A share carries n - 1 of them, and every
+    vessel receives n - 1 shares a tick: checking them all would cost each vessel O(n^2) per tick.
+    `estimate_for` checks the receiver's own."""
+
+    neighbours: dict[VesselId, Any] = Field(default_factory=dict, max_length=MAX_PEERS)
+    wire_name: ClassVar[str] = "ShareMessage"     # what a refusal's reason calls it
+
+    def estimate_for(self, receiver: str) -> tuple[PairEstimate | None, str]:
+        """(the sender's estimate of its pair with `receiver`, or None if it sent none; "") or (None, why it is
+        not valid), as `ShareMessage` would have judged it."""
+        if receiver not in self.neighbours:
+            return None, ""
+        try:
+            estimate = PairEstimate.model_validate(self.neighbours[receiver])
+        except ValidationError as error:
+            first = error.errors()[0]
+            where = ".".join(str(p) for p in ("neighbours", receiver, *first["loc"]))
+            return None, f"{self.wire_name}: {where}: {first['msg']}"
+        if self._not_later([(receiver, estimate)]):
+            return None, f"{self.wire_name}: estimates of {[receiver]} refer to a time after the share's stamp"
+        return estimate, ""
 
 
 class MissionCommand(Header):
@@ -355,16 +393,17 @@ TOPICS: dict[str, type[StrictModel]] = {
 # ----- decoding: bytes in, a message or a reason out, never an exception -----
 def decode(model: type[StrictModel], payload: bytes | bytearray | memoryview) -> tuple[StrictModel | None, str]:
     """Parse and validate one payload. Returns (message, "") or (None, one-line reason)."""
+    name = getattr(model, "wire_name", model.__name__)
     if len(payload) > MAX_PAYLOAD_BYTES:
-        return None, f"{model.__name__}: payload of {len(payload)} bytes, more than {MAX_PAYLOAD_BYTES}"
+        return None, f"{name}: payload of {len(payload)} bytes, more than {MAX_PAYLOAD_BYTES}"
     try:
         return model.model_validate_json(bytes(payload)), ""
     except ValidationError as error:
         first = error.errors()[0]
         where = ".".join(str(p) for p in first["loc"]) or "payload"
-        return None, f"{model.__name__}: {where}: {first['msg']}"
+        return None, f"{name}: {where}: {first['msg']}"
     except (ValueError, TypeError) as error:  # undecodable bytes
-        return None, f"{model.__name__}: {error}"
+        return None, f"{name}: {error}"
 
 
 def encode(message: StrictModel) -> bytes:
@@ -384,7 +423,11 @@ def odometry_reading(message: Odometry) -> OdometryReading:
     return OdometryReading(seconds(message.stamp_ns), np.array(message.position, dtype=float), message.heading)
 
 
-def share_from_message(message: ShareMessage) -> Share:
+def share_from_message(message: ShareMessage | ReceivedShare,
+                       neighbours: dict[str, PairEstimate] | None = None) -> Share:
+    """The core's Share of a message; its pair estimates are `neighbours` if given (a `ReceivedShare`'s are
+    not checked), else the message's."""
+    neighbours = message.neighbours if neighbours is None else neighbours
     return Share(
         sender=message.sender,
         odometry=OdometryReading(seconds(message.stamp_ns), np.array(message.position, dtype=float),
@@ -396,7 +439,7 @@ def share_from_message(message: ShareMessage) -> Share:
         else np.array(message.target_covariance, dtype=float).reshape(4, 4),
         neighbours={j: (np.array(e.position, dtype=float), _unpack2(e.covariance),
                         seconds(message.stamp_ns if e.stamp_ns is None else e.stamp_ns))
-                    for j, e in message.neighbours.items()},
+                    for j, e in neighbours.items()},
     )
 
 

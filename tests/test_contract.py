@@ -19,6 +19,7 @@ from agent.contract import (
     Cmd,
     Odometry,
     Ranges,
+    ReceivedShare,
     ShareMessage,
     covariance_problem,
     decode,
@@ -305,6 +306,55 @@ def test_a_share_keeps_only_the_senders_estimate_of_this_vessel():
     np.testing.assert_array_equal(covariance, [[0.04, 0.01], [0.01, 0.05]])
     assert stamp == NS * 1e-9           # no stamp of its own: the share's
     assert list(g.snapshot(NOW).shares["2"].neighbours) == ["1"]
+
+
+def test_a_receiver_judges_its_own_pair_estimate_and_leaves_the_others_to_their_vessels():
+    """A share carries n - 1 pair estimates and each vessel uses only its own: a bad estimate of another pair
+    does not make the share malformed for this vessel (checking them all would cost each vessel O(n^2) per
+    tick); the vessel it concerns refuses the share, with the same reason as the whole message's check."""
+    bad = {"position": [0.0, 0.0], "covariance": [1.0, 2.0, 1.0]}               # not semi-definite
+    body = share_body(neighbours={"1": {"position": [-3.0, 1.0], "covariance": [0.04, 0.0, 0.04]}, "3": bad,
+                                  "4": "not an estimate"})
+    one = gate()
+    assert one.offer("usv/2/share", json.dumps(body).encode(), NOW)
+    assert list(one.snapshot(NOW).shares["2"].neighbours) == ["1"]
+    three = InputGate("3", known_peers=lambda: {"1", "2"})
+    assert not three.offer("usv/2/share", json.dumps(body).encode(), NOW)
+    assert three.rejected["malformed"] == 1
+    assert three.recent_reasons[-1].endswith("ShareMessage: neighbours.3.covariance: Value error, covariance is "
+                                             "not positive semi-definite")
+    whole, reason = decode(ShareMessage, json.dumps(body).encode())
+    assert whole is None and reason.startswith("ShareMessage: neighbours.")
+
+
+@pytest.mark.parametrize("entry", [
+    {"position": [-3.0, 1.0], "covariance": [0.04, 0.01, 0.05]},
+    {"position": [-3.0, 1.0], "covariance": [0.04, 0.01, 0.05], "stamp_ns": NS},
+    {"position": [-3.0, 1.0], "covariance": [0.04, 0.01, 0.05], "stamp_ns": NS + 1},   # after the share
+    {"position": [-3.0, 1.0], "covariance": [1.0, 2.0, 1.0]},
+    {"position": [-3.0, 1e308], "covariance": [0.04, 0.0, 0.04]},
+    {"position": [-3.0, 1.0], "covariance": [0.04, 0.0]},
+    {"position": [-3.0, 1.0], "covariance": [0.04, 0.0, 0.04], "extra": 1},
+    {"position": [-3.0, True], "covariance": [0.04, 0.0, 0.04]},
+    {"position": ["-3.0", 1.0], "covariance": [0.04, 0.0, 0.04]},
+    {"position": [-3.0, "NaN"], "covariance": [0.04, 0.0, 0.04]},
+    {"position": [-3.0, 1.0], "covariance": [0.04, 0.0, 0.04], "stamp_ns": float(NS - 10**8)},
+    {"position": [-3.0, 1.0], "covariance": [0.04, 0.0, 0.04], "stamp_ns": NS - 0.5},
+    {"position": [-3.0, 1.0], "covariance": [0.04, 0.0, 0.04], "stamp_ns": -1},
+    [1.0, 2.0],
+    None,
+])
+def test_a_receivers_own_estimate_gets_the_whole_messages_verdict(entry):
+    """Decoded as one receiver decodes it, a share with only that receiver's estimate is accepted exactly when
+    ShareMessage accepts it, and yields the same estimate."""
+    payload = json.dumps(share_body(neighbours={"1": entry})).encode()
+    whole, _ = decode(ShareMessage, payload)
+    received, reason = decode(ReceivedShare, payload)
+    assert reason == ""
+    mine, reason = received.estimate_for("1")
+    assert (whole is not None) == (reason == "")
+    if whole is not None:
+        assert mine == whole.neighbours["1"]
 
 
 def test_a_shared_estimate_keeps_its_own_stamp_which_may_not_be_after_the_shares():

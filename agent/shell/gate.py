@@ -52,7 +52,7 @@ from agent.contract import (
     Bearing,
     Odometry,
     Ranges,
-    ShareMessage,
+    ReceivedShare,
     Sonar,
     decode,
     odometry_reading,
@@ -146,9 +146,14 @@ class InputGate:
                 bucket = self._buckets.setdefault(key, TokenBucket(self.max_rate, self.burst, self._monotonic()))
             if not bucket.take(self._monotonic()):
                 return self._refuse("rate_limited", key)
-        message, reason = decode(model, payload)
+        message, reason = decode(ReceivedShare if topic == "share" else model, payload)
         if message is None:
             return self._refuse("malformed", f"{key}: {reason}")
+        mine = None
+        if topic == "share":
+            mine, reason = message.estimate_for(self.id)
+            if reason:
+                return self._refuse("malformed", f"{key}: {reason}")
         if message.sender != vessel:
             return self._refuse("sender_mismatch", f"{key}: sender {message.sender!r}")
         stamp = seconds(message.stamp_ns)
@@ -166,7 +171,7 @@ class InputGate:
                                     f"{key}: stamp {message.stamp_ns} not after {last}", locked=True)
             if now is not None:
                 self._last_stamp[mark] = message.stamp_ns
-            if isinstance(message, ShareMessage) and self.hold_shares:
+            if topic == "share" and self.hold_shares:
                 # Without a clock to judge by (a restarted simulation's first shares can come before its
                 # clock) a share is held: `reset` keeps it if it belongs to the new timeline.
                 if (now is not None and self._delivered_through is not None
@@ -178,11 +183,11 @@ class InputGate:
                     if self._held_count[message.sender] >= self.max_held:
                         return self._refuse("held_full", f"{key}: {self.max_held} shares held already",
                                             locked=True)
-                    self._held[held] = self._share(message)
+                    self._held[held] = self._share(message, mine)
                     self._held_count[message.sender] += 1
                 self._arrival.notify_all()
-            elif isinstance(message, ShareMessage):
-                self._shares[message.sender] = self._share(message)
+            elif topic == "share":
+                self._shares[message.sender] = self._share(message, mine)
             else:
                 self._latest[topic] = message
                 if isinstance(message, Ranges):
@@ -210,12 +215,11 @@ class InputGate:
         jump = np.hypot(*(np.asarray(reading.position) - np.asarray(last.position)))
         return bool(jump <= MAX_SPEED * interval)
 
-    def _share(self, message: ShareMessage) -> Share:
+    def _share(self, message: ReceivedShare, mine) -> Share:
         """The share as the tick reads it: of the sender's estimates of its neighbours, only its estimate of
-        this vessel (the only one the core uses: reciprocal fusion), so a held share costs a few hundred bytes
-        whatever the sender put in it (up to MAX_PEERS entries)."""
-        mine = message.neighbours.get(self.id)
-        return share_from_message(message.model_copy(update={"neighbours": {} if mine is None else {self.id: mine}}))
+        this vessel (`mine`, checked; the only one the core uses: reciprocal fusion), so a held share costs a few
+        hundred bytes whatever the sender put in it (up to MAX_PEERS entries)."""
+        return share_from_message(message, {} if mine is None else {self.id: mine})
 
     def _known_ranges(self, ranges: dict[str, float], shares: dict[str, Share]) -> dict[str, float]:
         """Ranges to peers alive (liveliness) or heard from (a share); a UWB module may still range to a
