@@ -18,6 +18,9 @@
     section) and the transport floor (lab/transport_floor.py: the same lockstep message pattern between
     processes that do nothing else). What the fleet costs beyond the sum of the two is the price of six
     processes sharing two cores: thread hand-offs, cold caches, the scheduler.
+(f) What one share costs its receiver to decode, by fleet size: a share carries the sender's n - 1 pair
+    estimates, and every agent decodes n - 1 shares a tick. The receiver's decoding (`ReceivedShare`: its own
+    estimate checked) against checking the whole message (`ShareMessage`), timed in this process.
 """
 
 from __future__ import annotations
@@ -35,6 +38,7 @@ from pathlib import Path
 import numpy as np
 import zenoh
 
+from agent.contract import PairEstimate, ReceivedShare, ShareMessage, decode, encode
 from agent.runtime.mcap_log import read_messages
 from agent.runtime.zenoh_session import ZenohSettings, zenoh_config
 from lab import arguments
@@ -205,6 +209,8 @@ def run(args: argparse.Namespace) -> int:
         _, scenario = select_scenario(table2, "mckf")
         shells = run_shells(scenario, scratch / "shells")
         floor = transport_floor(len(scenario.world.vessels), args.floor_ticks)
+    print("runtime-bench: a share's decoding by fleet size", file=sys.stderr)
+    share_rows = share_decode_rows()
     factor = simulated / summary["loop_seconds"]
     lockstep = [[summary["ticks"], f"{simulated:.1f}", f"{summary['loop_seconds']:.2f}", f"{factor:.1f}x",
                  f"{launch_seconds:.1f}", f"{simulated / launch_seconds:.1f}x", summary["missed_commands"],
@@ -267,6 +273,14 @@ def run(args: argparse.Namespace) -> int:
         "fleet's agents as in the one process: what sharing two cores with five other processes does to the "
         "same Python code (cold caches, the scheduler), before any messaging.", "",
         markdown_table(["CPU per tick (ms)", "sim bridge", "agent (mean)"], split_rows), "",
+        "## A share's decoding by fleet size", "",
+        "A share carries the sender's estimate of each of its n - 1 pairs, and every agent receives n - 1 "
+        "shares a tick. The receiver checks the share and its own estimate (`ReceivedShare`, "
+        "agent/contract.py); checking every estimate (`ShareMessage`, what the sender builds) is the reference. "
+        "Timed in this process, best of 5 batches; the last column is the receiver's decoding of a tick's "
+        "shares.", "",
+        markdown_table(["vessels", "share (bytes)", "receiver's decoding (us)", "every estimate checked (us)",
+                        "ratio", "n - 1 shares per tick (ms)"], share_rows), "",
         "## Peak resident memory per process (MB)", "",
         markdown_table(["run", "sim bridge", "agents: min", "agents: max", "agents: mean"], memory_rows), "",
     ])
@@ -274,6 +288,50 @@ def run(args: argparse.Namespace) -> int:
     (args.out / "runtime_benchmark.md").write_text(text)
     print(text)
     return 0
+
+
+SHARE_SIZES = (4, 12, 50)
+
+
+def share_payload(vessels: int) -> bytes:
+    """A share of vessel "1" in a fleet of `vessels`: a target and a pair estimate for every other vessel."""
+    return encode(ShareMessage(
+        stamp_ns=12_300_000_000, seq=123, sender="1", position=(3.25, -1.5), heading=0.7, velocity=(1.2, 0.4),
+        phase=2.1, target=(10.0, 5.0, 0.1, -0.2), target_covariance=tuple(np.diag([0.5, 0.5, 0.2, 0.2]).ravel()),
+        neighbours={str(j): PairEstimate(position=(4.0 + j, -2.0), covariance=(0.05, 0.001, 0.04),
+                                         stamp_ns=12_200_000_000) for j in range(2, vessels + 1)}))
+
+
+def receive_share(payload: bytes, receiver: str):
+    """What an agent's gate does with a share's bytes before it holds it (agent/shell/gate.py)."""
+    message, _ = decode(ReceivedShare, payload)
+    return message.estimate_for(receiver)[0]
+
+
+def share_decode_rows(sizes=SHARE_SIZES, repeats: int = 2000) -> list[list]:
+    """Per fleet size: payload bytes, microseconds for the receiver's decoding and for the whole message's
+    check (the best of 5 batches of `repeats` each, the two alternating so that both see the same machine),
+    their ratio, and the receiver's decoding of n - 1 shares."""
+    def batch(call, payload) -> float:
+        started = time.perf_counter()
+        for _ in range(repeats):
+            call(payload)
+        return (time.perf_counter() - started) / repeats * 1e6
+
+    def receiver(raw):
+        return receive_share(raw, "2")
+
+    def whole(raw):
+        return decode(ShareMessage, raw)
+
+    rows = []
+    for n in sizes:
+        payload = share_payload(n)
+        times = [(batch(receiver, payload), batch(whole, payload)) for _ in range(5)]
+        mine, every = min(t[0] for t in times), min(t[1] for t in times)
+        rows.append([n, len(payload), f"{mine:.1f}", f"{every:.1f}", f"{mine / every:.2f}",
+                     f"{(n - 1) * mine / 1e3:.3f}"])
+    return rows
 
 
 def _memory_cells(memory: dict[str, float]) -> list[str]:

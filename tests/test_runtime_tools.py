@@ -31,3 +31,19 @@ def test_the_changes_page_gives_each_figure_before_after_and_their_ratio():
     assert "`abc1234` → `def5678`" in row
     older = next(line for line in text.splitlines() if line.startswith("| recorded before"))
     assert "2.12 → 1.85 (0.87)" in older and older.count("| - ") == len(FIGURES) - 1
+
+
+def test_the_share_decoding_rows_time_what_the_gate_keeps():
+    """The benchmark's share decodes both ways to the same estimate of the receiver's pair, and its rows say
+    how many vessels, bytes and microseconds, with the ratio and a tick's n - 1 shares worked out from them."""
+    from agent.contract import ShareMessage, decode
+    from lab.runtime_bench import receive_share, share_decode_rows, share_payload
+
+    payload = share_payload(5)
+    whole, _ = decode(ShareMessage, payload)
+    assert sorted(whole.neighbours) == ["2", "3", "4", "5"]
+    assert receive_share(payload, "3") == whole.neighbours["3"]
+    (n, size, mine, every, ratio, per_tick), = share_decode_rows(sizes=(5,), repeats=20)
+    assert (n, size) == (5, len(payload))
+    assert float(ratio) == pytest.approx(float(mine) / float(every), abs=0.01)
+    assert float(per_tick) == pytest.approx(4 * float(mine) / 1e3, abs=1e-3)
