@@ -48,12 +48,17 @@ class Launch:
         return folder
 
     def note_children(self) -> None:
+        launcher = Path(f"/proc/{self.process.pid}/cmdline")
         for stat in Path("/proc").glob("[0-9]*/stat"):
             try:
                 fields = stat.read_text().rsplit(")", 1)[1].split()
                 if int(fields[1]) == self.process.pid:
                     pid = int(stat.parent.name)
-                    self.children.setdefault(pid, (stat.parent / "cmdline").read_bytes().decode(errors="replace"))
+                    command = (stat.parent / "cmdline").read_bytes()
+                    # A child caught between fork and exec still shows the launcher's command line: noted as
+                    # that, it would later count as a reused pid, and so as gone while it still runs.
+                    if command != launcher.read_bytes():
+                        self.children.setdefault(pid, command.decode(errors="replace"))
             except (OSError, IndexError, ValueError):
                 continue    # a process that ended while we looked
 
