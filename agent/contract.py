@@ -275,9 +275,7 @@ class ReceivedShare(_ShareBody):
         try:
             estimate = PairEstimate.model_validate(self.neighbours[receiver])
         except ValidationError as error:
-            first = error.errors()[0]
-            where = ".".join(str(p) for p in ("neighbours", receiver, *first["loc"]))
-            return None, f"{self.wire_name}: {where}: {first['msg']}"
+            return None, _invalid(self.wire_name, error, ("neighbours", receiver))
         if self._not_later([(receiver, estimate)]):
             return None, f"{self.wire_name}: estimates of {[receiver]} refer to a time after the share's stamp"
         return estimate, ""
@@ -399,11 +397,17 @@ def decode(model: type[StrictModel], payload: bytes | bytearray | memoryview) ->
     try:
         return model.model_validate_json(bytes(payload)), ""
     except ValidationError as error:
-        first = error.errors()[0]
-        where = ".".join(str(p) for p in first["loc"]) or "payload"
-        return None, f"{name}: {where}: {first['msg']}"
+        return None, _invalid(name, error)
     except (ValueError, TypeError) as error:  # undecodable bytes
         return None, f"{name}: {error}"
+
+
+def _invalid(name: str, error: ValidationError, within: tuple[str, ...] = ()) -> str:
+    """A refusal's one-line reason: the message, where in it (`within` the path to the part validated) and
+    the first problem found."""
+    first = error.errors()[0]
+    where = ".".join(str(p) for p in (*within, *first["loc"])) or "payload"
+    return f"{name}: {where}: {first['msg']}"
 
 
 def encode(message: StrictModel) -> bytes:

@@ -230,13 +230,12 @@ class NeighbourTrack:
             # The prior's time is just before the neighbour's first odometry (it started a little later,
             # or its clock runs ahead): carry the prior to the first time both are known, moving j by its
             # shared velocity, if that is within `max_gap`.
-            gap = stamp_key(self.timing.max_gap)
-            first = next((k for k in self.odometry.keys_after(key) if k - key <= gap
+            first = next((k for k in self.odometry.keys_after(key) if k - key <= self.gap_key
                           and self.positions_at(own, k)[2] == ""), None)
             if first is None or self.velocity is None:
                 return "stale"
             mine, theirs, _ = self.positions_at(own, first)
-            mine_then = own.at(key, gap)[0]
+            mine_then = own.at(key, self.gap_key)[0]
             own_moved = np.zeros(2) if mine_then is None else np.subtract(mine, mine_then)
             position = position + own_moved - np.array(self.velocity) * ((first - key) * 1e-6)
             key = first
