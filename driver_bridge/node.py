@@ -28,7 +28,6 @@ from __future__ import annotations
 import math
 import os
 import select
-import signal
 import sys
 import threading
 import time
@@ -39,7 +38,7 @@ from pydantic import Field
 
 from agent.config import PositiveFloat, StrictModel
 from agent.contract import LIVELINESS, Bearing, Cmd, Ranges, decode, encode, key, nanoseconds
-from agent.runtime.process import vessel_process
+from agent.runtime.process import stop_on_signals, vessel_process
 from agent.runtime.zenoh_session import ZenohSettings, zenoh_config
 from driver_bridge.bearing import BearingAdapter, CameraSettings, parse_detection
 from driver_bridge.odometry import DeadReckoning, OdometrySettings, parse_vhw
@@ -215,6 +214,8 @@ class DriverBridge:
                         next_drive += period
                         if self.thrusters:
                             self._drive(ports["thrusters"], time.monotonic())
+                if "thrusters" in ports:   # stopped before Zenoh's teardown, which might not end by the deadline
+                    write_all(ports["thrusters"], command_line(ZERO_THRUST))
                 subscriber.undeclare()
                 agent.undeclare()
         finally:
@@ -232,8 +233,8 @@ def main(argv: list[str] | None = None) -> int:
         return started
     args, settings = started
     bridge = DriverBridge(args.vessel, settings)
-    for signum in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(signum, lambda *_: bridge.stopping.set())
+    # Within systemd's TimeoutStopSec (5 s, deploy/systemd/usv-driver@.service), so that a hang is seen in stacks.
+    stop_on_signals(bridge.stopping, deadline=4.0)
     try:
         bridge.run(args.seconds)
     except OSError as error:

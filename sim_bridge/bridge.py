@@ -28,7 +28,6 @@ from __future__ import annotations
 import argparse
 import heapq
 import itertools
-import signal
 import sys
 import threading
 import time
@@ -62,6 +61,7 @@ from agent.core.records import STOP, Command
 from agent.runtime import foxglove
 from agent.runtime.log_schema import BridgeSummary, CommandLatency, LoggedTruth
 from agent.runtime.mcap_log import LogRotation, McapLog
+from agent.runtime.process import stop_on_signals
 from agent.runtime.zenoh_session import ZenohSettings, open_session, zenoh_config
 from sim_bridge.scenario import Scenario, select_scenario
 from sim_bridge.world import Frame, Measurement, SeaSensors, World, lost_shares, sea_steps, sea_world, streams
@@ -486,11 +486,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"usv-sim: {error}", file=sys.stderr)
         return 2
 
-    def stop(signum, frame):  # noqa: ARG001
-        bridge.stopping.set()
-
-    signal.signal(signal.SIGINT, stop)
-    signal.signal(signal.SIGTERM, stop)
+    stop_on_signals(bridge.stopping)
     bridge.run()
     simulated = bridge.ticks * scenario.world.dt
     factor = simulated / bridge.loop_seconds if bridge.loop_seconds > 0 else float("nan")

@@ -3,6 +3,7 @@ thrust lines out, and the watchdog stop."""
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import os
 import select
@@ -10,6 +11,7 @@ import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import pytest
 import yaml
@@ -186,6 +188,31 @@ def test_a_bad_driver_config_is_a_clear_error(tmp_path):
 REVERSE = "$THR,-0.250,-0.250*"      # -1 m/s: what the spoofer asks for, never the real agent
 
 
+@contextlib.contextmanager
+def thruster_driver(tmp_path: Path, extra: dict | None = None):
+    """`usv-driver` for vessel 1 with a hull on a pseudo-terminal (5 s watchdog): yields the process (stdout and
+    stderr in one text pipe), its thrust lines and its Zenoh port; killed if still running at the end."""
+    master, slave = os.openpty()
+    port = free_port()
+    config = tmp_path / "driver.yaml"
+    config.write_text(yaml.safe_dump({
+        "zenoh": {"listen": [f"tcp/127.0.0.1:{port}"]},
+        "thrusters": {"device": os.ttyname(slave), "rate_hz": 20.0,
+                      "hull": {"max_thrust": 100.0, "half_beam": 0.5, "surge_drag": 50.0, "yaw_drag": 20.0,
+                               "timeout": 5.0}},
+        **(extra or {}),
+    }))
+    driver = subprocess.Popen([sys.executable, "-m", "driver_bridge", "--vessel", "1", "--config", str(config)],
+                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        yield driver, ThrustLines(master), port
+    finally:
+        if driver.poll() is None:
+            driver.kill()
+        os.close(master)
+        os.close(slave)
+
+
 class RealAgent:
     """The vessel's agent as the driver sees it: a liveliness token and a command of 1 m/s ahead every 50 ms,
     stamped by the wall clock, seq counting from 0, on its own Zenoh session."""
@@ -219,65 +246,66 @@ def test_commands_are_judged_by_stamp_and_session_so_a_spoofed_seq_or_stamp_cann
     as a restart at any time), a replay of an old command. None takes the thrusters from the real agent;
     a stamp just inside the window holds it off for at most `max_ahead`. When the agent's session ends the
     thrusters stop at once, long before the (here 5 s) watchdog."""
-    master, slave = os.openpty()
-    port = free_port()
-    config = tmp_path / "driver.yaml"
-    config.write_text(yaml.safe_dump({
-        "zenoh": {"listen": [f"tcp/127.0.0.1:{port}"]},
-        "thrusters": {"device": os.ttyname(slave), "rate_hz": 20.0,
-                      "hull": {"max_thrust": 100.0, "half_beam": 0.5, "surge_drag": 50.0, "yaw_drag": 20.0,
-                               "timeout": 5.0}},
-        "commands": {"max_age": 0.5, "max_ahead": 0.2},
-    }))
-    driver = subprocess.Popen([sys.executable, "-m", "driver_bridge", "--vessel", "1", "--config", str(config)],
-                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    thrusters = ThrustLines(master)
     agent = None
-    try:
-        with zenoh.open(zenoh_config(ZenohSettings(connect=[f"tcp/127.0.0.1:{port}"]))) as spoofer:
-            wait_for(lambda: list(spoofer.info.peers_zid()), what="the driver bridge's session")
-            agent = RealAgent(port)
-            thrusters.read_until(lambda line: line.startswith(FULL_AHEAD), seconds=15, what="the agent's thrust")
+    with thruster_driver(tmp_path, {"commands": {"max_age": 0.5, "max_ahead": 0.2}}) as (driver, thrusters, port):
+        try:
+            with zenoh.open(zenoh_config(ZenohSettings(connect=[f"tcp/127.0.0.1:{port}"]))) as spoofer:
+                wait_for(lambda: list(spoofer.info.peers_zid()), what="the driver bridge's session")
+                agent = RealAgent(port)
+                thrusters.read_until(lambda line: line.startswith(FULL_AHEAD), seconds=15, what="the agent's thrust")
 
-            def spoof(stamp_ns: int, seq: int) -> None:
-                spoofer.put("usv/1/cmd", encode(Cmd(stamp_ns=stamp_ns, seq=seq, sender="1", surge=-1.0,
-                                                    yaw_rate=0.0)))
+                def spoof(stamp_ns: int, seq: int) -> None:
+                    spoofer.put("usv/1/cmd", encode(Cmd(stamp_ns=stamp_ns, seq=seq, sender="1", surge=-1.0,
+                                                        yaw_rate=0.0)))
 
-            # 1. An absurd seq, freshly stamped: taken (nothing tells it from the agent's), but only until the
-            # agent's next command 50 ms later; the agent is not locked out.
-            spoof(time.time_ns(), 2**62)
-            lines = thrusters.read(1.0)
-            assert sum(line.startswith(REVERSE) for line in lines) <= 2, lines
-            assert all(line.startswith(FULL_AHEAD) for line in lines[-15:]), lines
-            # 2. A "restart" (seq 0) stamped 1000 s ahead, and 3. a replay of a command 10 s old: refused.
-            spoof(time.time_ns() + 1000 * 10**9, 0)
-            spoof(time.time_ns() - 10 * 10**9, 0)
-            lines = thrusters.read(0.6)
-            assert lines and all(line.startswith(FULL_AHEAD) for line in lines), lines
-            # 4. A stamp just inside the window (0.18 s ahead): it holds the agent's commands off until the
-            # agent's clock passes it, at most max_ahead (0.2 s) and a drive period.
-            spoof(time.time_ns() + 180_000_000, 7)
-            lines = thrusters.read(1.0)
-            held = sum(line.startswith(REVERSE) for line in lines)
-            assert 1 <= held <= 6, lines                              # 6 lines at 20 Hz: 0.3 s
-            assert all(line.startswith(FULL_AHEAD) for line in lines[-10:]), lines
-            # 5. The agent's session ends: its token goes, and the thrusters stop within a few lines.
-            left = time.monotonic()
-            agent.leave()
-            thrusters.read_until(lambda line: line.startswith(STOPPED), seconds=4.0, what="the stop on leaving")
-            stopped_in = time.monotonic() - left
-            assert stopped_in < 1.0
-        driver.send_signal(signal.SIGTERM)
-        output, _ = driver.communicate(timeout=15)
-    finally:
-        if agent is not None and not agent.stopping.is_set():
-            agent.leave()
-        if driver.poll() is None:
-            driver.kill()
-        os.close(master)
-        os.close(slave)
+                # 1. An absurd seq, freshly stamped: taken (nothing tells it from the agent's), but only until the
+                # agent's next command 50 ms later; the agent is not locked out.
+                spoof(time.time_ns(), 2**62)
+                lines = thrusters.read(1.0)
+                assert sum(line.startswith(REVERSE) for line in lines) <= 2, lines
+                assert all(line.startswith(FULL_AHEAD) for line in lines[-15:]), lines
+                # 2. A "restart" (seq 0) stamped 1000 s ahead, and 3. a replay of a command 10 s old: refused.
+                spoof(time.time_ns() + 1000 * 10**9, 0)
+                spoof(time.time_ns() - 10 * 10**9, 0)
+                lines = thrusters.read(0.6)
+                assert lines and all(line.startswith(FULL_AHEAD) for line in lines), lines
+                # 4. A stamp just inside the window (0.18 s ahead): it holds the agent's commands off until the
+                # agent's clock passes it, at most max_ahead (0.2 s) and a drive period.
+                spoof(time.time_ns() + 180_000_000, 7)
+                lines = thrusters.read(1.0)
+                held = sum(line.startswith(REVERSE) for line in lines)
+                assert 1 <= held <= 6, lines                              # 6 lines at 20 Hz: 0.3 s
+                assert all(line.startswith(FULL_AHEAD) for line in lines[-10:]), lines
+                # 5. The agent's session ends: its token goes, and the thrusters stop within a few lines.
+                left = time.monotonic()
+                agent.leave()
+                thrusters.read_until(lambda line: line.startswith(STOPPED), seconds=4.0, what="the stop on leaving")
+                stopped_in = time.monotonic() - left
+                assert stopped_in < 1.0
+            driver.send_signal(signal.SIGTERM)
+            output, _ = driver.communicate(timeout=15)
+        finally:
+            if agent is not None and not agent.stopping.is_set():
+                agent.leave()
     assert driver.returncode == 0, output
     assert "'command_future': 1" in output and "'command_stale': 1" in output, output
     assert "'command_out_of_order':" in output and "'agent_left': 1" in output, output
     print(f"spoofed stamp 0.18 s ahead held the agent off for {held} thrust lines ({held * 0.05:.2f} s); "
           f"stop {stopped_in:.2f} s after the agent's session ended")
+
+
+def test_a_driver_stopped_under_way_leaves_the_thrusters_stopped(tmp_path):
+    """SIGTERM while the agent commands full ahead: the last thrust line is a stop, written as the loop ends
+    (before Zenoh's teardown, which the stop deadline might have to cut short), and the driver exits 0."""
+    with thruster_driver(tmp_path) as (driver, thrusters, port):
+        agent = RealAgent(port)
+        try:
+            thrusters.read_until(lambda line: line.startswith(FULL_AHEAD), seconds=15, what="the agent's thrust")
+            driver.send_signal(signal.SIGTERM)   # the agent still commands full ahead: only the stop can stop it
+            output, _ = driver.communicate(timeout=15)
+            lines = thrusters.read(0.3)
+        finally:
+            agent.leave()
+    assert driver.returncode == 0, output
+    assert lines and lines[-1].startswith(STOPPED), lines
+    assert "Timeout (" not in output, output

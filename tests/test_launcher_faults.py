@@ -106,6 +106,16 @@ class Launch:
                 alive.append(f"{pid}: {command}")
         return alive
 
+    def stacks_of_survivors(self) -> str:
+        """The survivors, and what each was doing: SIGUSR1 makes a process of the run write every thread's
+        stack to its log (stop_on_signals), even while it is stuck in native code."""
+        alive = self.survivors()
+        for line in alive:
+            subprocess.run(["kill", "-USR1", line.split(":")[0]], check=False, capture_output=True)
+        time.sleep(1.0)
+        logs = [f"--- {log.name}\n{log.read_text()[-6000:]}" for log in sorted(self.folder.glob("*.log"))]
+        return "\n".join(alive + logs)
+
     def close(self) -> None:
         if self.process.poll() is None:
             self.process.kill()
@@ -176,8 +186,13 @@ def test_a_launcher_killed_outright_leaves_no_process_behind(launch):
     killed = time.monotonic()
     run.process.kill()
     run.wait()
-    assert wait_until(lambda: run.survivors() == [], timeout=20, interval=0.01), run.survivors()
+    assert wait_until(lambda: run.survivors() == [], timeout=20, interval=0.01), run.stacks_of_survivors()
     print(f"launcher SIGKILL: every child gone {time.monotonic() - killed:.2f} s later")
+    # Gone, but perhaps only at their stop deadline (agent.runtime.process.STOP_DEADLINE): then their logs hold
+    # every thread's stack at that moment, which is what a hang there needs to be understood.
+    for log in sorted(run.folder.glob("*.log")):
+        if "Timeout (" in log.read_text():
+            warnings.warn(f"{log.name} stopped only at its deadline:\n{log.read_text()[-6000:]}", stacklevel=1)
     # They were stopped with SIGTERM, so the agents still finished their logs. (Waited for: on a loaded machine
     # /proc has, rarely, shown no child left while an agent was still closing its log; a killed agent would
     # never finish it.)
@@ -232,3 +247,23 @@ def test_a_child_that_ignores_sigterm_is_killed_after_the_deadline(tmp_path, sho
     assert fleet.hard_killed == ["agent-1"]
     assert fleet.agents["1"].returncode == -signal.SIGKILL and fleet.agents["2"].returncode == -signal.SIGTERM
     assert 1.0 <= took < 3.0
+
+
+def test_an_agent_asked_for_its_stacks_writes_them_and_goes_on(launch):
+    """`kill -USR1` on a running agent: every thread's Python stack in its log (here agent-2.log, its stderr),
+    and the mission goes on; it stops cleanly afterwards."""
+    run = launch()
+    run.wait_for_ticks(30)
+    agent = json.loads((run.folder / "processes.json").read_text())["agent-2"]
+    log = run.folder / "agent-2.log"
+    subprocess.run(["kill", "-USR1", str(agent)], check=True)
+    assert wait_until(lambda: "Current thread" in log.read_text(), timeout=10), log.read_text()
+    stacks = log.read_text()
+    assert "agent/shell/node.py" in stacks and "in _run" in stacks, stacks   # the tick loop's thread, named
+    done = run.ticks()
+    run.wait_for_ticks(done + 20)              # still ticking: the launcher and every process still run
+    run.process.send_signal(signal.SIGTERM)
+    run.wait()
+    assert run.process.returncode == 128 + signal.SIGTERM and "exited with code" not in run.output(), run.output()
+    assert load_run(run.folder).unfinished == []
+    assert "Timeout (" not in log.read_text()

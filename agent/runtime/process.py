@@ -1,10 +1,14 @@
 """The command line every vessel process shares (the agent and the driver bridge): --vessel, --config, --print-config;
-and `startup_error`, the one line a process says when it cannot start."""
+`startup_error`, the one line a process says when it cannot start; and `stop_on_signals`, how the agent and both
+bridges stop."""
 
 from __future__ import annotations
 
 import argparse
+import faulthandler
+import signal
 import sys
+import threading
 
 import yaml
 from pydantic import TypeAdapter, ValidationError
@@ -12,6 +16,30 @@ from pydantic import TypeAdapter, ValidationError
 from agent.config import ConfigError, StrictModel, load_yaml, parse_mapping
 from agent.contract import VesselId
 from agent.runtime.zenoh_session import config_layers, zenoh_config
+
+# After SIGINT or SIGTERM a process has this long to finish (its last tick, its log, Zenoh's teardown) before it
+# writes every thread's stack to stderr and exits with code 1. Shorter than the launcher's own deadline
+# (sim_bridge.fleet.STOP_SECONDS), so that the stacks are written before the launcher's SIGKILL would come; and
+# it holds when nobody is left to send that SIGKILL (the launcher killed outright, systemd told to wait).
+STOP_DEADLINE = 8.0
+STACKS_SIGNAL = signal.SIGUSR1   # `kill -USR1 PID`: every thread's Python stack to stderr, and the process goes on
+
+
+def stop_on_signals(stopping: threading.Event, deadline: float = STOP_DEADLINE) -> None:
+    """SIGINT and SIGTERM set `stopping` and start the deadline to stop by; SIGUSR1 and a fatal signal (SIGSEGV,
+    SIGABRT...) write every thread's stack to stderr. The stack dumps and the deadline run in faulthandler's C
+    code, so they work while Python's threads are stuck in native code holding the GIL. Call from the main
+    thread of a process's entry point only: the deadline ends the whole process."""
+    faulthandler.enable(file=sys.stderr, all_threads=True)
+    faulthandler.register(STACKS_SIGNAL, file=sys.stderr, all_threads=True)
+
+    def stop(signum, frame):
+        if not stopping.is_set():
+            faulthandler.dump_traceback_later(deadline, exit=True, file=sys.stderr)
+        stopping.set()
+
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, stop)
 
 
 def print_config(what: str, settings: StrictModel) -> None:

@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import contextlib
 import math
-import signal
 import sys
 import threading
 import time
@@ -65,7 +64,7 @@ from agent.core.state import VesselState
 from agent.core.step import step
 from agent.runtime.log_schema import CoreState
 from agent.runtime.mcap_log import McapLog
-from agent.runtime.process import startup_error, vessel_process
+from agent.runtime.process import startup_error, stop_on_signals, vessel_process
 from agent.runtime.zenoh_session import SessionError, open_session
 from agent.shell.gate import OWN_TOPICS, InputGate, SimClock
 from agent.shell.mission import MissionOrders
@@ -563,12 +562,7 @@ def main(argv: list[str] | None = None) -> int:
         return started
     args, settings = started
     node = AgentNode(args.vessel, settings)
-
-    def stop(signum, frame):
-        node.stopping.set()
-
-    signal.signal(signal.SIGINT, stop)
-    signal.signal(signal.SIGTERM, stop)
+    stop_on_signals(node.stopping)
     try:
         node.run(max_ticks=args.ticks)
     except (StartupError, SessionError) as error:
