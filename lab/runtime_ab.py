@@ -6,7 +6,9 @@ more than most single changes are worth, so a change is judged by pairs of runs 
 - the shells in process (lab/shell_bench.py, Table II with the MCKF): CPU per tick of an agent by section and
   of the sim bridge, on one thread, the steady figure;
 - the same mission as a lockstep fleet over Zenoh (bridge and 4 agent processes): each process's CPU per tick
-  from its log's summary, the tick loop's and the whole launch's real-time factors.
+  from its log's summary, the tick loop's and the whole launch's real-time factors;
+- a 4-vessel fleet in real time for REALTIME_SECONDS: the sensor-to-command latency's median and 99th
+  percentile, as `usv-lab runtime-bench` measures it.
 
 "Before" is a git revision, checked out in a temporary worktree; "after" is this checkout (or another
 revision). Each side runs in its own interpreter with its own code on the path, the fleet's processes too.
@@ -34,6 +36,8 @@ from lab import arguments
 ROOT = Path(__file__).resolve().parents[1]
 SCENARIO = Path("configs/scenarios/table2_estimators.yaml")
 VARIANT = "mckf"
+REALTIME_SCENARIO, REALTIME_VARIANT = Path("configs/scenarios/table4_scale.yaml"), "n4_r5"
+REALTIME_SECONDS = 20.0   # 200 ticks: 800 commands timed
 FIGURES = {   # key: (what it is, unit, decimals)
     "shell_agent_ms": ("agent, in process", "ms", 3),
     "shell_core_ms": ("of which the core", "ms", 3),
@@ -44,6 +48,8 @@ FIGURES = {   # key: (what it is, unit, decimals)
     "fleet_bridge_ms": ("sim bridge, fleet over Zenoh", "ms", 2),
     "fleet_factor": ("lockstep tick loop", "x", 1),
     "launch_factor": ("whole launch", "x", 1),
+    "latency_p50_ms": ("sensor to command p50, 4 vessels in real time", "ms", 2),
+    "latency_p99_ms": ("sensor to command p99", "ms", 2),
     "agent_mb": ("agent peak memory", "MB", 0),
     "bridge_mb": ("sim bridge peak memory", "MB", 0),
 }
@@ -65,9 +71,10 @@ def measure(root: Path) -> dict[str, float]:
     import numpy as np
 
     from agent.runtime.mcap_log import read_messages
+    from lab.runtime_bench import _bridge_records
     from lab.shell_bench import run_shells
     from sim_bridge.fleet import Fleet
-    from sim_bridge.scenario import select_scenario
+    from sim_bridge.scenario import select_scenario, with_duration
 
     _, scenario = select_scenario(root / SCENARIO, VARIANT)
     shells = run_shells(scenario)
@@ -94,6 +101,11 @@ def measure(root: Path) -> dict[str, float]:
                    fleet_factor=simulated / loop, launch_factor=simulated / launch)
     # The machine's speed drifts by tens of per cent over minutes: the core measured just before is the yardstick.
     figures["fleet_agent_per_core"] = figures["fleet_agent_ms"] / figures["shell_core_ms"]
+    with tempfile.TemporaryDirectory() as scratch:
+        path = with_duration(root / REALTIME_SCENARIO, Path(scratch), REALTIME_SECONDS)
+        latencies, _ = _bridge_records(Fleet(path, REALTIME_VARIANT, Path(scratch) / "runs", mode="realtime").run())
+    figures.update(latency_p50_ms=float(np.percentile(latencies, 50)),
+                   latency_p99_ms=float(np.percentile(latencies, 99)))
     return figures
 
 
