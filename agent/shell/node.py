@@ -408,7 +408,12 @@ class AgentNode:
         except Exception as error:  # noqa: BLE001  (one bad tick must not take the vessel's control down)
             output = TickOutput(STOP, None, None)
             self._tick_failed(error, inputs, stamp)
-        # The share goes first: once the bridge has this tick's status, the share is on its way.
+        # The command goes first: it is what the thrusters wait for (sensor to command), and building the share
+        # costs more than the command. The status goes last: once the bridge has it, the share is on its way.
+        command = Cmd(stamp_ns=stamp, seq=self._next("cmd"), sender=self.id, surge=float(output.command.surge),
+                      yaw_rate=float(output.command.yaw_rate))
+        wire = {"cmd": encode(command)}
+        publishers["cmd"].put(wire["cmd"])
         shared = False
         if output.share is not None:
             try:
@@ -421,10 +426,6 @@ class AgentNode:
                     print(f"usv-agent {self.id}: a share not sent (the contract refuses it): "
                           f"{' '.join(str(error).split())[:300]}", file=sys.stderr)
         self._last_shared = shared
-        command = Cmd(stamp_ns=stamp, seq=self._next("cmd"), sender=self.id, surge=float(output.command.surge),
-                      yaw_rate=float(output.command.yaw_rate))
-        wire = {"cmd": encode(command)}
-        publishers["cmd"].put(wire["cmd"])
         record = output.record
         try:
             status = Status(
