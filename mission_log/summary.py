@@ -149,6 +149,7 @@ def vessel_summary(log, window: float, origin_ns: int = 0) -> dict:
                         and k not in ("overruns", "log_errors")},
         "saturation_s": saturation,
         "cpu_ms_per_tick": 1e3 * final["cpu_seconds"] / final["ticks"] if final.get("ticks") else None,
+        "reaction_ms": final.get("reaction_ms"),
         "health_over_time": health_windows(estimates, window, origin_ns),
         "observability": pair_observability(estimates, origin_ns),
         "mission": mission_commands(log.topic("mission"), origin_ns),
@@ -271,12 +272,14 @@ def summary_markdown(summary: dict) -> str:
     vessels = summary["vessels"]
     if vessels:
         lines += [("| vessel | from (s) | to (s) | ticks | with estimates | refused inputs | overruns | "
-                  "CPU per tick (ms) | log |"), "|---|---|---|---|---|---|---|---|---|"]
+                  "CPU per tick (ms) | reaction p50 / p99 (ms) | log |"), "|---|---|---|---|---|---|---|---|---|---|"]
         for v, s in vessels.items():
             refused = ", ".join(f"{k} {n}" for k, n in s["refused"].items()) or "none"
+            reaction = s.get("reaction_ms")   # logs before the agent timed its reactions have none
+            reacted = "-" if not reaction else f"{_fmt(reaction['p50'])} / {_fmt(reaction['p99'])}"
             lines.append(f"| {v} | {_fmt(s['from_s'], 1)} | {_fmt(s['to_s'], 1)} | {s['ticks']} | "
                          f"{s['ticks_with_estimates']} | {refused} | {s['overruns']} | {_fmt(s['cpu_ms_per_tick'])} | "
-                         f"{'**unfinished**' if s['unfinished'] else 'complete'} |")
+                         f"{reacted} | {'**unfinished**' if s['unfinished'] else 'complete'} |")
         lines.append("")
     sim = summary["sim"]
     if sim is not None:

@@ -55,6 +55,11 @@ def test_fleet_run_leaves_a_run_folder_with_logs_plot_and_metrics(tmp_path, shor
         assert summary["ticks"] == 121 and 0.0 < summary["cpu_seconds"] and 0.0 < summary["loop_seconds"]
         if name != "sim.mcap":   # and an agent, the part of it inside the core's step
             assert 0.0 < summary["core_cpu_seconds"] < summary["cpu_seconds"]
+            # and its reaction times, clock to command, every tick: shorter than a lockstep tick, which waits
+            # for every command
+            reaction = summary["reaction_ms"]
+            assert reaction["ticks"] == 121 and 0.0 < reaction["p50"] <= reaction["p99"] <= reaction["max"]
+            assert reaction["p50"] < 1e3 * summary["loop_seconds"] / summary["ticks"]
 
 
 def test_unknown_variant_is_a_clear_error(tmp_path, short_scenario):

@@ -25,6 +25,7 @@ from sim_bridge.world import World, streams
 jsonschema = pytest.importorskip("jsonschema")
 
 TICKS = 40
+REACTION = {"p50": 2.05, "p99": 3.1, "max": 3.1, "ticks": 3}   # a summary's reaction times, as ReactionTimes gives them
 # Three vessels; an island between vessel 3 and the target hides the target from it and is in its sonar's range.
 SCENARIO = """
 name: format
@@ -76,7 +77,7 @@ def run_folder(tmp_path_factory):
         world.step(commands)
     for i, writer in writers.items():
         writer.summary(world.time_ns, ticks=TICKS, overruns=0, refused={"stale": 2}, loop_seconds=1.5,
-                       cpu_seconds=0.25)
+                       cpu_seconds=0.25, reaction_ms=REACTION if i == "2" else None)
         logs[i].close()
 
     bridge = SimBridge(scenario, BridgeSettings(log=str(folder / "sim.mcap")))
@@ -157,7 +158,9 @@ def test_the_run_covers_the_optional_parts_of_the_schemas(run_folder):
     assert any(m["bearing"] is not None for m in estimates) and any(m["target_state"] for m in estimates)
     assert len(estimates) == 3 * TICKS - 1          # vessel 2's tick without odometry has no estimates
     assert run.vessels["2"].last("/2/summary") == {"ticks": TICKS, "overruns": 0, "refused": {"stale": 2},
-                                                   "loop_seconds": 1.5, "cpu_seconds": 0.25, "core_cpu_seconds": None}
+                                                   "loop_seconds": 1.5, "cpu_seconds": 0.25, "core_cpu_seconds": None,
+                                                   "reaction_ms": REACTION}
+    assert run.vessels["1"].last("/1/summary")["reaction_ms"] is None
     assert run.sim.last("/bridge/summary")["startup_missing"] == ["3"]
 
 

@@ -43,10 +43,13 @@ def test_summary_counts_every_message_of_every_process(fleet_run):
         assert s["topics"][f"/{vessel}/scene"]["messages"] == 13   # once a second, 0 to 12 s
         assert sum(row["ticks"] for row in s["health_over_time"]) == TICKS
         assert s["cpu_ms_per_tick"] > 0
+        assert s["reaction_ms"]["ticks"] == TICKS and 0 < s["reaction_ms"]["p50"] <= s["reaction_ms"]["p99"]
     assert summary["sim"]["ticks"] == TICKS and summary["sim"]["missed_commands"] == 0
     shown = usv_log("summary", str(folder))
     assert shown.returncode == 0, shown.stderr
     assert "| 1 | 0.0 | 12.0 | 121 |" in shown.stdout and "## Sim bridge" in shown.stdout
+    reaction = summary["vessels"]["1"]["reaction_ms"]
+    assert f"| {reaction['p50']:.2f} / {reaction['p99']:.2f} | complete |" in shown.stdout, shown.stdout
 
 
 def test_summary_shows_each_pairs_observability(fleet_run):

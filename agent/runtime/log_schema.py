@@ -248,6 +248,17 @@ class CoreState(StrictModel):
 # ----- the end of a run -----
 
 
+class ReactionSummary(StrictModel):
+    """The agent's reaction times over a run (agent/shell/reaction.py), read to 0.05 ms."""
+
+    model_config = ConfigDict(title="usv.ReactionSummary")
+
+    p50: float = Field(ge=0, description="median (ms)")
+    p99: float = Field(ge=0, description="99th percentile (ms)")
+    max: float = Field(ge=0, description="longest (ms)")
+    ticks: Count = Field(description="ticks timed")
+
+
 class AgentSummary(StrictModel):
     model_config = ConfigDict(title="usv.AgentSummary")
 
@@ -259,6 +270,9 @@ class AgentSummary(StrictModel):
     core_cpu_seconds: float | None = Field(
         None, description="CPU time of the tick thread inside the core's step over the same span (s): against "
                           "the same step timed alone, what sharing the machine costs it")
+    reaction_ms: ReactionSummary | None = Field(
+        None, description="from each tick's trigger (the sim clock's arrival, or the timer) to its command's put; "
+                          "on lockstep sim time it includes the wait for the neighbours' shares")
 
 
 class BridgeSummary(StrictModel):

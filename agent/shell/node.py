@@ -68,6 +68,7 @@ from agent.runtime.process import startup_error, stop_on_signals, vessel_process
 from agent.runtime.zenoh_session import SessionError, open_session
 from agent.shell.gate import OWN_TOPICS, InputGate, SimClock
 from agent.shell.mission import MissionOrders
+from agent.shell.reaction import ReactionTimes
 from agent.shell.settings import NodeSettings
 from agent.shell.tick_log import TickLogger, log_topic
 
@@ -107,6 +108,8 @@ class AgentNode:
         self.sim_restarts = 0
         self.shares_unsent = 0
         self.core_seconds = 0.0   # tick thread CPU inside the core's step since the first tick
+        self.reaction = ReactionTimes()
+        self._triggered: float | None = None   # monotonic time the tick to come was triggered (clock or timer)
         self.stopping = threading.Event()
         self._sim_tick = threading.Event()
         self._restart_pending = False
@@ -172,6 +175,7 @@ class AgentNode:
             self.gate.count("internal", f"mission: {type(error).__name__}: {error}")
 
     def _on_clock(self, sample) -> None:
+        arrived = time.monotonic()
         try:
             message, reason = decode(Clock, sample.payload.to_bytes())
             if message is None:
@@ -185,6 +189,7 @@ class AgentNode:
             elif verdict not in ("first", "tick"):
                 self.gate.count(verdict, f"sim/clock: stamp {message.stamp_ns}")
                 return
+            self._triggered = arrived
             self._sim_tick.set()
         except Exception as error:  # noqa: BLE001  (a callback must never raise into Zenoh)
             self.gate.count("internal", f"sim/clock: {type(error).__name__}: {error}")
@@ -279,6 +284,7 @@ class AgentNode:
                         else:
                             self.overruns += 1
                             deadline = time.monotonic()  # do not try to catch up a backlog of ticks
+                        self._triggered = time.monotonic()
                     if self.ticks == 0:  # what the run costs from its first tick, not the wait before it
                         started, cpu_started, self.core_seconds = time.monotonic(), time.process_time(), 0.0
                     self._tick(publishers, clock)
@@ -359,7 +365,7 @@ class AgentNode:
         try:
             self.tick_log.summary(nanoseconds(self.now()), ticks=self.ticks, overruns=self.overruns,
                                   refused=self.gate.rejected, loop_seconds=wall_seconds, cpu_seconds=cpu_seconds,
-                                  core_cpu_seconds=self.core_seconds)
+                                  core_cpu_seconds=self.core_seconds, reaction_ms=self.reaction.summary())
         except Exception:  # noqa: BLE001  (the summary must not stop a clean shutdown)
             self.log_errors += 1
 
@@ -414,6 +420,8 @@ class AgentNode:
                       yaw_rate=float(output.command.yaw_rate))
         wire = {"cmd": encode(command)}
         publishers["cmd"].put(wire["cmd"])
+        if self._triggered is not None:
+            self.reaction.add(time.monotonic() - self._triggered)
         shared = False
         if output.share is not None:
             try:
