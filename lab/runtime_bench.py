@@ -257,7 +257,7 @@ def run(args: argparse.Namespace) -> int:
         "after it: [runtime_changes.md](runtime_changes.md) (`usv-lab runtime-ab`).", "",
         "## Sensor-to-command latency (real-time mode)", "",
         "From the sim bridge publishing a tick's sensors to it receiving each agent's command: two Zenoh hops "
-        "plus the agent's decoding, tick, encoding and logging. The baseline is bare Zenoh between two processes "
+        "plus the agent's decoding, its tick and the command's encoding. The baseline is bare Zenoh between two processes "
         "(same session settings, 300-byte payloads), measured just before each fleet run; the ratio is the "
         "p50 latency over the baseline's p50 round trip. The agents' own reaction time is the wall time from "
         "the clock's arrival in an agent to its command's put (the median of the agents' medians, the largest "
