@@ -109,7 +109,8 @@ def _header(config: ComparisonConfig, elapsed: float, command: str, where: str =
         f"the '{config.filter_range_variance}' range variance of each noise model (x {config.variance_scale}). "
         "The raw-range estimator ([agent/core/estimators/raw_range.py](../../agent/core/estimators/raw_range.py)) "
         "uses the ranges themselves, not (12), and assumes "
-        + ("each run's noise density (a Gaussian mixture: exact for the GMM, fitted for the log-normal)"
+        + ("each run's noise density (the GMM exactly; for the log-normal a fitted Gaussian mixture in the batch "
+           "fix and its exact density in tracking)"
            if config.raw_range_noise == "model" else "the noise_components of its parameters")
         + f". Wall time {elapsed:.1f} s; ran on {where}.",
         "",

@@ -20,7 +20,7 @@ from scipy.stats import chi2
 from agent.config import PositiveFloat, StrictModel, updated
 from agent.core.checks import valid_range
 from agent.core.estimators import make_relative_estimator
-from agent.core.params import ESTIMATOR_NAMES, AgentParams
+from agent.core.params import ESTIMATOR_NAMES, AgentParams, LogNormalNoiseParams, RawRangeParams
 from lab.bound import fisher_information, rms_bound
 from lab.errors import ErrorHistory, RunningMoments, moments_by_name
 from lab.mixture_fit import em_mixture
@@ -66,7 +66,8 @@ class ComparisonConfig(StrictModel):
         "model",
         description=(
             "range-noise density the raw-range estimator assumes: the run's noise model ('model': a mixture "
-            "exactly, otherwise a Gaussian mixture fitted to it), as the Cramér–Rao bound does, or "
+            "exactly, otherwise a Gaussian mixture fitted to it for the batch fix and, for the log-normal, its "
+            "exact density for tracking), as the Cramér–Rao bound does, or "
             "agent.relative.raw_range.noise_components as configured ('params')"
         ),
     )
@@ -184,6 +185,14 @@ def noise_components(noise: RangeNoise) -> tuple[tuple[float, float, float], ...
     return _fitted_mixture(noise.model_dump_json())
 
 
+def raw_range_density(raw_range: RawRangeParams, noise: RangeNoise) -> RawRangeParams:
+    """raw_range's parameters assuming the noise model itself: its mixture (`noise_components`) for the batch
+    fix and, for the log-normal (8), its exact density for tracking (`tracking_lognormal`)."""
+    exact = (LogNormalNoiseParams(log_variance=noise.log_variance, shift=noise.shift)
+             if isinstance(noise, LogNormalNoise) else None)
+    return updated(raw_range, noise_components=noise_components(noise), tracking_lognormal=exact)
+
+
 @lru_cache(maxsize=16)
 def _fitted_mixture(noise_json: str, components: int = 6, samples: int = 50_000, iterations: int = 200
                     ) -> tuple[tuple[float, float, float], ...]:
@@ -215,7 +224,7 @@ def run_once(config: ComparisonConfig, noise: RangeNoise, seed_sequence: np.rand
 
     params = updated(relative, range_variance=filter_variance(noise, config))
     if config.raw_range_noise == "model":
-        params = updated(params, raw_range=updated(params.raw_range, noise_components=noise_components(noise)))
+        params = updated(params, raw_range=raw_range_density(params.raw_range, noise))
     errors = np.empty((len(config.estimators), steps + 1))
     nees = np.empty((len(config.estimators), steps + 1))
     iterations = np.zeros(steps, dtype=np.int16)

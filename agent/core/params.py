@@ -47,6 +47,13 @@ class HuberParams(StrictModel):
     scale_window: int = Field(50, ge=5, le=10_000, description="residuals kept for the MAD scale estimate")
 
 
+class LogNormalNoiseParams(StrictModel):
+    """A range noise known to be the paper's shifted log-normal (8): ln(mu + r_s) ~ N(0, R)."""
+
+    log_variance: PositiveFloat = Field(description="R, variance of ln(mu + r_s)")
+    shift: NonNegativeFloat = Field(description="r_s (m): the noise is above -r_s")
+
+
 class RawRangeParams(StrictModel):
     """Raw-range estimator (agent/core/estimators/raw_range.py): a batch fix over a window of ranges, then a
     moment-matching update on each range r = |p| + noise."""
@@ -66,6 +73,11 @@ class RawRangeParams(StrictModel):
                                 "(the others scaled by 1 - this), so that a gross error (multipath, a wrong "
                                 "reply) has a bounded effect: its weight falls once it is beyond the modelled tails")
     gross_error_variance: PositiveFloat = Field(1e4, description="variance of that component (m^2)")
+    tracking_lognormal: LogNormalNoiseParams | None = Field(
+        None, description="when the range noise is known to be the shifted log-normal (8): once fixed, tracking "
+                          "uses its exact density (with the gross-error component) instead of noise_components, "
+                          "which stay the batch fix's. A mixture fitted to it misses the information at its "
+                          "steep left edge (docs/estimation.md, section 8). None: noise_components throughout")
     window: int = Field(300, ge=5, le=100_000,
                         description="most ranges kept for the batch fix while the position is not yet fixed")
     min_ranges: int = Field(20, ge=3, le=100_000, description="ranges needed before the first batch solve")

@@ -49,7 +49,10 @@ Two phases.
    unknown bearing does not allow. A range
    far in the tails has psi ~ 0 and psi' ~ 0 and changes nothing; one between the mixture's components can
    have psi' < 0 and widen P, as the true posterior does. psi' is scaled by I / I_f, the sandwich share
-   above, over the last ~200 ranges. One pass of plain-float arithmetic per range, no numpy. The fix waits
+   above, over the last ~200 ranges. A noise known to be the shifted log-normal (8) (`tracking_lognormal`)
+   is tracked with its exact density instead (range_density.LogNormalDensity, 13 us a range against 2): the
+   fitted mixture the batch needs misses the information at the density's steep left edge, which a narrow
+   tracking prior can use; being the noise's own density, it needs no sandwich share. One pass of plain-float arithmetic per range, no numpy. The fix waits
    until the batch covariance is small (`fix_max_variance`), where the linearisation costs nothing: with a
    broad prior the batch is the better estimator (docs/results/estimator_comparison.md).
    The mean negative log-likelihood of the recent residuals is watched (`monitor`): if it leaves the
@@ -94,7 +97,7 @@ from agent.core.estimators.base import (
     UpdateOutcome,
     _as_range,
 )
-from agent.core.estimators.range_density import RangeDensity, density_of
+from agent.core.estimators.range_density import RangeDensity, density_of, lognormal_density_of
 
 # Smallest distance from an anchor at which a range is used; closer, its direction is undefined.
 MIN_DISTANCE = 1e-9
@@ -386,6 +389,9 @@ class RawRange(RelativePositionEstimator):
     def _reset_extra(self) -> None:
         self._density = density = density_of(self.params.raw_range)
         self._fisher, self._entropy, self._nll_spread = density.fisher, density.entropy, density.spread
+        # Tracking's exact density of a known log-normal noise (None: the mixture's): the noise's own, so no
+        # sandwich share is needed once it takes over.
+        self._exact = lognormal_density_of(self.params.raw_range)
         # Sandwich: running means of psi^2 and psi' of the residuals (both I_f when the density is right), and
         # the information per range the covariance uses, (mean psi')^2 / mean psi^2 within [I_f / 20, I_f].
         self._psi2 = self._dpsi = self._info = self._fisher
@@ -540,7 +546,7 @@ class RawRange(RelativePositionEstimator):
             self._fixed = True
             self._alt = None
             self._window = []
-            self._monitor = self._entropy
+            self._monitor = self._tracking_statistics()[1]
             self._tracked = 0
             self._p11, self._p12, self._p22 = c11, c12, c22
             return UpdateOutcome(accepted=True, reason="fixed", iterations=self._solves, weight=1.0)
@@ -565,8 +571,9 @@ class RawRange(RelativePositionEstimator):
         reason = "fix dropped: the ranges no longer fit" if self._watch(nll) else ""
         # weight: the share of the prior's variance along the range this range removed, h psi' (for a Gaussian
         # noise the Kalman gain's h / (sigma^2 + h); about 0 for a gross error).
+        information = self._exact.fisher if self._exact is not None else self._info
         return UpdateOutcome(accepted=True, reason=reason, iterations=1, innovation=innovation,
-                             innovation_variance=h + 1.0 / self._info, weight=dpsi * h if h > 0.0 else 1.0)
+                             innovation_variance=h + 1.0 / information, weight=dpsi * h if h > 0.0 else 1.0)
 
     def _moment_match(self, r: float, shrink: bool = True) -> tuple[float, float, float, float] | None:
         """The moment-matching update of N((p, b), P) by one range r = |p| + b + noise, linearised at p^-:
@@ -588,8 +595,9 @@ class RawRange(RelativePositionEstimator):
         h = ux * hx + uy * hy + hb                   # the prior's variance along the range
         across = uy * uy * p11 - 2.0 * ux * uy * p12 + ux * ux * p22
         innovation = r - d - self._b
-        nll, psi, dpsi = self._density.predictive(innovation, h + 0.5 * (across / d) ** 2)
-        if self._fixed:
+        exact = self._exact if self._fixed else None
+        nll, psi, dpsi = (exact or self._density).predictive(innovation, h + 0.5 * (across / d) ** 2)
+        if self._fixed and exact is None:
             self._psi2 += (psi * psi - self._psi2) / SANDWICH_LENGTH
             self._dpsi += (dpsi - self._dpsi) / SANDWICH_LENGTH
             self._info = self._sandwich()
@@ -600,7 +608,7 @@ class RawRange(RelativePositionEstimator):
             return nll, dpsi, innovation, h
         # Where the assumed density only approximates the noise, the sandwich says how much of its
         # information a range really carries; the covariance shrinks by that share only.
-        share = dpsi * self._info / self._fisher
+        share = dpsi if exact is not None else dpsi * self._info / self._fisher
         self._p11, self._p12, self._p22 = p11 - hx * hx * share, p12 - hx * hy * share, p22 - hy * hy * share
         if pbb > 0.0:
             self._pxb, self._pyb, self._pbb = pxb - hx * hb * share, pyb - hy * hb * share, pbb - hb * hb * share
@@ -608,6 +616,12 @@ class RawRange(RelativePositionEstimator):
 
     def _sandwich(self) -> float:
         return _sandwich(self._psi2, self._dpsi, self._fisher)
+
+    def _tracking_statistics(self) -> tuple[float, float, float]:
+        """(I_f, H, S) of the density tracking uses: the exact one's when there is one, else the mixture's."""
+        if self._exact is not None:
+            return self._exact.fisher, self._exact.entropy, self._exact.spread
+        return self._fisher, self._entropy, self._nll_spread
 
     def _watch(self, nll: float) -> bool:
         """Tracking monitor: an exponential mean over about `monitor_length` ranges of the predicted residuals'
@@ -620,7 +634,8 @@ class RawRange(RelativePositionEstimator):
         if self._tracked < length:
             return False
         # The exponential mean's standard error: S sqrt(1 / (2 L - 1)).
-        limit = self._entropy + 0.2 + p.monitor_sigmas * self._nll_spread / math.sqrt(2.0 * length - 1.0)
+        _, entropy, spread = self._tracking_statistics()
+        limit = entropy + 0.2 + p.monitor_sigmas * spread / math.sqrt(2.0 * length - 1.0)
         if self._monitor <= limit:
             return False
         self._refixes += 1
