@@ -60,6 +60,9 @@ def test_fleet_run_leaves_a_run_folder_with_logs_plot_and_metrics(tmp_path, shor
             reaction = summary["reaction_ms"]
             assert reaction["ticks"] == 121 and 0.0 < reaction["p50"] <= reaction["p99"] <= reaction["max"]
             assert reaction["p50"] < 1e3 * summary["loop_seconds"] / summary["ticks"]
+            # the tick thread's CPU over part of each of those stretches: never more, tick by tick
+            cpu = summary["reaction_cpu_ms"]
+            assert cpu["ticks"] == 121 and 0.0 < cpu["p50"] <= reaction["p50"] and cpu["p99"] <= reaction["p99"]
 
 
 def test_unknown_variant_is_a_clear_error(tmp_path, short_scenario):

@@ -159,7 +159,7 @@ def test_the_run_covers_the_optional_parts_of_the_schemas(run_folder):
     assert len(estimates) == 3 * TICKS - 1          # vessel 2's tick without odometry has no estimates
     assert run.vessels["2"].last("/2/summary") == {"ticks": TICKS, "overruns": 0, "refused": {"stale": 2},
                                                    "loop_seconds": 1.5, "cpu_seconds": 0.25, "core_cpu_seconds": None,
-                                                   "reaction_ms": REACTION}
+                                                   "reaction_ms": REACTION, "reaction_cpu_ms": None}
     assert run.vessels["1"].last("/1/summary")["reaction_ms"] is None
     assert run.sim.last("/bridge/summary")["startup_missing"] == ["3"]
 

@@ -273,6 +273,9 @@ class AgentSummary(StrictModel):
     reaction_ms: ReactionSummary | None = Field(
         None, description="from each tick's trigger (the sim clock's arrival, or the timer) to its command's put; "
                           "on lockstep sim time it includes the wait for the neighbours' shares")
+    reaction_cpu_ms: ReactionSummary | None = Field(
+        None, description="the tick thread's CPU from the start of each tick to its command's put: the reaction "
+                          "without the waits for a core, what a computer of the agent's own would take")
 
 
 class BridgeSummary(StrictModel):

@@ -109,6 +109,7 @@ class AgentNode:
         self.shares_unsent = 0
         self.core_seconds = 0.0   # tick thread CPU inside the core's step since the first tick
         self.reaction = ReactionTimes()
+        self.reaction_cpu = ReactionTimes()    # the tick thread's CPU from its tick's start to the command's put
         self._triggered: float | None = None   # monotonic time the tick to come was triggered (clock or timer)
         self.stopping = threading.Event()
         self._sim_tick = threading.Event()
@@ -365,7 +366,8 @@ class AgentNode:
         try:
             self.tick_log.summary(nanoseconds(self.now()), ticks=self.ticks, overruns=self.overruns,
                                   refused=self.gate.rejected, loop_seconds=wall_seconds, cpu_seconds=cpu_seconds,
-                                  core_cpu_seconds=self.core_seconds, reaction_ms=self.reaction.summary())
+                                  core_cpu_seconds=self.core_seconds, reaction_ms=self.reaction.summary(),
+                                  reaction_cpu_ms=self.reaction_cpu.summary())
         except Exception:  # noqa: BLE001  (the summary must not stop a clean shutdown)
             self.log_errors += 1
 
@@ -396,6 +398,7 @@ class AgentNode:
     def _tick(self, publishers, clock: Clock | None = None) -> None:
         """One tick: on sim time `clock` is the sim/clock message it answers, on wall time None. Whatever
         fails in it, the tick publishes a command (STOP if the core did not give a sound one) and a status."""
+        tick_cpu = time.thread_time()
         now = self.now() if clock is None else seconds(clock.stamp_ns)
         stamp = nanoseconds(now)
         inputs = None
@@ -420,6 +423,7 @@ class AgentNode:
                       yaw_rate=float(output.command.yaw_rate))
         wire = {"cmd": encode(command)}
         publishers["cmd"].put(wire["cmd"])
+        self.reaction_cpu.add(time.thread_time() - tick_cpu)
         if self._triggered is not None:
             self.reaction.add(time.monotonic() - self._triggered)
         shared = False

@@ -6,7 +6,9 @@ It is wall time. On sim time in lockstep it includes the wait for the neighbours
 in real time and at sea it is the agent's work between its inputs and its command (decoding what came with the
 trigger, the core's step, the command's encoding) and whatever waits for a core that work had: none to speak of
 on a vessel's own computer, most of it in a fleet of processes sharing a laptop's cores. `usv-lab
-runtime-bench` sets it beside the sensor-to-command latency the sim bridge measures."""
+runtime-bench` sets it beside the sensor-to-command latency the sim bridge measures, with the tick thread's CPU
+time over the same stretch (`AgentSummary.reaction_cpu_ms`, the same histogram): the reaction without the
+waits."""
 
 from __future__ import annotations
 

@@ -129,14 +129,16 @@ class TickLogger:
 
     def summary(self, stamp: int, *, ticks: int, overruns: int, refused: Mapping[str, int], loop_seconds: float,
                 cpu_seconds: float, core_cpu_seconds: float | None = None,
-                reaction_ms: Mapping[str, float] | None = None) -> None:
+                reaction_ms: Mapping[str, float] | None = None,
+                reaction_cpu_ms: Mapping[str, float] | None = None) -> None:
         """Log the run as a whole at time `stamp` (ns), once at the end: ticks run, wall-clock overruns, inputs
-        refused by reason, the wall and CPU seconds from the first tick (the core's step's share apart) and the
-        reaction times (ReactionTimes.summary). Built as the model (once a run), so a wrong value fails here
+        refused by reason, the wall and CPU seconds from the first tick (the core's step's share apart), the
+        reaction times and the tick thread's CPU to each command (ReactionTimes.summary). Built as the model (once a run), so a wrong value fails here
         rather than in a reader."""
         self.log.log(log_topic(self.id, "summary"), AgentSummary(
             ticks=ticks, overruns=overruns, refused=dict(refused), loop_seconds=loop_seconds,
-            cpu_seconds=cpu_seconds, core_cpu_seconds=core_cpu_seconds, reaction_ms=reaction_ms), stamp)
+            cpu_seconds=cpu_seconds, core_cpu_seconds=core_cpu_seconds, reaction_ms=reaction_ms,
+            reaction_cpu_ms=reaction_cpu_ms), stamp)
 
     def _log_frames(self, stamp: int, inputs: TickInputs, record: TickRecord) -> None:
         target = record.target_state
