@@ -94,9 +94,9 @@ class RangeDensity:
         return 0.5 * LOG_2PI - best - math.log(total), psi, curvature / total + psi * psi
 
 
-# Gauss-Legendre nodes and weights on [-1, 1] for the log-normal's predictive density, and how many standard
-# deviations of ln y (the log-normal) and of the position along the range (the kernel N(0, h)) it spans.
-_NODES, _WEIGHTS = np.polynomial.legendre.leggauss(64)
+# Gauss-Legendre points for the log-normal's predictive density, and how many standard deviations of ln y (the
+# log-normal) and of the position along the range (the kernel N(0, h)) it spans.
+_POINTS = 64
 _REACH = 9.0
 
 
@@ -109,6 +109,10 @@ class LogNormalDensity:
         self.gross_fraction, self.gross_variance = gross_fraction, gross_variance
         self.fisher, self.entropy, self.spread = _lognormal_statistics(log_variance, shift, gross_fraction,
                                                                        gross_variance)
+        # Nodes and weights on [-1, 1]; numpy.polynomial is imported here, not by every agent (0.7 MB).
+        from numpy.polynomial.legendre import leggauss
+
+        self._nodes, self._weights = leggauss(_POINTS)
 
     def predictive(self, e: float, h: float) -> tuple[float, float, float]:
         """(-ln f_h(e), its score psi, psi') at one residual e, as RangeDensity.predictive.
@@ -128,9 +132,9 @@ class LogNormalDensity:
         low = max(-reach, math.log(c - _REACH * s)) if c - _REACH * s > 0.0 else -reach
         if high > low:
             half = 0.5 * (high - low)
-            u = low + half * (_NODES + 1.0)
+            u = low + half * (self._nodes + 1.0)
             d = c - np.exp(u)                                   # the kernel's argument, c - y
-            weights = half * _WEIGHTS * np.exp(-0.5 * (u * u / self.log_variance + d * d / h)) / (
+            weights = half * self._weights * np.exp(-0.5 * (u * u / self.log_variance + d * d / h)) / (
                 2.0 * math.pi * math.sqrt(self.log_variance * h))
             keep = 1.0 - eps
             total += keep * float(weights.sum())
