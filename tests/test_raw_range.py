@@ -438,6 +438,30 @@ def test_the_exact_log_normal_predictive_density_is_the_convolution(h):
         assert density.predictive(e, h) == pytest.approx(reference(e), rel=1e-5, abs=1e-8), e
 
 
+@pytest.mark.parametrize("h", [0.0, 1e-12, 1e-9])
+def test_the_exact_log_normal_predictive_density_with_a_point_like_prior_is_the_density_itself(h):
+    # h -> 0: f_h -> f, whose -ln f, psi and psi' are written out here from scipy's log-normal density and
+    # central differences of its log (the quadrature's psi' would lose its digits below h ~ 1e-10 m^2, and at
+    # h = 0 its interval is empty).
+    from scipy.stats import lognorm, norm
+
+    from agent.core.estimators.range_density import LogNormalDensity
+
+    eps, variance = 1e-3, 1e4
+    density = LogNormalDensity(LOG_VARIANCE, SHIFT, eps, variance)
+    f = lognorm(s=math.sqrt(LOG_VARIANCE), loc=-SHIFT)
+
+    def nll(e):
+        return -math.log((1 - eps) * f.pdf(e) + eps * norm.pdf(e, 0.0, math.sqrt(variance)))
+
+    step = 1e-4
+    for e in (-0.7, -0.5, 0.1, 3.0):
+        value, psi, dpsi = density.predictive(e, h)
+        assert value == pytest.approx(nll(e), rel=1e-7)
+        assert psi == pytest.approx((nll(e + step) - nll(e - step)) / (2 * step), rel=1e-5)
+        assert dpsi == pytest.approx((nll(e + step) - 2 * nll(e) + nll(e - step)) / step**2, rel=1e-4, abs=1e-4)
+
+
 def test_the_exact_log_normal_fisher_information_is_the_integral():
     # I_f = int f'^2 / f of the log-normal alone (eps = 0), by quad on scipy's density and its numerical slope;
     # the 9.85 m^-2 docs/estimation.md quotes.

@@ -98,6 +98,9 @@ class RangeDensity:
 # log-normal) and of the position along the range (the kernel N(0, h)) it spans.
 _POINTS = 64
 _REACH = 9.0
+# Below this variance along the range (m^2) the kernel is a point: f_h is f itself, to about h f'' / f (2e-5 at
+# the steep edge). The quadrature's psi' would lose its digits there, d^2 / h^2 - 1 / h cancelling.
+_POINT_LIKE = 1e-8
 
 
 class LogNormalDensity:
@@ -124,26 +127,34 @@ class LogNormalDensity:
         position along the range (Gauss-Hermite, tried first) lost up to half of psi' at h = 0.04 m^2."""
         eps, v = self.gross_fraction, self.gross_variance + h
         g = eps * math.exp(-0.5 * e * e / v) / math.sqrt(2.0 * math.pi * v)
-        total, slope, bend = g, -g * e / v, g * (e * e / v - 1.0) / v
-        c = e + self.shift
-        s = math.sqrt(max(h, 1e-300))
-        reach = _REACH * math.sqrt(self.log_variance)
-        high = min(reach, math.log(c + _REACH * s)) if c + _REACH * s > 0.0 else -math.inf
-        low = max(-reach, math.log(c - _REACH * s)) if c - _REACH * s > 0.0 else -reach
-        if high > low:
-            half = 0.5 * (high - low)
-            u = low + half * (self._nodes + 1.0)
-            d = c - np.exp(u)                                   # the kernel's argument, c - y
-            weights = half * self._weights * np.exp(-0.5 * (u * u / self.log_variance + d * d / h)) / (
-                2.0 * math.pi * math.sqrt(self.log_variance * h))
-            keep = 1.0 - eps
-            total += keep * float(weights.sum())
-            slope += keep * float(weights @ (-d / h))
-            bend += keep * float(weights @ (d * d / (h * h) - 1.0 / h))
+        keep = 1.0 - eps
+        if h < _POINT_LIKE:
+            f, d1, d2 = (float(a[0]) for a in _shifted_lognormal(np.array([e]), self.log_variance, self.shift))
+        else:
+            f, d1, d2 = self._convolved(e, h)
+        total = keep * f + g
+        slope = keep * d1 - g * e / v
+        bend = keep * d2 + g * (e * e / v - 1.0) / v
         if not total > 0.0:   # beyond every component's reach (|e| of kilometres): no information
             return math.inf, 0.0, 0.0
         psi = -slope / total
         return -math.log(total), psi, -bend / total + psi * psi
+
+    def _convolved(self, e: float, h: float) -> tuple[float, float, float]:
+        """f_LN * N(0, h) at e and its first two derivatives in e, by the quadrature `predictive` describes."""
+        c = e + self.shift
+        s = math.sqrt(h)
+        reach = _REACH * math.sqrt(self.log_variance)
+        high = min(reach, math.log(c + _REACH * s)) if c + _REACH * s > 0.0 else -math.inf
+        low = max(-reach, math.log(c - _REACH * s)) if c - _REACH * s > 0.0 else -reach
+        if not high > low:
+            return 0.0, 0.0, 0.0
+        half = 0.5 * (high - low)
+        u = low + half * (self._nodes + 1.0)
+        d = c - np.exp(u)                                   # the kernel's argument, c - y
+        weights = half * self._weights * np.exp(-0.5 * (u * u / self.log_variance + d * d / h)) / (
+            2.0 * math.pi * math.sqrt(self.log_variance * h))
+        return float(weights.sum()), float(weights @ (-d / h)), float(weights @ (d * d / (h * h) - 1.0 / h))
 
 
 def _shifted_lognormal(x: np.ndarray, log_variance: float, shift: float
