@@ -133,8 +133,8 @@ class TickLogger:
                 reaction_cpu_ms: Mapping[str, float] | None = None) -> None:
         """Log the run as a whole at time `stamp` (ns), once at the end: ticks run, wall-clock overruns, inputs
         refused by reason, the wall and CPU seconds from the first tick (the core's step's share apart), the
-        reaction times and the tick thread's CPU to each command (ReactionTimes.summary). Built as the model (once a run), so a wrong value fails here
-        rather than in a reader."""
+        reaction times and the tick thread's CPU to each command (ReactionTimes.summary). Built as the model
+        (once a run), so a wrong value fails here rather than in a reader."""
         self.log.log(log_topic(self.id, "summary"), AgentSummary(
             ticks=ticks, overruns=overruns, refused=dict(refused), loop_seconds=loop_seconds,
             cpu_seconds=cpu_seconds, core_cpu_seconds=core_cpu_seconds, reaction_ms=reaction_ms,

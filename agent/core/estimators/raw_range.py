@@ -52,7 +52,8 @@ Two phases.
    above, over the last ~200 ranges. A noise known to be the shifted log-normal (8) (`tracking_lognormal`)
    is tracked with its exact density instead (range_density.LogNormalDensity, 13 us a range against 2): the
    fitted mixture the batch needs misses the information at the density's steep left edge, which a narrow
-   tracking prior can use; being the noise's own density, it needs no sandwich share. One pass of plain-float arithmetic per range, no numpy. The fix waits
+   tracking prior can use; being the noise's own density, it needs no sandwich share. Otherwise one pass of
+   plain-float arithmetic per range, no numpy. The fix waits
    until the batch covariance is small (`fix_max_variance`), where the linearisation costs nothing: with a
    broad prior the batch is the better estimator (docs/results/estimator_comparison.md).
    The mean negative log-likelihood of the recent residuals is watched (`monitor`): if it leaves the
@@ -546,7 +547,7 @@ class RawRange(RelativePositionEstimator):
             self._fixed = True
             self._alt = None
             self._window = []
-            self._monitor = self._tracking_statistics()[1]
+            self._monitor = self._tracking_fit()[0]
             self._tracked = 0
             self._p11, self._p12, self._p22 = c11, c12, c22
             return UpdateOutcome(accepted=True, reason="fixed", iterations=self._solves, weight=1.0)
@@ -617,11 +618,12 @@ class RawRange(RelativePositionEstimator):
     def _sandwich(self) -> float:
         return _sandwich(self._psi2, self._dpsi, self._fisher)
 
-    def _tracking_statistics(self) -> tuple[float, float, float]:
-        """(I_f, H, S) of the density tracking uses: the exact one's when there is one, else the mixture's."""
+    def _tracking_fit(self) -> tuple[float, float]:
+        """(H, S), the entropy and the spread of -ln f of the density tracking uses (the monitor's yardstick):
+        the exact one's when there is one, else the mixture's."""
         if self._exact is not None:
-            return self._exact.fisher, self._exact.entropy, self._exact.spread
-        return self._fisher, self._entropy, self._nll_spread
+            return self._exact.entropy, self._exact.spread
+        return self._entropy, self._nll_spread
 
     def _watch(self, nll: float) -> bool:
         """Tracking monitor: an exponential mean over about `monitor_length` ranges of the predicted residuals'
@@ -634,7 +636,7 @@ class RawRange(RelativePositionEstimator):
         if self._tracked < length:
             return False
         # The exponential mean's standard error: S sqrt(1 / (2 L - 1)).
-        _, entropy, spread = self._tracking_statistics()
+        entropy, spread = self._tracking_fit()
         limit = entropy + 0.2 + p.monitor_sigmas * spread / math.sqrt(2.0 * length - 1.0)
         if self._monitor <= limit:
             return False
