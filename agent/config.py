@@ -83,7 +83,8 @@ def load_yaml(model: type[M], path: str | Path) -> M:
     return parse_mapping(model, read_yaml(path), str(path))
 
 
-def _yaml_scalar(value: object) -> str:
+def yaml_scalar(value: object) -> str:
+    """A value as a YAML 1.1 scalar that PyYAML reads back as the same type."""
     if value is None:
         return "null"
     if isinstance(value, float):
@@ -94,7 +95,7 @@ def _yaml_scalar(value: object) -> str:
             text = f"{mantissa}.0e{exponent}"
         return text
     if isinstance(value, tuple):
-        return "[" + ", ".join(_yaml_scalar(v) for v in value) + "]"
+        return "[" + ", ".join(yaml_scalar(v) for v in value) + "]"
     return str(value)
 
 
@@ -109,7 +110,7 @@ def commented_yaml(model: BaseModel, indent: int = 0) -> str:
             lines.append(commented_yaml(value, indent + 1))
         else:
             comment = f"  # {info.description}" if info.description else ""
-            lines.append(f"{pad}{name}: {_yaml_scalar(value)}{comment}")
+            lines.append(f"{pad}{name}: {yaml_scalar(value)}{comment}")
     return "\n".join(lines)
 
 

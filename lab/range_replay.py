@@ -213,6 +213,7 @@ class RangeReplayResult(ErrorHistory):
     residual_variance: float          # sample variance of the range residuals (m^2)
     raw_range_components: tuple[tuple[float, float, float], ...] = ()   # raw_range's assumed density
     raw_range_gross: tuple[float, float] = (0.0, 1.0)   # its gross-error component (weight, variance m^2)
+    raw_range_bias_variance: float = 0.0   # prior variance of its pair-bias state (m^2); 0: no bias state
 
     @property
     def tuned_on_truth(self) -> bool:
@@ -349,6 +350,7 @@ def replay(
         raw_range_components=tuple(tuple(float(v) for v in c) for c in relative.raw_range.noise_components),
         raw_range_gross=(float(relative.raw_range.gross_error_fraction),
                          float(relative.raw_range.gross_error_variance)),
+        raw_range_bias_variance=float(relative.raw_range.bias_variance),
     )
 
     def consume(_: int, output) -> None:
@@ -412,7 +414,9 @@ def noise_lines(result: RangeReplayResult, config: Path | None) -> list[str]:
     return [f"range noise: {origin}",
             f"pseudo-linear filters' range variance: {result.range_variance:.4g} m^2",
             (f"raw_range's noise density (m, m^2): {density_text(result.raw_range_components)}, with a gross-error "
-             f"component of weight {result.raw_range_gross[0]:g} and variance {result.raw_range_gross[1]:g}")]
+             f"component of weight {result.raw_range_gross[0]:g} and variance {result.raw_range_gross[1]:g}"
+             + (f"; a constant pair bias estimated as a state, prior variance {result.raw_range_bias_variance:g} m^2"
+                if result.raw_range_bias_variance > 0.0 else ""))]
 
 
 def run(args: argparse.Namespace) -> int:

@@ -1,8 +1,9 @@
 """Public UWB range data sets with ground truth, turned into replay CSVs for `usv-lab replay`.
 
     python -m lab.uwb_datasets convert hanyang|cuhksz|murp SOURCE OUT
-    python -m lab.uwb_datasets fit-noise --hanyang SOURCE [--murp SOURCE]
-    python -m lab.uwb_datasets page DIR... [--config FILE]... [--runs N] [--out FILE]
+    python -m lab.uwb_datasets fit-noise hanyang|cuhksz|murp SOURCE [--out FILE]
+    python -m lab.uwb_datasets fit-noise csv RUN.csv... [--out FILE]
+    python -m lab.uwb_datasets page DIR... [--config FILE]... [--sensor-configs DIR] [--runs N] [--out FILE]
 
 SOURCE is a checkout of the data set's repository (`SOURCES`). `convert` writes one CSV per run, header
 `t,range,ax,ay,bx,by` (lab/range_replay.py), and `runs.csv`, the manifest: the run's file, condition (LOS or
@@ -19,10 +20,15 @@ The mapping keeps the sensor's error: a range error e becomes about e r / sqrt(r
 Tag-anchor runs put the moving tag at end a and the fixed anchor at end b, so the replay's relative position
 is tag minus anchor and the synthetic odometry is the tag's own motion.
 
-`fit-noise` fits the Gaussian mixture of configs/real_uwb.yaml to held-out calibration measurements: the
-Hanyang set's static measurements at known distances and MURP's calibration trials 1-12; none of the runs
-`convert` makes (Hanyang's moving runs, MURP's trials 13-22) enter it. `page` replays every run with the
-noise of each config given (never with a truth-derived variance) and writes docs/results/real_uwb.md.
+Calibration. Each data set's sensor is calibrated as a user would calibrate theirs: on runs of its own, in
+the conditions of the mission (moving), that are never scored. `fit-noise` reads them (`CALIBRATION`:
+Hanyang's case 1, CUHK-SZ's tags 1 and 2, MURP's moving calibration trials 8-12) and writes
+configs/uwb/<data set>.yaml: a pair's constant bias, whose prior variance is the spread of the calibration
+runs' mean residuals (raw_range's `bias_variance`), and a Gaussian mixture fitted to the residuals about each
+run's own mean. `convert` leaves the calibration runs out, so no scored run was seen by a fit. `fit-noise csv`
+fits your own sensor's runs the same way, from replay CSVs with ground truth. `page` replays
+every run with the noise of each config given, and with each data set's own calibrated config
+(`--sensor-configs`), never with a truth-derived variance, and writes docs/results/real_uwb.md.
 """
 
 from __future__ import annotations
@@ -38,7 +44,7 @@ from pathlib import Path
 
 import numpy as np
 
-from agent.config import ConfigError, load_yaml
+from agent.config import ConfigError, load_yaml, yaml_scalar
 from agent.core.params import ESTIMATOR_NAMES, AgentParams
 from lab import arguments
 from lab.estimator_plots import LABELS
@@ -191,15 +197,21 @@ HANYANG_TAG_HEIGHT = 1.0
 HANYANG_MAX_Z = 0.5
 
 
-def hanyang_runs(root: Path, interval: float = DEFAULT_INTERVAL) -> Iterator[Run]:
-    """Every moving run: 2 conditions x 4 cases x 4 anchors. End a is the tag, end b the anchor."""
+# Case 1 (LOS and NLOS) calibrates the sensor and is never scored; cases 2-4 are the scored runs.
+HANYANG_CALIBRATION = ("Case_1",)
+
+
+def hanyang_runs(root: Path, interval: float = DEFAULT_INTERVAL, calibration: bool = False) -> Iterator[Run]:
+    """The moving runs, 2 conditions x 4 anchors per case: the scored cases 2-4, or with `calibration` the
+    calibration case 1. End a is the tag, end b the anchor."""
     base = Path(root) / "Dynamic_measurements"
     for condition in ("LOS", "NLOS"):
         cases = sorted((base / condition).glob("Trajectory_*/Case_*"), key=lambda p: p.name)
         if not cases:
             raise ConfigError(f"{base / condition}: no Trajectory_*/Case_* folders; is {root} the data set?")
         for case in cases:
-            yield from _hanyang_case(root, case, condition, interval)
+            if (case.name in HANYANG_CALIBRATION) == calibration:
+                yield from _hanyang_case(root, case, condition, interval)
 
 
 def _hanyang_case(root: Path, case: Path, condition: str, interval: float) -> Iterator[Run]:
@@ -236,31 +248,6 @@ def _hanyang_case(root: Path, case: Path, condition: str, interval: float) -> It
         )
 
 
-# The static measurements used for the noise fit: up to this horizontal distance (m), where the moving runs'
-# measured ranges mostly lie; the static bias grows with distance (+0.26 m at 30 m, +0.29 m at 60 m).
-HANYANG_STATIC_MAX = 30.0
-
-
-def hanyang_static_residuals(root: Path, max_distance: float = HANYANG_STATIC_MAX) -> np.ndarray:
-    """Planar range errors of the static measurements (Static_measurements/<LOS|NLOS>/height_<h>cm/<d>m.csv:
-    tag 1 m high, anchor h high, d m apart horizontally) up to `max_distance`, held out from the moving
-    runs."""
-    files = sorted((Path(root) / "Static_measurements").glob("*/height_*cm/*m.csv"))
-    if not files:
-        raise ConfigError(f"{root}: no Static_measurements/*/height_*cm/*m.csv files")
-    residuals = []
-    for path in files:
-        height = float(path.parent.name.removeprefix("height_").removesuffix("cm")) / 100.0
-        distance = float(path.stem.removesuffix("m"))
-        if distance > max_distance:
-            continue
-        names, rows = _table(path)
-        r = _column(path, names, rows, "Distance")
-        r = r[np.isfinite(r) & (r > 0)]
-        residuals.append(planar_range(r, height - HANYANG_TAG_HEIGHT) - distance)
-    return np.concatenate(residuals)
-
-
 # ----------------------------------------------------------------------------------------------- CUHK-SZ
 CUHKSZ_ANCHORS = (
     (-3.4203, 3.0053, 1.0442), (0.0016, 3.0110, 1.0446), (3.6056, 2.9795, 1.0463), (3.6011, -0.0008, 1.0422),
@@ -271,6 +258,8 @@ CUHKSZ_TAGS = ((-0.0689, -0.1423, 0.0011), (-0.0750, 0.1402, 0.0016), (0.2034, 0
 # The authors' correction of the motion-capture yaw (Dynamic_pose_estimation.mlx, `degree`), in degrees.
 CUHKSZ_YAW_CORRECTION = 7.0
 CUHKSZ_SPEEDS = ("fast", "mid", "slow")
+# Tag 0 is scored; tags 1 and 2, on the same trolley, calibrate the sensor.
+CUHKSZ_CALIBRATION_TAGS = (1, 2)
 
 
 def _clock(text: str) -> float:
@@ -332,7 +321,9 @@ def _cuhksz_speed(root: Path, speed: str, ranges: Path, mocap: Path, tags: Seque
 
 # ----------------------------------------------------------------------------------------------- MURP
 MURP_TRIALS = tuple(range(13, 23))        # 13-15: robot 1 still, 2 and 3 moving; 16-22: all three moving
-MURP_CALIBRATION = tuple(range(1, 13))    # the calibration trials, held out for the noise fit
+# The calibration trials in which the robots move (0.4-0.9 m/s apart); in trials 1-7 they stand or creep
+# (under 0.03 m/s), unlike any scored run.
+MURP_CALIBRATION = tuple(range(8, 13))
 
 
 def _murp_files(root: Path, trials: Sequence[int]) -> Iterator[tuple[int, int, int, Path]]:
@@ -369,18 +360,24 @@ def murp_runs(root: Path, trials: Sequence[int] = MURP_TRIALS) -> Iterator[Run]:
                   a=a[:, :2], b=b[:, :2])
 
 
-def murp_calibration_residuals(root: Path, trials: Sequence[int] = MURP_CALIBRATION) -> np.ndarray:
-    """Planar range errors of the calibration trials, as `murp_runs` would convert them."""
-    residuals = []
-    for _, _, _, path in _murp_files(root, trials):
-        _, r, a, b = _murp_read(path)
-        good = np.isfinite(r) & (r > 0)
-        planar = planar_range(r[good], a[good, 2] - b[good, 2])
-        residuals.append(planar - np.linalg.norm(a[good, :2] - b[good, :2], axis=1))
-    return np.concatenate(residuals)
-
-
 READERS = {"hanyang": hanyang_runs, "cuhksz": cuhksz_runs, "murp": murp_runs}
+# Each data set's calibration runs, in words (`calibration_runs` reads them).
+CALIBRATION = {
+    "hanyang": "case 1 of the moving runs, LOS and NLOS, every anchor",
+    "cuhksz": "tags 1 and 2 of the moving runs, every anchor (tag 0 is scored)",
+    "murp": "calibration trials 8-12, every robot pair, the robots moving",
+}
+
+
+def calibration_runs(dataset: str, root: Path, interval: float = DEFAULT_INTERVAL) -> Iterator[Run]:
+    """The runs that calibrate `dataset`'s sensor (`CALIBRATION`), read as the scored ones are."""
+    if dataset == "hanyang":
+        return hanyang_runs(root, interval, calibration=True)
+    if dataset == "cuhksz":
+        return cuhksz_runs(root, tags=CUHKSZ_CALIBRATION_TAGS, interval=interval)
+    if dataset == "murp":
+        return murp_runs(root, trials=MURP_CALIBRATION)
+    raise ConfigError(f"unknown data set '{dataset}'; known: {', '.join(READERS)}")
 
 
 # ----------------------------------------------------------------------------------------------- writing
@@ -468,19 +465,52 @@ def mixture_variance(mixture: Sequence[tuple[float, float, float]]) -> float:
     return float(w @ (v + m * m) - mean * mean)
 
 
-def real_config_text(mixture: Sequence[tuple[float, float, float]], sets: Sequence[str], argv: Sequence[str]) -> str:
-    """configs/real_uwb.yaml: the fitted density for raw_range, its variance for the pseudo-linear filters."""
-    rounded = [(round(w, 3), round(m, 3), round(v, 4)) for w, m, v in mixture]
-    components = ", ".join(f"[{w}, {m}, {v}]" for w, m, v in rounded)
+@dataclass(frozen=True)
+class SensorNoise:
+    """A sensor's range noise, fitted to its calibration runs."""
+
+    mixture: tuple[tuple[float, float, float], ...]   # (weight, mean, variance) of the residuals about each
+                                                      # run's own mean, the runs' common mean kept
+    bias_variance: float                              # variance of the runs' mean residuals (m^2)
+    runs: int
+    ranges: int
+
+
+def fit_sensor_noise(runs: Sequence[Run | RangeLog], components: int = 3) -> SensorNoise:
+    """The noise model r = |p| + b + e of raw_range from calibration runs with ground truth: each run (one
+    pair of antennas, one session) has its own constant bias b, whose spread over the runs is b's prior
+    variance (the sample variance of the runs' mean residuals), and e is the Gaussian mixture fitted to the
+    residuals less their run's mean, plus the runs' common mean, each run weighted alike."""
+    residuals = [run.range - np.linalg.norm(run.a - run.b, axis=1) for run in runs]
+    residuals = [r for r in residuals if len(r)]
+    if len(residuals) < 2:
+        raise ConfigError(f"{len(residuals)} calibration run(s) with ranges: a sensor's calibration needs at least "
+                          "two, the spread of their biases being the bias state's prior")
+    means = np.array([float(r.mean()) for r in residuals])
+    common = float(means.mean())
+    mixture = fit_mixture([r - m + common for r, m in zip(residuals, means)], components)
+    return SensorNoise(mixture, float(np.var(means, ddof=1)), len(residuals), sum(len(r) for r in residuals))
+
+
+def sensor_config_text(sensor: str, calibration: str, noise: SensorNoise, argv: Sequence[str]) -> str:
+    """configs/uwb/<dataset>.yaml: raw_range's density and bias prior, and the pseudo-linear filters' range
+    variance (the residuals' whole variance, the biases' spread included). `sensor` names the sensor
+    ("the murp data set's UWB sensor"), `calibration` says which runs it was fitted to."""
+    rounded = [(float(f"{w:.3g}"), round(m, 3), float(f"{v:.3g}")) for w, m, v in noise.mixture]
+    components = ", ".join(yaml_scalar(c) for c in rounded)
+    bias_variance = float(f"{noise.bias_variance:.3g}")
     return "\n".join([
-        "# Agent parameters for the real UWB data of docs/results/real_uwb.md: every key not named is the",
-        "# default (configs/agent.yaml). The range noise was fitted, without the ground truth of any run scored",
-        "# there, to held-out calibration measurements: " + "; ".join(sets) + ".",
+        f"# Range noise of {sensor}: every key not named is the default (configs/agent.yaml).",
+        f"# Fitted to calibration runs, which no score uses: {calibration} ({noise.runs} runs, {noise.ranges} ranges).",
         "# Regenerate with: python -m lab.uwb_datasets " + " ".join(argv),
         "relative:",
-        f"  range_variance: {mixture_variance(rounded):.4g}  # the fitted density's variance (pseudo-linear filters)",
+        f"  range_variance: {yaml_scalar(float(f'{mixture_variance(rounded) + bias_variance:.4g}'))}  # the residuals' variance, the runs' "
+        "biases included (pseudo-linear filters)",
         "  raw_range:",
-        f"    noise_components: [{components}]  # (weight, mean m, variance m^2), EM fit, each set weighted alike",
+        f"    noise_components: [{components}]  # (weight, mean m, variance m^2): EM fit to the residuals about "
+        "each run's mean, each run weighted alike",
+        f"    bias_variance: {yaml_scalar(bias_variance)}  # variance of the runs' mean residuals: a pair's constant bias, "
+        "estimated as a state",
         "",
     ])
 
@@ -641,55 +671,92 @@ def _config_comment(path: Path | None) -> list[str]:
     return [*lines, ""] if lines else []
 
 
-def write_page(manifests: Sequence[Sequence[Entry]], configs: Sequence[tuple[Path | None, AgentParams]],
-               runs: int, seed: int, out: Path, argv: Sequence[str], engine: Engine | None = None) -> Path:
-    """Replay every run of `manifests` with each config, the runs spread over `engine` (this process if None),
-    and write the page to `out`."""
+def _noise_words(params: AgentParams) -> str:
+    """What a config tells the filters about the range noise, in one sentence."""
+    raw = params.relative.raw_range
+    noise = " + ".join(f"{w:g} N({m:g}, {v:g})" for w, m, v in raw.noise_components)
+    bias = (f", and a constant pair bias of prior variance {raw.bias_variance:g} m^2 estimated with the position"
+            if raw.bias_variance > 0.0 else "")
+    return (f"raw_range assumes {noise} (m, m^2) with a gross-error weight of {raw.gross_error_fraction:g}{bias}; "
+            f"the pseudo-linear filters a range variance of {params.relative.range_variance:g} m^2.")
+
+
+Config = tuple[Path | None, AgentParams]
+
+
+def _section(label: str, chosen: dict[str | None, Config], entries: Sequence[Entry], runs: int, seed: int,
+             engine: Engine) -> tuple[str, list[str], list[Outcome]]:
+    """Replay `entries`, each with its data set's config in `chosen` (the None key: every data set's), and
+    write the page's section: (its summary line, its lines, its outcomes)."""
+    done = []
+
+    def progress(_: int) -> None:
+        done.append(1)
+        print(f"[{len(done)}/{len(entries)}] replayed ({label})", file=sys.stderr)
+
+    def config(entry: Entry) -> Config:
+        return chosen[entry.dataset] if entry.dataset in chosen else chosen[None]
+
+    outcomes = [o for o in engine.map(_score_job, [(e, config(e)[1], runs, seed) for e in entries], progress,
+                                      lambda n: f"{entries[n].dataset}/{entries[n].path.name} ({label})")
+                if o is not None]
+    if not outcomes:
+        raise ConfigError(f"every run raised with {label}: {engine.failures[0].error}")
+    wins = _wins(outcomes)[DEFAULT_ESTIMATOR]
+    total = f"- Noise from {label}: **{DEFAULT_ESTIMATOR} lowest on {_share(wins, len(outcomes))} runs**."
+    described = []
+    for dataset, (path, params) in chosen.items():
+        if dataset is not None and not any(e.dataset == dataset for e in entries):
+            continue
+        prefix = f"**{dataset}** (`{path}`): " if dataset is not None else ""
+        described += [*_config_comment(path), prefix + _noise_words(params), ""]
+    params = next(iter(chosen.values()))[1]
+    lines = [
+        f"## Noise from {label}",
+        "",
+        *described,
+        *_summary(outcomes),
+        "",
+        *_losses(outcomes, params),
+        "",
+        "<details><summary>Every run: time-averaged RMSE (m) of each estimator</summary>",
+        "",
+        _per_run(outcomes),
+        "",
+        "</details>",
+        "",
+    ]
+    return total, lines, outcomes
+
+
+def write_page(manifests: Sequence[Sequence[Entry]], configs: Sequence[Config], runs: int, seed: int, out: Path,
+               argv: Sequence[str], engine: Engine | None = None,
+               sensor_configs: dict[str, Config] | None = None) -> Path:
+    """Replay every run of `manifests` with each config, and, given `sensor_configs` (data set -> config),
+    with each data set's own, the runs spread over `engine` (this process if None); write the page to `out`."""
     if engine is None:
         with Engine() as here:
-            return write_page(manifests, configs, runs, seed, out, argv, here)
+            return write_page(manifests, configs, runs, seed, out, argv, here, sensor_configs)
     entries = [entry for manifest in manifests for entry in manifest]
     if not entries:
         raise ConfigError("no runs: the manifests are empty")
+    missing = sorted({e.dataset for e in entries} - set(sensor_configs or {})) if sensor_configs is not None else []
+    if missing:
+        raise ConfigError(f"no sensor config for {', '.join(missing)}: each data set replayed needs its own "
+                          "(python -m lab.uwb_datasets fit-noise DATASET SOURCE)")
+    chosen: list[tuple[str, dict[str | None, Config]]] = [
+        (f"`{path}`" if path is not None else "the default config (configs/agent.yaml)", {None: (path, params)})
+        for path, params in configs]
+    if sensor_configs is not None:
+        chosen.append(("each data set's calibrated sensor config", dict(sensor_configs)))
     sections: list[str] = []
     totals: list[str] = []
     outcomes_first: list[Outcome] = []
-    for path, params in configs:
-        label = f"`{path}`" if path is not None else "the default config (configs/agent.yaml)"
-        done = []
-
-        def progress(_: int, label=label) -> None:
-            done.append(1)
-            print(f"[{len(done)}/{len(entries)}] replayed ({label})", file=sys.stderr)
-
-        outcomes = [o for o in engine.map(_score_job, [(e, params, runs, seed) for e in entries], progress,
-                                          lambda n: f"{entries[n].dataset}/{entries[n].path.name} ({label})")
-                    if o is not None]
-        if not outcomes:
-            raise ConfigError(f"every run raised with {label}: {engine.failures[0].error}")
+    for label, by_dataset in chosen:
+        total, lines, outcomes = _section(label, by_dataset, entries, runs, seed, engine)
+        totals.append(total)
+        sections += lines
         outcomes_first = outcomes_first or outcomes
-        wins = _wins(outcomes)[DEFAULT_ESTIMATOR]
-        raw = params.relative.raw_range
-        totals.append(f"- Noise from {label}: **{DEFAULT_ESTIMATOR} lowest on {_share(wins, len(outcomes))} runs**.")
-        noise = " + ".join(f"{w:g} N({m:g}, {v:g})" for w, m, v in raw.noise_components)
-        sections += [
-            f"## Noise from {label}",
-            "",
-            *_config_comment(path),
-            (f"raw_range assumes {noise} (m, m^2) with a gross-error weight of {raw.gross_error_fraction:g}; the "
-             f"pseudo-linear filters a range variance of {params.relative.range_variance:g} m^2."),
-            "",
-            *_summary(outcomes),
-            "",
-            *_losses(outcomes, params),
-            "",
-            "<details><summary>Every run: time-averaged RMSE (m) of each estimator</summary>",
-            "",
-            _per_run(outcomes),
-            "",
-            "</details>",
-            "",
-        ]
     command = "python -m lab.uwb_datasets " + " ".join(argv)
     text = "\n".join([
         "# Real UWB ranges: every estimator on public data sets, noise from the config",
@@ -716,6 +783,10 @@ def write_page(manifests: Sequence[Sequence[Entry]], configs: Sequence[tuple[Pat
          "the fixed anchor as end b. docs/real_data.md gives each data set's source and the commands that convert it "
          "(none of the data is kept in this repository)."),
         "",
+        ("A sensor config (configs/uwb/<data set>.yaml, `python -m lab.uwb_datasets fit-noise`) is fitted to its "
+         "data set's calibration runs, which are never scored: "
+         + "; ".join(f"{name}: {words}" for name, words in CALIBRATION.items()) + "."),
+        "",
         ("\\* bias and spread: the mean and the robust spread (1.4826 x median absolute deviation) of the run's "
          "range residuals against its ground truth, reported to explain results; neither is given to any filter."),
         "",
@@ -738,18 +809,25 @@ def _add_convert(commands) -> None:
 
 
 def _add_fit(commands) -> None:
-    parser = commands.add_parser("fit-noise", help="configs/real_uwb.yaml from held-out calibration data")
-    parser.add_argument("--hanyang", type=Path, required=True, help="checkout of cucudasluv/UWB-dataset")
-    parser.add_argument("--murp", type=Path, default=None, help="checkout of mit-acl/murp-datasets")
-    parser.add_argument("--components", type=arguments.positive_int, default=3)
-    parser.add_argument("--out", type=Path, default=None, help="write the config here (default: print it)")
+    parser = commands.add_parser("fit-noise", help="a sensor's noise config from its calibration runs")
+    parser.add_argument("dataset", choices=[*sorted(READERS), "csv"],
+                        help="a data set (its calibration runs), or csv: your own runs as replay CSV files")
+    parser.add_argument("source", type=Path, nargs="+",
+                        help="checkout of the data set's repository; with csv, the replay CSV files")
+    parser.add_argument("--components", type=arguments.positive_int, default=3,
+                        help="Gaussian components of the fitted density (default 3)")
+    parser.add_argument("--out", type=Path, default=None,
+                        help="write the config here, e.g. configs/uwb/DATASET.yaml (default: print it)")
 
 
 def _add_page(commands) -> None:
     parser = commands.add_parser("page", help="replay every run with config noise; write the result page")
     parser.add_argument("dirs", type=Path, nargs="+", help="directories written by `convert`")
     parser.add_argument("--config", type=Path, action="append", default=None,
-                        help="agent parameters, repeatable; default: the built-in defaults (configs/agent.yaml)")
+                        help="agent parameters for every run, repeatable (one section each); default: the "
+                             "built-in defaults (configs/agent.yaml), unless --sensor-configs is given alone")
+    parser.add_argument("--sensor-configs", type=Path, default=None, metavar="DIR",
+                        help="one more section: each data set replayed with DIR/<data set>.yaml (fit-noise)")
     parser.add_argument("--runs", type=arguments.positive_int, default=10,
                         help="Monte Carlo runs per replay (default 10)")
     parser.add_argument("--seed", type=arguments.seed, default=1)
@@ -770,24 +848,32 @@ def main(argv: list[str] | None = None) -> int:
             written = convert(args.dataset, args.source, args.out, args.interval)
             print(f"wrote {len(written)} runs and {MANIFEST} to {args.out}")
         elif args.command == "fit-noise":
-            samples, sets = [hanyang_static_residuals(args.hanyang)], [
-                "the Hanyang set's static measurements (LOS and NLOS, 2-30 m)"]
-            if args.murp is not None:
-                samples.append(murp_calibration_residuals(args.murp))
-                sets.append("MURP's calibration trials 1-12")
-            shown = argv[: argv.index("--out")] + argv[argv.index("--out") + 2:] if "--out" in argv else argv
-            text = real_config_text(fit_mixture(samples, args.components), sets, shown)
+            if args.dataset == "csv":
+                noise = fit_sensor_noise([parse_csv(path) for path in args.source], args.components)
+                sensor, words = "a UWB sensor", "the replay CSVs " + ", ".join(p.name for p in args.source)
+            else:
+                if len(args.source) != 1:
+                    raise ConfigError(f"fit-noise {args.dataset} takes one checkout, got {len(args.source)} paths")
+                noise = fit_sensor_noise(list(calibration_runs(args.dataset, args.source[0])), args.components)
+                sensor = f"the {args.dataset} data set's UWB sensor (docs/results/real_uwb.md)"
+                words = CALIBRATION[args.dataset]
+            text = sensor_config_text(sensor, words, noise, argv)
             if args.out is None:
                 print(text, end="")
             else:
                 args.out.write_text(text, encoding="utf-8")
                 print(f"wrote {args.out}")
         else:
-            params = [(path, load_yaml(AgentParams, path)) for path in args.config] if args.config else [
-                (None, AgentParams())]
+            params = [(path, load_yaml(AgentParams, path)) for path in args.config] if args.config else (
+                [] if args.sensor_configs is not None else [(None, AgentParams())])
+            manifests = [read_manifest(d) for d in args.dirs]
+            sensors = None
+            if args.sensor_configs is not None:
+                sensors = {name: (args.sensor_configs / f"{name}.yaml",
+                                  load_yaml(AgentParams, args.sensor_configs / f"{name}.yaml"))
+                           for name in SOURCES if any(e.dataset == name for m in manifests for e in m)}
             with engine_from(args) as engine:
-                write_page([read_manifest(d) for d in args.dirs], params, args.runs, args.seed, args.out, argv,
-                           engine)
+                write_page(manifests, params, args.runs, args.seed, args.out, argv, engine, sensors)
             print(f"wrote {args.out}")
             return report_failures(engine)
     except ConfigError as error:

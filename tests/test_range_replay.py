@@ -384,12 +384,13 @@ def test_cli_config_sets_the_noise_and_the_truth_variance_is_labelled(tmp_path, 
     t, ranges, a, b = circle_scenario(seed=3, range_std=0.1, duration=12.0)
     csv_path = write_csv(tmp_path / "walk.csv", t, ranges, a, b)
     config = tmp_path / "real.yaml"
-    config.write_text("relative:\n  range_variance: 0.04\n  raw_range:\n    noise_components: [[1.0, 0.1, 0.02]]\n",
-                      encoding="utf-8")
+    config.write_text("relative:\n  range_variance: 0.04\n  raw_range:\n    noise_components: [[1.0, 0.1, 0.02]]\n"
+                      "    bias_variance: 0.01\n", encoding="utf-8")
     assert cli.main(["replay", str(csv_path), "--runs", "1", "--out", str(tmp_path), "--params", str(config)]) == 0
     printed = capsys.readouterr().out
     assert f"range noise: from the config {config}, not from the ground truth" in printed
     assert "range variance: 0.04 m^2" in printed and "density (m, m^2): 1 N(0.1, 0.02)" in printed
+    assert "a constant pair bias estimated as a state, prior variance 0.01 m^2" in printed
 
     assert cli.main(["replay", str(csv_path), "--runs", "1", "--out", str(tmp_path), "--truth-variance"]) == 0
     printed = capsys.readouterr().out

@@ -74,9 +74,13 @@ def test_hanyang_runs_on_a_hand_made_case(tmp_path):
     ranges = [(0.10, repr(math.sqrt(26.0))), (0.15, "9.0"), (0.30, repr(math.sqrt(17.0))), (0.40, ""),
               (0.45, "0.0"), (0.50, "0.5"), (0.70, "7.0")]
     for condition in ("LOS", "NLOS"):
-        _hanyang_case(tmp_path / "Dynamic_measurements" / condition / "Trajectory_A" / "Case_1", ranges)
+        for case in ("Case_1", "Case_2"):
+            _hanyang_case(tmp_path / "Dynamic_measurements" / condition / "Trajectory_A" / case, ranges)
     runs = list(uwb.hanyang_runs(tmp_path))
-    assert [r.name for r in runs] == [f"{c}-case1-{a}" for c in ("los", "nlos") for a in uwb.HANYANG_ANCHORS]
+    # Case 1 calibrates the sensor: never a scored run.
+    assert [r.name for r in runs] == [f"{c}-case2-{a}" for c in ("los", "nlos") for a in uwb.HANYANG_ANCHORS]
+    assert [r.name for r in uwb.calibration_runs("hanyang", tmp_path)] == [
+        f"{c}-case1-{a}" for c in ("los", "nlos") for a in uwb.HANYANG_ANCHORS]
     first = runs[0]
     assert first.condition == "LOS" and first.kind == "tag-anchor"
     np.testing.assert_allclose(first.t, [0.1, 0.3, 0.5], atol=1e-9)
@@ -88,23 +92,13 @@ def test_hanyang_runs_on_a_hand_made_case(tmp_path):
     out = tmp_path / "out"
     written = uwb.convert("hanyang", tmp_path, out)
     assert len(written) == 8
-    log = parse_csv(out / "los-case1-A3.csv")
+    log = parse_csv(out / "los-case2-A3.csv")
     np.testing.assert_allclose(log.t, [0.0, 0.2, 0.4])
     np.testing.assert_allclose(log.range, [5.0, 4.0, 0.0])
     entries = uwb.read_manifest(out)
-    assert [e.path.name for e in entries][:2] == ["los-case1-A3.csv", "los-case1-A5.csv"]
-    assert entries[0].source == ("Dynamic_measurements/LOS/Trajectory_A/Case_1/A3.csv, "
-                                 "Dynamic_measurements/LOS/Trajectory_A/Case_1/trajectory.csv")
-
-
-def test_hanyang_static_residuals_by_hand(tmp_path):
-    header = "timestamp,Distance"
-    # Anchor 2 m high, tag 1 m: planar sqrt(r^2 - 1) - d. r = sqrt(17) at d = 4 m: 0; r = sqrt(27.01) at 5 m:
-    # sqrt(26.01) - 5 = 0.1 m.
-    _write(tmp_path / "Static_measurements/LOS/height_200.0cm/4m.csv", header, [f"1,{math.sqrt(17.0)!r}"])
-    _write(tmp_path / "Static_measurements/NLOS/height_200.0cm/5m.csv", header, [f"1,{math.sqrt(27.01)!r}", "2,"])
-    _write(tmp_path / "Static_measurements/NLOS/height_200.0cm/40m.csv", header, ["1,41.0"])   # beyond 30 m
-    np.testing.assert_allclose(np.sort(uwb.hanyang_static_residuals(tmp_path)), [0.0, 0.1], atol=1e-12)
+    assert [e.path.name for e in entries][:2] == ["los-case2-A3.csv", "los-case2-A5.csv"]
+    assert entries[0].source == ("Dynamic_measurements/LOS/Trajectory_A/Case_2/A3.csv, "
+                                 "Dynamic_measurements/LOS/Trajectory_A/Case_2/trajectory.csv")
 
 
 def test_missing_source_is_a_config_error(tmp_path):
@@ -165,9 +159,9 @@ def test_murp_runs_on_a_hand_made_trial(tmp_path):
     np.testing.assert_allclose(runs[2].range, [3.0, 3.0, 3.0])            # same height: unchanged
     np.testing.assert_allclose(runs[0].a, [[0.0, 0.0]] * 3)
     np.testing.assert_allclose(runs[0].b, [[1.0, 0.0], [1.6, 0.0], [2.2, 0.0]])
-    # The same trials as calibration: planar range minus the true planar distance, 3 - 1, 1.56125 - 1.6, ...
-    residuals = uwb.murp_calibration_residuals(tmp_path, trials=(13,))
-    np.testing.assert_allclose(residuals[:3], [2.0, -0.03875, 0.8], atol=1e-6)
+    # Calibration reads the moving calibration trials 8-12, here absent: the error names the first.
+    with pytest.raises(ConfigError, match="08_base-1_targ-2"):
+        list(uwb.calibration_runs("murp", tmp_path))
 
 
 # ----------------------------------------------------------------------------------------------- noise fit
@@ -189,25 +183,82 @@ def test_mixture_variance_by_hand():
     assert uwb.mixture_variance([(2.0, 0.3, 0.25)]) == pytest.approx(0.25)
 
 
-def test_real_config_text_is_a_valid_agent_config(tmp_path):
-    text = uwb.real_config_text([(0.75, 0.1, 0.01), (0.25, -0.05, 0.002)], ["set A"], ["fit-noise", "--x"])
-    path = tmp_path / "real.yaml"
+def _calibration_run(name: str, residuals: np.ndarray) -> uwb.Run:
+    """A run whose ranges are its true distances (5 m, end b at the origin) plus `residuals`."""
+    a = np.tile((3.0, 4.0), (len(residuals), 1))
+    return uwb.Run(name, "LOS", "tag-anchor", "hand-made", np.arange(len(residuals)) * 0.1, 5.0 + residuals, a,
+                   np.zeros_like(a))
+
+
+def test_fit_sensor_noise_separates_the_pairs_biases_from_the_noise():
+    rng = np.random.default_rng(8)
+    biases = rng.normal(0.1, 0.05, 30)
+    runs = [_calibration_run(f"r{j}", b + rng.normal(0.0, 0.02, 4000)) for j, b in enumerate(biases)]
+    noise = uwb.fit_sensor_noise(runs, components=1)
+    assert (noise.runs, noise.ranges) == (30, 120000)
+    # The bias prior is the runs' means' spread: the drawn biases' sample variance, up to the noise's share in
+    # each mean (0.02^2 / 4000, about 1e-7 against 2.5e-3).
+    assert noise.bias_variance == pytest.approx(np.var(biases, ddof=1), rel=0.02)
+    ((weight, mean, variance),) = noise.mixture
+    # The density is the noise about each run's own mean, centred on the runs' common mean.
+    assert weight == pytest.approx(1.0)
+    assert mean == pytest.approx(biases.mean(), abs=1e-3)
+    assert variance == pytest.approx(0.02 ** 2, rel=0.02)
+
+
+def test_fit_noise_from_your_own_csvs(tmp_path, capsys):
+    rng = np.random.default_rng(9)
+    files = []
+    for j, bias in enumerate((0.05, 0.15, 0.10)):
+        run = _calibration_run(f"cal{j}", bias + rng.normal(0.0, 0.03, 600))
+        files.append(str(uwb.write_run(run, tmp_path)))
+    out = tmp_path / "mine.yaml"
+    assert uwb.main(["fit-noise", "csv", *files, "--components", "1", "--out", str(out)]) == 0
+    params = load_yaml(AgentParams, out)
+    # The three runs' means (0.05, 0.15, 0.10 up to the noise's 0.03 / sqrt(600) and the CSV's millimetres):
+    # sample variance 0.0025.
+    assert params.relative.raw_range.bias_variance == pytest.approx(0.0025, rel=0.1)
+    ((_, mean, variance),) = params.relative.raw_range.noise_components
+    assert mean == pytest.approx(0.10, abs=0.005) and variance == pytest.approx(0.0009, rel=0.15)
+    assert "the replay CSVs cal0.csv, cal1.csv, cal2.csv (3 runs, 1800 ranges)" in out.read_text(encoding="utf-8")
+    # A data set takes one checkout; a bad CSV is a clear error.
+    assert uwb.main(["fit-noise", "murp", str(tmp_path), str(tmp_path)]) == 2
+    assert "takes one checkout" in capsys.readouterr().err
+    (tmp_path / "bad.csv").write_text("t,range\n0,1\n", encoding="utf-8")
+    assert uwb.main(["fit-noise", "csv", str(tmp_path / "bad.csv")]) == 2
+    assert "bad.csv" in capsys.readouterr().err
+
+
+def test_fit_sensor_noise_needs_two_runs():
+    with pytest.raises(ConfigError, match="at least two"):
+        uwb.fit_sensor_noise([_calibration_run("one", np.zeros(10))])
+
+
+def test_sensor_config_text_is_a_valid_agent_config(tmp_path):
+    noise = uwb.SensorNoise(((0.75, 0.1, 0.01), (0.25, -0.05, 0.00002)), 0.004, 5, 800)
+    text = uwb.sensor_config_text("the murp data set's UWB sensor", uwb.CALIBRATION["murp"], noise,
+                                  ["fit-noise", "murp", "src"])
+    path = tmp_path / "murp.yaml"
     path.write_text(text, encoding="utf-8")
     params = load_yaml(AgentParams, path)
-    assert params.relative.raw_range.noise_components == ((0.75, 0.1, 0.01), (0.25, -0.05, 0.002))
-    # 0.75 (0.01 + 0.01) + 0.25 (0.002 + 0.0025) - 0.0625^2
-    assert params.relative.range_variance == pytest.approx(0.015 + 0.001125 - 0.00390625, rel=1e-3)
-    assert "# Regenerate with: python -m lab.uwb_datasets fit-noise --x" in text
+    raw = params.relative.raw_range
+    assert raw.noise_components == ((0.75, 0.1, 0.01), (0.25, -0.05, 2e-05))   # 2e-05 read as a number
+    assert raw.bias_variance == pytest.approx(0.004)
+    # 0.75 (0.01 + 0.01) + 0.25 (0.00002 + 0.0025) - 0.0625^2, plus the biases' variance
+    assert params.relative.range_variance == pytest.approx(0.015 + 0.000630 - 0.00390625 + 0.004, rel=1e-3)
+    assert "# Regenerate with: python -m lab.uwb_datasets fit-noise murp src" in text
+    assert uwb.CALIBRATION["murp"] in text and "(5 runs, 800 ranges)" in text
 
 
-def test_committed_real_config_sets_the_noise_and_nothing_else():
-    path = REPO / "configs" / "real_uwb.yaml"
+@pytest.mark.parametrize("dataset", list(uwb.SOURCES))
+def test_committed_sensor_configs_set_the_noise_and_nothing_else(dataset):
+    path = REPO / "configs" / "uwb" / f"{dataset}.yaml"
     params = load_yaml(AgentParams, path)
-    defaults = AgentParams()
-    assert params.relative.raw_range.noise_components != defaults.relative.raw_range.noise_components
-    assert params.relative.range_variance != defaults.relative.range_variance
+    raw = params.relative.raw_range
+    assert raw.bias_variance > 0.0 and raw.noise_components != AgentParams().relative.raw_range.noise_components
     assert read_yaml(path) == {"relative": {"range_variance": params.relative.range_variance, "raw_range": {
-        "noise_components": [list(c) for c in params.relative.raw_range.noise_components]}}}
+        "noise_components": [list(c) for c in raw.noise_components], "bias_variance": raw.bias_variance}}}
+    assert uwb.CALIBRATION[dataset] in path.read_text(encoding="utf-8")
 
 
 # ----------------------------------------------------------------------------------------------- page
@@ -233,6 +284,40 @@ def test_page_scores_config_noise_and_counts_wins(tmp_path):
     assert "| one |" in text and "| two |" in text
     assert "- Noise from the default config (configs/agent.yaml): **raw_range lowest on" in text
     assert "0.8 N(0, 0.4) + 0.2 N(0, 10)" in text and "Ran on this machine, 1 worker process(es)." in text
+
+
+def test_page_with_each_data_sets_sensor_config(tmp_path, capsys):
+    rng = np.random.default_rng(5)
+    t = np.arange(0.0, 20.0, 0.1)
+    a = np.column_stack([3.0 + 5.0 * np.cos(t * math.pi / 20), 4.0 + 5.0 * np.sin(t * math.pi / 20)])
+    uwb.write_run(uwb.Run("one", "LOS", "tag-anchor", "hand-made", t,
+                          np.linalg.norm(a, axis=1) + 0.1 + rng.normal(0.0, 0.05, len(t)), a, np.zeros_like(a)),
+                  tmp_path)
+    with open(tmp_path / uwb.MANIFEST, "w", encoding="utf-8", newline="") as handle:
+        csv.writer(handle).writerows([("dataset", *uwb.MANIFEST_COLUMNS),
+                                      ("cuhksz", "one.csv", "LOS", "tag-anchor", "hand-made")])
+    configs = tmp_path / "sensors"
+    configs.mkdir()
+    noise = uwb.SensorNoise(((1.0, 0.1, 0.0025),), 0.01, 2, 400)
+    (configs / "cuhksz.yaml").write_text(uwb.sensor_config_text("a sensor", "hand-made", noise, ["fit-noise"]),
+                                         encoding="utf-8")
+    out = tmp_path / "page.md"
+    assert uwb.main(["page", str(tmp_path), "--sensor-configs", str(configs), "--runs", "1", "--out",
+                     str(out)]) == 0
+    text = out.read_text(encoding="utf-8")
+    # Only the sensor section: no --config given.
+    assert "Noise from the default config" not in text
+    assert "- Noise from each data set's calibrated sensor config: **raw_range lowest on" in text
+    assert f"**cuhksz** (`{configs / 'cuhksz.yaml'}`): raw_range assumes 1 N(0.1, 0.0025)" in text
+    assert "a constant pair bias of prior variance 0.01 m^2" in text
+    # A data set without its config: a clear error, nothing written.
+    (configs / "cuhksz.yaml").rename(configs / "hanyang.yaml")
+    out.unlink()
+    assert uwb.main(["page", str(tmp_path), "--sensor-configs", str(configs), "--out", str(out)]) == 2
+    assert "cuhksz.yaml" in capsys.readouterr().err and not out.exists()
+    with pytest.raises(ConfigError, match="no sensor config for cuhksz"):
+        uwb.write_page([uwb.read_manifest(tmp_path)], [], runs=1, seed=1, out=out, argv=["page"],
+                       sensor_configs={"hanyang": (None, AgentParams())})
 
 
 def test_the_data_sets_are_described_where_users_look_for_them():
