@@ -499,18 +499,20 @@ def sensor_config_text(sensor: str, calibration: str, noise: SensorNoise, argv: 
     rounded = [(float(f"{w:.3g}"), round(m, 3), float(f"{v:.3g}")) for w, m, v in noise.mixture]
     components = ", ".join(yaml_scalar(c) for c in rounded)
     bias_variance = float(f"{noise.bias_variance:.3g}")
+    range_variance = float(f"{mixture_variance(rounded) + bias_variance:.4g}")
     return "\n".join([
         f"# Range noise of {sensor}: every key not named is the default (configs/agent.yaml).",
-        f"# Fitted to calibration runs, which no score uses: {calibration} ({noise.runs} runs, {noise.ranges} ranges).",
+        (f"# Fitted to calibration runs, which no score uses: {calibration} ({noise.runs} runs, {noise.ranges} "
+         "ranges)."),
         "# Regenerate with: python -m lab.uwb_datasets " + " ".join(argv),
         "relative:",
-        f"  range_variance: {yaml_scalar(float(f'{mixture_variance(rounded) + bias_variance:.4g}'))}  # the residuals' variance, the runs' "
-        "biases included (pseudo-linear filters)",
+        (f"  range_variance: {yaml_scalar(range_variance)}  # the residuals' variance, the runs' biases included "
+         "(pseudo-linear filters)"),
         "  raw_range:",
-        f"    noise_components: [{components}]  # (weight, mean m, variance m^2): EM fit to the residuals about "
-        "each run's mean, each run weighted alike",
-        f"    bias_variance: {yaml_scalar(bias_variance)}  # variance of the runs' mean residuals: a pair's constant bias, "
-        "estimated as a state",
+        (f"    noise_components: [{components}]  # (weight, mean m, variance m^2): EM fit to the residuals about "
+         "each run's mean, each run weighted alike"),
+        (f"    bias_variance: {yaml_scalar(bias_variance)}  # variance of the runs' mean residuals: a pair's "
+         "constant bias, estimated as a state"),
         "",
     ])
 
@@ -740,6 +742,8 @@ def write_page(manifests: Sequence[Sequence[Entry]], configs: Sequence[Config], 
     entries = [entry for manifest in manifests for entry in manifest]
     if not entries:
         raise ConfigError("no runs: the manifests are empty")
+    if not configs and sensor_configs is None:
+        raise ConfigError("no config to replay with: give a config or the sensor configs")
     missing = sorted({e.dataset for e in entries} - set(sensor_configs or {})) if sensor_configs is not None else []
     if missing:
         raise ConfigError(f"no sensor config for {', '.join(missing)}: each data set replayed needs its own "

@@ -318,6 +318,8 @@ def test_page_with_each_data_sets_sensor_config(tmp_path, capsys):
     with pytest.raises(ConfigError, match="no sensor config for cuhksz"):
         uwb.write_page([uwb.read_manifest(tmp_path)], [], runs=1, seed=1, out=out, argv=["page"],
                        sensor_configs={"hanyang": (None, AgentParams())})
+    with pytest.raises(ConfigError, match="no config to replay with"):
+        uwb.write_page([uwb.read_manifest(tmp_path)], [], runs=1, seed=1, out=out, argv=["page"])
 
 
 def test_the_data_sets_are_described_where_users_look_for_them():
