@@ -866,7 +866,9 @@ def main(argv: list[str] | None = None) -> int:
                 print(text, end="")
             else:
                 args.out.write_text(text, encoding="utf-8")
-                print(f"wrote {args.out}")
+                spread = math.sqrt(mixture_variance(noise.mixture))
+                print(f"wrote {args.out}: {noise.runs} calibration runs, {noise.ranges} ranges; the runs' biases "
+                      f"spread {math.sqrt(noise.bias_variance):.3f} m (sd), the rest {spread:.3f} m (sd)")
         else:
             params = [(path, load_yaml(AgentParams, path)) for path in args.config] if args.config else (
                 [] if args.sensor_configs is not None else [(None, AgentParams())])

@@ -214,6 +214,10 @@ def test_fit_noise_from_your_own_csvs(tmp_path, capsys):
         files.append(str(uwb.write_run(run, tmp_path)))
     out = tmp_path / "mine.yaml"
     assert uwb.main(["fit-noise", "csv", *files, "--components", "1", "--out", str(out)]) == 0
+    # What was fitted, in one line: sd of the biases sqrt(0.0025) = 0.05 m, of the rest 0.03 m.
+    printed = capsys.readouterr().out
+    assert f"wrote {out}: 3 calibration runs, 1800 ranges; the runs' biases spread 0.05" in printed
+    assert "the rest 0.03" in printed
     params = load_yaml(AgentParams, out)
     # The three runs' means (0.05, 0.15, 0.10 up to the noise's 0.03 / sqrt(600) and the CSV's millimetres):
     # sample variance 0.0025.
