@@ -168,9 +168,15 @@ def _numbered_rows(handle) -> list[tuple[int, list[str]]]:
     return out
 
 
+def range_residuals(log) -> np.ndarray:
+    """The range residuals range - |a - b| against the ground truth, of a RangeLog or anything with its `range`,
+    `a` and `b` (a converted data set's run)."""
+    return log.range - np.linalg.norm(log.a - log.b, axis=1)
+
+
 def range_residual_stats(log: RangeLog) -> tuple[float, float]:
     """(mean, sample variance) of the range residuals range - |a - b| against the ground truth."""
-    residual = log.range - np.linalg.norm(log.truth, axis=1)
+    residual = range_residuals(log)
     return float(np.mean(residual)), float(np.var(residual, ddof=1))
 
 

@@ -50,7 +50,7 @@ from lab import arguments
 from lab.estimator_plots import LABELS
 from lab.mixture_fit import em_mixture
 from lab.parallel import Engine, add_engine_arguments, campaign_notes, engine_from, report_failures
-from lab.range_replay import RangeLog, parse_csv, replay
+from lab.range_replay import RangeLog, parse_csv, range_residuals, replay
 from lab.report import markdown_table
 
 DEFAULT_ESTIMATOR = AgentParams().relative.estimator
@@ -481,7 +481,7 @@ def fit_sensor_noise(runs: Sequence[Run | RangeLog], components: int = 3) -> Sen
     pair of antennas, one session) has its own constant bias b, whose spread over the runs is b's prior
     variance (the sample variance of the runs' mean residuals), and e is the Gaussian mixture fitted to the
     residuals less their run's mean, plus the runs' common mean, each run weighted alike."""
-    residuals = [run.range - np.linalg.norm(run.a - run.b, axis=1) for run in runs]
+    residuals = [range_residuals(run) for run in runs]
     residuals = [r for r in residuals if len(r)]
     if len(residuals) < 2:
         raise ConfigError(f"{len(residuals)} calibration run(s) with ranges: a sensor's calibration needs at least "
@@ -550,7 +550,7 @@ def score(entry: Entry, params: AgentParams, runs: int, seed: int) -> Outcome:
     rmse = {name: result.time_averaged_rmse(name) for name in ESTIMATOR_NAMES}
     late = {name: result.time_averaged_rmse(name, LATE) for name in ESTIMATOR_NAMES}
     interval = float(np.median(np.diff(log.t)))
-    residual = log.range - np.linalg.norm(log.truth, axis=1)
+    residual = range_residuals(log)
     spread = 1.4826 * float(np.median(np.abs(residual - np.median(residual))))
     debiased = None
     if min(rmse, key=rmse.get) != DEFAULT_ESTIMATOR:
@@ -875,9 +875,9 @@ def main(argv: list[str] | None = None) -> int:
             manifests = [read_manifest(d) for d in args.dirs]
             sensors = None
             if args.sensor_configs is not None:
-                sensors = {name: (args.sensor_configs / f"{name}.yaml",
-                                  load_yaml(AgentParams, args.sensor_configs / f"{name}.yaml"))
-                           for name in SOURCES if any(e.dataset == name for m in manifests for e in m)}
+                replayed = {e.dataset for m in manifests for e in m}
+                paths = [args.sensor_configs / f"{name}.yaml" for name in SOURCES if name in replayed]
+                sensors = {path.stem: (path, load_yaml(AgentParams, path)) for path in paths}
             with engine_from(args) as engine:
                 write_page(manifests, params, args.runs, args.seed, args.out, argv, engine, sensors)
             print(f"wrote {args.out}")

@@ -580,12 +580,13 @@ class RawRange(RelativePositionEstimator):
             evidence = math.inf
         self._evidence = evidence
         self._px, self._py = bx, by
-        if evidence >= p.ambiguity_threshold and largest <= p.fix_max_variance and self._consistent:
+        ready = evidence >= p.ambiguity_threshold and self._consistent
+        if ready and largest <= p.fix_max_variance:
             # About to fix: the Gaussian it hands to tracking must not claim more than the window's cost
             # supports out in its tails (a flat or bent likelihood along the path); widened, it may have to wait.
             c11, c12, c22 = batch.widened(bx, by, bb, c11, c12, c22)
             largest = _largest_eigenvalue(c11, c12, c22)
-        if evidence >= p.ambiguity_threshold and largest <= p.fix_max_variance and self._consistent:
+        if ready and largest <= p.fix_max_variance:
             self._fixed = True
             self._alt = None
             self._window = []
