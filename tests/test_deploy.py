@@ -15,12 +15,13 @@ import yaml
 import zenoh
 from conftest import free_ports, wait_until
 
-from agent.runtime.zenoh_session import zenoh_config
+from agent.runtime.zenoh_session import config_from_file, zenoh_config
 from agent.shell.settings import NodeSettings
 from driver_bridge.node import DriverSettings
 from sim_bridge.fleet import free_port
 from usv_deploy.inventory import LOG_ROOT, Inventory, agent_settings, driver_settings, render, render_router
 from usv_deploy.router import run_router
+from usv_deploy.security import secure_config
 
 ROOT = Path(__file__).resolve().parents[1]
 DEPLOY = ROOT / "deploy"
@@ -136,7 +137,8 @@ def test_peer_topology_as_rendered_links_two_boats():
 def test_router_topology_as_rendered_links_clients_through_the_router(tmp_path):
     port = free_port()
     fleet = inventory(topology="router", router={"address": "127.0.0.1", "port": port})
-    config = render_router(fleet, tmp_path)
+    config, missing = render_router(fleet, tmp_path)
+    assert missing == []                                   # no TLS: no certificates to copy
     ready, stopping = threading.Event(), threading.Event()
     router = threading.Thread(target=run_router, args=(config, []), kwargs={"ready": ready, "stopping": stopping},
                               daemon=True)
@@ -154,10 +156,20 @@ def test_router_topology_as_rendered_links_clients_through_the_router(tmp_path):
         router.join(10)
 
 
+def secure_inventory(folder: Path, port: int = 7447, address: str = "10.10.0.1") -> Path:
+    """The example TLS inventory copied into `folder` (its `tls: certs` then means `folder/certs`)."""
+    data = yaml.safe_load((DEPLOY / "fleet.shore-router.example.yaml").read_text())
+    data["router"] = {"address": address, "port": port}
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / "fleet.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
 def test_a_secure_fleet_renders_tls_configs_and_certificates(tmp_path):
     pytest.importorskip("cryptography")
-    inventory_path = DEPLOY / "fleet.shore-router.example.yaml"
-    made = usv_deploy("certs", "--inventory", str(inventory_path), "--out", str(tmp_path / "certs"))
+    inventory_path = secure_inventory(tmp_path)
+    made = usv_deploy("certs", "--inventory", str(inventory_path))     # into the inventory's tls folder
     assert made.returncode == 0, made.stderr
     for name in ("ca", "router", "operator", "vessel-1", "vessel-2", "vessel-3"):
         assert (tmp_path / "certs" / f"{name}.pem").exists(), name
@@ -174,10 +186,59 @@ def test_a_secure_fleet_renders_tls_configs_and_certificates(tmp_path):
     router = json.loads((tmp_path / "rendered" / "router" / "router.json5").read_text())
     assert router["access_control"]["enabled"] and router["access_control"]["default_permission"] == "deny"
     assert router["listen"]["endpoints"] == ["tls/0.0.0.0:7447"]
+    # The router's folder is whole: its certificates beside it, named relative to the file.
+    assert router["transport"]["link"]["tls"]["listen_private_key"] == "certs/router-key.pem"
+    copied = tmp_path / "rendered" / "router" / "certs"
+    assert sorted(p.name for p in copied.iterdir()) == sorted(
+        ["ca.pem", "router.pem", "router-key.pem", "operator.pem", "operator-key.pem"])
+    assert (copied / "router-key.pem").stat().st_mode & 0o077 == 0
     operator = json.loads((tmp_path / "rendered" / "router" / "operator.json5").read_text())
-    assert operator["transport"]["link"]["tls"]["connect_certificate"].endswith("operator.pem")
+    assert operator["transport"]["link"]["tls"]["connect_certificate"] == "certs/operator.pem"
     for text in ((boat / "zenoh.json5").read_text(), json.dumps(router), json.dumps(operator)):
         zenoh.Config.from_json5(text)                     # each one is a configuration Zenoh accepts
     # The agent and the driver bridge both read the same Zenoh file through ZENOH_CONFIG.
     agent = NodeSettings.model_validate(yaml.safe_load((boat / "agent.yaml").read_text()))
     assert agent.zenoh.connect == ["tls/10.10.0.1:7447"]
+
+
+def test_render_says_which_router_certificates_it_could_not_find(tmp_path):
+    inventory_path = secure_inventory(tmp_path)                       # no certificates made
+    rendered = usv_deploy("render", str(inventory_path), "--all", "--out", str(tmp_path / "rendered"))
+    assert rendered.returncode == 0, rendered.stderr
+    assert "ca.pem, router.pem, router-key.pem, operator.pem, operator-key.pem not found in" in rendered.stderr
+    assert str(tmp_path / "rendered" / "router" / "certs") in rendered.stderr
+    # Started anyway, the router refuses in one line that names the missing file, without a traceback.
+    started = usv_deploy("router", "--config", str(tmp_path / "rendered" / "router" / "router.json5"))
+    assert started.returncode == 2 and "Traceback" not in started.stderr
+    assert "root_ca_certificate 'certs/ca.pem' is not a file" in started.stderr
+
+
+@pytest.mark.slow
+def test_the_secure_router_and_the_operator_start_from_any_directory(tmp_path):
+    """As the systemd unit starts it (working directory /), and with the operator's rendered file from another
+    directory: the certificate paths are read from each file's folder, not from where the process runs."""
+    pytest.importorskip("cryptography")
+    port = free_port()
+    inventory_path = secure_inventory(tmp_path / "fleet", port=port, address="127.0.0.1")
+    assert usv_deploy("certs", "--inventory", str(inventory_path)).returncode == 0
+    rendered = usv_deploy("render", str(inventory_path), "--all", "--out", str(tmp_path / "rendered"))
+    assert rendered.returncode == 0 and "warning" not in rendered.stderr, rendered.stderr
+    folder = tmp_path / "rendered" / "router"
+    router = subprocess.Popen([sys.executable, "-m", "usv_deploy", "router", "--config", str(folder / "router.json5")],
+                              cwd="/", stderr=subprocess.PIPE, text=True)
+    try:
+        assert "usv-router: running" in router.stderr.readline()
+        # The operator's station (relative paths, read from its file's folder) and vessel 1 with its own
+        # certificate: what the operator says under mission/** reaches the vessel through the router.
+        vessel_certs = {"ca": {"cert": str(tmp_path / "fleet" / "certs" / "ca.pem")},
+                        "vessel-1": {"cert": str(tmp_path / "fleet" / "certs" / "vessel-1.pem"),
+                                     "key": str(tmp_path / "fleet" / "certs" / "vessel-1-key.pem")}}
+        vessel = secure_config(vessel_certs, "vessel-1", "client", [], [f"tls/127.0.0.1:{port}"], ["1", "2", "3"])
+        with zenoh.open(config_from_file(folder / "operator.json5")) as operator, \
+                zenoh.open(zenoh.Config.from_json5(json.dumps(vessel))) as boat:
+            got = []
+            boat.declare_subscriber("mission/all", lambda sample: got.append(sample.payload.to_bytes()))
+            assert wait_until(lambda: operator.put("mission/all", b"hold") or bool(got), timeout=20, interval=0.1)
+    finally:
+        router.terminate()
+        assert router.wait(15) == 0

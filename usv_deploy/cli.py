@@ -1,7 +1,7 @@
 """`usv-deploy`: what an operator runs to put the fleet on boats (also `python -m usv_deploy`).
 
     usv-deploy render INVENTORY (--vessel ID | --all) --out DIR   each vessel's configuration files
-    usv-deploy certs --out DIR (--inventory FILE | --vessels ID ...) [--host H ...]
+    usv-deploy certs [--out DIR] (--inventory FILE | --vessels ID ...) [--host H ...]
                                                                   a test CA and per-vessel certificates
     usv-deploy router [--config FILE] [--listen ENDPOINT ...]     the shore router (Zenoh, router mode)
 
@@ -30,7 +30,8 @@ def build_parser() -> argparse.ArgumentParser:
     render.add_argument("--out", type=Path, required=True, help="where the files go")
     render.set_defaults(handler=_render)
     certs = commands.add_parser("certs", help="a test CA and certificates for the router, vessels and operator")
-    certs.add_argument("--out", type=Path, required=True, help="folder for the keys and certificates")
+    certs.add_argument("--out", type=Path, default=None,
+                       help="folder for the keys and certificates (default: the inventory's tls folder)")
     names = certs.add_mutually_exclusive_group(required=True)
     names.add_argument("--inventory", type=Path, help="take the vessel ids (and router address) from it")
     names.add_argument("--vessels", nargs="+", help="vessel ids")
@@ -58,7 +59,11 @@ def _render(args) -> int:
     else:
         written = [path for v in inventory.vessels for path in render(inventory, v.id, args.out / v.id)]
         if inventory.router is not None:
-            written.append(render_router(inventory, args.out / "router"))
+            router, missing = render_router(inventory, args.out / "router")
+            written.append(router)
+            if missing:
+                print(f"usv-deploy: warning: {', '.join(missing)} not found in {inventory.tls} (the inventory's tls "
+                      f"folder): put them in {router.parent / 'certs'} before starting the router", file=sys.stderr)
     for path in written:
         print(path)
     return 0
@@ -69,14 +74,19 @@ def _certs(args) -> int:
     from usv_deploy.certs import make_certificates
 
     hosts = list(args.host)
+    out = args.out
     if args.inventory is not None:
         inventory = load_inventory(args.inventory)
+        out = out if out is not None or inventory.tls is None else Path(inventory.tls)
         vessels = [v.id for v in inventory.vessels]
         if inventory.router is not None:
             hosts.append(inventory.router.address)
     else:
         vessels = args.vessels
-    made = make_certificates(args.out, vessels, hosts=hosts or None)
+    if out is None:
+        print("usv-deploy certs: give --out DIR (or an --inventory with a tls folder)", file=sys.stderr)
+        return 2
+    made = make_certificates(out, vessels, hosts=hosts or None)
     for name, paths in made.items():
         print(f"{name}: {', '.join(str(p) for p in paths.values())}")
     print("Test certificates: keep ca-key.pem off the boats; for a real fleet use your organisation's CA.")

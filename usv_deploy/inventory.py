@@ -16,6 +16,8 @@ from __future__ import annotations
 
 import copy
 import json
+import os
+import shutil
 from pathlib import Path
 from typing import Literal
 
@@ -59,8 +61,8 @@ class Inventory(StrictModel):
     topology: Literal["peer", "router"] = "peer"
     router: Endpoint | None = Field(None, description="the shore router (topology router)")
     operator: Endpoint | None = Field(None, description="the operator's station")
-    tls: str | None = Field(None, description="folder of the fleet's certificates (usv-deploy certs); on a boat "
-                            "they are installed in /etc/usv/<id>/certs")
+    tls: str | None = Field(None, description="folder of the fleet's certificates (usv-deploy certs), relative to "
+                            "the inventory's folder; on a boat they are installed in /etc/usv/<id>/certs")
     vessels: list[Vessel] = Field(min_length=1)
     agent: dict = Field(default_factory=dict, description="agent parameters (AgentParams) of every vessel")
     driver: dict = Field(default_factory=dict, description="driver settings (DriverSettings) of every vessel")
@@ -84,7 +86,12 @@ class Inventory(StrictModel):
 
 
 def load_inventory(path: str | Path) -> Inventory:
-    return load_yaml(Inventory, path)
+    """The inventory in `path`; its `tls` folder made absolute against the inventory's own folder."""
+    inventory = load_yaml(Inventory, path)
+    if inventory.tls is not None:
+        folder = (Path(path).parent / inventory.tls).resolve()
+        inventory = inventory.model_copy(update={"tls": str(folder)})
+    return inventory
 
 
 def _zenoh(inventory: Inventory, vessel: Vessel, port_offset: int) -> dict:
@@ -157,21 +164,28 @@ def _certificate_names(vessel_id: str) -> dict[str, dict[str, str]]:
     return {"ca": {"cert": "ca.pem"}, name: {"cert": f"{name}.pem", "key": f"{name}-key.pem"}}
 
 
-def render_router(inventory: Inventory, out: Path, certs_dir: str | None = None) -> Path:
+ROUTER_CERTS = ("ca.pem", "router.pem", "router-key.pem", "operator.pem", "operator-key.pem")
+
+
+def render_router(inventory: Inventory, out: Path, certs_dir: str | None = None) -> tuple[Path, list[str]]:
     """The shore router's Zenoh configuration (`usv-deploy router --config`) and, with TLS, the operator's
-    (`operator.json5`, for ZENOH_CONFIG on the operator's station)."""
+    (`operator.json5`, for ZENOH_CONFIG on the operator's station). With TLS, the router's and the operator's
+    certificates are copied from the inventory's `tls` folder (or `certs_dir`) into `out/certs/`, which both
+    files name relative to themselves: the folder is whole, to be copied as it is (to /etc/usv/router/ for the
+    systemd unit) and started from any directory. Returns the router's file and the certificates that were
+    not found to copy (to be put in `out/certs/` by hand)."""
     if inventory.router is None:
         raise ValueError("the inventory has no router")
     out.mkdir(parents=True, exist_ok=True)
     listen = [f"{'tls' if inventory.tls else 'tcp'}/0.0.0.0:{inventory.router.port}"]
     vessels = [v.id for v in inventory.vessels]
+    missing: list[str] = []
     if inventory.tls:
-        folder = certs_dir or inventory.tls
-        certs = {"ca": {"cert": f"{folder}/ca.pem"},
-                 "router": {"cert": f"{folder}/router.pem", "key": f"{folder}/router-key.pem"}}
+        missing = _copy_certificates(Path(certs_dir or inventory.tls), out / "certs")
+        certs = {"ca": {"cert": "certs/ca.pem"}, "router": {"cert": "certs/router.pem", "key": "certs/router-key.pem"}}
         config = secure_config(certs, "router", "router", listen, [], vessels)
         # The operator's station, a client like the boats, with the one certificate that may change the mission.
-        operator = {"ca": certs["ca"], "operator": {"cert": f"{folder}/operator.pem", "key": f"{folder}/operator-key.pem"}}
+        operator = {"ca": certs["ca"], "operator": {"cert": "certs/operator.pem", "key": "certs/operator-key.pem"}}
         connect = [f"tls/{inventory.router.address}:{inventory.router.port}"]
         (out / "operator.json5").write_text(json.dumps(
             secure_config(operator, "operator", "client", [], connect, vessels), indent=2))
@@ -179,4 +193,19 @@ def render_router(inventory: Inventory, out: Path, certs_dir: str | None = None)
         config = {"mode": "router", "listen": {"endpoints": listen}, "scouting": {"multicast": {"enabled": False}}}
     path = out / "router.json5"
     path.write_text(json.dumps(config, indent=2))
-    return path
+    return path, missing
+
+
+def _copy_certificates(source: Path, target: Path) -> list[str]:
+    """Copy the router's and operator's certificates from `source` into `target` (keys readable by the owner
+    only); the names not found in `source`."""
+    target.mkdir(parents=True, exist_ok=True)
+    missing = []
+    for name in ROUTER_CERTS:
+        if not (source / name).is_file():
+            missing.append(name)
+            continue
+        shutil.copyfile(source / name, target / name)
+        if name.endswith("-key.pem"):
+            os.chmod(target / name, 0o600)
+    return missing

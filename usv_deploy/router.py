@@ -2,7 +2,8 @@
 
 zenohd is not packaged for every registry a boat's PC or a shore laptop can reach, and a router is only a
 session with `mode: router`, so the project starts one itself from a Zenoh configuration file (see
-deploy/zenoh/). It runs until SIGINT or SIGTERM.
+deploy/zenoh/). Certificate paths in the file are read from the file's folder, so it starts from any working
+directory. It runs until SIGINT or SIGTERM.
 """
 
 from __future__ import annotations
@@ -15,10 +16,12 @@ from pathlib import Path
 
 import zenoh
 
+from agent.runtime.zenoh_session import config_from_file
+
 
 def router_config(config_file: Path | None, listen: list[str]):
     """The router's zenoh.Config: the file if given, else plain TCP on `listen`; mode is always router."""
-    config = zenoh.Config.from_file(str(config_file)) if config_file is not None else zenoh.Config()
+    config = config_from_file(config_file, "--config") if config_file is not None else zenoh.Config()
     config.insert_json5("mode", json.dumps("router"))
     if listen:
         config.insert_json5("listen/endpoints", json.dumps(listen))

@@ -7,6 +7,10 @@ and the session's configuration, made in two layers:
    e.g. `mode="client";connect/endpoints=["tcp/10.0.0.2:7447"]`, to change a key or two without a file.
    (A `;` inside a quoted string or brackets belongs to the value: an endpoint's configuration may hold one.)
 
+Certificate and key paths in a file are read relative to the file's own folder (Zenoh itself would read them
+relative to the working directory), so a rendered folder can be started from anywhere: `config_from_file`.
+A named certificate or key that does not exist is refused before Zenoh sees it.
+
 A bad file or override is a `ConfigError` of one line. Zenoh's own log goes to stderr: errors only, unless
 `RUST_LOG` asks for more (`RUST_LOG=zenoh=debug` to debug a boat's link).
 """
@@ -124,11 +128,32 @@ def _split_outside_values(text: str) -> list[str]:
     return [*parts, text[start:]]
 
 
-def _from_file(path: str) -> zenoh.Config:
+TLS_FILES = tuple(f"transport/link/tls/{key}" for key in (
+    "root_ca_certificate", "listen_certificate", "listen_private_key", "connect_certificate", "connect_private_key"))
+
+
+def config_from_file(path: str | os.PathLike, name: str = FILE_VARIABLE) -> zenoh.Config:
+    """A Zenoh configuration file, its TLS file paths made absolute against the file's folder (see above);
+    ConfigError of one line, headed `name=path`, if Zenoh refuses the file or a named TLS file is missing."""
     try:
-        return zenoh.Config.from_file(path)
+        config = zenoh.Config.from_file(str(path))
     except zenoh.ZError as error:
-        raise ConfigError(f"{FILE_VARIABLE}={path}: {_reason(error)}") from None
+        raise ConfigError(f"{name}={path}: {_reason(error)}") from None
+    folder = os.path.dirname(os.path.abspath(path))
+    for key in TLS_FILES:
+        value = json.loads(config.get_json(key))
+        if not isinstance(value, str) or not value:
+            continue
+        resolved = os.path.normpath(os.path.join(folder, value))   # an absolute value stays as it is
+        if not os.path.isfile(resolved):
+            raise ConfigError(f"{name}={path}: {key.rsplit('/', 1)[1]} {value!r} is not a file "
+                              f"(looked for {resolved}; relative paths are read from the file's folder)")
+        config.insert_json5(key, json.dumps(resolved))
+    return config
+
+
+def _from_file(path: str) -> zenoh.Config:
+    return config_from_file(path)
 
 
 def _from_settings(settings: ZenohSettings) -> zenoh.Config:
