@@ -19,7 +19,16 @@ from agent.runtime.zenoh_session import config_from_file, zenoh_config
 from agent.shell.settings import NodeSettings
 from driver_bridge.node import DriverSettings
 from sim_bridge.fleet import free_port
-from usv_deploy.inventory import LOG_ROOT, Inventory, agent_settings, driver_settings, render, render_router
+from usv_deploy.inventory import (
+    LOG_ROOT,
+    Inventory,
+    agent_settings,
+    driver_settings,
+    load_inventory,
+    missing_devices,
+    render,
+    render_router,
+)
 from usv_deploy.router import run_router
 from usv_deploy.security import secure_config
 
@@ -242,3 +251,19 @@ def test_the_secure_router_and_the_operator_start_from_any_directory(tmp_path):
     finally:
         router.terminate()
         assert router.wait(15) == 0
+
+
+def test_render_warns_of_each_device_a_vessel_lacks(tmp_path):
+    data = yaml.safe_load((DEPLOY / "fleet.example.yaml").read_text())
+    del data["vessels"][1]["devices"]["camera"]
+    path = tmp_path / "fleet.yaml"
+    path.write_text(yaml.safe_dump(data))
+    rendered = usv_deploy("render", str(path), "--all", "--out", str(tmp_path / "rendered"))
+    assert rendered.returncode == 0, rendered.stderr
+    assert "warning: vessel 2 has no camera device: no bearings: it can never see the target" in rendered.stderr
+    assert "vessel 1 has no" not in rendered.stderr and "vessel 3 has no" not in rendered.stderr
+    one = usv_deploy("render", str(path), "--vessel", "1", "--out", str(tmp_path / "one"))
+    assert "device" not in one.stderr                   # only the vessel rendered is spoken of
+    # Both examples give every boat the four devices.
+    for example in ("fleet.example.yaml", "fleet.shore-router.example.yaml"):
+        assert missing_devices(load_inventory(DEPLOY / example)) == [], example

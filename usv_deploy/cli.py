@@ -15,7 +15,7 @@ import sys
 from pathlib import Path
 
 from agent.config import ConfigError
-from usv_deploy.inventory import load_inventory, render, render_router
+from usv_deploy.inventory import load_inventory, missing_devices, render, render_router
 from usv_deploy.router import run_router
 
 
@@ -54,6 +54,9 @@ def _render(args) -> int:
     inventory = load_inventory(args.inventory)
     if inventory.tls is None:
         print(UNPROTECTED.format(fleet=inventory.fleet), file=sys.stderr)
+    for line in missing_devices(inventory):
+        if args.all or line.startswith(f"vessel {args.vessel} "):
+            print(f"usv-deploy: warning: {line}", file=sys.stderr)
     if args.vessel is not None:
         written = render(inventory, args.vessel, args.out)
     else:

@@ -85,6 +85,22 @@ class Inventory(StrictModel):
         raise ValueError(f"vessel {vessel_id!r} is not in the inventory (there: {', '.join(v.id for v in self.vessels)})")
 
 
+# What a vessel cannot do without each device: a render says so for every device left out.
+WITHOUT_DEVICE = {
+    "uwb": "no ranges: it cannot localise its neighbours",
+    "odometry": "no odometry: it cannot localise anything and stands still",
+    "camera": "no bearings: it can never see the target and circles nothing",
+    "thrusters": "no thrusters: its commands move nothing",
+}
+
+
+def missing_devices(inventory: Inventory) -> list[str]:
+    """One line per device a vessel lacks, saying what that vessel then cannot do."""
+    return [f"vessel {vessel.id} has no {name} device: {consequence}"
+            for vessel in inventory.vessels for name, consequence in WITHOUT_DEVICE.items()
+            if getattr(vessel.devices, name) is None]
+
+
 def load_inventory(path: str | Path) -> Inventory:
     """The inventory in `path`; its `tls` folder made absolute against the inventory's own folder."""
     inventory = load_yaml(Inventory, path)
