@@ -116,7 +116,7 @@ def build_parser() -> argparse.ArgumentParser:
     again.add_argument("log", type=Path, help="an agent's MCAP log")
     again.add_argument("--out", type=Path, required=True, help="the new MCAP file")
     again.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                       help="change one agent parameter, e.g. relative.estimator=ekf or "
+                       help="change one agent parameter, e.g. relative.estimator=mckf or "
                             "relative.mckf.bandwidths=[9999,9999,1.5] (repeatable)")
     again.add_argument("--params", type=Path, default=None, help="YAML of agent parameters to change")
     again.add_argument("--start", type=float, default=None, metavar="SECONDS",

@@ -46,13 +46,13 @@ class ReplayResult:
 
 
 def parse_assignments(assignments: list[str]) -> dict:
-    """`relative.estimator=ekf` style settings of the agent's parameters as a nested mapping; values are
+    """`relative.estimator=mckf` style settings of the agent's parameters as a nested mapping; values are
     read as YAML (so 0.8 is a number, [1, 2] a list)."""
     changes: dict = {}
     for item in assignments:
         path, sep, text = item.partition("=")
         if not sep or not path.strip():
-            raise ConfigError(f"--set {item!r}: expected key.path=value, e.g. relative.estimator=ekf")
+            raise ConfigError(f"--set {item!r}: expected key.path=value, e.g. relative.estimator=mckf")
         node = changes
         keys = path.strip().split(".")
         for name in keys[:-1]:
