@@ -15,7 +15,8 @@ or the sim bridge's and agents' logs):
   the comparison is with that tick's truth as it is;
 - e_c(k) = |(1/n) sum_i p_i - p_o|: formation centre against the target;
 - settling time: the first time from which every vessel's distance to the target stays within +-10 % of r*
-  to the end of the run, in seconds from the mission's start (mission_log.reader.mission_start_ns: sim
+  to the end of the run, r* being the circle in force for that vessel at each moment (its statuses say which:
+  the configured one, then what the operator's `set`s made of it; mission_log.reader.RadiusSchedule), in seconds from the mission's start (mission_log.reader.mission_start_ns: sim
   time 0 in simulation; on the wall clock, the first tick logged, not the Unix epoch);
 - the mean tick compute time.
 "Mean" in the tables is the time average over the whole run, as in the paper's Tables II-IV.
@@ -39,7 +40,7 @@ from itertools import combinations
 import numpy as np
 from scipy.stats import chi2
 
-from mission_log.reader import RunLog, agent_radius, mission_start_ns
+from mission_log.reader import RunLog, mission_start_ns, radius_schedule
 from mission_log.series import beliefs_of, centroid_error, estimate_errors, truth_of
 
 NIS_BOUND_95 = float(chi2.ppf(0.95, 1))
@@ -57,9 +58,9 @@ class RunMetrics:
     p99_tick_ms: float
 
 
-def settling_time(time: np.ndarray, radii: np.ndarray, radius: float, band: float = SETTLING_BAND
-                  ) -> float | None:
-    """First time from which all radii (k, n; NaN for absent vessels) stay within (1 +- band) r*."""
+def settling_time(time: np.ndarray, radii: np.ndarray, radius, band: float = SETTLING_BAND) -> float | None:
+    """First time from which all radii (k, n; NaN for absent vessels) stay within (1 +- band) r*; `radius` is
+    r*, one value or one per tick and vessel (k, n)."""
     inside = np.all(np.isnan(radii) | (np.abs(radii - radius) <= band * radius), axis=1)
     if not inside[-1]:
         return None
@@ -95,10 +96,11 @@ def summarise(time, e_ij, e_io, e_io_velocity, e_c, radii, radius, tick_seconds)
 
 
 
-def truth_metrics(run: RunLog, radius: float) -> dict:
+def truth_metrics(run: RunLog, radius: float | None = None) -> dict:
     """The paper's metrics from the logs: worst e_ij and e_io over the vessels at each tick (each estimate
     against the truth at its true time, see the module's docstring), e_c, settling time (s from the
-    mission's start), and their means. Needs the sim bridge's log."""
+    mission's start), and their means. Needs the sim bridge's log. `radius`: judge settling against this r*
+    throughout; None: against each vessel's r* in force at each tick, from its statuses."""
     truth = truth_of(run.sim)
     start_ns = mission_start_ns(run)
     vessels = list(truth.vessels)
@@ -112,12 +114,30 @@ def truth_metrics(run: RunLog, radius: float) -> dict:
         e_ij, e_io = np.fmax(e_ij, worst_ij), np.fmax(e_io, error_io)   # fmax: a vessel absent at a tick does not count
     positions = np.stack([truth.vessels[v] for v in vessels], axis=1)   # (T, n, 2)
     radii = np.linalg.norm(positions - truth.target[:, None, :], axis=-1)
+    schedule = radius_schedule(run)
+    if radius is None:
+        wanted = np.stack([schedule.at(v, truth.t_ns) for v in vessels], axis=1)
+        initial, changes = schedule.initial, schedule.changes(start_ns)
+    else:
+        wanted, initial, changes = radius, radius, []
     # Subtract in integers first: an epoch time in ns does not fit a float's 53 bits.
     time = (truth.t_ns - start_ns) * 1e-9
-    metrics = summarise(time, e_ij, e_io, np.full(n, np.nan), centroid_error(truth), radii, radius, [])
-    return {"vessels": vessels, "ticks": n, "radius": radius, "mean_e_ij": metrics.mean_e_ij,
-            "mean_e_io": metrics.mean_e_io, "mean_e_c": metrics.mean_e_c, "settling_time": metrics.settling_time,
-            "start_ns": start_ns}
+    metrics = summarise(time, e_ij, e_io, np.full(n, np.nan), centroid_error(truth), radii, wanted, [])
+    return {"vessels": vessels, "ticks": n, "radius": initial, "radius_changes": changes,
+            "mean_e_ij": metrics.mean_e_ij, "mean_e_io": metrics.mean_e_io, "mean_e_c": metrics.mean_e_c,
+            "settling_time": metrics.settling_time, "start_ns": start_ns}
+
+
+def circle_words(result: dict) -> str:
+    """r* of a run in words: the configured circle and every change a `set` made, e.g. "r* = 5.0 m, 8.0 m
+    from 21.3 s (vessels 1, 2, 3, 4)"."""
+    words = f"r* = {result['radius']:g} m"
+    grouped: dict[tuple[float, float], list[str]] = {}
+    for seconds, vessel, radius in result.get("radius_changes", []):
+        grouped.setdefault((round(seconds, 1), radius), []).append(vessel)
+    for (seconds, radius), who in sorted(grouped.items()):
+        words += f", {radius:g} m from {seconds:.1f} s ({'vessel' if len(who) == 1 else 'vessels'} {', '.join(who)})"
+    return words
 
 
 def _nis(pairs: list[tuple[float, float]]) -> dict:
@@ -182,9 +202,8 @@ def agreement(run: RunLog) -> dict:
 
 
 def run_metrics(run: RunLog, radius: float | None = None) -> dict:
-    """Everything `usv-log metrics` reports: truth metrics when the sim bridge's log is there, and the
-    self-consistency figures always."""
-    radius = radius if radius is not None else agent_radius(run)
+    """Everything `usv-log metrics` reports: truth metrics when the sim bridge's log is there (settling
+    against `radius`, or the r* in force at each moment if None), and the self-consistency figures always."""
     return {
         "truth": truth_metrics(run, radius) if run.has_truth else None,
         "innovations": innovation_statistics(run),
@@ -205,7 +224,7 @@ def metrics_markdown(result: dict, source: str) -> str:
     else:
         settling = "never" if truth["settling_time"] is None else f"{truth['settling_time']:.1f} s after the start"
         lines += ["## Against the ground truth (the paper's metrics)", "",
-                  f"{len(truth['vessels'])} vessels, {truth['ticks']} ticks, r* = {truth['radius']} m", "",
+                  f"{len(truth['vessels'])} vessels, {truth['ticks']} ticks, {circle_words(truth)}", "",
                   "| mean e_ij (m) | mean e_io (m) | mean e_c (m) | settling time |", "|---|---|---|---|",
                   (f"| {_cell(truth['mean_e_ij'])} | {_cell(truth['mean_e_io'])} | {_cell(truth['mean_e_c'])} | "
                   f"{settling} |"), ""]

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mission_log.reader import RunLog, VesselLog, agent_radius
+from mission_log.reader import RadiusSchedule, RunLog, VesselLog, radius_schedule
 from mission_log.series import (
     Beliefs,
     TruthSeries,
@@ -46,7 +46,9 @@ def plot_run(run: RunLog, out: Path, radius: float | None = None) -> list[Path]:
     """Write the PNG figures of a run to folder `out` (created if missing); returns their paths."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    radius = agent_radius(run, DEFAULT_RADIUS) if radius is None else float(radius)
+    # r* as it was in force (mission `set`s included), unless the caller fixes one for the whole run
+    schedule = radius_schedule(run, DEFAULT_RADIUS) if radius is None else RadiusSchedule(float(radius), {})
+    radius = final_radius(schedule)
     truth = truth_of(run.sim) if run.has_truth else None
     beliefs = {vid: beliefs_of(run.vessels[vid]) for vid in ordered(run.vessels)}
     t0 = _start_ns(run, truth)
@@ -56,7 +58,7 @@ def plot_run(run: RunLog, out: Path, radius: float | None = None) -> list[Path]:
         path = out / "trajectories.png"
         written.append(_trajectories_figure(run, truth, beliefs, colours, radius, t0, path))
     if truth is not None:
-        written.append(_errors_figure(truth, beliefs, colours, radius, t0, out / "errors.png"))
+        written.append(_errors_figure(truth, beliefs, colours, schedule, t0, out / "errors.png"))
     if beliefs:
         written.append(_ranges_figure(run, beliefs, colours, t0, out / "ranges.png"))
     return written
@@ -268,7 +270,13 @@ def _belief_panel(ax, vid: str, beliefs: Beliefs | None, truth: TruthSeries | No
 # errors.png
 
 
-def _errors_figure(truth: TruthSeries, beliefs, colours, radius: float, t0: int, path: Path) -> Path:
+def final_radius(schedule: RadiusSchedule) -> float:
+    """The r* the run ended with (the one most vessels had last), for the figures' circles."""
+    finals = [float(radii[-1]) for _, radii in schedule.vessels.values()]
+    return max(set(finals), key=finals.count) if finals else schedule.initial
+
+
+def _errors_figure(truth: TruthSeries, beliefs, colours, schedule: RadiusSchedule, t0: int, path: Path) -> Path:
     t = _seconds(truth.t_ns, t0)
     with _figure(path, (11.0, 10.0)) as fig:
         axes = fig.subplots(4, 1, sharex=True)
@@ -279,10 +287,11 @@ def _errors_figure(truth: TruthSeries, beliefs, colours, radius: float, t0: int,
             _curve(axes[0], t, e_ij, colours[vid], f"vessel {vid}")
             _curve(axes[1], t, e_io, colours[vid], f"vessel {vid}")
         for vid, positions in truth.vessels.items():
-            distance = np.linalg.norm(positions - truth.target, axis=1) - radius
+            distance = np.linalg.norm(positions - truth.target, axis=1) - schedule.at(vid, truth.t_ns)
             _curve(axes[2], t, distance, colours[vid], f"vessel {vid}")
         _curve(axes[3], t, centroid_error(truth), "black", "fleet")
-        _label_errors(axes, radius)
+        changed = any(len(set(radii.tolist())) > 1 for _, radii in schedule.vessels.values())
+        _label_errors(axes, "r* in force (set by the mission)" if changed else f"r* = {final_radius(schedule):g} m")
         fig.suptitle("Estimation and formation errors against ground truth")
     return path
 
@@ -292,12 +301,12 @@ def _curve(ax, t, values, colour, label) -> None:
     ax.plot(t, values, color=colour, lw=1.1, label=label)
 
 
-def _label_errors(axes, radius: float) -> None:
+def _label_errors(axes, circle: str) -> None:
     panels = [
         (r"$e_{ij}$: each vessel's worst error in a neighbour's relative position $\hat p_{ij}$",
          r"$e_{ij}$ (m)"),
         (r"$e_{io}$: error in each vessel's position relative to the target, $\hat p_{io}$", r"$e_{io}$ (m)"),
-        (f"True distance to the target minus r* = {radius:g} m (0: on the desired circle)",
+        (f"True distance to the target minus {circle} (0: on the desired circle)",
          r"$|p_i - p_o| - r^*$ (m)"),
         (r"$e_c$: distance from the fleet's mean position to the target", r"$e_c$ (m)"),
     ]

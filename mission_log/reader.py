@@ -27,6 +27,8 @@ from dataclasses import dataclass, field
 from itertools import pairwise
 from pathlib import Path
 
+import numpy as np
+
 from agent.runtime.mcap_log import FORMAT_RECORD, PART_RECORD, read_messages, read_metadata
 from agent.shell.tick_log import log_topic
 
@@ -278,6 +280,45 @@ def mission_start_ns(run: RunLog) -> int:
     if not firsts:
         firsts = [t for log in run.logs for messages in log.topics.values() for t, _ in messages[:1]]
     return min(firsts, default=0)
+
+
+@dataclass(frozen=True)
+class RadiusSchedule:
+    """r* of each vessel over time, as its agent steered to it (the `radius` of its status each tick: the
+    configured circle, then what mission `set`s made of it). `None` for a vessel without statuses."""
+
+    initial: float                                          # r* as the agents were set up
+    vessels: dict[str, tuple[np.ndarray, np.ndarray]]       # vessel -> (log time ns, r* from that time on)
+
+    def at(self, vessel: str, t_ns: np.ndarray) -> np.ndarray:
+        """r* of `vessel` at log times `t_ns`: the value of its latest status at or before each time (the
+        first one before its first status, the configured one without any)."""
+        times = np.asarray(t_ns)
+        if vessel not in self.vessels:
+            return np.full(times.shape, self.initial)
+        stamps, radii = self.vessels[vessel]
+        return radii[np.clip(np.searchsorted(stamps, times, side="right") - 1, 0, len(radii) - 1)]
+
+    def changes(self, start_ns: int = 0) -> list[tuple[float, str, float]]:
+        """(seconds from `start_ns`, vessel, new r*) at every change of a vessel's r*, in time order; a run of
+        ticks on the way to a new circle (the agent moves r* at a bounded rate) counts once, at its end."""
+        found = []
+        for vessel, (stamps, radii) in self.vessels.items():
+            for k in np.flatnonzero(np.diff(radii) != 0) + 1:      # r* took a new value at status k
+                if k + 1 == len(radii) or radii[k + 1] == radii[k]:   # and stays there: a jump, or a ramp's end
+                    found.append(((int(stamps[k]) - start_ns) * 1e-9, vessel, float(radii[k])))
+        return sorted(found)
+
+
+def radius_schedule(run: RunLog, default: float = 5.0) -> RadiusSchedule:
+    """Each vessel's r* over time from its statuses (RadiusSchedule)."""
+    vessels = {}
+    for vessel, log in run.vessels.items():
+        pairs = [(t, float(m["radius"])) for t, m in log.topic("status") if m.get("radius") is not None]
+        if pairs:
+            stamps, radii = zip(*pairs)
+            vessels[vessel] = (np.array(stamps, dtype=np.int64), np.array(radii))
+    return RadiusSchedule(agent_radius(run, default), vessels)
 
 
 def agent_radius(run: RunLog, default: float = 5.0) -> float:

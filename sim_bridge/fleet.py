@@ -47,7 +47,7 @@ from agent.config import ConfigError
 from agent.contract import CLOCK_KEY, LIVELINESS, Clock, decode, key, seconds
 from agent.runtime.mcap_log import read_messages
 from agent.runtime.zenoh_session import ZenohSettings, zenoh_config
-from mission_log.metrics import truth_metrics
+from mission_log.metrics import circle_words, truth_metrics
 from mission_log.plots import plot_run
 from mission_log.reader import LogError, load_run
 from sim_bridge.scenario import initial_estimates, select_scenario
@@ -521,15 +521,15 @@ def analyse(folder: Path, radius: float, planned: int | None = None, cut_short: 
     run = load_run(folder)
     if not run.has_truth:
         raise LogError(f"{folder}: no ground truth (the sim bridge's /truth) in the logs")
-    result = truth_metrics(run, radius)
+    result = truth_metrics(run)      # r* as in force at each moment, the operator's sets included
     complete = cut_short is None and (planned is None or result["ticks"] >= planned)
     result.update({"ticks_planned": planned, "complete": complete, "cut_short": cut_short})
     (folder / "metrics.json").write_text(json.dumps(result, indent=2))
-    figures = plot_run(run, folder, radius)
+    figures = plot_run(run, folder)
     settling = result["settling_time"]
     lines = [f"# Fleet run {folder.name}", "", *_cut_short_lines(result["ticks"], planned, cut_short),
              f"{len(result['vessels'])} vessels, {result['ticks']} ticks"
-             + (f" of {planned} planned" if planned is not None else "") + f", r* = {radius} m", "",
+             + (f" of {planned} planned" if planned is not None else "") + f", {circle_words(result)}", "",
              "| mean e_ij (m) | mean e_io (m) | mean e_c (m) | settling time (s) |", "|---|---|---|---|",
              (f"| {result['mean_e_ij']:.3f} | {result['mean_e_io']:.3f} | {result['mean_e_c']:.3f} | "
              f"{'never' if settling is None else f'{settling:.1f}'} |"), "",

@@ -322,6 +322,12 @@ def test_the_fleet_obeys_hold_resume_and_a_new_radius_and_refuses_bad_commands(t
     print(f"radius 5 -> 8 m set at {said['set_time']:.1f} s: settled (within 10 %) at {settled:.1f} s, "
           f"{settled - said['set_time']:.1f} s later")
     assert settled < 26.0 and np.all(inside[(times >= settled) & (times < 28.0)])
+    # The launcher's metrics follow the mission: settled against the 8 m circle after the set, which the
+    # summary names (against the configured 5 m the run would never have settled).
+    metrics = json.loads((folder / "metrics.json").read_text())
+    assert metrics["settling_time"] is not None and metrics["settling_time"] > said["set_time"]
+    assert {radius for _, _, radius in metrics["radius_changes"]} == {8.0}
+    assert "8 m from" in (folder / "summary.md").read_text()
 
 
 def test_in_lockstep_a_hold_received_during_tick_k_stops_every_vessel_from_tick_k_plus_1_until_resume(tmp_path):

@@ -332,3 +332,47 @@ def test_the_logs_of_a_restarted_agent_are_read_as_one_vessel_in_time_order(tmp_
     agent_log("agent-1-again.mcap", range(70, 90))         # a second agent with id 1, at the same time
     with pytest.raises(LogError, match="a second log of vessel 1 that overlaps in time"):
         load_run(tmp_path)
+
+
+def _set_radius_run(folder):
+    """Two vessels on a 5 m circle for 2 s; then an operator's `set` takes r* to 8 m, which each agent moves
+    to at 1 m per tick (vessel 2 a tick later), and both sail out to it, arriving 4 s after the set."""
+    from agent.runtime.mcap_log import McapLog
+    from agent.shell.tick_log import log_topic
+
+    with McapLog(folder / "sim.mcap", metadata={"scenario": "set"}) as sim, \
+            McapLog(folder / "agent-1.mcap", metadata={"vessel": "1"}) as one, \
+            McapLog(folder / "agent-2.mcap", metadata={"vessel": "2"}) as two:
+        for k in range(100):
+            t = k * 100_000_000
+            true_radius = 5.0 if k < 20 else min(8.0, 5.0 + 3.0 * (k - 20) / 40)
+            sim.log("/truth", {"target": [0.0, 0.0], "vessels": {"1": {"position": [true_radius, 0.0]},
+                                                                 "2": {"position": [-true_radius, 0.0]}}}, t)
+            for vessel, log, delay in (("1", one, 0), ("2", two, 1)):
+                wanted = 5.0 if k < 20 + delay else min(8.0, 5.0 + (k - 19 - delay))
+                log.log(f"/{vessel}/inputs", {"time": k * 0.1}, t)
+                log.log(log_topic(vessel, "status"), {"radius": wanted}, t)
+    return load_run(folder)
+
+
+def test_the_metrics_judge_settling_against_the_circle_in_force(tmp_path, capsys):
+    """After `set radius=8` the fleet settles on 8 m: settling is judged against each vessel's r* at each
+    moment (from its statuses), not against the configured 5 m, which would say it never settled."""
+    from mission_log import cli
+    from mission_log.metrics import circle_words, truth_metrics
+    from mission_log.reader import radius_schedule
+
+    run = _set_radius_run(tmp_path)
+    schedule = radius_schedule(run)
+    # r* of vessel 2 at 2.0 s (still 5 m), at 2.15 s (its first step, 6 m) and at the end (8 m).
+    np.testing.assert_array_equal(schedule.at("2", np.array([20, 21, 22, 99]) * 100_000_000), [5.0, 6.0, 7.0, 8.0])
+    assert schedule.changes() == [(pytest.approx(2.2), "1", 8.0), (pytest.approx(2.3), "2", 8.0)]
+    truth = truth_metrics(run)
+    # The true radius reaches 7.2 m (8 m less 10 %) at tick 20 + 40 * 2.2 / 3 = 49.33, so tick 50: 5.0 s.
+    assert truth["settling_time"] == pytest.approx(5.0)
+    assert truth["radius"] == 5.0 and circle_words(truth) == "r* = 5 m, 8 m from 2.2 s (vessel 1), 8 m from 2.3 s (vessel 2)"
+    # A fixed r* for the whole run, as --radius asks: 5 m, never settled.
+    assert truth_metrics(run, radius=5.0)["settling_time"] is None
+    assert cli.main(["metrics", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert "| 5.0 s after the start |" in out and "8 m from 2.2 s (vessel 1)" in out
