@@ -138,12 +138,13 @@ class ThrusterAdapter:
             self.rejected["out_of_order"] += 1
             return self._thrust
         self._stamp = now
-        if not (math.isfinite(surge) and math.isfinite(yaw_rate)):
+        thrust = self.mix(surge, yaw_rate) if math.isfinite(surge) and math.isfinite(yaw_rate) else None
+        if thrust is None or not (abs(thrust.left) <= 1.0 and abs(thrust.right) <= 1.0):
+            # NaN, or a mix gone non-finite (a hull whose numbers overflow): a stop, never an unknown thrust.
             self.rejected["non_finite"] += 1
-            self._thrust = ZERO_THRUST
-        else:
-            self._thrust = self.mix(surge, yaw_rate)
-        return self._thrust
+            thrust = ZERO_THRUST
+        self._thrust = thrust
+        return thrust
 
     def stop(self, reason: str) -> None:
         """Zero thrust now, until the next command (the agent is gone: no need to wait for the watchdog)."""
