@@ -136,7 +136,8 @@ class DriverBridge:
         return {name: values for name, values in counts.items() if values}
 
     def report_refusals(self, now: float) -> None:
-        """One stderr line with the refusals so far, if they changed, at most every REPORT_SECONDS (monotonic)."""
+        """One stderr line with the refusals so far, if they changed, at most every REPORT_SECONDS (`now`:
+        monotonic)."""
         last, said = self._reported
         if now - last < REPORT_SECONDS:
             return
@@ -146,14 +147,14 @@ class DriverBridge:
             self._reported = (now, counts)
 
     def _guarded(self, port: str, handle: Callable, *args) -> list:
-        """`handle(*args)`, or [] if it raised: counted as `<port>_failed`, the first of each kind said at once."""
+        """`handle(*args)`, or [] if it raised: counted as `<port>_failed`, the first of each port said at once."""
         try:
             return handle(*args)
         except Exception as error:   # one line must never end the process, and the watchdog's stop with it
             kind = f"{port}_failed"
             if not self.refused[kind]:
-                self._report(f"usv-driver {self.id}: {port}: dropped an input that raised {type(error).__name__}: "
-                             f"{str(error)[:300]} (counted as {kind}; going on)")
+                self._report(f"usv-driver {self.id}: {port}: dropped an input that raised "
+                             f"{type(error).__name__}: {str(error)[:300]} (counted as {kind}; going on)")
             self.refused[kind] += 1
             return []
 
@@ -194,7 +195,7 @@ class DriverBridge:
         self._seq[topic] += 1
         return value
 
-    # ----- device side: each chunk is split under the guard, then each frame or sentence handled under it -----
+    # ----- device side: each chunk split under the guard, then each frame or sentence handled under it -----
     def _on_uwb(self, data: bytes, publishers) -> None:
         self._each("uwb", self._guarded("uwb", self.uwb.feed, data), self._uwb_frame, publishers)
 
@@ -203,7 +204,8 @@ class DriverBridge:
             stamp_ns=self.clock_ns(), seq=self._next("uwb"), sender=self.id, ranges=frame.ranges))
 
     def _on_odometry(self, data: bytes, publishers) -> None:
-        self._each("odometry", self._guarded("odometry", self.lines["odometry"].feed, data), self._vhw, publishers)
+        bodies = self._guarded("odometry", self.lines["odometry"].feed, data)
+        self._each("odometry", bodies, self._vhw, publishers)
 
     def _vhw(self, body: bytes, publishers) -> None:
         sample, reason = read_vhw(body)
@@ -217,7 +219,8 @@ class DriverBridge:
             self._publish(publishers, "sensor/odom", state.message(self._next("odom"), self.id))
 
     def _on_camera(self, data: bytes, publishers) -> None:
-        self._each("camera", self._guarded("camera", self.lines["camera"].feed, data), self._detection, publishers)
+        bodies = self._guarded("camera", self.lines["camera"].feed, data)
+        self._each("camera", bodies, self._detection, publishers)
 
     def _detection(self, body: bytes, publishers) -> None:
         detection, reason = read_detection(body)
@@ -240,7 +243,7 @@ class DriverBridge:
         write_all(fd, self.thrust_line(now))
 
     def thrust_line(self, now: float) -> bytes:
-        """The thrust line to write now, from the command in force (or a stop); `now` is the monotonic clock."""
+        """The thrust line to write now: the command in force's, or a stop. `now`: the monotonic clock."""
         with self._command_lock:
             command, left, self._agent_left = self._command, self._agent_left, False
         if left:

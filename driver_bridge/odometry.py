@@ -39,7 +39,8 @@ from pydantic import Field
 
 from agent.angles import wrap_angle
 from agent.config import NonNegativeFloat, PositiveFloat, StrictModel
-from agent.contract import MAX_ANGLE, MAX_POSITION, MAX_SPEED, MAX_STAMP_NS, MAX_VARIANCE, Odometry, nanoseconds
+from agent.contract import (MAX_ANGLE, MAX_POSITION, MAX_SPEED, MAX_STAMP_NS, MAX_VARIANCE, Odometry,
+                            nanoseconds)
 from driver_bridge.serial_port import nmea_number
 
 KNOT = 1852.0 / 3600.0  # m/s
@@ -55,10 +56,10 @@ class OdometrySettings(StrictModel):
     position_variance_per_m: NonNegativeFloat = Field(1e-4, description="per axis, m^2 per metre travelled")
     heading_variance: NonNegativeFloat = Field(1e-4, description="of one yaw reading, or of initial_heading")
     yaw_rate_variance_per_s: NonNegativeFloat = Field(1e-6, description="rad^2/s, only with yaw_rate input")
-    max_speed: PositiveFloat = Field(50.0, le=MAX_SPEED, description="fastest believable speed either way (m/s); "
-                                     "a sample beyond it is refused")
-    max_yaw_rate: PositiveFloat = Field(10.0, le=MAX_ANGLE, description="fastest believable yaw rate (rad/s), "
-                                        "with a yaw_rate input; a sample beyond it is refused")
+    max_speed: PositiveFloat = Field(50.0, le=MAX_SPEED, description="fastest believable speed either way "
+                                     "(m/s); a sample beyond it is refused")
+    max_yaw_rate: PositiveFloat = Field(10.0, le=MAX_ANGLE, description="fastest believable yaw rate "
+                                        "(rad/s), with a yaw_rate input; a sample beyond it is refused")
 
 
 @dataclass(frozen=True)
@@ -117,8 +118,8 @@ class DeadReckoning:
             half = 0.5 * turn
             chord = ds * (math.sin(half) / half if abs(half) > 1e-9 else 1.0 - half * half / 6.0)
             direction = last.heading + half
-            state = self._state(stamp_s, last.x + chord * math.cos(direction), last.y + chord * math.sin(direction),
-                                last.heading + turn, last.distance + abs(ds))
+            state = self._state(stamp_s, last.x + chord * math.cos(direction),
+                                last.y + chord * math.sin(direction), last.heading + turn, last.distance + abs(ds))
         # The step is taken whole or not at all: a state beyond the contract would be refused by every agent.
         if not (abs(state.x) <= MAX_POSITION and abs(state.y) <= MAX_POSITION):
             self.rejected["position_out_of_bounds"] += 1

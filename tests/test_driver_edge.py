@@ -1,5 +1,5 @@
-"""The driver bridge's inputs bounded at the edge, in process: a sentence with a valid checksum that decodes to
-values beyond the contract (a speed log saying 1e30 knots) is refused and counted, never raised, and no
+"""The driver bridge's inputs bounded at the edge, in process: a sentence with a valid checksum that decodes
+to values beyond the contract (a speed log saying 1e30 knots) is refused and counted, never raised, and no
 sequence of valid-but-large samples walks the dead-reckoned position out of the contract's bounds."""
 
 from __future__ import annotations
