@@ -118,8 +118,8 @@ class DeadReckoning:
             half = 0.5 * turn
             chord = ds * (math.sin(half) / half if abs(half) > 1e-9 else 1.0 - half * half / 6.0)
             direction = last.heading + half
-            state = self._state(stamp_s, last.x + chord * math.cos(direction),
-                                last.y + chord * math.sin(direction), last.heading + turn, last.distance + abs(ds))
+            x, y = last.x + chord * math.cos(direction), last.y + chord * math.sin(direction)
+            state = self._state(stamp_s, x, y, last.heading + turn, last.distance + abs(ds))
         # The step is taken whole or not at all: a state beyond the contract would be refused by every agent.
         if not (abs(state.x) <= MAX_POSITION and abs(state.y) <= MAX_POSITION):
             self.rejected["position_out_of_bounds"] += 1
