@@ -147,7 +147,7 @@ class DriverBridge:
             self._reported = (now, counts)
 
     def _guarded(self, port: str, handle: Callable, *args) -> list:
-        """`handle(*args)`, or [] if it raised: counted as `<port>_failed`, the first of a port said at once."""
+        """`handle(*args)`, or [] if it raised: counted as `<port>_failed`, the first said at once."""
         try:
             return handle(*args)
         except Exception as error:   # one line must never end the process, and the watchdog's stop with it
