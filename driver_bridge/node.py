@@ -169,7 +169,7 @@ class DriverBridge:
     def _command_payload(self, sample) -> None:
         message, _ = decode(Cmd, sample.payload.to_bytes())
         if message is None or message.sender != self.id:
-            self.refused["command"] += 1
+            self.refused["command_malformed" if message is None else "command_other_vessel"] += 1
             return
         with self._command_lock:
             reason = self.command_gate.offer(message.stamp_ns, self.clock_ns())

@@ -23,16 +23,18 @@ Bounds. A sentence with a valid checksum can still say anything (a faulty speed 
 into the integration is bounded at each step, so that every state is a valid contract message: a heading
 field outside [0, 360] degrees is refused by the parser, a speed beyond `max_speed` (or a yaw rate beyond
 `max_yaw_rate`) by `update`, and a step that would take the position beyond the contract's MAX_POSITION
-(or a variance beyond MAX_VARIANCE) is refused whole: the state stays where it was and the step is counted.
-At the edge of the frame the odometry therefore stops, and the agent, seeing no fresh odometry, stops the
-vessel; a frame that moved on would break the contract's "it never jumps".
+(or a variance beyond MAX_VARIANCE) is refused whole: nothing is published, the step is counted, and the
+next step starts from the last position at the refused sample's time and heading (the refused motion is
+lost). At the edge of the frame the odometry therefore stops while the vessel heads out, and the agent,
+seeing no fresh odometry, stops the vessel; it resumes when the vessel heads back in. A frame that moved on
+would break the contract's "it never jumps".
 """
 
 from __future__ import annotations
 
 import math
 from collections import Counter
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Literal
 
 from pydantic import Field
@@ -92,6 +94,7 @@ class DeadReckoning:
         self.settings = settings or OdometrySettings()
         self.rejected: Counter[str] = Counter()
         self.state: OdometryState | None = None
+        self._from: OdometryState | None = None       # where the next step starts (see the position bound)
         self._speed = self._rate = self._start = 0.0  # previous speed and yaw rate; first stamp
 
     def update(self, stamp_s: float, speed: float, yaw: float) -> OdometryState | None:
@@ -100,7 +103,7 @@ class DeadReckoning:
         if problem:
             self.rejected[problem] += 1
             return self.state
-        last = self.state
+        last = self._from
         if last is None:
             heading = s.initial_heading if s.yaw_input == "yaw_rate" else s.yaw_sign * yaw + s.yaw_offset
             self._start = stamp_s
@@ -109,7 +112,7 @@ class DeadReckoning:
             dt = stamp_s - last.stamp
             if dt <= 0:
                 self.rejected["out_of_order"] += 1
-                return last
+                return self.state
             if s.yaw_input == "yaw_rate":
                 turn = s.yaw_sign * 0.5 * (self._rate + yaw) * dt  # trapezoid, like the speed
             else:
@@ -120,15 +123,21 @@ class DeadReckoning:
             direction = last.heading + half
             x, y = last.x + chord * math.cos(direction), last.y + chord * math.sin(direction)
             state = self._state(stamp_s, x, y, last.heading + turn, last.distance + abs(ds))
-        # The step is taken whole or not at all: a state beyond the contract would be refused by every agent.
+        # A step beyond the contract is refused whole (every agent would refuse the state). The next one
+        # starts at this sample's time and heading but the last position: otherwise the interval to integrate,
+        # and with it the step, would only grow, and the odometry would stay stuck once the vessel heads back.
+        problem = ""
         if not (abs(state.x) <= MAX_POSITION and abs(state.y) <= MAX_POSITION):
-            self.rejected["position_out_of_bounds"] += 1
-            return last
-        if not max(state.covariance) <= MAX_VARIANCE:
-            self.rejected["covariance_out_of_bounds"] += 1
-            return last
+            problem = "position_out_of_bounds"
+        elif not max(state.covariance) <= MAX_VARIANCE:
+            problem = "covariance_out_of_bounds"
         self._speed, self._rate = speed, yaw
-        self.state = state
+        if problem:
+            self.rejected[problem] += 1
+            if last is not None:
+                self._from = replace(last, stamp=stamp_s, heading=state.heading)
+            return self.state
+        self.state = self._from = state
         return state
 
     def _problem(self, stamp_s: float, speed: float, yaw: float) -> str:

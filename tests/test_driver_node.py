@@ -174,7 +174,7 @@ def test_driver_bridge_turns_serial_streams_into_the_contract_and_commands_into_
             os.close(slave)
     assert driver.returncode == 0, output
     # What was refused is counted and reported: the other vessel's command, the three bad checksums.
-    assert "'command': 1" in output and "'odometry_lines_refused': {'bad_checksum': 3}" in output, output
+    assert "'command_other_vessel': 1" in output and "'odometry_lines_refused': {'bad_checksum': 3}" in output, output
 
 
 def test_a_bad_driver_config_is_a_clear_error(tmp_path):
