@@ -81,3 +81,19 @@ def test_no_run_of_valid_but_large_samples_walks_the_position_out_of_the_contrac
         edge_reached += odometry.rejected["position_out_of_bounds"] > 0
     print(f"{edge_reached} of 24 walks reached the edge")
     assert edge_reached >= 12, edge_reached
+
+
+def test_at_the_frames_edge_steps_out_are_refused_and_the_odometry_resumes_when_the_vessel_heads_back():
+    odometry = DeadReckoning(OdometrySettings())        # yaw: heading counter-clockwise from x
+    stamp, states = 0.0, []
+    for _ in range(40):                                 # 40 m/s east, 100 s apart: 4 km a step, 160 km in all
+        states.append(odometry.update(stamp, 40.0, 0.0))
+        stamp += 100.0
+    edge = odometry.state
+    assert MAX_POSITION - 4000 < edge.x <= MAX_POSITION and states[-1] is edge
+    assert odometry.rejected == {"position_out_of_bounds": 40 - 26}   # 25 steps of 4 km fit within 1e5 m
+    stamp -= 100.0                                      # the last sample's
+    back = [odometry.update(stamp + k, 40.0, math.pi) for k in range(1, 11)]   # turned round: heading west
+    assert all(state is not edge for state in back)     # each one published again
+    # 1 s from the last (refused) sample, not from the last published one: a turn of 40 m, then 9 s westwards
+    assert edge.x - 400 < back[-1].x < edge.x - 300 and abs(back[-1].y) < 30
