@@ -50,7 +50,7 @@ import numpy as np
 from agent.contract import MAX_POSITION, Bearing, Odometry, Ranges, decode
 from driver_bridge.bearing import CameraSettings
 from driver_bridge.node import CameraPort, DriverBridge, DriverSettings, OdometryPort, ThrusterPort, UwbPort
-from driver_bridge.odometry import KNOT
+from driver_bridge.odometry import KNOT, OdometrySettings
 from driver_bridge.serial_port import LineReader, nmea_checksum
 from driver_bridge.thrusters import ThrusterSettings
 from driver_bridge.uwb import LAYOUTS, UwbSettings
@@ -64,6 +64,7 @@ PEERS = {2: "2", 3: "3"}
 STEP_NS = 100_000_000          # the campaign's wall clock advances 100 ms per line
 START_NS = 1_700_000_000 * 10**9
 AFTER_STORM = 200              # good lines after the storm, per parser
+WALK_NS = 600 * 10**9          # the walk's sentences are ten minutes apart: 30 km a step
 EXTREME_TEXT = ("1e30", "-1e30", "1e308", "-1e308", "1.7976931348623157e308", "-1.7976931348623157e308",
                 "1" + "0" * 30 + ".0", "5e-324", "-0", "360.0001", "-5", "99999", "1e5", "4294967296",
                 "1e-308", "100000.1")
@@ -164,106 +165,21 @@ class ParserResults:
         return sum(n for reason, n in self.refused.get("refused", {}).items() if reason.endswith("_failed"))
 
 
-class _Campaign:
-    """One parser's bridge, its clock, its generator of lines and its checks."""
+class SerialLines:
+    """Good and bad lines (or frames, or command payloads) for one parser, from `rng`; `now_ns` stamps the
+    commands (the wall clock the driver judges them by)."""
 
-    def __init__(self, parser: str, rng: np.random.Generator) -> None:
-        self.parser, self.rng = parser, rng
-        self.now_ns = START_NS
-        self.monotonic = 1000.0
-        self.out: list[tuple[str, bytes]] = []
-        self.reported: list[str] = []
-        settings = {
-            "vhw": DriverSettings(odometry=OdometryPort(device="fuzz")),
-            "det": DriverSettings(odometry=OdometryPort(device="fuzz"),
-                                  camera=CameraPort(device="fuzz", camera=CAMERA)),
-            "nlink": DriverSettings(uwb=UwbPort(device="fuzz", module=UwbSettings(peers=PEERS))),
-            "cmd": DriverSettings(thrusters=ThrusterPort(device="fuzz", hull=HULL)),
-        }[parser]
-        self.bridge = DriverBridge(VESSEL, settings, clock_ns=self.clock_ns, report=self.reported.append)
-        self.publishers = {topic: _Publisher(topic, self.out)
-                           for topic in ("sensor/odom", "sensor/uwb", "sensor/bearing")}
-        self.results = ParserResults(parser)
-        self.heading = float(rng.uniform(0, 360))
-        if parser == "det":   # the bearing needs a heading: one good VHW sentence first
-            self.bridge._on_odometry(sentence("IIVHW,90.0,T,,M,1.0,N,,K"), self.publishers)
-            self.out.clear()
-
-    def clock_ns(self) -> int:
-        """The campaign's wall clock: STEP_NS a line fed, and a microsecond each time it is read."""
-        self.now_ns += 1000
-        return self.now_ns
-
-    # ----- feeding -----
-    def feed(self, data: bytes, step: bool = True) -> None:
-        """Hand `data` to the handler the driver's loop would call (after STEP_NS of the campaign's clocks,
-        unless not `step`), then check what came out."""
-        if step:
-            self.now_ns += STEP_NS
-            self.monotonic += STEP_NS * 1e-9
-        bridge = self.bridge
-        try:
-            if self.parser == "vhw":
-                bridge._on_odometry(data, self.publishers)
-            elif self.parser == "det":
-                bridge._on_camera(data, self.publishers)
-            elif self.parser == "nlink":
-                bridge._on_uwb(data, self.publishers)
-            else:
-                bridge._on_command(_Sample(data))
-                self._check_thrust(bridge.thrust_line(self.monotonic))
-        except Exception as error:   # what the driver's loop would not survive: counted, must stay 0
-            self.results.escaped[type(error).__name__] += 1
-        self._check_out()
-
-    def _check_out(self) -> None:
-        for topic, payload in self.out:
-            model = {"sensor/odom": Odometry, "sensor/uwb": Ranges, "sensor/bearing": Bearing}[topic]
-            message, reason = decode(model, payload)
-            problem = reason or self._beyond(message)
-            if problem:
-                self.results.out_of_contract.append(f"{topic}: {problem}")
-            elif topic == "sensor/odom":
-                largest = max(map(abs, message.position))
-                self.results.largest_position = max(self.results.largest_position, largest)
-            self.results.published += 1
-        self.out.clear()
-
-    def _beyond(self, message) -> str:
-        """What in a decoded message lies beyond what this campaign's bridge may say ("" if nothing)."""
-        if isinstance(message, Odometry):
-            inside = all(abs(c) <= MAX_POSITION for c in message.position)
-            if not inside or not -math.pi <= message.heading <= math.pi:
-                return f"odometry {message.position}, {message.heading}"
-        elif isinstance(message, Ranges):
-            limit = self.bridge.settings.uwb.module.max_range
-            known = set(message.ranges) <= set(PEERS.values())
-            if not known or not all(0 <= r <= limit for r in message.ranges.values()):
-                return f"ranges {message.ranges}"
-        elif isinstance(message, Bearing) and message.bearing is not None:
-            if abs(math.hypot(*message.bearing) - 1.0) > 1e-9:
-                return f"bearing {message.bearing}"
-        return ""
-
-    def _check_thrust(self, line: bytes) -> None:
-        reader = LineReader()
-        bodies = reader.feed(line)
-        fields = bodies[0].decode().split(",") if len(bodies) == 1 else []
-        try:
-            left, right = float(fields[1]), float(fields[2])
-            sound = len(fields) == 3 and fields[0] == "THR" and abs(left) <= 1.0 and abs(right) <= 1.0
-        except (IndexError, ValueError):
-            sound, left, right = False, math.nan, math.nan
-        if not sound:
-            self.results.out_of_contract.append(f"thrust line {line!r}")
-        elif left or right:
-            self.results.published += 1
+    def __init__(self, parser: str, rng: np.random.Generator,
+                 now_ns: Callable[[], int] = lambda: START_NS) -> None:
+        self.parser, self.rng, self.now_ns = parser, rng, now_ns
+        self.heading = float(rng.uniform(0, 360))   # compass degrees: where the good VHW sentences head
 
     # ----- good lines -----
-    def good(self, inward: bool = False) -> bytes:
+    def good(self, heading: float | None = None) -> bytes:
+        """A good line or frame (a VHW sentence on `heading`, compass degrees, if given)."""
         rng = self.rng
         if self.parser == "vhw":
-            heading = self.heading_home() if inward else (self.heading + float(rng.normal(0, 5))) % 360
+            heading = (self.heading + float(rng.normal(0, 5))) % 360 if heading is None else heading
             return sentence(f"IIVHW,{heading:.1f},T,,M,{rng.uniform(0, 10):.2f},N,,K")
         if self.parser == "det":
             if rng.random() < 0.1:
@@ -274,17 +190,9 @@ class _Campaign:
             return nlink_frame(int(rng.choice([0x04, 0x05])), 1, int(rng.integers(2**32)), nodes)
         return json.dumps(self.command()).encode()
 
-    def heading_home(self) -> float:
-        """The compass heading (deg) from the odometry's position towards its frame's origin."""
-        state = self.bridge.dead_reckoning.state
-        if state is None or math.hypot(state.x, state.y) < 1.0:
-            return self.heading
-        east, north = -state.x, -state.y   # x east, y north (the VHW compass mapping)
-        return math.degrees(math.atan2(east, north)) % 360
-
     def command(self) -> dict:
         rng = self.rng
-        return {"stamp_ns": self.now_ns + STEP_NS, "seq": int(rng.integers(1000)), "sender": VESSEL,
+        return {"stamp_ns": self.now_ns(), "seq": int(rng.integers(1000)), "sender": VESSEL,
                 "surge": float(rng.uniform(-2, 2)), "yaw_rate": float(rng.uniform(-1, 1))}
 
     # ----- bad lines -----
@@ -292,6 +200,7 @@ class _Campaign:
         return values[int(self.rng.integers(len(values)))]
 
     def bad(self, cls: str) -> bytes:
+        """A bad line or frame of class `cls` (any but `burst`, which the campaign makes of the others)."""
         return getattr(self, f"_{self.parser}")(cls)
 
     def _random_bytes(self) -> bytes:
@@ -344,8 +253,7 @@ class _Campaign:
 
     def _vhw(self, cls: str) -> bytes:
         if cls == "walk":
-            knots = 0.999 * self.bridge.dead_reckoning.settings.max_speed / KNOT
-            self.now_ns += 600 * 10**9   # ten minutes since the last sentence: 30 km a step
+            knots = 0.999 * OdometrySettings().max_speed / KNOT   # WALK_NS after the sentence before
             return sentence(f"IIVHW,{self.heading:.1f},T,,M,{knots:.3f},N,,K")
         good = f"IIVHW,{self.heading:.1f},T,{self.heading:.1f},M,5.0,N,9.3,K"
         return self._text_lines(cls, good, [1, 3, 5, 7])
@@ -431,6 +339,110 @@ class _Campaign:
             return json.dumps(junk if rng.random() < 0.5 else body | junk).encode()
         raise ValueError(f"no class {cls} here")
 
+
+class _Campaign:
+    """One parser's bridge, its clock, its generator of lines and its checks."""
+
+    def __init__(self, parser: str, rng: np.random.Generator) -> None:
+        self.parser, self.rng = parser, rng
+        self.now_ns = START_NS
+        self.monotonic = 1000.0
+        self.out: list[tuple[str, bytes]] = []
+        self.reported: list[str] = []
+        settings = {
+            "vhw": DriverSettings(odometry=OdometryPort(device="fuzz")),
+            "det": DriverSettings(odometry=OdometryPort(device="fuzz"),
+                                  camera=CameraPort(device="fuzz", camera=CAMERA)),
+            "nlink": DriverSettings(uwb=UwbPort(device="fuzz", module=UwbSettings(peers=PEERS))),
+            "cmd": DriverSettings(thrusters=ThrusterPort(device="fuzz", hull=HULL)),
+        }[parser]
+        self.bridge = DriverBridge(VESSEL, settings, clock_ns=self.clock_ns, report=self.reported.append)
+        self.publishers = {topic: _Publisher(topic, self.out)
+                           for topic in ("sensor/odom", "sensor/uwb", "sensor/bearing")}
+        self.results = ParserResults(parser)
+        self.lines = SerialLines(parser, rng, now_ns=lambda: self.now_ns + STEP_NS)
+        if parser == "det":   # the bearing needs a heading: one good VHW sentence first
+            self.bridge._on_odometry(sentence("IIVHW,90.0,T,,M,1.0,N,,K"), self.publishers)
+            self.out.clear()
+
+    def clock_ns(self) -> int:
+        """The campaign's wall clock: STEP_NS a line fed, and a microsecond each time it is read."""
+        self.now_ns += 1000
+        return self.now_ns
+
+    # ----- feeding -----
+    def feed(self, data: bytes, step: bool = True) -> None:
+        """Hand `data` to the handler the driver's loop would call (after STEP_NS of the campaign's clocks,
+        unless not `step`), then check what came out."""
+        if step:
+            self.now_ns += STEP_NS
+            self.monotonic += STEP_NS * 1e-9
+        bridge = self.bridge
+        try:
+            if self.parser == "vhw":
+                bridge._on_odometry(data, self.publishers)
+            elif self.parser == "det":
+                bridge._on_camera(data, self.publishers)
+            elif self.parser == "nlink":
+                bridge._on_uwb(data, self.publishers)
+            else:
+                bridge._on_command(_Sample(data))
+                self._check_thrust(bridge.thrust_line(self.monotonic))
+        except Exception as error:   # what the driver's loop would not survive: counted, must stay 0
+            self.results.escaped[type(error).__name__] += 1
+        self._check_out()
+
+    def _check_out(self) -> None:
+        for topic, payload in self.out:
+            model = {"sensor/odom": Odometry, "sensor/uwb": Ranges, "sensor/bearing": Bearing}[topic]
+            message, reason = decode(model, payload)
+            problem = reason or self._beyond(message)
+            if problem:
+                self.results.out_of_contract.append(f"{topic}: {problem}")
+            elif topic == "sensor/odom":
+                largest = max(map(abs, message.position))
+                self.results.largest_position = max(self.results.largest_position, largest)
+            self.results.published += 1
+        self.out.clear()
+
+    def _beyond(self, message) -> str:
+        """What in a decoded message lies beyond what this campaign's bridge may say ("" if nothing)."""
+        if isinstance(message, Odometry):
+            inside = all(abs(c) <= MAX_POSITION for c in message.position)
+            if not inside or not -math.pi <= message.heading <= math.pi:
+                return f"odometry {message.position}, {message.heading}"
+        elif isinstance(message, Ranges):
+            limit = self.bridge.settings.uwb.module.max_range
+            known = set(message.ranges) <= set(PEERS.values())
+            if not known or not all(0 <= r <= limit for r in message.ranges.values()):
+                return f"ranges {message.ranges}"
+        elif isinstance(message, Bearing) and message.bearing is not None:
+            if abs(math.hypot(*message.bearing) - 1.0) > 1e-9:
+                return f"bearing {message.bearing}"
+        return ""
+
+    def _check_thrust(self, line: bytes) -> None:
+        reader = LineReader()
+        bodies = reader.feed(line)
+        fields = bodies[0].decode().split(",") if len(bodies) == 1 else []
+        try:
+            left, right = float(fields[1]), float(fields[2])
+            sound = len(fields) == 3 and fields[0] == "THR" and abs(left) <= 1.0 and abs(right) <= 1.0
+        except (IndexError, ValueError):
+            sound, left, right = False, math.nan, math.nan
+        if not sound:
+            self.results.out_of_contract.append(f"thrust line {line!r}")
+        elif left or right:
+            self.results.published += 1
+
+    def heading_home(self) -> float:
+        """The compass heading (deg) from the odometry's position towards its frame's origin."""
+        state = self.bridge.dead_reckoning.state
+        if state is None or math.hypot(state.x, state.y) < 1.0:
+            return self.lines.heading
+        east, north = -state.x, -state.y   # x east, y north (the VHW compass mapping)
+        return math.degrees(math.atan2(east, north)) % 360
+
     # ----- the run -----
     def run(self, lines: int) -> ParserResults:
         rng, results = self.rng, self.results
@@ -446,10 +458,12 @@ class _Campaign:
                     self._feed_burst(gathered)
                     gathered, size = 0, int(rng.integers(20, 201))
                 continue
-            self.feed(self.bad(cls))
+            if cls == "walk":
+                self.now_ns += WALK_NS
+            self.feed(self.lines.bad(cls))
             results.lines[cls] += 1
             if rng.random() < 0.5:
-                self.feed(self.good())
+                self.feed(self.lines.good())
                 results.good += 1
         if gathered:
             self._feed_burst(gathered)
@@ -465,9 +479,9 @@ class _Campaign:
         kinds = [c for c in classes_for(self.parser) if c not in ("burst", "walk")]
         pieces = []
         for _ in range(count):
-            pieces.append(self.bad(self._pick(kinds)))
+            pieces.append(self.lines.bad(kinds[int(rng.integers(len(kinds)))]))
             if rng.random() < 0.3:
-                pieces.append(self.good())
+                pieces.append(self.lines.good())
         if self.parser == "cmd":   # a Zenoh payload comes whole
             for piece in pieces:
                 self.feed(piece, step=False)
@@ -485,7 +499,7 @@ class _Campaign:
             self.feed(b"\r\n")   # end whatever unfinished line the storm left
         before = results.published
         for _ in range(AFTER_STORM):
-            self.feed(self.good(inward=True))
+            self.feed(self.lines.good(self.heading_home()) if self.parser == "vhw" else self.lines.good())
         results.after_storm = results.published - before
         if self.parser == "cmd":
             self.monotonic += HULL.timeout + 0.2

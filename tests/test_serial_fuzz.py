@@ -10,7 +10,7 @@ import numpy as np
 
 from agent.contract import MAX_POSITION
 from driver_bridge.serial_port import LineReader
-from lab.serial_fuzz import AFTER_STORM, PARSERS, _Campaign, classes_for, run_serial_campaign, sound
+from lab.serial_fuzz import AFTER_STORM, PARSERS, SerialLines, classes_for, run_serial_campaign, sound
 
 PER_PARSER = 2000
 SEED = 11
@@ -50,8 +50,8 @@ def test_the_campaign_repeats_with_its_seed():
 
 
 def test_the_extreme_lines_are_well_framed_and_carry_the_issues_numbers():
-    campaign = _Campaign("vhw", np.random.default_rng(1))
-    lines = b"".join(campaign.bad("extreme_numbers") for _ in range(400))
+    maker = SerialLines("vhw", np.random.default_rng(1))
+    lines = b"".join(maker.bad("extreme_numbers") for _ in range(400))
     reader = LineReader()
     assert len(reader.feed(lines)) == 400 and not reader.rejected        # every checksum valid
     assert all(f",{text},".encode() in lines for text in ("1e30", "-1e308", "1e308"))
