@@ -31,8 +31,9 @@ Between bad lines come good ones (half as many). Checks: no exception escapes a 
 guard (`<port>_failed`) catches nothing either, so every refusal has its own reason; every message that
 reaches the contract decodes and lies within it (positions and ranges within their bounds, a unit bearing,
 known peers) and every `$THR` line carries a valid checksum and values within [-1, 1]; after the storm,
-good lines are published again (odometry steering back inside the frame: the walk may have left it at the
-edge, where outward steps are refused) and the thruster watchdog still stops the thrusters.
+good lines are published again (odometry steering back inside the frame, after one sentence that turns
+it: the walk may have left it at the edge, where outward steps are refused) and the thruster watchdog still
+stops the thrusters.
 """
 
 from __future__ import annotations
@@ -497,6 +498,9 @@ class _Campaign:
         results = self.results
         if self.parser in ("vhw", "det"):
             self.feed(b"\r\n")   # end whatever unfinished line the storm left
+        if self.parser == "vhw":
+            # Turn home first (not counted): at the edge the turn's arc may still bulge out, and be refused.
+            self.feed(self.lines.good(self.heading_home()))
         before = results.published
         for _ in range(AFTER_STORM):
             self.feed(self.lines.good(self.heading_home()) if self.parser == "vhw" else self.lines.good())
@@ -574,3 +578,11 @@ def render_serial_section(results: dict[str, ParserResults], command: str) -> st
                                      if parser == "vhw" else ""), "",
                   markdown_table(["reason", "count"], reasons), ""]
     return "\n".join(lines)
+
+
+def page_section(lines_per_parser: int, seed: int, command: str) -> tuple[str, bool]:
+    """The campaign for `usv-lab fuzz` (progress on stdout): its page section, and whether it was sound."""
+    print(f"serial side: {lines_per_parser} lines per parser, seed {seed} ...", flush=True)
+    results = run_serial_campaign(lines_per_parser, seed,
+                                  progress=lambda parser: print(f"  {parser}", flush=True))
+    return render_serial_section(results, command), sound(results)
