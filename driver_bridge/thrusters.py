@@ -41,11 +41,18 @@ from agent.config import PositiveFloat, StrictModel
 from driver_bridge.serial_port import nmea_sentence
 
 
+# Far beyond any vessel's, and small enough that the mix of any command the contract allows stays a number:
+# with them a product can overflow to an infinity (which saturates, the right way) but never to NaN.
+MAX_HULL_VALUE = 1e6
+
+
 class ThrusterSettings(StrictModel):
-    max_thrust: PositiveFloat = Field(description="thrust of one thruster at full command (N)")
-    half_beam: PositiveFloat = Field(description="distance of each thruster from the centreline (m)")
-    surge_drag: PositiveFloat = Field(description="linear surge drag d_u (N per m/s)")
-    yaw_drag: PositiveFloat = Field(description="linear yaw drag d_r (N m per rad/s)")
+    max_thrust: PositiveFloat = Field(le=MAX_HULL_VALUE, description="thrust of one thruster at full command "
+                                      "(N)")
+    half_beam: PositiveFloat = Field(le=MAX_HULL_VALUE, description="distance of each thruster from the "
+                                     "centreline (m)")
+    surge_drag: PositiveFloat = Field(le=MAX_HULL_VALUE, description="linear surge drag d_u (N per m/s)")
+    yaw_drag: PositiveFloat = Field(le=MAX_HULL_VALUE, description="linear yaw drag d_r (N m per rad/s)")
     timeout: PositiveFloat = Field(0.5, description="stop when the last valid command is older (s)")
 
 
@@ -96,7 +103,7 @@ ZERO_THRUST = Thrust(0.0, 0.0)
 
 
 def _clip(value: float, limit: float) -> float:
-    return max(-limit, min(limit, value))
+    return value if math.isnan(value) else max(-limit, min(limit, value))   # NaN stays NaN: command() stops
 
 
 class ThrusterAdapter:

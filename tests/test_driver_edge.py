@@ -8,11 +8,14 @@ import math
 import time
 
 import numpy as np
+import pytest
+from pydantic import ValidationError
 from test_driver_odometry import xor_sentence
 
 from agent.contract import MAX_POSITION, Odometry, decode
 from driver_bridge.node import DriverBridge, DriverSettings, OdometryPort
 from driver_bridge.odometry import DeadReckoning, OdometrySettings
+from driver_bridge.thrusters import ThrusterAdapter, ThrusterSettings
 
 
 class Publisher:
@@ -97,3 +100,19 @@ def test_at_the_frames_edge_steps_out_are_refused_and_the_odometry_resumes_when_
     assert all(state is not edge for state in back)     # each one published again
     # 1 s from the last (refused) sample, not from the last published one: a turn of 40 m, then 9 s westwards
     assert edge.x - 400 < back[-1].x < edge.x - 300 and abs(back[-1].y) < 30
+
+
+def test_the_thrust_mix_is_within_full_thrust_and_turns_the_way_asked_for_any_hull_and_command():
+    """Seeded hulls across the whole range the settings allow (1e-300 to 1e6) and commands from 0 to 1e308
+    either way: the output is a number within [-1, 1] and turns the way the yaw rate asks. A hull beyond the
+    settings' bounds, whose mix overflowed to NaN (a starboard turn came out as full to port), is refused."""
+    with pytest.raises(ValidationError, match="max_thrust"):
+        ThrusterSettings(max_thrust=1e308, half_beam=1e-300, surge_drag=1e308, yaw_drag=1e308)
+    rng = np.random.default_rng(9)
+    for _ in range(3000):
+        hull = ThrusterSettings(**{name: float(10 ** rng.uniform(-300, 6))
+                                   for name in ("max_thrust", "half_beam", "surge_drag", "yaw_drag")})
+        surge, yaw_rate = (float(rng.choice([-1, 1]) * 10 ** rng.uniform(-5, 308)) for _ in range(2))
+        mixed = ThrusterAdapter(hull).mix(surge, yaw_rate)
+        assert abs(mixed.left) <= 1.0 and abs(mixed.right) <= 1.0, (hull, surge, yaw_rate, mixed)
+        assert (mixed.right - mixed.left) * yaw_rate >= 0, (hull, surge, yaw_rate, mixed)
