@@ -27,6 +27,7 @@ from collections import Counter
 from pydantic import Field, model_validator
 
 from agent.config import PositiveFloat, StrictModel
+from driver_bridge.serial_port import nmea_number
 
 
 class CameraSettings(StrictModel):
@@ -88,14 +89,19 @@ class BearingAdapter:
 
 def parse_detection(body: bytes) -> tuple[float | None, float | None] | None:
     """(column, row) from a checked `DET` body; (None, None) when nothing was detected; None if malformed."""
+    return read_detection(body)[0]
+
+
+def read_detection(body: bytes) -> tuple[tuple[float | None, float | None] | None, str]:
+    """(detection, "") or (None, why): `not_det` (another sentence, or the wrong fields), `bad_number` (a
+    field that is no finite decimal), `row_without_column`. Where the pixel lies is BearingAdapter's check."""
     fields = body.decode("ascii", "replace").split(",")
     if len(fields) != 3 or fields[0] != "DET":
-        return None
-    try:
-        column = float(fields[1]) if fields[1] else None
-        row = float(fields[2]) if fields[2] else None
-    except ValueError:
-        return None
+        return None, "not_det"
+    column = nmea_number(fields[1]) if fields[1] else None
+    row = nmea_number(fields[2]) if fields[2] else None
+    if (fields[1] and column is None) or (fields[2] and row is None):
+        return None, "bad_number"
     if column is None and row is not None:
-        return None
-    return column, row
+        return None, "row_without_column"
+    return (column, row), ""

@@ -14,6 +14,12 @@ The watchdog is the adapter's: with no fresh command the thrusters get zero. Sta
 clock the agents run on at sea). One thread reads the ports (select); the Zenoh callback only stores the
 latest command. SIGINT and SIGTERM stop it, with a last zero-thrust line.
 
+No line or frame ends the process: that would take the watchdog's stop with it. Each adapter bounds what
+it produces to the contract (odometry.py, uwb.py, bearing.py) and counts what it refuses by reason; each
+sentence, frame and command is handled under a last-resort guard that counts an unexpected error as
+`<port>_failed` and goes on. What was refused is said on stderr at most every REPORT_SECONDS, and in full
+at the end.
+
 Which commands drive the thrusters: those whose `sender` is this vessel, stamped within the `commands`
 window of the driver's own wall clock (`thrusters.CommandGate`: not older than `max_age`, not more than
 `max_ahead` ahead) and after the command in force. The `seq` plays no part (a sender's number anyone on the
@@ -32,6 +38,7 @@ import sys
 import threading
 import time
 from collections import Counter
+from collections.abc import Callable, Iterable
 
 import zenoh
 from pydantic import Field
@@ -40,8 +47,8 @@ from agent.config import PositiveFloat, StrictModel
 from agent.contract import LIVELINESS, Bearing, Cmd, Ranges, decode, encode, key, nanoseconds
 from agent.runtime.process import stop_on_signals, vessel_process
 from agent.runtime.zenoh_session import ZenohSettings, zenoh_config
-from driver_bridge.bearing import BearingAdapter, CameraSettings, parse_detection
-from driver_bridge.odometry import DeadReckoning, OdometrySettings, parse_vhw
+from driver_bridge.bearing import BearingAdapter, CameraSettings, read_detection
+from driver_bridge.odometry import DeadReckoning, OdometrySettings, read_vhw
 from driver_bridge.serial_port import LineReader, open_serial, write_all
 from driver_bridge.thrusters import (
     ZERO_THRUST,
@@ -52,6 +59,8 @@ from driver_bridge.thrusters import (
     command_line,
 )
 from driver_bridge.uwb import NLinkParser, UwbSettings
+
+REPORT_SECONDS = 10.0   # the most often the refusals are said on stderr
 
 
 class Port(StrictModel):
@@ -88,9 +97,16 @@ class DriverSettings(StrictModel):
 
 
 class DriverBridge:
-    def __init__(self, vessel: str, settings: DriverSettings) -> None:
+    """`clock_ns` gives the wall clock the messages are stamped with and commands judged by (ns); a test or a
+    fuzz campaign passes its own."""
+
+    def __init__(self, vessel: str, settings: DriverSettings, clock_ns: Callable[[], int] = time.time_ns,
+                 report: Callable[[str], None] | None = None) -> None:
         self.id = vessel
         self.settings = settings
+        self.clock_ns = clock_ns
+        self._report = report or (lambda line: print(line, file=sys.stderr, flush=True))
+        self._reported: tuple[float, dict] = (-math.inf, {})
         self.stopping = threading.Event()
         self.uwb = NLinkParser(settings.uwb.module) if settings.uwb else None
         self.dead_reckoning = DeadReckoning(settings.odometry.dead_reckoning) if settings.odometry else None
@@ -106,14 +122,57 @@ class DriverBridge:
         self._applied: Cmd | None = None
         self._agent_left = False
 
+    # ----- refusals and the last-resort guard -----
+    def refusals(self) -> dict[str, dict[str, int]]:
+        """Everything refused so far, by where and why (what the closing line and the reports say)."""
+        counts = {"refused": dict(self.refused)}
+        for name in ("uwb", "dead_reckoning", "camera", "thrusters"):
+            adapter = getattr(self, name)
+            if adapter is not None and adapter.rejected:
+                counts[f"{name}_refused"] = dict(adapter.rejected)
+        for name, lines in self.lines.items():
+            if lines.rejected:
+                counts[f"{name}_lines_refused"] = dict(lines.rejected)
+        return {name: values for name, values in counts.items() if values}
+
+    def report_refusals(self, now: float) -> None:
+        """One stderr line with the refusals so far, if they changed, at most every REPORT_SECONDS (`now`:
+        monotonic)."""
+        last, said = self._reported
+        if now - last < REPORT_SECONDS:
+            return
+        counts = self.refusals()
+        if counts != said:
+            self._report(f"usv-driver {self.id}: refused so far (dropped, going on): {counts}")
+            self._reported = (now, counts)
+
+    def _guarded(self, port: str, handle: Callable, *args) -> list:
+        """`handle(*args)`, or [] if it raised: counted as `<port>_failed`, the first said at once."""
+        try:
+            return handle(*args)
+        except Exception as error:   # one line must never end the process, and the watchdog's stop with it
+            kind = f"{port}_failed"
+            if not self.refused[kind]:
+                self._report(f"usv-driver {self.id}: {port}: dropped an input that raised "
+                             f"{type(error).__name__}: {str(error)[:300]} (counted as {kind}; going on)")
+            self.refused[kind] += 1
+            return []
+
+    def _each(self, port: str, items: Iterable, handle: Callable, publishers) -> None:
+        for item in items:
+            self._guarded(port, handle, item, publishers)
+
     # ----- Zenoh side -----
     def _on_command(self, sample) -> None:
+        self._guarded("command", self._command_payload, sample)
+
+    def _command_payload(self, sample) -> None:
         message, _ = decode(Cmd, sample.payload.to_bytes())
         if message is None or message.sender != self.id:
-            self.refused["command"] += 1
+            self.refused["command_malformed" if message is None else "command_other_vessel"] += 1
             return
         with self._command_lock:
-            reason = self.command_gate.offer(message.stamp_ns, time.time_ns())
+            reason = self.command_gate.offer(message.stamp_ns, self.clock_ns())
             if reason:
                 self.refused[f"command_{reason}"] += 1
             else:
@@ -136,43 +195,55 @@ class DriverBridge:
         self._seq[topic] += 1
         return value
 
-    # ----- device side -----
+    # ----- device side: each chunk split under the guard, then each frame or sentence handled under it -----
     def _on_uwb(self, data: bytes, publishers) -> None:
-        for frame in self.uwb.feed(data):
-            self._publish(publishers, "sensor/uwb", Ranges(
-                stamp_ns=nanoseconds(time.time()), seq=self._next("uwb"), sender=self.id, ranges=frame.ranges))
+        self._each("uwb", self._guarded("uwb", self.uwb.feed, data), self._uwb_frame, publishers)
+
+    def _uwb_frame(self, frame, publishers) -> None:
+        self._publish(publishers, "sensor/uwb", Ranges(
+            stamp_ns=self.clock_ns(), seq=self._next("uwb"), sender=self.id, ranges=frame.ranges))
 
     def _on_odometry(self, data: bytes, publishers) -> None:
-        for body in self.lines["odometry"].feed(data):
-            sample = parse_vhw(body)
-            if sample is None:
-                self.refused["odometry_sentence"] += 1
-                continue
-            speed, heading = sample
-            before = self.dead_reckoning.state
-            state = self.dead_reckoning.update(time.time(), speed, heading)
-            if state is not None and state is not before:
-                self._publish(publishers, "sensor/odom", state.message(self._next("odom"), self.id))
+        bodies = self._guarded("odometry", self.lines["odometry"].feed, data)
+        self._each("odometry", bodies, self._vhw, publishers)
+
+    def _vhw(self, body: bytes, publishers) -> None:
+        sample, reason = read_vhw(body)
+        if sample is None:
+            self.refused[f"odometry_{reason}"] += 1
+            return
+        speed, heading = sample
+        before = self.dead_reckoning.state
+        state = self.dead_reckoning.update(self.clock_ns() * 1e-9, speed, heading)   # refusals counted there
+        if state is not None and state is not before:
+            self._publish(publishers, "sensor/odom", state.message(self._next("odom"), self.id))
 
     def _on_camera(self, data: bytes, publishers) -> None:
-        for body in self.lines["camera"].feed(data):
-            detection = parse_detection(body)
-            if detection is None:
-                self.refused["camera_sentence"] += 1
-                continue
-            state = self.dead_reckoning.state if self.dead_reckoning else None
-            if state is None:
-                self.refused["bearing_without_heading"] += 1   # a bearing needs the common heading
-                continue
-            column, row = detection
-            vector = self.camera.bearing(column, row, state.heading)
-            if vector is None and column is not None:
-                continue   # refused by the adapter (counted there)
-            self._publish(publishers, "sensor/bearing", Bearing(
-                stamp_ns=nanoseconds(time.time()), seq=self._next("bearing"), sender=self.id, bearing=vector))
+        bodies = self._guarded("camera", self.lines["camera"].feed, data)
+        self._each("camera", bodies, self._detection, publishers)
+
+    def _detection(self, body: bytes, publishers) -> None:
+        detection, reason = read_detection(body)
+        if detection is None:
+            self.refused[f"camera_{reason}"] += 1
+            return
+        state = self.dead_reckoning.state if self.dead_reckoning else None
+        if state is None:
+            self.refused["bearing_without_heading"] += 1   # a bearing needs the common heading
+            return
+        column, row = detection
+        vector = self.camera.bearing(column, row, state.heading)
+        if vector is None and column is not None:
+            return   # refused by the adapter (counted there)
+        self._publish(publishers, "sensor/bearing", Bearing(
+            stamp_ns=self.clock_ns(), seq=self._next("bearing"), sender=self.id, bearing=vector))
 
     def _drive(self, fd: int, now: float) -> None:
         """One thrust line; `now` is the monotonic clock (the watchdog's)."""
+        write_all(fd, self.thrust_line(now))
+
+    def thrust_line(self, now: float) -> bytes:
+        """The thrust line to write now: the command in force's, or a stop. `now`: the monotonic clock."""
         with self._command_lock:
             command, left, self._agent_left = self._command, self._agent_left, False
         if left:
@@ -181,7 +252,7 @@ class DriverBridge:
             self._applied = command
             # Its stamp was judged on arrival (CommandGate); the watchdog counts from its application.
             self.thrusters.command(command.surge, command.yaw_rate, now)
-        write_all(fd, command_line(self.thrusters.output(now)))
+        return command_line(self.thrusters.output(now))
 
     # ----- the loop -----
     def run(self, max_seconds: float | None = None) -> None:
@@ -210,6 +281,7 @@ class DriverBridge:
                         data = os.read(fd, 4096)
                         if data:
                             readers[fd](data, publishers)
+                    self.report_refusals(time.monotonic())
                     if time.monotonic() >= next_drive:
                         next_drive += period
                         if self.thrusters:
@@ -240,16 +312,9 @@ def main(argv: list[str] | None = None) -> int:
     except OSError as error:
         print(f"usv-driver: {error}", file=sys.stderr)
         return 1
-    counts = {"published": dict(bridge.published), "refused": dict(bridge.refused)}
-    for name in ("uwb", "dead_reckoning", "camera", "thrusters"):
-        adapter = getattr(bridge, name)
-        if adapter is not None and adapter.rejected:
-            counts[f"{name}_refused"] = dict(adapter.rejected)
+    counts = {"published": dict(bridge.published), "refused": dict(bridge.refused)} | bridge.refusals()
     if bridge.thrusters is not None and bridge.thrusters.events:
         counts["thruster_events"] = dict(bridge.thrusters.events)
-    for name, lines in bridge.lines.items():
-        if lines.rejected:
-            counts[f"{name}_lines_refused"] = dict(lines.rejected)
     print(f"usv-driver {args.vessel}: stopped; {counts}", file=sys.stderr)
     return 0
 

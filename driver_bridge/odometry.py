@@ -18,20 +18,32 @@ ds * sin(dpsi/2) / (dpsi/2) along psi0 + dpsi/2, which is exact for a steady tur
 `parse_vhw` reads NMEA 0183 VHW, "water speed and heading"
 (https://gpsd.gitlab.io/gpsd/NMEA.html#_vhw_water_speed_and_heading):
 `$--VHW,<heading true, deg>,T,<heading magnetic, deg>,M,<speed, knots>,N,<speed, km/h>,K*hh`.
+
+Bounds. A sentence with a valid checksum can still say anything (a faulty speed log: 1e30 knots). What goes
+into the integration is bounded at each step, so that every state is a valid contract message: a heading
+field outside [0, 360] degrees is refused by the parser, a speed beyond `max_speed` (or a yaw rate beyond
+`max_yaw_rate`) by `update`, and a step that would take the position beyond the contract's MAX_POSITION
+(or a variance beyond MAX_VARIANCE) is refused whole: nothing is published, the step is counted, and the
+next step starts from the last position at the refused sample's time and heading (the refused motion is
+lost). At the edge of the frame the odometry therefore stops while the vessel heads out, and the agent,
+seeing no fresh odometry, stops the vessel; it resumes when the vessel heads back in. A frame that moved on
+would break the contract's "it never jumps".
 """
 
 from __future__ import annotations
 
 import math
 from collections import Counter
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Literal
 
 from pydantic import Field
 
 from agent.angles import wrap_angle
-from agent.config import NonNegativeFloat, StrictModel
-from agent.contract import Odometry, nanoseconds
+from agent.config import NonNegativeFloat, PositiveFloat, StrictModel
+from agent.contract import (MAX_ANGLE, MAX_POSITION, MAX_SPEED, MAX_STAMP_NS, MAX_VARIANCE, Odometry,
+                            nanoseconds)
+from driver_bridge.serial_port import nmea_number
 
 KNOT = 1852.0 / 3600.0  # m/s
 
@@ -46,6 +58,10 @@ class OdometrySettings(StrictModel):
     position_variance_per_m: NonNegativeFloat = Field(1e-4, description="per axis, m^2 per metre travelled")
     heading_variance: NonNegativeFloat = Field(1e-4, description="of one yaw reading, or of initial_heading")
     yaw_rate_variance_per_s: NonNegativeFloat = Field(1e-6, description="rad^2/s, only with yaw_rate input")
+    max_speed: PositiveFloat = Field(50.0, le=MAX_SPEED, description="fastest believable speed either way "
+                                     "(m/s); a sample beyond it is refused")
+    max_yaw_rate: PositiveFloat = Field(10.0, le=MAX_ANGLE, description="fastest believable yaw rate "
+                                        "(rad/s), with a yaw_rate input; a sample beyond it is refused")
 
 
 @dataclass(frozen=True)
@@ -66,44 +82,76 @@ class OdometryState:
 class DeadReckoning:
     """`update(stamp_s, speed, yaw)` -> the new OdometryState, or the unchanged one if the sample is refused.
 
-    Refused samples are counted in `rejected`: `non_finite` (NaN or infinity anywhere), `out_of_order` (a
-    stamp not after the last accepted one). Before the first accepted sample `update` returns None.
+    Refused samples are counted in `rejected`: `non_finite` (NaN or infinity anywhere), `stamp_out_of_range`
+    (before 0 or beyond an int64 of ns), `speed_out_of_range` (beyond max_speed), `yaw_out_of_range` (beyond
+    the contract's MAX_ANGLE, or max_yaw_rate for a rate), `out_of_order` (a stamp not after the last
+    accepted one), `position_out_of_bounds` (the step would leave the contract's +-MAX_POSITION),
+    `covariance_out_of_bounds` (a variance would pass MAX_VARIANCE). Before the first accepted sample
+    `update` returns None.
     """
 
     def __init__(self, settings: OdometrySettings | None = None):
         self.settings = settings or OdometrySettings()
         self.rejected: Counter[str] = Counter()
         self.state: OdometryState | None = None
+        self._from: OdometryState | None = None       # where the next step starts (see the position bound)
         self._speed = self._rate = self._start = 0.0  # previous speed and yaw rate; first stamp
 
     def update(self, stamp_s: float, speed: float, yaw: float) -> OdometryState | None:
-        if not all(math.isfinite(v) for v in (stamp_s, speed, yaw)):
-            self.rejected["non_finite"] += 1
-            return self.state
         s = self.settings
-        last = self.state
+        problem = self._problem(stamp_s, speed, yaw)
+        if problem:
+            self.rejected[problem] += 1
+            return self.state
+        last = self._from
         if last is None:
             heading = s.initial_heading if s.yaw_input == "yaw_rate" else s.yaw_sign * yaw + s.yaw_offset
-            self._start, self._speed, self._rate = stamp_s, speed, yaw
-            self.state = self._state(stamp_s, 0.0, 0.0, heading, 0.0)
-            return self.state
-        dt = stamp_s - last.stamp
-        if dt <= 0:
-            self.rejected["out_of_order"] += 1
-            return last
-        if s.yaw_input == "yaw_rate":
-            turn = s.yaw_sign * 0.5 * (self._rate + yaw) * dt  # trapezoid, like the speed
+            self._start = stamp_s
+            state = self._state(stamp_s, 0.0, 0.0, heading, 0.0)
         else:
-            turn = wrap_angle(s.yaw_sign * yaw + s.yaw_offset - last.heading)  # shortest way round
-        ds = 0.5 * (self._speed + speed) * dt
-        half = 0.5 * turn
-        chord = ds * (math.sin(half) / half if abs(half) > 1e-9 else 1.0 - half * half / 6.0)
-        direction = last.heading + half
+            dt = stamp_s - last.stamp
+            if dt <= 0:
+                self.rejected["out_of_order"] += 1
+                return self.state
+            if s.yaw_input == "yaw_rate":
+                turn = s.yaw_sign * 0.5 * (self._rate + yaw) * dt  # trapezoid, like the speed
+            else:
+                turn = wrap_angle(s.yaw_sign * yaw + s.yaw_offset - last.heading)  # shortest way round
+            ds = 0.5 * (self._speed + speed) * dt
+            half = 0.5 * turn
+            chord = ds * (math.sin(half) / half if abs(half) > 1e-9 else 1.0 - half * half / 6.0)
+            direction = last.heading + half
+            x, y = last.x + chord * math.cos(direction), last.y + chord * math.sin(direction)
+            state = self._state(stamp_s, x, y, last.heading + turn, last.distance + abs(ds))
+        # A step beyond the contract is refused whole (every agent would refuse the state). The next one
+        # starts at this sample's time and heading but the last position: otherwise the interval to integrate,
+        # and with it the step, would only grow, and the odometry would stay stuck once the vessel heads back.
+        problem = ""
+        if not (abs(state.x) <= MAX_POSITION and abs(state.y) <= MAX_POSITION):
+            problem = "position_out_of_bounds"
+        elif not max(state.covariance) <= MAX_VARIANCE:
+            problem = "covariance_out_of_bounds"
         self._speed, self._rate = speed, yaw
-        self.state = self._state(stamp_s, last.x + chord * math.cos(direction),
-                                 last.y + chord * math.sin(direction), last.heading + turn,
-                                 last.distance + abs(ds))
-        return self.state
+        if problem:
+            self.rejected[problem] += 1
+            if last is not None:
+                self._from = replace(last, stamp=stamp_s, heading=state.heading)
+            return self.state
+        self.state = self._from = state
+        return state
+
+    def _problem(self, stamp_s: float, speed: float, yaw: float) -> str:
+        """Why a sample is refused before it is integrated, or ""."""
+        s = self.settings
+        if not all(math.isfinite(v) for v in (stamp_s, speed, yaw)):
+            return "non_finite"
+        if not 0 <= nanoseconds(stamp_s) <= MAX_STAMP_NS:
+            return "stamp_out_of_range"
+        if abs(speed) > s.max_speed:
+            return "speed_out_of_range"
+        if abs(yaw) > (s.max_yaw_rate if s.yaw_input == "yaw_rate" else MAX_ANGLE):
+            return "yaw_out_of_range"
+        return ""
 
     def _state(self, stamp: float, x: float, y: float, heading: float, distance: float) -> OdometryState:
         s = self.settings
@@ -119,19 +167,29 @@ def parse_vhw(body: bytes) -> tuple[float, float] | None:
     """(speed through water in m/s, true heading in rad clockwise from north) from a VHW body, or None.
 
     `body` is what serial_port.LineReader returns (no `$`, no `*hh`). Knots are preferred; km/h is used
-    when the knots field is empty.
+    when the knots field is empty. `read_vhw` also says why a body is refused.
     """
+    return read_vhw(body)[0]
+
+
+def read_vhw(body: bytes) -> tuple[tuple[float, float] | None, str]:
+    """(sample, "") or (None, why): `not_vhw` (another sentence, or the wrong fields), `bad_number` (a field
+    that is no finite decimal), `no_speed` (neither knots nor km/h given), `heading_out_of_range` (a true
+    heading outside [0, 360] degrees). The speed's size is judged by DeadReckoning (its max_speed)."""
     fields = body.decode("ascii", "replace").split(",")
     if len(fields) != 9 or not fields[0].endswith("VHW") or fields[2] != "T":
-        return None
-    try:
-        heading = math.radians(float(fields[1]))
-        if fields[5] and fields[6] == "N":
-            speed = float(fields[5]) * KNOT
-        elif fields[7] and fields[8] == "K":
-            speed = float(fields[7]) / 3.6
-        else:
-            return None
-    except ValueError:
-        return None
-    return speed, heading
+        return None, "not_vhw"
+    heading = nmea_number(fields[1])
+    if fields[5] and fields[6] == "N":
+        speed = nmea_number(fields[5])
+        speed = None if speed is None else speed * KNOT
+    elif fields[7] and fields[8] == "K":
+        speed = nmea_number(fields[7])
+        speed = None if speed is None else speed / 3.6
+    else:
+        return None, "no_speed"
+    if heading is None or speed is None:
+        return None, "bad_number"
+    if not 0.0 <= heading <= 360.0:
+        return None, "heading_out_of_range"
+    return (speed, math.radians(heading)), ""

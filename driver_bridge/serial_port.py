@@ -12,7 +12,9 @@ https://gpsd.gitlab.io/gpsd/NMEA.html). The odometry, bearing and thruster lines
 
 from __future__ import annotations
 
+import math
 import os
+import re
 import select
 import termios
 import time
@@ -24,6 +26,9 @@ from typing import TypeVar
 
 T = TypeVar("T")
 _HEX = frozenset(b"0123456789ABCDEFabcdef")
+# A decimal as a device writes it: digits, an optional fraction and exponent. Python's float() also takes
+# "nan", "inf", "1_000" and spaces, none of which a sensor sends.
+_DECIMAL = re.compile(r"[+-]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]{1,4})?")
 
 
 def baud_constant(baud: int) -> int:
@@ -95,6 +100,14 @@ def nmea_sentence(body: str) -> bytes:
     """`$<body>*<XX>\\r\\n` with its checksum."""
     raw = body.encode("ascii")
     return b"$" + raw + b"*" + f"{nmea_checksum(raw):02X}".encode() + b"\r\n"
+
+
+def nmea_number(text: str) -> float | None:
+    """The finite number a sentence's field holds, or None (empty, not a plain decimal, or beyond a float)."""
+    if not _DECIMAL.fullmatch(text):
+        return None
+    value = float(text)
+    return value if math.isfinite(value) else None
 
 
 class LineReader:

@@ -41,11 +41,18 @@ from agent.config import PositiveFloat, StrictModel
 from driver_bridge.serial_port import nmea_sentence
 
 
+# Far beyond any vessel's, and small enough that the mix of any command the contract allows stays a number:
+# with them a product can overflow to an infinity (which saturates, the right way) but never to NaN.
+MAX_HULL_VALUE = 1e6
+
+
 class ThrusterSettings(StrictModel):
-    max_thrust: PositiveFloat = Field(description="thrust of one thruster at full command (N)")
-    half_beam: PositiveFloat = Field(description="distance of each thruster from the centreline (m)")
-    surge_drag: PositiveFloat = Field(description="linear surge drag d_u (N per m/s)")
-    yaw_drag: PositiveFloat = Field(description="linear yaw drag d_r (N m per rad/s)")
+    max_thrust: PositiveFloat = Field(le=MAX_HULL_VALUE, description="thrust of one thruster at full command "
+                                      "(N)")
+    half_beam: PositiveFloat = Field(le=MAX_HULL_VALUE, description="distance of each thruster from the "
+                                     "centreline (m)")
+    surge_drag: PositiveFloat = Field(le=MAX_HULL_VALUE, description="linear surge drag d_u (N per m/s)")
+    yaw_drag: PositiveFloat = Field(le=MAX_HULL_VALUE, description="linear yaw drag d_r (N m per rad/s)")
     timeout: PositiveFloat = Field(0.5, description="stop when the last valid command is older (s)")
 
 
@@ -96,7 +103,7 @@ ZERO_THRUST = Thrust(0.0, 0.0)
 
 
 def _clip(value: float, limit: float) -> float:
-    return max(-limit, min(limit, value))
+    return value if math.isnan(value) else max(-limit, min(limit, value))   # NaN stays NaN: command() stops
 
 
 class ThrusterAdapter:
@@ -138,12 +145,13 @@ class ThrusterAdapter:
             self.rejected["out_of_order"] += 1
             return self._thrust
         self._stamp = now
-        if not (math.isfinite(surge) and math.isfinite(yaw_rate)):
+        thrust = self.mix(surge, yaw_rate) if math.isfinite(surge) and math.isfinite(yaw_rate) else None
+        if thrust is None or not (abs(thrust.left) <= 1.0 and abs(thrust.right) <= 1.0):
+            # NaN, or a mix gone non-finite (a hull whose numbers overflow): a stop, never an unknown thrust.
             self.rejected["non_finite"] += 1
-            self._thrust = ZERO_THRUST
-        else:
-            self._thrust = self.mix(surge, yaw_rate)
-        return self._thrust
+            thrust = ZERO_THRUST
+        self._thrust = thrust
+        return thrust
 
     def stop(self, reason: str) -> None:
         """Zero thrust now, until the next command (the agent is gone: no need to wait for the watchdog)."""

@@ -37,7 +37,7 @@ from typing import Annotated
 from pydantic import Field
 
 from agent.config import PositiveFloat, StrictModel
-from agent.contract import VesselId
+from agent.contract import MAX_POSITION, VesselId
 
 HEADER = 0x55
 NodeNumber = Annotated[int, Field(ge=0, le=255)]
@@ -67,8 +67,8 @@ class UwbSettings(StrictModel):
     peers: dict[NodeNumber, VesselId] = Field(description="LinkTrack node id (0-255) -> vessel id")
     max_nodes: int = Field(64, ge=1, le=255, description="most node blocks in one frame; a longer length "
                            "field is refused at once instead of waiting for bytes that will not come")
-    max_range: PositiveFloat = Field(1000.0, description="longest believable range (m); our choice, "
-                                     "above LinkTrack's rated range")
+    max_range: PositiveFloat = Field(1000.0, le=MAX_POSITION, description="longest believable range (m); our "
+                                     "choice, above LinkTrack's rated range (at most the contract's limit)")
 
 
 @dataclass(frozen=True)

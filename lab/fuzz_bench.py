@@ -45,7 +45,7 @@ import zenoh
 
 from agent.core.params import AgentParams
 from agent.runtime.zenoh_session import ZenohSettings, zenoh_config
-from lab import arguments
+from lab import arguments, serial_fuzz
 from lab.report import invocation, machine, markdown_table
 
 VESSEL = "1"
@@ -525,6 +525,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="bad payloads per subscribed key (floods included)")
     parser.add_argument("--seed", type=arguments.seed, default=1, help="seed of the payloads' Generator")
     parser.add_argument("--out", type=Path, default=Path("docs/results"), help="where fuzz.md goes")
+    parser.add_argument("--serial-lines", type=arguments.positive_int, default=20000,
+                        help="bad lines or frames per parser of the driver bridge (lab/serial_fuzz.py), "
+                             "a section of the page")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -539,12 +542,13 @@ def run(args: argparse.Namespace) -> int:
             print(f"  tick {done}/{total}", flush=True)
 
     results = run_campaign(per_key=args.per_key, seed=args.seed, progress=progress)
+    serial_section, serial_sound = serial_fuzz.page_section(args.serial_lines, args.seed, invocation(args))
     args.out.mkdir(parents=True, exist_ok=True)
     path = args.out / "fuzz.md"
-    path.write_text(render(invocation(args), results, baseline))
+    path.write_text(render(invocation(args), results, baseline) + "\n" + serial_section)
     print(f"wrote {path}")
     sound = (results.alive_at_end and results.exit_code == 0 and not results.bad_commands
-             and results.after_storm_moving > 0)
+             and results.after_storm_moving > 0 and serial_sound)
     return 0 if sound else 1
 
 

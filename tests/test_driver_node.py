@@ -6,6 +6,7 @@ from __future__ import annotations
 import contextlib
 import itertools
 import os
+import re
 import select
 import signal
 import subprocess
@@ -174,7 +175,8 @@ def test_driver_bridge_turns_serial_streams_into_the_contract_and_commands_into_
             os.close(slave)
     assert driver.returncode == 0, output
     # What was refused is counted and reported: the other vessel's command, the three bad checksums.
-    assert "'command': 1" in output and "'odometry_lines_refused': {'bad_checksum': 3}" in output, output
+    assert "'command_other_vessel': 1" in output, output
+    assert "'odometry_lines_refused': {'bad_checksum': 3}" in output, output
 
 
 def test_a_bad_driver_config_is_a_clear_error(tmp_path):
@@ -189,9 +191,10 @@ REVERSE = "$THR,-0.250,-0.250*"      # -1 m/s: what the spoofer asks for, never 
 
 
 @contextlib.contextmanager
-def thruster_driver(tmp_path: Path, extra: dict | None = None):
-    """`usv-driver` for vessel 1 with a hull on a pseudo-terminal (5 s watchdog): yields the process (stdout and
-    stderr in one text pipe), its thrust lines and its Zenoh port; killed if still running at the end."""
+def thruster_driver(tmp_path: Path, extra: dict | None = None, watchdog: float = 5.0):
+    """`usv-driver` for vessel 1 with a hull on a pseudo-terminal (a `watchdog` s timeout): yields the process
+    (stdout and stderr in one text pipe), its thrust lines and its Zenoh port; killed if still running at the
+    end."""
     master, slave = os.openpty()
     port = free_port()
     config = tmp_path / "driver.yaml"
@@ -199,7 +202,7 @@ def thruster_driver(tmp_path: Path, extra: dict | None = None):
         "zenoh": {"listen": [f"tcp/127.0.0.1:{port}"]},
         "thrusters": {"device": os.ttyname(slave), "rate_hz": 20.0,
                       "hull": {"max_thrust": 100.0, "half_beam": 0.5, "surge_drag": 50.0, "yaw_drag": 20.0,
-                               "timeout": 5.0}},
+                               "timeout": watchdog}},
         **(extra or {}),
     }))
     driver = subprocess.Popen([sys.executable, "-m", "driver_bridge", "--vessel", "1", "--config", str(config)],
@@ -309,3 +312,90 @@ def test_a_driver_stopped_under_way_leaves_the_thrusters_stopped(tmp_path):
     assert driver.returncode == 0, output
     assert lines and lines[-1].startswith(STOPPED), lines
     assert "Timeout (" not in output, output
+
+
+def test_a_storm_of_bad_serial_lines_leaves_the_driver_alive_its_watchdog_working_and_its_odometry_flowing(
+        tmp_path):
+    """A few hundred bad sentences on the speed log's port (lab/serial_fuzz.py's classes, seed 5, and bursts),
+    with VHW lines of +-1e30 and +-1e308 knots and km/h under valid checksums among them: before, the first
+    1e30 line ended usv-driver and its watchdog with it. Now the driver stays up, the thrusters follow the
+    agent through the storm, good sentences after it are published as odometry within the contract, and the
+    watchdog stops the thrusters once the agent's commands cease (its session still up)."""
+    import numpy as np
+
+    from driver_bridge.serial_port import write_all
+    from lab.serial_fuzz import SerialLines, classes_for, sentence
+
+    log_master, log_slave = os.openpty()
+    os.set_blocking(log_master, False)
+    odometry: list = []
+    extra = {"odometry": {"device": os.ttyname(log_slave), "baud": 4800}}
+    agent = None
+    try:
+        with thruster_driver(tmp_path, extra, watchdog=0.5) as (driver, thrusters, port), \
+                zenoh.open(zenoh_config(ZenohSettings(connect=[f"tcp/127.0.0.1:{port}"]))) as session:
+            def on_odometry(sample) -> None:
+                message, reason = decode(Odometry, sample.payload.to_bytes())
+                odometry.append(message if message is not None else reason)
+
+            session.declare_subscriber("usv/1/sensor/odom", on_odometry)
+            wait_for(lambda: list(session.info.peers_zid()), what="the driver bridge's session")
+
+            def good() -> bool:
+                write_all(log_master, xor_sentence("IIVHW,90.0,T,,M,2.0,N,,K"), timeout_s=5.0)
+                return wait_until(lambda: odometry, timeout=0.3)
+
+            wait_for(good, what="the driver's first odometry")
+            agent = RealAgent(port)
+            thrusters.read_until(lambda line: line.startswith(FULL_AHEAD), seconds=15, what="the agent's thrust")
+            bad = SerialLines("vhw", np.random.default_rng(5))
+            kinds = [c for c in classes_for("vhw") if c not in ("burst", "walk")]   # walk: minutes apart
+            huge = [xor_sentence(f"IIVHW,90.0,T,,M,{v},N,,K") for v in ("1e30", "-1e30", "1e308", "-1e308")]
+            huge += [xor_sentence(f"IIVHW,90.0,T,,M,,N,{v},K") for v in ("1e30", "-1e308")]
+            bursts = [b"".join(bad.bad(kinds[k % len(kinds)]) for k in range(50)) for _ in range(3)]
+            storm = [*huge, *(bad.bad(kinds[k % len(kinds)]) for k in range(300)), *bursts, *huge]
+
+            def alive(after: int) -> None:
+                assert driver.poll() is None, (f"usv-driver exited with {driver.returncode} after {after} "
+                                               f"lines: {driver.communicate(timeout=5)[0][-3000:]}")
+
+            for k, line in enumerate(storm):
+                if k % 25 == 0:
+                    time.sleep(0.02)
+                    alive(k)
+                try:
+                    write_all(log_master, line, timeout_s=5.0)
+                except TimeoutError:      # nobody reads the port any more
+                    alive(k)
+                    raise
+            time.sleep(0.5)
+            alive(len(storm))
+            lines = thrusters.read(0.5)       # the loop goes on: the agent's commands drive the thrusters
+            assert lines and all(line.startswith(FULL_AHEAD) for line in lines), lines
+
+            before = len(odometry)
+            write_all(log_master, b"\r\n" + sentence("IIVHW,90.0,T,,M,2.0,N,,K"), timeout_s=5.0)
+            for _ in range(5):
+                time.sleep(0.1)
+                write_all(log_master, xor_sentence("IIVHW,90.0,T,,M,2.0,N,,K"), timeout_s=5.0)
+            wait_for(lambda: len(odometry) >= before + 5, what="odometry from good sentences after the storm")
+
+            agent.stopping.set()              # the agent stops commanding; its session (and token) stay
+            agent.thread.join(5)
+            fading = thrusters.read_until(lambda line: line.startswith(STOPPED), seconds=10,
+                                          what="the watchdog")
+            assert all(line.startswith(FULL_AHEAD) for line in fading[:-1]), fading
+            agent.leave()
+            driver.send_signal(signal.SIGTERM)
+            output, _ = driver.communicate(timeout=15)
+    finally:
+        if agent is not None and not agent.stopping.is_set():
+            agent.leave()
+        os.close(log_master)
+        os.close(log_slave)
+    assert driver.returncode == 0, output
+    closing = output.splitlines()[-1]
+    refused = re.search(r"'speed_out_of_range': (\d+)", closing)
+    assert refused and int(refused.group(1)) >= 12, output     # the twelve huge ones, and the campaign's
+    assert "refused so far (dropped, going on)" in output and "Traceback" not in output, output
+    assert all(isinstance(message, Odometry) for message in odometry), odometry   # each within the contract
