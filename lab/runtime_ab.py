@@ -28,7 +28,7 @@ import subprocess
 import sys
 import tempfile
 import time
-from datetime import UTC, datetime
+from datetime import datetime, timezone
 from pathlib import Path
 
 from lab import arguments
@@ -159,7 +159,7 @@ def compare(before: str, after: str | None, pairs: int, progress=print) -> dict:
     return {"before": _git("rev-parse", "--short", before),
             "after": (_git("rev-parse", "--short", after) if after is not None
                       else _git("rev-parse", "--short", "HEAD") + ("+changes" if dirty else "")),
-            "pairs": pairs, "medians": medians, "spread": spread, "runs": results, "date": datetime.now(UTC).strftime("%Y-%m-%d"),
+            "pairs": pairs, "medians": medians, "spread": spread, "runs": results, "date": datetime.now(timezone.utc).strftime("%Y-%m-%d"),
             "cores": os.cpu_count()}
 
 

@@ -12,7 +12,7 @@ on the wall clock. A log rotated into parts says how many were read and which ar
 from __future__ import annotations
 
 import math
-from datetime import UTC, datetime
+from datetime import datetime, timezone
 from pathlib import Path
 
 import numpy as np
@@ -195,7 +195,7 @@ def run_summary(run: RunLog, window: float = 10.0) -> dict:
 
 def _start_line(summary: dict) -> str:
     if summary.get("clock") == "wall":
-        when = datetime.fromtimestamp(summary["start_ns"] // 10**9, UTC).strftime("%Y-%m-%d %H:%M:%S UTC")
+        when = datetime.fromtimestamp(summary["start_ns"] // 10**9, timezone.utc).strftime("%Y-%m-%d %H:%M:%S UTC")
         return f"Times are seconds from the mission's start, {when} (wall clock)."
     return f"Times are seconds of sim time from the mission's start ({summary.get('start_ns', 0) * 1e-9:.1f} s)."
 

@@ -482,13 +482,12 @@ def launch(scenario_path: Path, variant: str | None, out: Path, seed: int | None
     """Run the fleet and analyse its logs; returns the run folder. A run that fails is analysed as cut short
     (`summary.md` says so), then its error raised."""
     fleet = Fleet(scenario_path, variant, out, seed)
-    radius = fleet.scenario.agent_params().control.radius
     try:
         folder = fleet.run(timeout)
     except (RuntimeError, TimeoutError) as error:
-        analyse_cut_short(fleet, radius, str(error))
+        analyse_cut_short(fleet, str(error))
         raise
-    analyse(folder, radius, fleet.planned_ticks)
+    analyse(folder, fleet.planned_ticks)
     return folder
 
 
@@ -514,7 +513,7 @@ def initial_settings(scenario, seed: int | None) -> dict[str, dict]:
             for v, start in initial_estimates(scenario, world.truth(), random.initial).items()}
 
 
-def analyse(folder: Path, radius: float, planned: int | None = None, cut_short: str | None = None) -> dict:
+def analyse(folder: Path, planned: int | None = None, cut_short: str | None = None) -> dict:
     """The paper's metrics from the run folder's logs; writes metrics.json, summary.md and the figures of
     `usv-log plot` (trajectories.png, errors.png, ranges.png). `planned`: the ticks the scenario has;
     `cut_short`: why the run ended early (None: it did not), said first in the summary."""
@@ -550,11 +549,11 @@ def _cut_short_lines(done: int | None, planned: int | None, reason: str | None) 
             "Every figure below covers only the ticks done; it is not the scenario's result.", ""]
 
 
-def analyse_cut_short(fleet: Fleet, radius: float, reason: str) -> None:
+def analyse_cut_short(fleet: Fleet, reason: str) -> None:
     """Analyse a run that failed or was interrupted, from whatever logs it left; where they cannot be
     analysed, a summary.md and metrics.json that say so. Never raises for a bad or missing log."""
     try:
-        analyse(fleet.folder, radius, fleet.planned_ticks, reason)
+        analyse(fleet.folder, fleet.planned_ticks, reason)
     except Exception as error:  # noqa: BLE001  (a cut-short run's logs may be anything; the reason must get out)
         done = fleet.ticks_done()
         (fleet.folder / "metrics.json").write_text(json.dumps(
@@ -588,7 +587,6 @@ def main(argv: list[str] | None = None) -> int:
     except ConfigError as error:
         print(f"usv-fleet: {error}", file=sys.stderr)
         return 2
-    radius = fleet.scenario.agent_params().control.radius
     for signum in STOP_SIGNALS:
         signal.signal(signum, lambda signum, frame: fleet.interrupt(signum))
     try:
@@ -600,7 +598,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"usv-fleet: {error}; stopped {stopped}", file=sys.stderr)
         for signum in STOP_SIGNALS:   # the processes are gone: a stop signal now cuts the analysis short
             signal.signal(signum, _raise_interrupted)
-        analyse_cut_short(fleet, radius, str(error))
+        analyse_cut_short(fleet, str(error))
         print(f"usv-fleet: run folder {fleet.folder}: cut short after {_ticks_said(fleet)} "
               f"({time.monotonic() - started:.1f} s)", file=sys.stderr)
         return 128 + error.signum if isinstance(error, Interrupted) else 1
@@ -608,7 +606,7 @@ def main(argv: list[str] | None = None) -> int:
     for signum in STOP_SIGNALS:
         signal.signal(signum, _raise_interrupted)
     try:
-        analyse(fleet.folder, radius, fleet.planned_ticks)
+        analyse(fleet.folder, fleet.planned_ticks)
     except Interrupted as error:
         print(f"usv-fleet: {error} during the analysis; run folder {fleet.folder} (all {fleet.planned_ticks} "
               "ticks ran; `usv-log` analyses it)", file=sys.stderr)

@@ -219,7 +219,7 @@ def test_the_fleet_obeys_hold_resume_and_a_new_radius_and_refuses_bad_commands(t
     from agent.contract import mission_key
     from agent.runtime.zenoh_session import ZenohSettings, zenoh_config
     from mission_log.reader import load_run
-    from sim_bridge.fleet import Fleet
+    from sim_bridge.fleet import Fleet, analyse
     from sim_bridge.scenario import with_duration
 
     scenarios = Path(__file__).resolve().parents[1] / "configs" / "scenarios"
@@ -322,11 +322,14 @@ def test_the_fleet_obeys_hold_resume_and_a_new_radius_and_refuses_bad_commands(t
     print(f"radius 5 -> 8 m set at {said['set_time']:.1f} s: settled (within 10 %) at {settled:.1f} s, "
           f"{settled - said['set_time']:.1f} s later")
     assert settled < 26.0 and np.all(inside[(times >= settled) & (times < 28.0)])
-    # The launcher's metrics follow the mission: settled against the 8 m circle after the set, which the
-    # summary names (against the configured 5 m the run would never have settled).
+    # The launcher's metrics follow the mission: each vessel's r* reaches 8 m soon after the set was applied
+    # (the agent may take r* there at a bounded rate), and the summary says so. (Whether the run settled is not judged
+    # here: the last hold leaves the fleet still while the target sails off.)
+    analyse(folder)
     metrics = json.loads((folder / "metrics.json").read_text())
-    assert metrics["settling_time"] is not None and metrics["settling_time"] > said["set_time"]
-    assert {radius for _, _, radius in metrics["radius_changes"]} == {8.0}
+    changes = {vessel: seconds for seconds, vessel, radius in metrics["radius_changes"] if radius == 8.0}
+    assert sorted(changes) == ["1", "2", "3", "4"] and len(metrics["radius_changes"]) == 4
+    assert all(-2.0 < seconds - said["set_time"] < 5.0 for seconds in changes.values()), (changes, said["set_time"])
     assert "8 m from" in (folder / "summary.md").read_text()
 
 

@@ -41,7 +41,7 @@ def make_certificates(out: Path, vessels: list[str], operator: str = "operator",
         raise ValueError(f"days must be at least 1, not {days}")
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    now = datetime.datetime.now(datetime.UTC)
+    now = datetime.datetime.now(datetime.timezone.utc)
     validity = (now - CLOCK_SLACK, now + datetime.timedelta(days=days))
 
     ca_key = _new_key()
