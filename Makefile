@@ -53,14 +53,18 @@ runtime-bench: $(RUNTIME)
 	$(VENV)/bin/usv-lab runtime-bench
 
 # `make test-fast` on every other Python this project supports that the machine has, each in its own
-# .venv-3.X (what .ci/run calls after `make test`). An interpreter found neither on PATH nor under pyenv's
-# versions/ is skipped with a line that says so. OPENBLAS_CORETYPE=Haswell once more on the main Python: its
-# kernels round differently from the SkylakeX ones of an AVX-512 machine, so no test may depend on either.
+# .venv-3.X (what .ci/run calls after `make test`): pyenv's versions/ first (its shims may not resolve
+# python3.X), then PATH; one that is not there, or does not run, is skipped with a line that says so.
+# Then the suite once more on the main Python under OPENBLAS_CORETYPE=Haswell: its kernels round differently
+# from the SkylakeX ones of an AVX-512 machine, so no test may depend on either.
 OTHER_PYTHONS ?= 3.10 3.12 3.13
 test-pythons: $(STAMP)
 	@for version in $(OTHER_PYTHONS); do \
-	  found=$$(command -v python$$version || ls -d $$(pyenv root 2>/dev/null)/versions/$$version.*/bin/python$$version 2>/dev/null | tail -n 1); \
-	  if [ -z "$$found" ]; then echo "test-pythons: skipped Python $$version: no python$$version on this machine"; continue; fi; \
+	  found=""; \
+	  for candidate in $$(ls -d $$(pyenv root 2>/dev/null)/versions/$$version.*/bin/python$$version 2>/dev/null | sort -V | tail -n 1) $$(command -v python$$version); do \
+	    if "$$candidate" -c "" 2>/dev/null; then found=$$candidate; break; fi; \
+	  done; \
+	  if [ -z "$$found" ]; then echo "test-pythons: skipped Python $$version: no working python$$version on this machine"; continue; fi; \
 	  echo "test-pythons: Python $$version ($$found)"; \
 	  $(MAKE) --no-print-directory test-fast PYTHON=$$found VENV=.venv-$$version || exit 1; \
 	done
