@@ -43,7 +43,7 @@ from pathlib import Path
 import yaml
 import zenoh
 
-from agent.config import ConfigError
+from agent.config import ConfigError, read_yaml
 from agent.contract import CLOCK_KEY, LIVELINESS, Clock, decode, key, seconds
 from agent.runtime.mcap_log import read_messages
 from agent.runtime.zenoh_session import ZenohSettings, zenoh_config
@@ -246,7 +246,7 @@ class Fleet:
         to `agent-<id>-restart<n>.mcap`, so the first log stays whole."""
         restarts = self.restarted[vessel]
         restarts[-1] = (restarts[-1][0], self._sim_time)
-        settings = yaml.safe_load((self.folder / f"agent-{vessel}.yaml").read_text())
+        settings = read_yaml(self.folder / f"agent-{vessel}.yaml")
         settings.pop("initial", None)
         # The full look for a namesake (the agent's default), not the launch's short one: here an agent with
         # this id has just been, and a restart that waits that second rejoins as the restart tests measured.
