@@ -22,7 +22,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 MAX_YAML_BYTES = 1_000_000     # a YAML file larger than this is refused before it is read
-MAX_YAML_NODES = 200_000       # nor may a document's aliases expand it beyond this many nodes (scalars, lists, maps)
+MAX_YAML_NODES = 200_000       # nor may its aliases expand it beyond this many nodes (scalars, lists, maps)
 
 PositiveFloat = Annotated[float, Field(gt=0, allow_inf_nan=False)]
 NonNegativeFloat = Annotated[float, Field(ge=0, allow_inf_nan=False)]

@@ -18,13 +18,14 @@ from mission_log.replay import parse_assignments
 from sim_bridge.scenario import load_scenarios
 from usv_deploy.inventory import load_inventory
 
-ADDRESS_SPACE = 2 << 30   # the child's address space: should a bomb go off, it fails in seconds, not the machine
+ADDRESS_SPACE = 2 << 30   # the child's address space: a bomb that goes off fails in seconds, not the machine
 
 
 def alias_bomb(levels: int = 9) -> str:
     """An agent process's settings file (NodeSettings) whose `agent.control.radius` is a list of lists of
     aliases: 9**levels strings once expanded, in a few hundred bytes."""
-    lines = ["agent:", "  control:", '    radius: [&a ["lol","lol","lol","lol","lol","lol","lol","lol","lol"],']
+    strings = ",".join(['"lol"'] * 9)
+    lines = ["agent:", "  control:", f"    radius: [&a [{strings}],"]
     previous = "a"
     for name in "bcdefghijk"[:levels - 2]:
         lines.append(f"      &{name} [" + ",".join(["*" + previous] * 9) + "],")
@@ -44,15 +45,16 @@ def test_alias_bomb_refused_by_the_agent_in_a_few_megabytes(tmp_path: Path) -> N
     bomb.write_text(alias_bomb())
     assert len(bomb.read_bytes()) <= 400
     process = subprocess.Popen([sys.executable, "-m", "agent", "--vessel", "1", "--config", str(bomb)],
-                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, preexec_fn=_limit_memory)
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                               preexec_fn=_limit_memory)
     try:
         out, err = process.communicate(timeout=120)
     finally:
         process.kill()
     peak_mb = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024
     lines = err.strip().splitlines()
-    print(f"alias bomb ({len(bomb.read_bytes())} bytes): exit {process.returncode}, peak RSS of the children so "
-          f"far {peak_mb:.0f} MB: {err.strip()}")
+    print(f"alias bomb ({len(bomb.read_bytes())} bytes): exit {process.returncode}, peak RSS of the children "
+          f"so far {peak_mb:.0f} MB: {err.strip()}")
     assert process.returncode == 2, err[-2000:]
     assert len(lines) == 1 and str(bomb) in lines[0] and "alias" in lines[0], err[-2000:]
     assert "Traceback" not in err
