@@ -41,6 +41,7 @@ suspended by write errors, a console or a summary file could not be written in f
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import os
@@ -401,7 +402,8 @@ class Fleet:
                 raise RuntimeError(failure)
             if attempt == BRIDGE_ATTEMPTS:
                 raise RuntimeError(f"{failure}; its port was taken {attempt} times in a row")
-            log.rename(self.folder / f"bridge-attempt{attempt}.log")
+            with contextlib.suppress(OSError):    # a console never written (a full disk) has no file
+                log.rename(self.folder / f"bridge-attempt{attempt}.log")
             taken = self.bridge_port
             self._write_settings(free_port())
             attempt += 1

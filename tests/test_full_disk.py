@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import subprocess
 import sys
 import threading
@@ -182,3 +183,56 @@ def test_logging_resumes_when_there_is_room_again(full_disk, tmp_path):
     summary = (watched.folder / "summary.md").read_text()
     assert f"{metrics['ticks']} of the {watched.planned} ticks simulated" in summary and "cut short" not in summary
     assert stderr.strip().splitlines()[-1].endswith("logs were lost (exit 3)")
+
+
+def test_an_agent_whose_stderr_is_on_the_full_disk_keeps_steering(full_disk, tmp_path):
+    """Outside the launcher (a boat's agent with its stderr sent to a file on the log disk): the lines it
+    cannot write are lost, the agent is not. Its log and its stderr both on the full disk; the test plays its
+    bridge (odometry at 10 Hz) and watches its status for 30 ticks after the log was suspended; SIGTERM ends
+    it with code 0."""
+    import zenoh
+
+    from agent.contract import Odometry, encode
+    from sim_bridge.fleet import free_port
+
+    port = free_port()
+    config = tmp_path / "node.yaml"
+    config.write_text(json.dumps({"clock": "wall", "log": str(full_disk / "agent-7.mcap"),
+                                  "zenoh": {"listen": [f"tcp/127.0.0.1:{port}"]}}))
+    (full_disk / "filler").unlink()          # this agent alone: a smaller filler, leaving a few pages
+    stat = os.statvfs(full_disk)
+    (full_disk / "filler").write_bytes(b"\0" * (stat.f_bavail * stat.f_frsize - 16 * 1024))
+    with (full_disk / "agent-7.err").open("w") as console:
+        agent = subprocess.Popen([sys.executable, "-m", "agent", "--vessel", "7", "--config", str(config)],
+                                 stdout=console, stderr=console)
+    statuses: list[dict] = []
+    session_config = zenoh.Config()
+    session_config.insert_json5("scouting/multicast/enabled", "false")
+    session_config.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
+    try:
+        with zenoh.open(session_config) as session:
+            session.declare_subscriber("usv/7/status", lambda s: statuses.append(json.loads(s.payload.to_bytes())))
+            odometry = session.declare_publisher("usv/7/sensor/odom")
+            sent = [0]
+
+            def suspended_for(ticks: int) -> bool:
+                odometry.put(encode(Odometry(stamp_ns=time.time_ns(), seq=sent[0], sender="7",
+                                             position=(0.0, 0.0), heading=0.0)))
+                sent[0] += 1
+                return sum(s["health"].get("log_suspended", 0) == 1 for s in statuses) >= ticks
+
+            assert wait_until(lambda: suspended_for(30) or agent.poll() is not None, timeout=90, interval=0.1), \
+                f"the log was never suspended: {statuses[-1:] if statuses else 'no status'}"
+            assert agent.poll() is None, f"the agent exited with code {agent.returncode}"
+            agent.send_signal(signal.SIGTERM)
+            code = agent.wait(timeout=20)
+    finally:
+        if agent.poll() is None:
+            agent.kill()
+            agent.wait()
+    print(f"agent with stderr on the full disk: {sum(s['health'].get('log_suspended', 0) for s in statuses)} "
+          f"statuses with its log suspended, last log_dropped {statuses[-1]['health']['log_dropped']}; exit {code}")
+    assert code == 0
+    seqs = [s["seq"] for s in statuses]
+    assert seqs == list(range(seqs[0], seqs[0] + len(seqs)))     # a status every tick, none skipped
+    assert statuses[-1]["health"]["log_dropped"] > 0
