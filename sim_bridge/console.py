@@ -86,7 +86,7 @@ class Console:
         return done
 
     def _put(self, data: bytes) -> None:
-        """`data` to the file, after the tail kept since a failure; what cannot be written goes to the tail."""
+        """`data` to the file, after the tail kept since a failure; what cannot be written joins the tail."""
         self._tail += data
         if self._since is not None and time.monotonic() < self._next_try:
             self._bound_tail()
@@ -96,8 +96,9 @@ class Console:
             return
         if self._since is not None:
             marker = (f"[usv-fleet: this console could not be written from {_clock(self._since)} to "
-                      f"{_clock(time.time())} ({type(self._error).__name__}: {self._error}); {self.lost_bytes} "
-                      f"byte(s) lost; the last {len(self._tail)} byte(s) before now follow]\n").encode()
+                      f"{_clock(time.time())} ({type(self._error).__name__}: {self._error}); "
+                      f"{self.lost_bytes} byte(s) lost; the last {len(self._tail)} byte(s) before now "
+                      "follow]\n").encode()
             if self._write_all(marker) < len(marker):
                 self._bound_tail()
                 return
@@ -171,5 +172,6 @@ class Console:
             self._pipe.close()
         if not unwritten:
             return None
-        return (f"{self.path.name} not written in full ({type(error).__name__ if error else 'OSError'}: {error}): "
-                f"{unwritten} byte(s) lost; its last line: {self.last_line or '(none)'}")
+        kind = type(error).__name__ if error else "OSError"
+        return (f"{self.path.name} not written in full ({kind}: {error}): {unwritten} byte(s) lost; its last "
+                f"line: {self.last_line or '(none)'}")

@@ -79,7 +79,7 @@ FIRST_PORT = 20000                 # free_port() draws from [FIRST_PORT, the fir
 _PORTS = random.SystemRandom()     # not the `random` module's state, which a caller may have seeded
 STOP_SECONDS = 10.0                # after SIGTERM, how long the launcher waits for its children before SIGKILL
 STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT, signal.SIGHUP)
-MAX_PARTS = 10_000                 # parts of the bridge's log read for its ticks (rotation numbers them in 4 digits)
+MAX_PARTS = 10_000                 # parts of the bridge's log read for its ticks (numbered in 4 digits)
 LOGS_LOST = 3                      # exit code: the run went to its end, but logs were lost (module docstring)
 
 # Run before each child's own program: set the parent-death signal (Linux prctl PR_SET_PDEATHSIG = 1), so the
@@ -222,9 +222,9 @@ class Fleet:
     def _disk_full(self, error: OSError) -> None:
         if not self._disk_told:
             self._disk_told = True
-            print(f"usv-fleet: cannot write in the run folder {self.folder} ({type(error).__name__}: {error}): the "
-                  f"run goes on; each console is kept in memory (its last {TAIL_BYTES // 1024} kB) until there is "
-                  "room, and the processes' logs suspend and resume by themselves", file=sys.stderr)
+            print(f"usv-fleet: cannot write in the run folder {self.folder} ({type(error).__name__}: {error}): "
+                  f"the run goes on; each console is kept in memory (its last {TAIL_BYTES // 1024} kB) until "
+                  "there is room, and the processes' logs suspend and resume by themselves", file=sys.stderr)
 
     def _console_failed(self, name: str, error: OSError) -> None:
         self._disk_full(error)
@@ -440,14 +440,16 @@ class Fleet:
                 raise RuntimeError(self._exited(f"the agent of vessel {vessel}", self._name(vessel),
                                                 process.returncode, "during the mission"))
 
-    def _exited(self, who: str, name: str, code: int | None, when: str = "", console: Console | None = None) -> str:
-        """`who` exited with `code` `when`, with the last line of its console and where that console's log is."""
+    def _exited(self, who: str, name: str, code: int | None, when: str = "",
+                console: Console | None = None) -> str:
+        """`who` exited with `code` `when`, with the last line of its console and where its log is."""
         console = console or self.consoles.get(name)
         if console is not None:
             console.drain()
         line = console.last_line if console is not None else ""
         last = f": {line}" if line else ""
-        return f"{who} exited with code {code}{' ' + when if when else ''}{last} (see {self.folder / f'{name}.log'})"
+        log = self.folder / f"{name}.log"
+        return f"{who} exited with code {code}{' ' + when if when else ''}{last} (see {log})"
 
     def _note_memory(self) -> None:
         for name, process in [("bridge", self.bridge), *((self._name(v), p) for v, p in self.agents.items())]:
@@ -485,7 +487,7 @@ class Fleet:
                     break
                 read = True
                 with warnings.catch_warnings():
-                    warnings.simplefilter("ignore")      # a bridge killed hard leaves an unfinished file: read it
+                    warnings.simplefilter("ignore")   # a bridge killed hard leaves an unfinished file: read it
                     for topic, _, message in read_messages(file):
                         if topic == "/bridge/summary":
                             return message, truth
@@ -521,8 +523,8 @@ class Fleet:
             unwritten = console.close()
             if unwritten is not None:
                 self.unwritten.append(unwritten)
-        self.write_file("memory.json", json.dumps({"peak_resident_mb": dict(sorted(self.peak_memory.items()))},
-                                                  indent=2))
+        peaks = {"peak_resident_mb": dict(sorted(self.peak_memory.items()))}
+        self.write_file("memory.json", json.dumps(peaks, indent=2))
 
 
 def _peak_resident_mb(pid: int) -> float | None:
@@ -602,10 +604,12 @@ def analyse(folder: Path, radius: float, planned: int | None = None, cut_short: 
             if before.get(path) != path.stat().st_mtime_ns:
                 path.unlink(missing_ok=True)
     settling = result["settling_time"]
-    lost = ([f"**Logs were lost to write errors (a full disk)**: the logs of {', '.join(result['logs_lost'])} "
-             "were suspended for a while (their `/log/gap` records say what and when); the figures below cover "
-             f"what was logged: {result['ticks']} of the {planned} ticks simulated.", ""] if logs_lost else [])
-    said = _cut_short_lines(result["ticks"], planned, cut_short) if cut_short is not None or not logs_lost else []
+    lost = ([f"**Logs were lost to write errors (a full disk)**: the logs of {', '.join(result['logs_lost'])}"
+             " were suspended for a while (their `/log/gap` records say what and when); the figures below "
+             f"cover what was logged: {result['ticks']} of the {planned} ticks simulated.", ""]
+            if logs_lost else [])
+    said = (_cut_short_lines(result["ticks"], planned, cut_short)
+            if cut_short is not None or not logs_lost else [])
     lines = [f"# Fleet run {folder.name}", "", *said, *lost,
              f"{len(result['vessels'])} vessels, {result['ticks']} ticks"
              + (f" of {planned} planned" if planned is not None else "") + f", r* = {radius} m", "",
@@ -693,7 +697,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"usv-fleet: {error}", file=sys.stderr)
         return 2
     except OSError as error:
-        print(f"usv-fleet: cannot write the run's settings in {args.out}: {error.strerror or error}", file=sys.stderr)
+        print(f"usv-fleet: cannot write the run's settings in {args.out}: {error.strerror or error}",
+              file=sys.stderr)
         return 1
     radius = fleet.scenario.agent_params().control.radius
     for signum in STOP_SIGNALS:

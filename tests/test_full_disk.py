@@ -30,7 +30,7 @@ pytestmark = pytest.mark.slow   # the fleet's processes over Zenoh, and a tmpfs
 
 SCENARIO = Path(__file__).parent / "data" / "short_scenario.yaml"
 DT = 0.1
-LEAVE = 48 * 1024     # bytes left free on the disk: the settings fit, the logs fill it within the first second
+LEAVE = 48 * 1024     # bytes left free on the disk: the settings fit, the logs fill it within a second
 
 
 @pytest.fixture
@@ -38,8 +38,8 @@ def full_disk(tmp_path):
     """A 20 MB tmpfs mounted in tmp_path, filled but for LEAVE bytes; unmounted afterwards."""
     mount = tmp_path / "disk"
     mount.mkdir()
-    made = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=20m", "tmpfs", str(mount)], capture_output=True,
-                          text=True, check=False)
+    made = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=20m", "tmpfs", str(mount)],
+                          capture_output=True, text=True, check=False)
     if made.returncode != 0:
         pytest.skip(f"cannot mount a tmpfs here (needs root): {made.stderr.strip()}")
     try:
@@ -68,8 +68,8 @@ class Watched:
         self.moving: dict[str, int] = {}            # vessel -> commands that are not STOP
         self.statuses: dict[str, list[dict]] = {}
         self.lock = threading.Lock()
-        assert wait_until(lambda: list((disk / "runs").glob("*/bridge.yaml")) or self.process.poll() is not None,
-                          timeout=60)
+        assert wait_until(lambda: list((disk / "runs").glob("*/bridge.yaml"))
+                          or self.process.poll() is not None, timeout=60)
         (bridge,) = list((disk / "runs").glob("*/bridge.yaml"))
         self.folder = bridge.parent
         endpoint = read_yaml(bridge)["zenoh"]["listen"][0]
@@ -113,16 +113,17 @@ def _ticked_all_run_long(watched: Watched) -> None:
     for vessel in ("1", "2", "3"):
         stamps = sorted(watched.commands.get(vessel, ()))
         ticks = {round(stamp * 1e-9 / DT) for stamp in stamps}
-        assert ticks == set(range(watched.planned)), f"vessel {vessel}: {len(ticks)} of {watched.planned} ticks"
+        assert ticks == set(range(watched.planned)), f"vessel {vessel}: {len(ticks)} of {watched.planned}"
         assert watched.moving.get(vessel, 0) > watched.planned // 2, (vessel, watched.moving)
 
 
 def test_a_fleet_on_a_full_disk_commands_every_tick_and_the_launcher_ends_in_one_line(full_disk, tmp_path):
     watched = Watched(tmp_path, full_disk, duration=40.0)
     code, stderr = watched.finish()
+    health = {v: [watched.latest(v).get(k) for k in ("log_suspended", "log_dropped")] for v in "123"}
     print(f"full disk all run long: exit {code}; commands per vessel "
           f"{ {v: len(s) for v, s in sorted(watched.commands.items())} } of {watched.planned} ticks; "
-          f"last health { {v: {k: watched.latest(v).get(k) for k in ('log_suspended', 'log_dropped')} for v in '123'} }")
+          f"last health (log_suspended, log_dropped) {health}")
     print(stderr)
     assert "Traceback" not in stderr
     assert code == LOGS_LOST, stderr
@@ -136,7 +137,8 @@ def test_a_fleet_on_a_full_disk_commands_every_tick_and_the_launcher_ends_in_one
     assert "the mission ran to its end but logs were lost (exit 3)" in last[-1]
     # One line of what was lost: the logs suspended, the consoles and summary files not written (or why the
     # logs could not be analysed at all).
-    assert last[-2].startswith("usv-fleet: the logs of agent-1, agent-2, agent-3") and "not written:" in last[-2]
+    assert last[-2].startswith("usv-fleet: the logs of agent-1, agent-2, agent-3")
+    assert "not written:" in last[-2]
     assert "summary.md (No space left on device)" in last[-2] or "the summary:" in last[-2]
 
 
@@ -181,7 +183,8 @@ def test_logging_resumes_when_there_is_room_again(full_disk, tmp_path):
     assert metrics["complete"] and 0 < metrics["ticks"] < watched.planned
     assert {"agent-1", "agent-2", "agent-3"} <= set(metrics["logs_lost"])
     summary = (watched.folder / "summary.md").read_text()
-    assert f"{metrics['ticks']} of the {watched.planned} ticks simulated" in summary and "cut short" not in summary
+    assert f"{metrics['ticks']} of the {watched.planned} ticks simulated" in summary
+    assert "cut short" not in summary
     assert stderr.strip().splitlines()[-1].endswith("logs were lost (exit 3)")
 
 
@@ -211,7 +214,8 @@ def test_an_agent_whose_stderr_is_on_the_full_disk_keeps_steering(full_disk, tmp
     session_config.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
     try:
         with zenoh.open(session_config) as session:
-            session.declare_subscriber("usv/7/status", lambda s: statuses.append(json.loads(s.payload.to_bytes())))
+            session.declare_subscriber("usv/7/status",
+                                       lambda s: statuses.append(json.loads(s.payload.to_bytes())))
             odometry = session.declare_publisher("usv/7/sensor/odom")
             sent = [0]
 
@@ -221,8 +225,8 @@ def test_an_agent_whose_stderr_is_on_the_full_disk_keeps_steering(full_disk, tmp
                 sent[0] += 1
                 return sum(s["health"].get("log_suspended", 0) == 1 for s in statuses) >= ticks
 
-            assert wait_until(lambda: suspended_for(30) or agent.poll() is not None, timeout=90, interval=0.1), \
-                f"the log was never suspended: {statuses[-1:] if statuses else 'no status'}"
+            assert wait_until(lambda: suspended_for(30) or agent.poll() is not None, timeout=90,
+                              interval=0.1), f"the log was never suspended: {statuses[-1:] or 'no status'}"
             assert agent.poll() is None, f"the agent exited with code {agent.returncode}"
             agent.send_signal(signal.SIGTERM)
             code = agent.wait(timeout=20)
@@ -230,8 +234,9 @@ def test_an_agent_whose_stderr_is_on_the_full_disk_keeps_steering(full_disk, tmp
         if agent.poll() is None:
             agent.kill()
             agent.wait()
-    print(f"agent with stderr on the full disk: {sum(s['health'].get('log_suspended', 0) for s in statuses)} "
-          f"statuses with its log suspended, last log_dropped {statuses[-1]['health']['log_dropped']}; exit {code}")
+    suspended = sum(s["health"].get("log_suspended", 0) for s in statuses)
+    print(f"agent with stderr on the full disk: {suspended} statuses with its log suspended, last "
+          f"log_dropped {statuses[-1]['health']['log_dropped']}; exit {code}")
     assert code == 0
     seqs = [s["seq"] for s in statuses]
     assert seqs == list(range(seqs[0], seqs[0] + len(seqs)))     # a status every tick, none skipped

@@ -212,9 +212,9 @@ class McapLog:
             self._gap = {"dropped": 0, "topics": {}, "first_lost_ns": None, "last_lost_ns": None,
                          "suspended_at": time.time(), "error": f"{type(error).__name__}: {error}"}
             if self._announce is not None:
-                self._announce(f"{SUSPENDED}: {self.parts[-1] if self.parts else self.path}: "
-                               f"{type(error).__name__}: {error}; messages are dropped and counted, and a new part "
-                               f"is tried every {self._retry_seconds:g} s")
+                where = self.parts[-1] if self.parts else self.path
+                self._announce(f"{SUSPENDED}: {where}: {type(error).__name__}: {error}; messages are dropped "
+                               f"and counted, and a new part is tried every {self._retry_seconds:g} s")
 
     @property
     def suspended(self) -> bool:
@@ -307,15 +307,15 @@ class McapLog:
                 return False
             self._gap = None
             if self._announce is not None:
-                self._announce(f"logging resumed in {self.parts[-1].name}: {gap['dropped']} message(s) lost in "
-                               f"{time.time() - gap['suspended_at']:.1f} s (recorded on {GAP_TOPIC})")
+                self._announce(f"logging resumed in {self.parts[-1].name}: {gap['dropped']} message(s) lost "
+                               f"in {time.time() - gap['suspended_at']:.1f} s (recorded on {GAP_TOPIC})")
         return True
 
     def _write(self, topic: str, data: bytes, log_time_ns: int, schema_name: str, schema: dict) -> None:
         self._schemas.setdefault(topic, (schema_name, schema))
         channel = self.channel(topic, *self._schemas[topic])
-        self._writer.add_message(channel_id=channel, log_time=log_time_ns, publish_time=log_time_ns, data=data,
-                                 sequence=self._sequence[topic])
+        self._writer.add_message(channel_id=channel, log_time=log_time_ns, publish_time=log_time_ns,
+                                 data=data, sequence=self._sequence[topic])
         self._sequence[topic] += 1
 
     # ----- writing -----

@@ -537,9 +537,10 @@ class AgentNode:
                           pairs_unobservable=verdicts.count(UNOBSERVABLE))
         health.update({f"rejected_{k}": v for k, v in self.gate.rejected.items()})
         log = self.log
-        health.update(overruns=self.overruns, log_errors=self.log_errors + (log.errors if log is not None else 0),
-                      tick_errors=self.tick_errors, core_rebuilds=self.core_rebuilds, sim_restarts=self.sim_restarts,
-                      shares_unsent=self.shares_unsent,
+        health.update(overruns=self.overruns,
+                      log_errors=self.log_errors + (log.errors if log is not None else 0),
+                      tick_errors=self.tick_errors, core_rebuilds=self.core_rebuilds,
+                      sim_restarts=self.sim_restarts, shares_unsent=self.shares_unsent,
                       # 1 while the log is suspended (its disk full): the messages it drops are counted here.
                       log_suspended=int(log is not None and log.suspended),
                       log_dropped=log.dropped if log is not None else 0)
