@@ -3,6 +3,14 @@
 Every model forbids unknown keys, so a misspelt key in a YAML file is an error rather than a silently
 ignored setting. `load_yaml` turns a file into a model and reports the first bad field together with the
 file it came from, in one line a user can act on.
+
+Every YAML file of the project (settings, scenarios, inventories, the launcher's own files) is read by
+`read_yaml`, and every YAML text by `parse_yaml`, which bound what a file may cost before any of it is
+used: a file larger than `MAX_YAML_BYTES` (1 MB; the largest file in configs/ is a few kB) is refused
+before it is read, and a document whose aliases would expand it beyond `MAX_YAML_NODES` nodes (an alias
+"bomb": a few hundred bytes that expand to billions of values in whatever walks the result) is refused
+once composed, before anything is built from it; so is an alias that refers to itself. Each refusal is
+one ConfigError naming the file.
 """
 
 from __future__ import annotations
@@ -12,6 +20,9 @@ from typing import Annotated, TypeVar
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+MAX_YAML_BYTES = 1_000_000     # a YAML file larger than this is refused before it is read
+MAX_YAML_NODES = 200_000       # nor may its aliases expand it beyond this many nodes (scalars, lists, maps)
 
 PositiveFloat = Annotated[float, Field(gt=0, allow_inf_nan=False)]
 NonNegativeFloat = Annotated[float, Field(ge=0, allow_inf_nan=False)]
@@ -63,19 +74,93 @@ def parse_mapping(model: type[M], data: object, source: str) -> M:
         raise ConfigError(describe_validation_error(error, source)) from None
 
 
-def read_yaml(path: str | Path) -> object:
-    """The parsed content of a YAML file, or ConfigError naming the file (and line) on any problem."""
-    path = Path(path)
+class _BoundedLoader(yaml.SafeLoader):
+    """PyYAML's safe loader that refuses a document whose aliases expand it beyond `max_nodes` nodes.
+
+    An alias is one node in the text but stands for the whole of what it refers to: `safe_load` shares it,
+    but anything that walks the result (validation, a merge, a dump) walks it in full. The count is the
+    document's size with every alias expanded, computed on the composed node graph (each node's size once,
+    so the bomb itself costs nothing to measure), before a single value is constructed."""
+
+    max_nodes = MAX_YAML_NODES
+
+    def compose_document(self):
+        node = super().compose_document()
+        expanded_size(node, self.max_nodes)
+        return node
+
+
+class YamlTooLarge(yaml.YAMLError):
+    """A YAML document beyond what the loader accepts; the message says why."""
+
+
+def expanded_size(root, limit: int) -> int:
+    """Nodes of the composed document `root` with every alias expanded; YamlTooLarge past `limit` or on a
+    node that contains itself (a recursive alias)."""
+    sizes: dict[int, int] = {}
+    # Iterative post-order walk: a deep document must not hit Python's recursion limit.
+    stack: list[tuple[object, bool]] = [(root, False)]
+    open_nodes: set[int] = set()
+    while stack:
+        node, children_done = stack.pop()
+        ident = id(node)
+        if children_done:
+            open_nodes.discard(ident)
+            children = _children(node)
+            size = 1 + sum(sizes[id(child)] for child in children)
+            if size > limit:
+                raise YamlTooLarge(f"its aliases expand it beyond {limit:,} values (an alias bomb?)")
+            sizes[ident] = size
+            continue
+        if ident in sizes:
+            continue
+        if ident in open_nodes:
+            raise YamlTooLarge("an alias refers to a node that contains it (a recursive alias)")
+        open_nodes.add(ident)
+        stack.append((node, True))
+        stack.extend((child, False) for child in _children(node) if id(child) not in sizes)
+    return sizes[id(root)]
+
+
+def _children(node) -> list:
+    if isinstance(node, yaml.SequenceNode):
+        return list(node.value)
+    if isinstance(node, yaml.MappingNode):
+        return [part for pair in node.value for part in pair]
+    return []
+
+
+def parse_yaml(text: str, source: str) -> object:
+    """The parsed content of YAML `text` (bounded as the module docstring says), or ConfigError naming
+    `source` (and the line) on any problem."""
     try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as error:
-        raise ConfigError(f"{path}: cannot read: {error.strerror or error}") from None
-    try:
-        return yaml.safe_load(text)
+        return yaml.load(text, Loader=_BoundedLoader)  # noqa: S506  (a SafeLoader)
+    except YamlTooLarge as error:
+        raise ConfigError(f"{source}: refused: {error}") from None
     except yaml.YAMLError as error:
         mark = getattr(error, "problem_mark", None)
         where = f" line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
-        raise ConfigError(f"{path}:{where} not valid YAML: {getattr(error, 'problem', error)}") from None
+        raise ConfigError(f"{source}:{where} not valid YAML: {getattr(error, 'problem', error)}") from None
+    except RecursionError:
+        raise ConfigError(f"{source}: refused: nested too deeply") from None
+
+
+def read_yaml(path: str | Path, max_bytes: int = MAX_YAML_BYTES) -> object:
+    """The parsed content of a YAML file, or ConfigError naming the file (and line) on any problem. A file
+    larger than `max_bytes` is refused before it is read."""
+    path = Path(path)
+    try:
+        with path.open("rb") as handle:
+            data = handle.read(max_bytes + 1)   # a file that grows while read is bounded all the same
+    except OSError as error:
+        raise ConfigError(f"{path}: cannot read: {error.strerror or error}") from None
+    if len(data) > max_bytes:
+        raise ConfigError(f"{path}: refused: larger than {max_bytes:,} bytes (the limit for a YAML file)")
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as error:
+        raise ConfigError(f"{path}: not UTF-8 text ({error.reason} at byte {error.start})") from None
+    return parse_yaml(text, str(path))
 
 
 def load_yaml(model: type[M], path: str | Path) -> M:

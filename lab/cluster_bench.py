@@ -29,7 +29,7 @@ import numpy as np
 
 from lab import arguments
 from lab.comparison import ComparisonConfig, run_comparison
-from lab.parallel import Engine
+from lab.parallel import Engine, connect_client
 from lab.report import invocation, machine, markdown_table
 from lab.scenario_cmd import DEFAULT_DIR, load, resolve, run_monte_carlo
 from sim_bridge.fleet import free_port
@@ -86,9 +86,7 @@ def _scheduler_and_workers(workers: int):
     try:
         processes.append(subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_worker", address,
                                            "--nworkers", str(workers), "--nthreads", "1", "--no-dashboard"], **quiet))
-        from dask.distributed import Client
-
-        with Client(address, timeout="60s") as client:
+        with connect_client(address, 60.0) as client:
             client.wait_for_workers(workers, timeout=120)
         yield address
     finally:

@@ -6,6 +6,11 @@ runs to a Dask scheduler (`dask scheduler`, `dask worker` on each machine: docs/
 (the `lab-cluster` extra). Either way each run draws from its own child seed, so the results are the same
 bit for bit whatever ran them, in whatever order.
 
+A scheduler's first answer has a deadline (`FIRST_ANSWER_SECONDS`, 20 s by default; `--cluster-timeout`): an
+address where something accepts the connection but never answers as a Dask scheduler (another service, a
+scheduler stuck, a firewall that swallows the traffic) is one clear error within it, not a command that
+hangs without a word (Dask's own `timeout` does not cover a handshake that never comes).
+
 A run that raises does not stop the campaign: its result is None and `Engine.failures` says which run and
 what it raised, so the command still writes what finished. On a Dask cluster, a worker that dies takes its
 runs to another worker (the scheduler's own retry); `Engine.retried` counts them.
@@ -16,6 +21,7 @@ from __future__ import annotations
 import importlib
 import os
 import sys
+import threading
 import traceback
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor
@@ -28,7 +34,7 @@ from lab import arguments
 
 J = TypeVar("J")
 R = TypeVar("R")
-CONNECT_TIMEOUT = "30s"   # to reach a remote scheduler
+FIRST_ANSWER_SECONDS = 20.0   # default deadline on a remote scheduler's first answer (--cluster-timeout)
 CHUNKS_PER_WORKER = 16      # the pool's runs go out in about this many chunks per worker process
 RELEASE_BATCH = 64          # finished runs whose results a cluster is told to forget at once
 WINDOW_PER_THREAD = 8       # runs out on a cluster at once, per worker thread
@@ -55,8 +61,10 @@ def _guarded(function: Callable[[J], R], job: J) -> tuple[bool, R | str]:
 class Engine:
     """Where a campaign's runs go; a context manager (a Dask client lives from enter to exit)."""
 
-    def __init__(self, workers: int = 1, cluster: str | None = None) -> None:
+    def __init__(self, workers: int = 1, cluster: str | None = None,
+                 first_answer_seconds: float = FIRST_ANSWER_SECONDS) -> None:
         self.workers, self.cluster = workers, cluster
+        self.first_answer_seconds = first_answer_seconds
         self.failures: list[Failure] = []
         self.retried = 0
         self._client = self._local = None
@@ -84,10 +92,7 @@ class Engine:
                                        dashboard_address=None)
             self._client = Client(self._local)
         else:
-            try:
-                self._client = Client(self.cluster, timeout=CONNECT_TIMEOUT)
-            except OSError as error:
-                raise ConfigError(f"--cluster {self.cluster}: no Dask scheduler answers there ({error})") from None
+            self._client = connect_client(self.cluster, self.first_answer_seconds)
         return self
 
     def __exit__(self, *exc) -> None:
@@ -201,6 +206,45 @@ class Engine:
             futures.clear()
 
 
+def connect_client(address: str, deadline: float = FIRST_ANSWER_SECONDS):
+    """A Dask client of the scheduler at `address`, or ConfigError (one line) if it does not answer within
+    `deadline` seconds: nothing listening, or something that accepts the connection and never answers.
+
+    Dask's client waits for the scheduler's handshake without its own timeout, so the client is made in a
+    thread that is given up after the deadline; should it connect later after all, it closes itself."""
+    from dask.distributed import Client
+
+    outcome: dict = {}
+    given_up = threading.Event()
+
+    def connect() -> None:
+        try:
+            client = Client(address, timeout=f"{deadline}s")
+        except BaseException as error:  # noqa: BLE001  (handed to the caller's thread)
+            outcome["error"] = error
+            return
+        outcome["client"] = client
+        if given_up.is_set():
+            client.close()
+
+    # A daemon thread: one still waiting for an answer must not keep the process alive after the error.
+    thread = threading.Thread(target=connect, name="dask-connect", daemon=True)
+    thread.start()
+    thread.join(deadline)
+    given_up.set()
+    if "client" in outcome:
+        return outcome["client"]
+    error = outcome.get("error")
+    if error is None:
+        raise ConfigError(f"--cluster {address}: the scheduler did not answer within {deadline:g} s "
+                          "(something accepts the connection there but does not answer as a Dask scheduler; "
+                          "--cluster-timeout waits longer)")
+    if isinstance(error, (OSError, TimeoutError)):
+        raise ConfigError(f"--cluster {address}: no Dask scheduler answers there "
+                          f"({' '.join(str(error).split())[:300]})") from None
+    raise error
+
+
 def _suspicious(keys: list, dask_scheduler=None) -> int:
     """On the scheduler: how many times the tasks `keys` were lost with a worker and run again."""
     return sum(dask_scheduler.tasks[k].suspicious for k in keys if k in dask_scheduler.tasks)
@@ -213,10 +257,13 @@ def add_engine_arguments(parser) -> None:
     parser.add_argument("--cluster", default=None, metavar="ADDRESS",
                         help="run on a Dask cluster: a scheduler's address (tcp://host:8786), or local:N to start "
                              "one of N worker processes here (needs the lab-cluster extra; docs/lab.md)")
+    parser.add_argument("--cluster-timeout", type=arguments.positive_float, default=FIRST_ANSWER_SECONDS,
+                        metavar="SECONDS", help="give up on a --cluster scheduler that has not answered in this "
+                                                f"many seconds (default {FIRST_ANSWER_SECONDS:g})")
 
 
 def engine_from(args) -> Engine:
-    return Engine(workers=args.workers, cluster=args.cluster)
+    return Engine(workers=args.workers, cluster=args.cluster, first_answer_seconds=args.cluster_timeout)
 
 
 def campaign_notes(engine: Engine) -> list[str]:

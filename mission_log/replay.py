@@ -17,9 +17,8 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
-import yaml
 
-from agent.config import ConfigError, deep_merge, parse_mapping
+from agent.config import ConfigError, deep_merge, parse_mapping, parse_yaml
 from agent.contract import Cmd
 from agent.core.build import initial_state
 from agent.core.records import inputs_from_json
@@ -59,7 +58,7 @@ def parse_assignments(assignments: list[str]) -> dict:
             node = node.setdefault(name, {})
             if not isinstance(node, dict):
                 raise ConfigError(f"--set {item!r}: {name} is set twice")
-        node[keys[-1]] = yaml.safe_load(text)
+        node[keys[-1]] = parse_yaml(text, f"--set {item!r}")
     return changes
 
 

@@ -61,7 +61,7 @@ from agent.core.records import STOP, Command
 from agent.runtime import foxglove
 from agent.runtime.log_schema import BridgeSummary, CommandLatency, LoggedTruth
 from agent.runtime.mcap_log import LogRotation, McapLog
-from agent.runtime.process import stop_on_signals
+from agent.runtime.process import guard_stderr, stop_on_signals
 from agent.runtime.zenoh_session import ZenohSettings, open_session, zenoh_config
 from sim_bridge.scenario import Scenario, select_scenario
 from sim_bridge.world import Frame, Measurement, SeaSensors, World, lost_shares, sea_steps, sea_world, streams
@@ -124,8 +124,10 @@ class SimBridge:
         self._waiting: set[str] | None = None   # vessels the tick in progress still waits for
         self.log = None
         if settings.log:
+            # A write error (a full disk) suspends the log, said once on stderr; the simulation goes on.
             self.log = McapLog(settings.log, metadata={"scenario": scenario.name, "mode": settings.mode},
-                               rotation=settings.log_rotation)
+                               rotation=settings.log_rotation,
+                               announce=lambda line: print(f"usv-sim: {line}", file=sys.stderr))
 
     # ----- callbacks -----
     def _on_command(self, sample) -> None:
@@ -477,6 +479,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--config", default=None, help="bridge settings YAML (BridgeSettings)")
     parser.add_argument("--seed", type=int, default=None, help="override the scenario's seed")
     args = parser.parse_args(argv)
+    guard_stderr()
     try:
         _, scenario = select_scenario(args.scenario, args.variant)
         settings = load_yaml(BridgeSettings, args.config) if args.config else BridgeSettings()
@@ -494,6 +497,7 @@ def main(argv: list[str] | None = None) -> int:
           f"{bridge.watchdog_stops} watchdog stops, {bridge.rejected} refused "
           f"({bridge.refused_stamps} for their stamp); "
           f"{simulated:.1f} s simulated in {bridge.loop_seconds:.2f} s of wall time ({factor:.1f}x real time)"
-          + (f"; no agent came for {', '.join(sorted(bridge.startup_missing))}" if bridge.startup_missing else ""),
+          + (f"; no agent came for {', '.join(sorted(bridge.startup_missing))}" if bridge.startup_missing else "")
+          + (f"; {bridge.log.dropped} log message(s) lost to write errors" if bridge.log and bridge.log.dropped else ""),
           file=sys.stderr)
     return 0

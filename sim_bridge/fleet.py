@@ -22,11 +22,26 @@ so no process of the run outlives it. `processes.json` in the run folder lists e
 A run cut short (interrupted, a process failed, the bridge ended early, the time ran out) still gets its
 metrics and figures from the logs there are, and `summary.md` and `metrics.json` say plainly that it was cut
 short: the ticks done of the ticks planned, and why.
+
+A full disk under the run folder stops nothing. Each child prints into a pipe the launcher reads, never
+into the run folder, and the launcher writes each console to `<name>.log` (sim_bridge/console.py): while the
+disk refuses, it keeps the last 64 kB of each in memory and writes them, after a line saying what was lost
+and when, once there is room again. Each process's MCAP log suspends itself, says so once on the process's
+stderr (which the launcher repeats on its own, once per process) and in the agent's status
+(`log_suspended`, `log_dropped`), and resumes in a new part when there is room, its first message a record
+of the gap (agent/runtime/mcap_log.py). The launcher counts the ticks done from the sim clock as well as the
+bridge's log, finishes the summary files it can and names, in one line, those it cannot.
+
+Exit codes: 0, the run went to its end and every log and console is whole; 1, the run failed or was cut
+short; 2, a bad scenario or setting; 3, the run went to its end but logs were lost (a process's log was
+suspended by write errors, a console or a summary file could not be written in full; each said in a line);
+128 + N, stopped by signal N.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import os
@@ -43,13 +58,15 @@ from pathlib import Path
 import yaml
 import zenoh
 
-from agent.config import ConfigError
+from agent.config import ConfigError, read_yaml
 from agent.contract import CLOCK_KEY, LIVELINESS, Clock, decode, key, seconds
-from agent.runtime.mcap_log import read_messages
+from agent.runtime.mcap_log import part_path, read_messages
+from agent.runtime.process import guard_stderr
 from agent.runtime.zenoh_session import ZenohSettings, zenoh_config
 from mission_log.metrics import circle_words, truth_metrics
 from mission_log.plots import plot_run
 from mission_log.reader import LogError, load_run
+from sim_bridge.console import TAIL_BYTES, Console
 from sim_bridge.scenario import initial_estimates, select_scenario
 from sim_bridge.world import SeaSensors, World, streams
 
@@ -62,6 +79,8 @@ FIRST_PORT = 20000                 # free_port() draws from [FIRST_PORT, the fir
 _PORTS = random.SystemRandom()     # not the `random` module's state, which a caller may have seeded
 STOP_SECONDS = 10.0                # after SIGTERM, how long the launcher waits for its children before SIGKILL
 STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT, signal.SIGHUP)
+MAX_PARTS = 10_000                 # parts of the bridge's log read for its ticks (numbered in 4 digits)
+LOGS_LOST = 3                      # exit code: the run went to its end, but logs were lost (module docstring)
 
 # Run before each child's own program: set the parent-death signal (Linux prctl PR_SET_PDEATHSIG = 1), so the
 # kernel sends the child SIGTERM if the launcher dies, even by SIGKILL; then exec the program in the same
@@ -150,7 +169,10 @@ class Fleet:
         self.planned_ticks = round(self.scenario.duration / self.scenario.world.dt) + 1
         self.signals: list[int] = []              # stop signals received, in order (interrupt())
         self.hard_killed: list[str] = []          # children that needed SIGKILL after SIGTERM
-        self._logs: list = []
+        self.consoles: dict[str, Console] = {}    # name -> the console of that process
+        self.unwritten: list[str] = []            # what could not be written, one line each (a full disk)
+        self.logs_lost: list[str] = []            # processes whose MCAP log said it was suspended
+        self._disk_told = False
         self._sim_time = -math.inf
 
     def _write_settings(self, bridge_port: int) -> None:
@@ -180,13 +202,38 @@ class Fleet:
             (self.folder / f"agent-{vessel}.yaml").write_text(yaml.safe_dump(settings))
 
     def _start(self, name: str, command: list[str]) -> subprocess.Popen:
-        handle = (self.folder / f"{name}.log").open("w")
-        self._logs.append(handle)
         guarded = [sys.executable, "-c", ORPHAN_GUARD, str(os.getpid()), *command]
-        process = subprocess.Popen(guarded, stdout=handle, stderr=subprocess.STDOUT)
+        process = subprocess.Popen(guarded, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+        self.consoles[name] = Console(self.folder / f"{name}.log", process.stdout, self._console_failed,
+                                      lambda line, name=name: self._log_suspended(name, line))
         self.pids[name] = process.pid
-        (self.folder / "processes.json").write_text(json.dumps({"launcher": os.getpid(), **self.pids}, indent=2))
+        self.write_file("processes.json", json.dumps({"launcher": os.getpid(), **self.pids}, indent=2))
         return process
+
+    def write_file(self, name: str, text: str) -> bool:
+        """`text` to `name` in the run folder; False, and a line in `unwritten`, if the disk refuses it."""
+        unwritten: list[str] = []
+        _save(self.folder / name, text, unwritten)
+        if unwritten:
+            self._disk_full(OSError(unwritten[0]))
+            self.unwritten.extend(unwritten)
+        return not unwritten
+
+    def _disk_full(self, error: OSError) -> None:
+        if not self._disk_told:
+            self._disk_told = True
+            print(f"usv-fleet: cannot write in the run folder {self.folder} ({type(error).__name__}: {error}): "
+                  f"the run goes on; each console is kept in memory (its last {TAIL_BYTES // 1024} kB) until "
+                  "there is room, and the processes' logs suspend and resume by themselves", file=sys.stderr)
+
+    def _console_failed(self, name: str, error: OSError) -> None:
+        self._disk_full(error)
+
+    def _log_suspended(self, name: str, line: str) -> None:
+        """A process said its MCAP log is suspended (once per process): repeated on the launcher's stderr,
+        which is not on the run folder's disk."""
+        self.logs_lost.append(name)
+        print(f"usv-fleet: {name}: {line}", file=sys.stderr)
 
     def interrupt(self, signum: int) -> None:
         """Stop the run (a signal handler's job; safe from any thread): the launcher's loop stops every
@@ -246,7 +293,7 @@ class Fleet:
         to `agent-<id>-restart<n>.mcap`, so the first log stays whole."""
         restarts = self.restarted[vessel]
         restarts[-1] = (restarts[-1][0], self._sim_time)
-        settings = yaml.safe_load((self.folder / f"agent-{vessel}.yaml").read_text())
+        settings = read_yaml(self.folder / f"agent-{vessel}.yaml")
         settings.pop("initial", None)
         # The full look for a namesake (the agent's default), not the launch's short one: here an agent with
         # this id has just been, and a restart that waits that second rejoins as the restart tests measured.
@@ -348,12 +395,15 @@ class Fleet:
                 raise
             session.close()
             log = self.folder / "bridge.log"
-            failure = self._exited("the sim bridge", "bridge", self.bridge.returncode, "at start-up")
-            if PORT_TAKEN not in log.read_text(errors="replace"):
+            console = self.consoles.pop("bridge")
+            console.close()
+            failure = self._exited("the sim bridge", "bridge", self.bridge.returncode, "at start-up", console)
+            if PORT_TAKEN not in console.text:
                 raise RuntimeError(failure)
             if attempt == BRIDGE_ATTEMPTS:
                 raise RuntimeError(f"{failure}; its port was taken {attempt} times in a row")
-            log.rename(self.folder / f"bridge-attempt{attempt}.log")
+            with contextlib.suppress(OSError):    # a console never written (a full disk) has no file
+                log.rename(self.folder / f"bridge-attempt{attempt}.log")
             taken = self.bridge_port
             self._write_settings(free_port())
             attempt += 1
@@ -390,14 +440,15 @@ class Fleet:
                 raise RuntimeError(self._exited(f"the agent of vessel {vessel}", self._name(vessel),
                                                 process.returncode, "during the mission"))
 
-    def _exited(self, who: str, name: str, code: int | None, when: str = "") -> str:
-        """`who` exited with `code` `when`, with the last line of its console log and where that log is."""
+    def _exited(self, who: str, name: str, code: int | None, when: str = "",
+                console: Console | None = None) -> str:
+        """`who` exited with `code` `when`, with the last line of its console and where its log is."""
+        console = console or self.consoles.get(name)
+        if console is not None:
+            console.drain()
+        line = console.last_line if console is not None else ""
+        last = f": {line}" if line else ""
         log = self.folder / f"{name}.log"
-        try:
-            lines = [line.strip() for line in log.read_text(errors="replace").splitlines() if line.strip()]
-        except OSError:
-            lines = []
-        last = f": {lines[-1]}" if lines else ""
         return f"{who} exited with code {code}{' ' + when if when else ''}{last} (see {log})"
 
     def _note_memory(self) -> None:
@@ -408,34 +459,42 @@ class Fleet:
                     self.peak_memory[name] = max(self.peak_memory.get(name, 0.0), peak)
 
     def ticks_done(self) -> int | None:
-        """The ticks the sim bridge simulated, from its log (its closing summary, else its ground truth);
-        None without a readable log."""
+        """The ticks the sim bridge simulated, from its log (its closing summary, else its ground truth) or
+        from the last sim clock the launcher saw, whichever says more (a log cut by a full disk says less);
+        None with neither."""
         summary, truth = self._bridge_log()
         if summary is not None and isinstance(summary.get("ticks"), int):
             return summary["ticks"]
-        return truth
+        clocked = None if self._sim_time < 0 else round(self._sim_time / self.scenario.world.dt) + 1
+        known = [n for n in (truth, clocked) if n is not None]
+        return max(known) if known else None
 
     def bridge_summary(self) -> dict | None:
         """The sim bridge's closing summary (ticks, loop_seconds, cpu_seconds, ...); None if it wrote none."""
         return self._bridge_log()[0]
 
     def _bridge_log(self) -> tuple[dict | None, int | None]:
-        """(the closing summary or None, ground-truth records counted until it) of sim.mcap; (None, None)
-        without a readable log."""
+        """(the closing summary or None, ground-truth records counted until it) of sim.mcap and its later
+        parts; (None, None) without a readable log."""
         path = self.folder / "sim.mcap"
-        if not path.is_file():
-            return None, None
-        truth = 0
+        truth, read = 0, False
         try:
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")      # a bridge killed hard leaves an unfinished file: read it
-                for topic, _, message in read_messages(path):
-                    if topic == "/bridge/summary":
-                        return message, truth
-                    truth += topic == "/truth"
+            for part in range(MAX_PARTS):
+                file = part_path(path, part)
+                if not file.is_file():
+                    if part == 0:
+                        continue     # an empty first part (the disk full from the start) is deleted
+                    break
+                read = True
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore")   # a bridge killed hard leaves an unfinished file: read it
+                    for topic, _, message in read_messages(file):
+                        if topic == "/bridge/summary":
+                            return message, truth
+                        truth += topic == "/truth"
         except (OSError, ValueError):
             return None, None
-        return None, truth
+        return None, truth if read else None
 
     def _stop(self) -> None:
         """SIGTERM to every child still running; SIGKILL to those still running STOP_SECONDS later (or at
@@ -460,10 +519,12 @@ class Fleet:
             time.sleep(0.02)
         for process in processes.values():
             process.wait()
-        for handle in self._logs:
-            handle.close()
-        (self.folder / "memory.json").write_text(json.dumps(
-            {"peak_resident_mb": dict(sorted(self.peak_memory.items()))}, indent=2))
+        for console in self.consoles.values():
+            unwritten = console.close()
+            if unwritten is not None:
+                self.unwritten.append(unwritten)
+        peaks = {"peak_resident_mb": dict(sorted(self.peak_memory.items()))}
+        self.write_file("memory.json", json.dumps(peaks, indent=2))
 
 
 def _peak_resident_mb(pid: int) -> float | None:
@@ -513,20 +574,42 @@ def initial_settings(scenario, seed: int | None) -> dict[str, dict]:
             for v, start in initial_estimates(scenario, world.truth(), random.initial).items()}
 
 
-def analyse(folder: Path, planned: int | None = None, cut_short: str | None = None) -> dict:
+def analyse(folder: Path, planned: int | None = None, cut_short: str | None = None,
+            logs_lost: list[str] | None = None) -> dict:
     """The paper's metrics from the run folder's logs; writes metrics.json, summary.md and the figures of
     `usv-log plot` (trajectories.png, errors.png, ranges.png). `planned`: the ticks the scenario has;
-    `cut_short`: why the run ended early (None: it did not), said first in the summary."""
+    `cut_short`: why the run ended early (None: it did not), said first in the summary; `logs_lost`: the
+    processes whose logs were suspended by write errors (a full disk), said next. NotWritten (after trying
+    every file) if some cannot be written."""
     run = load_run(folder)
     if not run.has_truth:
         raise LogError(f"{folder}: no ground truth (the sim bridge's /truth) in the logs")
     result = truth_metrics(run)      # r* as in force at each moment, the operator's sets included
-    complete = cut_short is None and (planned is None or result["ticks"] >= planned)
+    # Ticks missing from logs cut by a full disk were simulated all the same (the launcher counts them on the
+    # sim clock): the run is complete, its logs are not.
+    complete = cut_short is None and (planned is None or result["ticks"] >= planned or bool(logs_lost))
     result.update({"ticks_planned": planned, "complete": complete, "cut_short": cut_short})
-    (folder / "metrics.json").write_text(json.dumps(result, indent=2))
-    figures = plot_run(run, folder)
+    if logs_lost:
+        result["logs_lost"] = sorted(set(logs_lost))
+    unwritten: list[str] = []
+    _save(folder / "metrics.json", json.dumps(result, indent=2), unwritten)
+    before = {path: path.stat().st_mtime_ns for path in folder.glob("*.png")}
+    try:
+        figures = plot_run(run, folder)
+    except OSError as error:
+        figures = []
+        unwritten.append(f"the figures ({error.strerror or error})")
+        for path in folder.glob("*.png"):      # no half-written figure left behind
+            if before.get(path) != path.stat().st_mtime_ns:
+                path.unlink(missing_ok=True)
     settling = result["settling_time"]
-    lines = [f"# Fleet run {folder.name}", "", *_cut_short_lines(result["ticks"], planned, cut_short),
+    lost = ([f"**Logs were lost to write errors (a full disk)**: the logs of {', '.join(result['logs_lost'])}"
+             " were suspended for a while (their `/log/gap` records say what and when); the figures below "
+             f"cover what was logged: {result['ticks']} of the {planned} ticks simulated.", ""]
+            if logs_lost else [])
+    said = (_cut_short_lines(result["ticks"], planned, cut_short)
+            if cut_short is not None or not logs_lost else [])
+    lines = [f"# Fleet run {folder.name}", "", *said, *lost,
              f"{len(result['vessels'])} vessels, {result['ticks']} ticks"
              + (f" of {planned} planned" if planned is not None else "") + f", {circle_words(result)}", "",
              "| mean e_ij (m) | mean e_io (m) | mean e_c (m) | settling time (s) |", "|---|---|---|---|",
@@ -535,8 +618,30 @@ def analyse(folder: Path, planned: int | None = None, cut_short: str | None = No
              ("Computed from the logs alone: `sim.mcap` (ground truth) and `agent-<id>.mcap` (what each believed). "
              "`usv-log summary|metrics|plot` on this folder says more."), "",
              *(f"![{path.stem}]({path.name})" for path in figures)]
-    (folder / "summary.md").write_text("\n".join(lines) + "\n")
+    _save(folder / "summary.md", "\n".join(lines) + "\n", unwritten)
+    if unwritten:
+        raise NotWritten(f"{folder}: not written: {', '.join(unwritten)}", "\n".join(lines) + "\n")
     return result
+
+
+class NotWritten(OSError):
+    """Summary files of a run that could not be written (a full disk): which ones, and the summary's text."""
+
+    def __init__(self, message: str, summary: str = "") -> None:
+        super().__init__(message)
+        self.summary = summary
+
+
+def _save(path: Path, text: str, unwritten: list[str]) -> None:
+    """`text` to `path`; on an OSError, the file's name and why in `unwritten` (and no partial file left)."""
+    try:
+        path.write_text(text)
+    except OSError as error:
+        unwritten.append(f"{path.name} ({error.strerror or error})")
+        try:
+            path.unlink(missing_ok=True)
+        except OSError:
+            pass
 
 
 def _cut_short_lines(done: int | None, planned: int | None, reason: str | None) -> list[str]:
@@ -553,13 +658,15 @@ def analyse_cut_short(fleet: Fleet, reason: str) -> None:
     """Analyse a run that failed or was interrupted, from whatever logs it left; where they cannot be
     analysed, a summary.md and metrics.json that say so. Never raises for a bad or missing log."""
     try:
-        analyse(fleet.folder, fleet.planned_ticks, reason)
+        analyse(fleet.folder, fleet.planned_ticks, reason, fleet.logs_lost)
+    except NotWritten as error:
+        fleet.unwritten.append(str(error).split(": not written: ", 1)[-1])
     except Exception as error:  # noqa: BLE001  (a cut-short run's logs may be anything; the reason must get out)
         done = fleet.ticks_done()
-        (fleet.folder / "metrics.json").write_text(json.dumps(
+        fleet.write_file("metrics.json", json.dumps(
             {"ticks": done, "ticks_planned": fleet.planned_ticks, "complete": False, "cut_short": reason},
             indent=2))
-        (fleet.folder / "summary.md").write_text("\n".join([
+        fleet.write_file("summary.md", "\n".join([
             f"# Fleet run {fleet.folder.name}", "", *_cut_short_lines(done, fleet.planned_ticks, reason),
             f"No metrics: the logs could not be analysed ({type(error).__name__}: {error})."]) + "\n")
 
@@ -581,12 +688,17 @@ def main(argv: list[str] | None = None) -> int:
                      help="lockstep: as fast as the processes go; realtime: sim time at the wall clock's pace "
                           "(time to watch and command the fleet with usv-op)")
     args = parser.parse_args(argv)
+    guard_stderr()
     started = time.monotonic()
     try:
         fleet = Fleet(args.scenario, args.variant, args.out, args.seed, mode=args.mode)
     except ConfigError as error:
         print(f"usv-fleet: {error}", file=sys.stderr)
         return 2
+    except OSError as error:
+        print(f"usv-fleet: cannot write the run's settings in {args.out}: {error.strerror or error}",
+              file=sys.stderr)
+        return 1
     for signum in STOP_SIGNALS:
         signal.signal(signum, lambda signum, frame: fleet.interrupt(signum))
     try:
@@ -599,19 +711,28 @@ def main(argv: list[str] | None = None) -> int:
         for signum in STOP_SIGNALS:   # the processes are gone: a stop signal now cuts the analysis short
             signal.signal(signum, _raise_interrupted)
         analyse_cut_short(fleet, str(error))
+        _say_losses(fleet)
         print(f"usv-fleet: run folder {fleet.folder}: cut short after {_ticks_said(fleet)} "
               f"({time.monotonic() - started:.1f} s)", file=sys.stderr)
         return 128 + error.signum if isinstance(error, Interrupted) else 1
     # From here the processes are gone: a stop signal ends the analysis at once.
     for signum in STOP_SIGNALS:
         signal.signal(signum, _raise_interrupted)
+    summary_text = ""
     try:
-        analyse(fleet.folder, fleet.planned_ticks)
+        analyse(fleet.folder, fleet.planned_ticks, logs_lost=fleet.logs_lost)
+        summary_text = (fleet.folder / "summary.md").read_text()
     except Interrupted as error:
         print(f"usv-fleet: {error} during the analysis; run folder {fleet.folder} (all {fleet.planned_ticks} "
               "ticks ran; `usv-log` analyses it)", file=sys.stderr)
         return 128 + error.signum
-    print((fleet.folder / "summary.md").read_text())
+    except NotWritten as error:      # the disk is still full: the summary goes to stdout only
+        fleet.unwritten.append(str(error).split(": not written: ", 1)[-1])
+        summary_text = error.summary
+    except (LogError, OSError) as error:
+        fleet.unwritten.append(f"the summary: the logs could not be analysed ({type(error).__name__}: "
+                               f"{' '.join(str(error).split())[:300]})")
+    print(summary_text)
     summary = fleet.bridge_summary() or {}
     if summary.get("loop_seconds"):
         simulated = summary["ticks"] * fleet.scenario.world.dt
@@ -619,7 +740,24 @@ def main(argv: list[str] | None = None) -> int:
               f"{simulated / summary['loop_seconds']:.1f}x real time ({simulated / launched:.1f}x with the start-up "
               f"and shut-down of the processes, {launched:.1f} s)", file=sys.stderr)
     print(f"usv-fleet: run folder {fleet.folder} ({time.monotonic() - started:.1f} s)", file=sys.stderr)
+    if _say_losses(fleet):
+        print(f"usv-fleet: the mission ran to its end but logs were lost (exit {LOGS_LOST})", file=sys.stderr)
+        return LOGS_LOST
     return 0
+
+
+def _say_losses(fleet: Fleet) -> bool:
+    """One line for what the run lost to write errors (a full disk), if anything; True if it lost any."""
+    if not fleet.unwritten and not fleet.logs_lost:
+        return False
+    said = []
+    if fleet.logs_lost:
+        said.append(f"the logs of {', '.join(sorted(set(fleet.logs_lost)))} were suspended by write errors "
+                    "(each log's /log/gap records say what was lost)")
+    if fleet.unwritten:
+        said.append("not written: " + "; ".join(fleet.unwritten))
+    print(f"usv-fleet: {'; '.join(said)}", file=sys.stderr)
+    return True
 
 
 def _raise_interrupted(signum, frame) -> None:

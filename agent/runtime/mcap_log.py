@@ -17,21 +17,29 @@ with the format, run and part records, so any part reads on its own; `mission_lo
 of a set into one log. Once the closed parts would leave no room for a full current part within
 `max_total_mb`, the oldest are deleted, so the set stays within the bound (plus at most one flush).
 
-**Write errors** (a full disk). Writing never stops the caller for good: the `log()` call whose write fails
-raises the OSError once (the caller counts it), the part is abandoned as an unfinished file (readable up to
-its last complete chunk), and later messages are dropped and counted (`dropped`) rather than raising again.
-With rotation, a new part is tried every `retry_seconds`, so logging resumes once there is room. `close()`
-never raises an OSError: it finishes what it can, and says in one line on stderr what the log lost.
+**Write errors** (a full disk, a quota: ENOSPC, EDQUOT, or any OSError of a write). Writing never stops
+the caller: the part whose write fails is abandoned as an unfinished file (readable up to its last complete
+chunk), and later messages are dropped and counted (`dropped`) while logging is `suspended`. A new part is
+tried every `retry_seconds` (2 s by default), with or without rotation, so logging resumes once there is
+room; the new part's first message, on `/log/gap` (`LogGap`), says what was lost: how many messages of which
+topics, the log times of the first and last lost, and the wall-clock times the log was suspended and resumed.
+With `announce` (a function taking one line; the processes print it on stderr), the log says once per
+failure that it is suspended (the line starts with `SUSPENDED`) and says when it resumes, and `log()` never
+raises an OSError; without it, the `log()` call whose write fails raises the OSError once (the caller counts
+it). `close()` never raises an OSError: it finishes what it can, and says in one line on stderr what the log
+lost.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
+import stat
 import sys
 import time
 import uuid
 import warnings
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Self
 
@@ -50,6 +58,23 @@ FORMAT_VERSION = "5"               # 2: inputs carry range_stamp; 3: and earlier
 PART_RECORD = "usv-log-part"       # metadata record: {"set": id shared by a log's parts, "part": "0", "first": file name}
 PART_WIDTH = 4                     # agent-1.part0001.mcap
 MB = 1_000_000
+GAP_TOPIC = "/log/gap"             # the first message of a part started after a write failure (LogGap)
+SUSPENDED = "logging suspended"    # how the announcement of a failure starts (the launcher looks for it)
+RETRY_SECONDS = 2.0                # after a write failure, a new part is tried this often
+
+
+class LogGap(BaseModel):
+    """What a log lost while writes failed (a full disk): the first message of the part that resumed it."""
+
+    model_config = {"title": "usv.LogGap"}
+
+    dropped: int = Field(ge=0, description="messages not logged")
+    topics: dict[str, int] = Field(description="of which, per topic")
+    first_lost_ns: int | None = Field(description="log time of the first message lost")
+    last_lost_ns: int | None = Field(description="log time of the last message lost")
+    suspended_at: float = Field(description="wall-clock time (Unix s) of the failure")
+    resumed_at: float = Field(description="wall-clock time (Unix s) the log resumed")
+    error: str = Field(description="the write error that suspended the log")
 
 
 class LogRotation(StrictModel):
@@ -91,7 +116,8 @@ class McapLog:
     of the set written so far (deleted ones included), in order."""
 
     def __init__(self, path: str | Path, flush_seconds: float = 1.0, metadata: dict[str, str] | None = None,
-                 rotation: LogRotation | None = None, retry_seconds: float = 10.0):
+                 rotation: LogRotation | None = None, retry_seconds: float = RETRY_SECONDS,
+                 announce: Callable[[str], None] | None = None):
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self.rotation = rotation
@@ -111,6 +137,8 @@ class McapLog:
         self._failed_at: float | None = None
         self._failing = False        # since the last write that reached the file, writes have failed
         self._open_error: OSError | None = None
+        self._announce = announce
+        self._gap: dict | None = None   # while suspended: what is lost (LogGap's fields so far)
         self._closed = False
         self._writer: Writer | None = None
         self._file = None
@@ -125,7 +153,7 @@ class McapLog:
         except OSError as error:
             if raise_errors:
                 raise           # the first file: a path that cannot be opened at all is the caller's to see
-            self._count(error)
+            self._suspend(error)
             self._writer, self._failed_at, self._open_error = None, time.monotonic(), error
             return False
         self._file, self._part, self._channels = handle, part, {}
@@ -147,7 +175,7 @@ class McapLog:
 
     def _abandon(self, error: OSError) -> None:
         """The current part failed: count it, close its file as an unfinished log, write nothing more to it."""
-        self._count(error)
+        self._suspend(error)
         self._writer = None
         self._failed_at = time.monotonic()
         try:
@@ -155,12 +183,19 @@ class McapLog:
         except OSError:
             pass
         size = self._size_on_disk(self.parts[-1])
+        if not self._regular(self.parts[-1]):
+            return          # a device (/dev/full) or the like: never deleted, its size means nothing
         if self._part > 0 and size == 0:
             # A part that failed before holding a byte (a retry on a still full disk) is no part at all: the
             # next try takes its number.
             self.parts[-1].unlink(missing_ok=True)
             self.parts.pop()
             self._part -= 1
+        elif size == 0:
+            # The first part, empty (the disk was full from the start): no file that no reader can read; the
+            # set's later parts say it is missing.
+            with contextlib.suppress(OSError):
+                self.parts[-1].unlink(missing_ok=True)
         else:
             self._closed_sizes.append((self.parts[-1], size))   # kept, unfinished, and counted in the bound
 
@@ -168,6 +203,40 @@ class McapLog:
         self.errors += 1
         if self.first_error is None:
             self.first_error = error
+
+    def _suspend(self, error: OSError) -> None:
+        """A write (or the start of a part) failed: count it; the first of a failure starts the gap record
+        and is announced."""
+        self._count(error)
+        if self._gap is None:
+            self._gap = {"dropped": 0, "topics": {}, "first_lost_ns": None, "last_lost_ns": None,
+                         "suspended_at": time.time(), "error": f"{type(error).__name__}: {error}"}
+            if self._announce is not None:
+                where = self.parts[-1] if self.parts else self.path
+                self._announce(f"{SUSPENDED}: {where}: {type(error).__name__}: {error}; messages are dropped "
+                               f"and counted, and a new part is tried every {self._retry_seconds:g} s")
+
+    @property
+    def suspended(self) -> bool:
+        """Writes have failed and no part has been opened since: messages are dropped."""
+        return self._gap is not None and not self._closed
+
+    def _drop(self, topic: str, log_time_ns: int) -> None:
+        self.dropped += 1
+        gap = self._gap
+        if gap is not None:
+            gap["dropped"] += 1
+            gap["topics"][topic] = gap["topics"].get(topic, 0) + 1
+            if gap["first_lost_ns"] is None:
+                gap["first_lost_ns"] = log_time_ns
+            gap["last_lost_ns"] = log_time_ns
+
+    @staticmethod
+    def _regular(path: Path) -> bool:
+        try:
+            return stat.S_ISREG(path.lstat().st_mode)
+        except OSError:
+            return False
 
     @staticmethod
     def _size_on_disk(path: Path) -> int:
@@ -214,16 +283,40 @@ class McapLog:
             self.deleted.append(oldest)
 
     def _retry(self) -> bool:
-        """After a failure, with rotation: try a new part every retry_seconds. True if one is open now."""
-        if self.rotation is None or self._failed_at is None:
-            return False
+        """After a failure: try a new part every retry_seconds. True if one is open now, its first message the
+        gap record (LogGap) of what was lost."""
+        if self._failed_at is None or (self.path.exists() and not self._regular(self.path)):
+            return False    # a log written to a device (/dev/full in the tests) has no parts
         if time.monotonic() - self._failed_at < self._retry_seconds:
             return False
         self._failed_at = time.monotonic()
-        if self._open_part(self._part + 1):
-            self._bound()
-            return True
-        return False
+        if not self._open_part(self._part + 1):
+            return False
+        self._bound()
+        gap = self._gap
+        if gap is not None:
+            record = LogGap(resumed_at=time.time(), **gap)
+            try:
+                self._write(GAP_TOPIC, record.model_dump_json().encode(), (record.last_lost_ns or 0),
+                            "usv.LogGap", LogGap.model_json_schema())
+                # To the file now: a part whose start fits in a buffer is not room until the disk took it.
+                self._writer.flush()
+                self._last_flush = time.monotonic()
+            except OSError as error:     # still full: still suspended, the same gap goes on
+                self._abandon(error)
+                return False
+            self._gap = None
+            if self._announce is not None:
+                self._announce(f"logging resumed in {self.parts[-1].name}: {gap['dropped']} message(s) lost "
+                               f"in {time.time() - gap['suspended_at']:.1f} s (recorded on {GAP_TOPIC})")
+        return True
+
+    def _write(self, topic: str, data: bytes, log_time_ns: int, schema_name: str, schema: dict) -> None:
+        self._schemas.setdefault(topic, (schema_name, schema))
+        channel = self.channel(topic, *self._schemas[topic])
+        self._writer.add_message(channel_id=channel, log_time=log_time_ns, publish_time=log_time_ns,
+                                 data=data, sequence=self._sequence[topic])
+        self._sequence[topic] += 1
 
     # ----- writing -----
     def channel(self, topic: str, schema_name: str, schema: dict) -> int:
@@ -246,7 +339,7 @@ class McapLog:
         if self._closed:
             return
         if self._writer is None and not self._retry():
-            self.dropped += 1
+            self._drop(topic, log_time_ns)
             return
         model = isinstance(message, BaseModel)
         if data is None:
@@ -278,11 +371,11 @@ class McapLog:
                 self._writer.flush()
                 self._failing = False          # it reached the file: a later failure is news again
         except OSError as error:
-            self.dropped += 1
             if self._writer is not None:
                 self._abandon(error)
+            self._drop(topic, log_time_ns)
             first, self._failing = not self._failing, True
-            if first:                          # once per failure, not once per message or per retry
+            if first and self._announce is None:   # once per failure, not once per message or per retry
                 raise
 
     def close(self) -> None:

@@ -1,6 +1,7 @@
 """The command line every vessel process shares (the agent and the driver bridge): --vessel, --config, --print-config;
-`startup_error`, the one line a process says when it cannot start; and `stop_on_signals`, how the agent and both
-bridges stop."""
+`startup_error`, the one line a process says when it cannot start; `stop_on_signals`, how the agent and both
+bridges stop; and `guard_stderr`, which keeps a console that cannot be written (a full disk) from ending the
+process that writes to it."""
 
 from __future__ import annotations
 
@@ -42,6 +43,37 @@ def stop_on_signals(stopping: threading.Event, deadline: float = STOP_DEADLINE) 
         signal.signal(signum, stop)
 
 
+class UnfailingStream:
+    """A text stream (stderr) whose writes never raise: a console on a full disk, or a pipe nobody reads any
+    more, loses the line (counted in `lost`) rather than ending the process from inside its error handling."""
+
+    def __init__(self, stream) -> None:
+        self._stream = stream
+        self.lost = 0
+
+    def write(self, text: str) -> int:
+        try:
+            return self._stream.write(text)
+        except (OSError, ValueError):     # ENOSPC, EDQUOT, EPIPE...; ValueError: the stream was closed
+            self.lost += 1
+            return len(text)
+
+    def flush(self) -> None:
+        try:
+            self._stream.flush()
+        except (OSError, ValueError):
+            self.lost += 1
+
+    def __getattr__(self, name: str):
+        return getattr(self._stream, name)    # fileno() (faulthandler's), isatty(), encoding...
+
+
+def guard_stderr() -> None:
+    """Make sys.stderr an UnfailingStream (once): every process calls it first thing in its main."""
+    if not isinstance(sys.stderr, UnfailingStream):
+        sys.stderr = UnfailingStream(sys.stderr)
+
+
 def print_config(what: str, settings: StrictModel) -> None:
     """The settings a process would run with, as YAML, and the layers its Zenoh configuration is made of."""
     print(f"# {what}: effective settings")
@@ -55,6 +87,7 @@ def vessel_process(prog: str, description: str, model: type[StrictModel], argv: 
     """The command line of a vessel's process: --vessel, --config, --print-config (and what `add_arguments`
     adds). Returns (arguments, settings) to run with, or an exit code once it has said why not (a bad id, a
     bad file) or printed the configuration."""
+    guard_stderr()
     parser = argparse.ArgumentParser(prog=prog, description=description)
     parser.add_argument("--vessel", required=True, help="this vessel's id (1-32 of A-Z a-z 0-9 _ -)")
     parser.add_argument("--config", required=config_required, default=None,

@@ -138,7 +138,8 @@ class AgentNode:
             path = path.with_name(f"{path.stem}-mission{self.sim_restarts + 1}{path.suffix}")
             metadata["mission"] = str(self.sim_restarts + 1)
         try:
-            self.log = McapLog(path, metadata=metadata, rotation=self.settings.log_rotation)
+            self.log = McapLog(path, metadata=metadata, rotation=self.settings.log_rotation,
+                               announce=lambda line: print(f"usv-agent {self.id}: {line}", file=sys.stderr))
         except OSError as error:
             raise StartupError(f"cannot write its log {path}: {error.strerror or error}") from None
         self.tick_log = TickLogger(self.log, self.id, self.settings.agent.control.radius)
@@ -468,7 +469,8 @@ class AgentNode:
                     # After this tick: replay can start at the next one (agent/core/snapshot.py).
                     self.log.log(log_topic(self.id, "state"), state_to_json(self.state), stamp,
                                  schema=CoreState)
-            except Exception as error:  # noqa: BLE001  (a full disk or a bad value must not stop the vessel's control)
+            except Exception as error:  # noqa: BLE001  (a bad value must not stop the vessel's control)
+                # A write error (a full disk) is not raised: the log counts it, says so and resumes by itself.
                 self.log_errors += 1
                 if self.log_errors == 1:
                     print(f"usv-agent {self.id}: logging failed: {type(error).__name__}: {error}", file=sys.stderr)
@@ -534,9 +536,14 @@ class AgentNode:
             health.update(pairs_mirror_ambiguous=verdicts.count(MIRROR_AMBIGUOUS),
                           pairs_unobservable=verdicts.count(UNOBSERVABLE))
         health.update({f"rejected_{k}": v for k, v in self.gate.rejected.items()})
-        health.update(overruns=self.overruns, log_errors=self.log_errors, tick_errors=self.tick_errors,
-                      core_rebuilds=self.core_rebuilds, sim_restarts=self.sim_restarts,
-                      shares_unsent=self.shares_unsent)
+        log = self.log
+        health.update(overruns=self.overruns,
+                      log_errors=self.log_errors + (log.errors if log is not None else 0),
+                      tick_errors=self.tick_errors, core_rebuilds=self.core_rebuilds,
+                      sim_restarts=self.sim_restarts, shares_unsent=self.shares_unsent,
+                      # 1 while the log is suspended (its disk full): the messages it drops are counted here.
+                      log_suspended=int(log is not None and log.suspended),
+                      log_dropped=log.dropped if log is not None else 0)
         return health
 
     def _next(self, stream: str) -> int:
