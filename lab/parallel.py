@@ -27,7 +27,7 @@ from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from functools import partial
-from typing import Self, TypeVar
+from typing import TypeVar
 
 from agent.config import ConfigError
 from lab import arguments
@@ -69,7 +69,7 @@ class Engine:
         self.retried = 0
         self._client = self._local = None
 
-    def __enter__(self) -> Self:
+    def __enter__(self) -> Engine:
         if self.cluster is None:
             return self
         try:

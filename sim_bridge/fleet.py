@@ -52,7 +52,7 @@ import subprocess
 import sys
 import time
 import warnings
-from datetime import UTC, datetime
+from datetime import datetime, timezone
 from pathlib import Path
 
 import yaml
@@ -150,7 +150,7 @@ class Fleet:
     def __init__(self, scenario_path: Path, variant: str | None, out: Path, seed: int | None = None,
                  mode: str = "lockstep") -> None:
         self.name, self.scenario = select_scenario(scenario_path, variant)
-        self.folder = out / f"{scenario_path.stem}-{self.name}-{datetime.now(UTC):%Y%m%dT%H%M%S%f}"
+        self.folder = out / f"{scenario_path.stem}-{self.name}-{datetime.now(timezone.utc):%Y%m%dT%H%M%S%f}"
         self.folder.mkdir(parents=True, exist_ok=False)
         self.mode, self.seed = mode, seed
         self.bridge_cmd = [sys.executable, "-m", "sim_bridge", "--scenario", str(scenario_path), "--variant",

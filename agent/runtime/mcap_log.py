@@ -41,7 +41,6 @@ import uuid
 import warnings
 from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Self
 
 import orjson
 from mcap.exceptions import McapError
@@ -406,7 +405,7 @@ class McapLog:
                   + ("its last part is unfinished (read up to its last complete chunk)" if unfinished
                      else "its last part is complete"), file=sys.stderr)
 
-    def __enter__(self) -> Self:
+    def __enter__(self) -> McapLog:
         return self
 
     def __exit__(self, kind, error, traceback) -> None:
@@ -414,7 +413,11 @@ class McapLog:
         if error is not None and self.close_error is not None:
             # The exception that ended the block is the one to see; the log's failure goes with it.
             failure = self.close_error
-            error.add_note(f"and closing the log {self.path} failed: {type(failure).__name__}: {failure}")
+            note = f"and closing the log {self.path} failed: {type(failure).__name__}: {failure}"
+            if hasattr(error, "add_note"):
+                error.add_note(note)
+            else:                       # Python 3.10: no notes on exceptions
+                print(note, file=sys.stderr)
 
 
 def read_messages(path: str | Path) -> Iterator[tuple[str, int, dict]]:
