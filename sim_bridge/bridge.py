@@ -97,7 +97,7 @@ class SimBridge:
         if self.sea is not None and settings.mode != "realtime":
             raise ConfigError(f"scenario {scenario.name!r} runs in the sea mode, which needs the real-time mode "
                               "(bridge setting mode: realtime) and agents on the wall clock")
-        self.epoch_ns = 0                  # wall time of sim time 0 in the sea mode (set as the run starts)
+        self.epoch_ns = settings.epoch_ns or 0   # wall time of sim time 0 in the sea mode (set as the run starts)
         self.alive: set[str] = set()
         self.commands: dict[str, Cmd] = {}
         self.statuses: dict[str, Status] = {}
@@ -173,9 +173,15 @@ class SimBridge:
 
     def _stamp_in_bounds(self, message) -> bool:
         """A command stamped within `max_command_skew` of the bridge's clock (its sim time, or the wall clock in
-        the sea mode, which the agents stamp with); a status not further ahead. An absurd stamp (2^62 from a
+        the sea mode, the vessel's own as its driver reads it); a status not further ahead. An absurd stamp (2^62 from a
         corrupt clock) would otherwise make a command look fresh forever, or hide every later one."""
-        now_ns = time.time_ns() if self.sea is not None else self.world.time_ns
+        now_ns = self.world.time_ns if self.sea is None else time.time_ns()
+        if self.sea is not None and self.epoch_ns and message.sender in self.sea.clocks:
+            # At sea a driver judges a command by its own clock: the vessel's (the agent's computer's), offset by
+            # the driver's own if it has one. A vessel whose clock is off is judged by it, as aboard.
+            t = (now_ns - self.epoch_ns) * 1e-9
+            now_ns = (self.sea.driver_stamp_ns(message.sender, t, self.epoch_ns) if isinstance(message, Cmd)
+                      else self.sea.clocks[message.sender].stamp_ns(t, self.epoch_ns))
         skew = self.settings.max_command_skew * 1e9
         ahead = message.stamp_ns - now_ns > skew
         return not ahead and (not isinstance(message, Cmd) or now_ns - message.stamp_ns <= skew)

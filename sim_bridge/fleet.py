@@ -169,12 +169,7 @@ class Fleet:
         if sea is not None:
             epoch_ns = time.time_ns() + int(SEA_LEAD * 1e9)
             bridge.update(mode="realtime", epoch_ns=epoch_ns)
-            clocks = SeaSensors(self.scenario.world, streams(
-                self.scenario.seed if self.seed is None else self.seed).sea).clocks
-            for vessel, settings in configs.items():
-                settings["clock"] = "wall"
-                if settings["initial"]:
-                    settings["initial"]["stamp"] = clocks[vessel].stamp_ns(sea.hold_ms * 1e-3 / 2, epoch_ns) * 1e-9
+            at_sea(self.scenario, self.seed, epoch_ns, configs)
         (self.folder / "bridge.yaml").write_text(yaml.safe_dump(bridge))
         for vessel, settings in configs.items():
             (self.folder / f"agent-{vessel}.yaml").write_text(yaml.safe_dump(settings))
@@ -503,6 +498,22 @@ def agent_configs(scenario, seed: int | None, folder: Path, zenoh) -> dict[str, 
     return {v.id: {"clock": "sim", "zenoh": zenoh(v.id), "log": str(folder / f"agent-{v.id}.mcap"),
                    "id_check": SIM_ID_CHECK, "agent": agent_params, "initial": starts.get(v.id, {})}
             for v in scenario.world.vessels}
+
+
+def at_sea(scenario, seed: int | None, epoch_ns: int, configs: dict[str, dict]) -> None:
+    """Turn `agent_configs` into a sea-mode run's, in place: each agent on the wall clock read through its
+    vessel's clock (`vessel_clock`: offset, drift and steps, the clock the sim bridge stamps its sensors with:
+    aboard, the agent and the driver share the computer's clock), and its deployment estimates stamped in
+    that clock in the middle of the hold at the start, when every vessel is still."""
+    sea = scenario.world.sea
+    clocks = SeaSensors(scenario.world, streams(scenario.seed if seed is None else seed).sea).clocks
+    for vessel, settings in configs.items():
+        clock = clocks[vessel]
+        settings["clock"] = "wall"
+        settings["vessel_clock"] = {"epoch_ns": epoch_ns, "offset": clock.offset, "drift": clock.drift,
+                                    "steps": [list(step) for step in clock.steps]}
+        if settings["initial"]:
+            settings["initial"]["stamp"] = clock.stamp_ns(sea.hold_ms * 1e-3 / 2, epoch_ns) * 1e-9
 
 
 def initial_settings(scenario, seed: int | None) -> dict[str, dict]:

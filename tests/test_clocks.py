@@ -1,0 +1,157 @@
+"""Clocks that disagree are an alarm, not a silent stop (issue #27).
+
+Unit tests of the pieces: the input gate's tracker of how far each source's stamps run from the agent's clock
+(agent/shell/gate.py `StampOffsets`, `InputGate`), the agent's wall-clock timeline that holds across a step of
+the system clock (agent/shell/wall_clock.py), and the sea mode's vessel clock read alike by the sim bridge and
+the agent. The process-level tests run a sea-mode fleet through the launcher (`usv-fleet run`): one vessel's
+driver clock 1 s ahead, and one vessel's clock stepping back 2 s mid-mission.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from agent.contract import CLOCK_SOURCE_SENSORS, Odometry, ShareMessage, encode
+from agent.shell.gate import OFFSET_MIN, OFFSET_WINDOW, InputGate, StampOffsets
+from agent.shell.wall_clock import SimulatedVesselClock, WallTimeline
+from sim_bridge.world import VesselClock
+
+T0 = 1_700_000_000.0   # s: the agent's clock at the start of each test
+
+
+def odometry(stamp: float, x: float = 0.0, seq: int = 0) -> bytes:
+    return encode(Odometry(stamp_ns=round(stamp * 1e9), seq=seq, sender="1", position=(x, 0.0), heading=0.0))
+
+
+# ----- the tracker -----
+def test_the_offset_is_the_median_of_the_window_and_judged_only_once_enough_are_in():
+    offsets = StampOffsets(max_age=1.0, max_future=0.5)
+    for k in range(OFFSET_MIN - 1):
+        offsets.observe("2", 1.0)
+    assert offsets.median("2") is None and offsets.alarms() == []        # too few to judge
+    offsets.observe("2", 1.0)
+    assert offsets.median("2") == 1.0 and offsets.alarms() == [("2", 1.0)]
+    # A minority of wild stamps (forged, or a burst of late messages) does not move the median.
+    for wild in (1e6, -1e6, 50.0):
+        offsets.observe("2", wild)
+    assert offsets.median("2") == 1.0
+    # The window is bounded: after OFFSET_WINDOW messages on time the clock agrees again.
+    for _ in range(OFFSET_WINDOW):
+        offsets.observe("2", -0.02)
+    assert offsets.median("2") == pytest.approx(-0.02) and offsets.alarms() == []
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_the_alarm_is_raised_exactly_when_most_stamps_are_outside_the_window(seed):
+    """Over random offsets and jitters: the alarm is raised for a source iff its median offset is outside
+    [-max_age, max_future], and its reported offset is within the jitter of the true one."""
+    rng = np.random.default_rng(seed)
+    for _ in range(200):
+        offsets = StampOffsets(max_age=1.0, max_future=0.5)
+        true, jitter = rng.uniform(-3.0, 3.0), rng.uniform(0.0, 0.05)
+        for value in true + rng.uniform(-jitter, jitter, size=OFFSET_WINDOW):
+            offsets.observe(CLOCK_SOURCE_SENSORS, float(value))
+        median = offsets.median(CLOCK_SOURCE_SENSORS)
+        assert abs(median - true) <= jitter
+        alarmed = dict(offsets.alarms())
+        assert (CLOCK_SOURCE_SENSORS in alarmed) == (not -1.0 <= median <= 0.5)
+        # The own sensors' correction is in force exactly with the alarm (consistent offsets), and it is the
+        # median to within the settling step.
+        if alarmed:
+            assert abs(offsets.applied - median) <= 0.05
+        else:
+            assert offsets.applied == 0.0
+
+
+def test_inconsistent_sensor_stamps_are_alarmed_but_never_corrected():
+    """Stamps spread over seconds (a clock jumping about, or stamps forged at random) are not one clock that
+    is off: no correction, so they are judged as they come."""
+    offsets = StampOffsets(max_age=1.0, max_future=0.5)
+    for value in np.random.default_rng(4).uniform(0.6, 5.0, size=OFFSET_WINDOW):
+        offsets.observe(CLOCK_SOURCE_SENSORS, float(value))
+    assert [source for source, _ in offsets.alarms()] == [CLOCK_SOURCE_SENSORS]
+    assert offsets.applied == 0.0
+
+
+# ----- the gate -----
+def test_own_sensors_a_second_ahead_are_refused_then_taken_on_the_corrected_timeline():
+    """Today's gate refuses every such message as 'future' for ever; now the first OFFSET_MIN are refused,
+    then the stamps are taken 1 s back, the tick gets odometry at the right time, and the alarm says so."""
+    gate = InputGate("1")
+    taken = [gate.offer("usv/1/sensor/odom", odometry(T0 + 0.1 * k + 1.02, 0.1 * k, k), T0 + 0.1 * k)
+             for k in range(40)]
+    assert taken[:OFFSET_MIN - 1] == [False] * (OFFSET_MIN - 1) and all(taken[OFFSET_MIN:])
+    assert gate.rejected["future"] == OFFSET_MIN - 1
+    assert gate.clock_alarms() == [(CLOCK_SOURCE_SENSORS, pytest.approx(1.02))]
+    now = T0 + 3.9
+    inputs = gate.snapshot(now)
+    assert inputs.odometry is not None and inputs.odometry.stamp == pytest.approx(now, abs=1e-6)
+    np.testing.assert_allclose(inputs.odometry.position, [3.9, 0.0])
+
+
+def test_a_step_of_this_computers_clock_moves_the_sensor_correction_at_once():
+    gate = InputGate("1")
+    for k in range(OFFSET_MIN):
+        assert gate.offer("usv/1/sensor/odom", odometry(T0 + 0.1 * k, 0.0, k), T0 + 0.1 * k)
+    assert gate.clock_alarms() == []
+    gate.clock_stepped(-2.0)   # the driver now stamps 2 s behind the agent's timeline
+    now = T0 + 0.1 * OFFSET_MIN
+    assert gate.offer("usv/1/sensor/odom", odometry(now - 2.0, 0.0, OFFSET_MIN), now)
+    assert gate.snapshot(now).odometry.stamp == pytest.approx(now, abs=1e-6)
+    assert gate.clock_alarms() == [(CLOCK_SOURCE_SENSORS, pytest.approx(-2.0))]
+
+
+def test_a_neighbours_shares_a_second_behind_are_alarmed_and_still_refused():
+    """A neighbour's clock that disagrees is said (its shares cannot be mapped onto ours: every stamp in them
+    refers to its clock), and forgetting its session forgets what was measured of it."""
+    gate = InputGate("1", known_peers=lambda: {"2"})
+    for k in range(OFFSET_MIN):
+        share = ShareMessage(stamp_ns=round((T0 + 0.1 * k - 1.1) * 1e9), seq=k, sender="2", position=(0.0, 0.0),
+                             heading=0.0, velocity=(0.0, 0.0), phase=0.0)
+        assert not gate.offer("usv/2/share", encode(share), T0 + 0.1 * k)
+    assert gate.rejected["stale"] == OFFSET_MIN
+    assert gate.clock_alarms() == [("2", pytest.approx(-1.1))]
+    gate.forget("2")
+    assert gate.clock_alarms() == []
+
+
+# ----- the timeline -----
+class FakeClocks:
+    def __init__(self) -> None:
+        self.monotonic, self.system = 100.0, T0
+
+    def advance(self, seconds: float, slew: float = 0.0) -> None:
+        self.monotonic += seconds
+        self.system += seconds + slew
+
+
+def test_the_timeline_follows_slewing_and_holds_across_a_step():
+    clocks, steps = FakeClocks(), []
+    timeline = WallTimeline(lambda: clocks.system, lambda: clocks.monotonic, on_step=steps.append)
+    assert timeline.read() == pytest.approx(T0)
+    for _ in range(100):             # chrony slewing 0.5 ms/s: followed
+        clocks.advance(0.1, slew=5e-5)
+        assert timeline.read() == pytest.approx(clocks.system, abs=1e-9)
+    held = timeline.read()
+    clocks.system -= 2.0             # a step back of 2 s
+    clocks.advance(0.1)
+    assert timeline.read() == pytest.approx(held + 0.1, abs=1e-9)
+    assert steps == [pytest.approx(-2.0)] and timeline.steps == 1 and timeline.stepped == pytest.approx(-2.0)
+    for _ in range(10):              # it stays stepped: counted once, the timeline continuous
+        clocks.advance(0.1)
+        timeline.read()
+    assert timeline.steps == 1 and timeline.read() == pytest.approx(held + 1.1, abs=1e-9)
+    clocks.system += 2.0             # the clock is put right: the timeline follows it again
+    clocks.advance(0.1)
+    assert timeline.read() == pytest.approx(clocks.system, abs=1e-9)
+    assert timeline.steps == 2 and timeline.stepped == 0.0
+
+
+def test_the_agent_reads_the_vessel_clock_the_sim_bridge_stamps_with():
+    epoch = 1_700_000_000_000_000_000
+    bridge = VesselClock(offset=1.0, drift=20e-6, steps=((10.0, -2.0),))
+    agent = SimulatedVesselClock(epoch_ns=epoch, offset=1.0, drift=20e-6, steps=[(10.0, -2.0)])
+    for t in (0.0, 5.0, 9.99, 10.0, 30.5):
+        host_ns = epoch + round(t * 1e9)
+        assert agent.read(host_ns) == pytest.approx(bridge.stamp_ns(t, epoch) * 1e-9, abs=1e-6)
