@@ -44,7 +44,7 @@ import yaml
 import zenoh
 
 from agent.config import ConfigError
-from agent.contract import CLOCK_KEY, LIVELINESS, Clock, decode, key, seconds
+from agent.contract import CLOCK_KEY, CLOCK_SOURCE_SENSORS, LIVELINESS, Clock, Status, decode, every, key, seconds
 from agent.runtime.mcap_log import read_messages
 from agent.runtime.zenoh_session import ZenohSettings, zenoh_config
 from mission_log.metrics import truth_metrics
@@ -152,6 +152,8 @@ class Fleet:
         self.hard_killed: list[str] = []          # children that needed SIGKILL after SIGTERM
         self._logs: list = []
         self._sim_time = -math.inf
+        self.clock_alarms: dict[str, dict[str, float]] = {}   # vessel -> {source: offset (s)}, its latest alarm
+        self.clock_steps: dict[str, int] = {}                  # vessel -> steps of its clock its agent detected
 
     def _write_settings(self, bridge_port: int) -> None:
         """bridge.yaml and each agent-<id>.yaml, for a sim bridge listening on `bridge_port`.
@@ -336,6 +338,7 @@ class Fleet:
             session = zenoh.open(zenoh_config(ZenohSettings(connect=[f"tcp/127.0.0.1:{self.bridge_port}"])))
             try:
                 session.declare_subscriber(CLOCK_KEY, on_clock)
+                session.declare_subscriber(every("status"), self._on_status)
                 if self._wait_for_bridge(session, deadline):
                     return session
             except BaseException:
@@ -354,6 +357,21 @@ class Fleet:
             attempt += 1
             print(f"usv-fleet: port {taken} was taken before the sim bridge could listen on it; starting it "
                   f"again on port {self.bridge_port}", file=sys.stderr)
+
+    def _on_status(self, sample) -> None:
+        """Note a clock alarm or a clock step an agent's status reports (from Zenoh's thread: quick)."""
+        message, _ = decode(Status, sample.payload.to_bytes())
+        if message is None:
+            return
+        if message.clocks:
+            self.clock_alarms[message.sender] = {alarm.source: alarm.offset for alarm in message.clocks}
+        steps = message.health.get("clock_steps", 0)
+        if steps:
+            self.clock_steps[message.sender] = max(steps, self.clock_steps.get(message.sender, 0))
+
+    def clocks_verdict(self) -> str | None:
+        """One line on the clocks that disagreed during the run (`clock_verdict`); None if none did."""
+        return clock_verdict(dict(self.clock_alarms), dict(self.clock_steps))
 
     def _wait_for_port(self, deadline: float) -> None:
         """Until the bridge's port takes a TCP connection, or the bridge has exited (its caller finds out)."""
@@ -461,6 +479,38 @@ class Fleet:
             {"peak_resident_mb": dict(sorted(self.peak_memory.items()))}, indent=2))
 
 
+class ClocksDisagree(RuntimeError):
+    """The mission ran, but a vessel's clocks disagreed: an agent raised the alarm in its status."""
+
+
+def clock_verdict(alarms: dict[str, dict[str, float]], steps: dict[str, int]) -> str | None:
+    """What the agents' clock alarms say, in one line naming each vessel and offset; None without any.
+
+    `alarms`: reporting vessel -> {source: offset s} (source: its own sensors, or a neighbour whose shares it
+    sees so far off); `steps`: vessel -> steps of its computer's clock its agent detected. Of two vessels that
+    see each other's clock off, the one more vessels report is named (the odd one out); a tie names both."""
+    parts = []
+    for vessel in sorted(steps):
+        parts.append(f"vessel {vessel}'s clock stepped ({steps[vessel]} step{'s' * (steps[vessel] > 1)})")
+    for vessel, sources in sorted(alarms.items()):
+        if CLOCK_SOURCE_SENSORS in sources:
+            offset = sources[CLOCK_SOURCE_SENSORS]
+            parts.append(f"vessel {vessel}'s sensor clock {abs(offset):.2f} s {'ahead of' if offset > 0 else 'behind'} "
+                         "its agent's")
+    seen_by: dict[str, dict[str, float]] = {}
+    for reporter, sources in alarms.items():
+        for source, offset in sources.items():
+            if source != CLOCK_SOURCE_SENSORS:
+                seen_by.setdefault(source, {})[reporter] = offset
+    for source, reporters in sorted(seen_by.items()):
+        if any(len(seen_by.get(reporter, {})) > len(reporters) for reporter in reporters):
+            continue   # it sees them off because they see it off, and more see them: they are the odd one out
+        offset = float(sorted(reporters.values())[len(reporters) // 2])
+        parts.append(f"vessel {source}'s clock {abs(offset):.2f} s {'ahead of' if offset > 0 else 'behind'} that of "
+                     f"vessel{'s' * (len(reporters) > 1)} {', '.join(sorted(reporters))}")
+    return f"the clocks disagree: {'; '.join(parts)}" if parts else None
+
+
 def _peak_resident_mb(pid: int) -> float | None:
     """Peak resident memory of a live process (Linux /proc VmHWM), in MB; None where unavailable."""
     try:
@@ -484,6 +534,9 @@ def launch(scenario_path: Path, variant: str | None, out: Path, seed: int | None
         analyse_cut_short(fleet, radius, str(error))
         raise
     analyse(folder, radius, fleet.planned_ticks)
+    verdict = fleet.clocks_verdict()
+    if verdict is not None:
+        raise ClocksDisagree(f"{folder}: {verdict}")
     return folder
 
 
@@ -625,6 +678,7 @@ def main(argv: list[str] | None = None) -> int:
               "ticks ran; `usv-log` analyses it)", file=sys.stderr)
         return 128 + error.signum
     print((fleet.folder / "summary.md").read_text())
+    verdict = fleet.clocks_verdict()
     summary = fleet.bridge_summary() or {}
     if summary.get("loop_seconds"):
         simulated = summary["ticks"] * fleet.scenario.world.dt
@@ -632,6 +686,9 @@ def main(argv: list[str] | None = None) -> int:
               f"{simulated / summary['loop_seconds']:.1f}x real time ({simulated / launched:.1f}x with the start-up "
               f"and shut-down of the processes, {launched:.1f} s)", file=sys.stderr)
     print(f"usv-fleet: run folder {fleet.folder} ({time.monotonic() - started:.1f} s)", file=sys.stderr)
+    if verdict is not None:
+        print(f"usv-fleet: the run fails: {verdict}", file=sys.stderr)
+        return 1
     return 0
 
 

@@ -9,12 +9,19 @@ driver clock 1 s ahead, and one vessel's clock stepping back 2 s mid-mission.
 
 from __future__ import annotations
 
+import subprocess
+import sys
+from pathlib import Path
+
 import numpy as np
 import pytest
+import yaml
 
 from agent.contract import CLOCK_SOURCE_SENSORS, Odometry, ShareMessage, encode
 from agent.shell.gate import OFFSET_MIN, OFFSET_WINDOW, InputGate, StampOffsets
 from agent.shell.wall_clock import SimulatedVesselClock, WallTimeline
+from mission_log.reader import read_log
+from sim_bridge.scenario import select_scenario
 from sim_bridge.world import VesselClock
 
 T0 = 1_700_000_000.0   # s: the agent's clock at the start of each test
@@ -155,3 +162,93 @@ def test_the_agent_reads_the_vessel_clock_the_sim_bridge_stamps_with():
     for t in (0.0, 5.0, 9.99, 10.0, 30.5):
         host_ns = epoch + round(t * 1e9)
         assert agent.read(host_ns) == pytest.approx(bridge.stamp_ns(t, epoch) * 1e-9, abs=1e-6)
+
+
+# ----- a sea-mode fleet through the launcher -----
+REPO = Path(__file__).resolve().parents[1]
+SEA_TRIAL = REPO / "configs" / "scenarios" / "sea_trial.yaml"
+DURATION = 10.0   # s of mission (after the launcher's SEA_LEAD of start-up)
+
+
+def sea_scenario(folder: Path, **sea) -> Path:
+    """The sea trial for DURATION s with `sea` changed, as a scenario file of its own."""
+    _, scenario = select_scenario(SEA_TRIAL, "sea")
+    data = scenario.model_dump(mode="json")
+    data["duration"] = DURATION
+    data["world"]["sea"].update(sea)
+    path = folder / "clocks.yaml"
+    path.write_text(yaml.safe_dump({"name": "clocks", "base": data}))
+    return path
+
+
+def run_fleet(folder: Path, scenario: Path) -> tuple[subprocess.CompletedProcess, Path]:
+    """`usv-fleet run` as a user runs it; (the finished process, the run folder)."""
+    done = subprocess.run([sys.executable, "-m", "sim_bridge.fleet_cli", "run", str(scenario), "--out",
+                           str(folder / "runs")], capture_output=True, text=True, timeout=300)
+    (run,) = (folder / "runs").iterdir()
+    return done, run
+
+
+def statuses(run: Path, vessel: str) -> list[dict]:
+    return [message for _, message in read_log(run / f"agent-{vessel}.mcap").messages(f"usv/{vessel}/status")]
+
+
+@pytest.mark.slow
+def test_a_driver_clock_a_second_ahead_is_an_alarm_and_the_vessel_still_runs(tmp_path):
+    """Vessel 1's driver stamps its sensors 1 s ahead of its computer's clock. Before: every sensor message
+    refused as 'future', STOP all mission, 'no bridge publishes' on its console, the launcher exiting 0."""
+    done, run = run_fleet(tmp_path, sea_scenario(tmp_path, driver_offsets_ms={"1": 1000.0}))
+    assert done.returncode == 1, done.stderr[-3000:]
+    verdict = [line for line in done.stderr.splitlines() if "the run fails" in line]
+    assert len(verdict) == 1 and "vessel 1's sensor clock 1.0" in verdict[0] and "ahead of" in verdict[0], verdict
+    console = (run / "agent-1.log").read_text()
+    assert "sensor clock 1.0" in console and "ahead of this computer's" in console, console[-2000:]
+    assert "no bridge publishes" not in console
+    told = statuses(run, "1")
+    alarmed = [s for s in told if s["clocks"]]
+    assert alarmed and all(s["clocks"][0]["source"] == "sensors" for s in alarmed)
+    assert all(abs(s["clocks"][0]["offset"] - 1.0) < 0.05 for s in alarmed)   # 1 s + 10 +- 5 ms of latency
+    # The vessel did not stand still: once the correction was in force it commanded motion.
+    moving = [s for s in told if s["ticked"] and s["command"][0] != 0.0]
+    assert len(moving) > 0.5 * DURATION / 0.1, f"{len(moving)} ticks commanded motion"
+    assert told[-1]["health"]["clock_corrected"] > 0
+    for vessel in ("2", "3", "4"):   # the others' clocks agree: no alarm
+        assert not any(s["clocks"] for s in statuses(run, vessel))
+
+
+@pytest.mark.slow
+def test_a_vessel_clock_a_second_ahead_fails_the_run_naming_it(tmp_path):
+    """The issue's case: vessel 1's clock 1 s ahead (its driver and agent alike). Before: the launcher exited 0
+    and nothing said why vessel 1 was cut off from the others."""
+    done, run = run_fleet(tmp_path, sea_scenario(tmp_path, offsets_ms={"1": 1000.0, "2": 0.0, "3": 0.0, "4": 0.0}))
+    assert done.returncode == 1, done.stderr[-3000:]
+    verdict = [line for line in done.stderr.splitlines() if "the run fails" in line]
+    assert len(verdict) == 1 and "vessel 1's clock 0.9" in verdict[0], verdict
+    assert "ahead of that of vessels 2, 3, 4" in verdict[0], verdict
+    for vessel in ("2", "3", "4"):
+        assert "vessel 1's clock 0.9" in (run / f"agent-{vessel}.log").read_text()
+        sources = {alarm["source"] for s in statuses(run, vessel) for alarm in s["clocks"]}
+        assert sources == {"1"}
+
+
+@pytest.mark.slow
+def test_a_clock_stepping_back_2_s_is_detected_and_the_neighbours_stay_admitted(tmp_path):
+    """Vessel 1's computer clock steps back 2 s at 4 s (its driver's stamps and its agent's clock alike).
+    Before: its shares were 2 s stale to the others and theirs 2 s in its future, from the step on, silently."""
+    step_at = 4.0
+    done, run = run_fleet(tmp_path, sea_scenario(tmp_path, offset_ms=0.0, steps={"1": [[step_at, -2000.0]]}))
+    console = (run / "agent-1.log").read_text()
+    assert "this computer's clock stepped back 2.0" in console, console[-2000:]
+    assert done.returncode == 1 and "vessel 1's clock stepped (1 step)" in done.stderr, done.stderr[-3000:]
+    told = statuses(run, "1")
+    assert told[-1]["health"]["clock_steps"] == 1 and told[-1]["health"]["clock_stepped_ms"] == pytest.approx(
+        -2000, abs=5)
+    # After the step every vessel still takes every other's fresh shares: the shares each tick used are
+    # never older than 0.5 s, on the agents' clocks (which held across the step).
+    epoch = read_log(run / "sim.mcap").messages("/bridge/sea")[0][1]["epoch_ns"] * 1e-9
+    for vessel in ("1", "2", "3", "4"):
+        late = [(stamp * 1e-9 - epoch, sorted(j for j, share in inputs["shares"].items()
+                                               if stamp * 1e-9 - share["odometry"]["stamp"] > 0.5))
+                for stamp, inputs in read_log(run / f"agent-{vessel}.mcap").messages(f"/{vessel}/inputs")
+                if stamp * 1e-9 - epoch > step_at + 1.0]
+        assert len(late) > 30 and not [t for t, stale in late if stale], (vessel, late[:5])
