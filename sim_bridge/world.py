@@ -485,6 +485,7 @@ class SeaSensors:
         self._boundary = _boundary(config, self._islands)
         self._bearing_noise = IsotropicGaussianNoise(variance=config.bearing_variance)
         self.clocks: dict[str, VesselClock] = {}
+        self.lag = 0.0   # s from the epoch the vessels' clocks count from to the run's (`stamp_ns`)
         self.phases_ns: dict[tuple[str, str], int] = {}
         for spec in config.vessels:
             offset = rng.uniform(-1.0, 1.0) * sea.offset_ms
@@ -501,9 +502,13 @@ class SeaSensors:
     def timing(self, sensor: str) -> SensorTiming:
         return getattr(self.sea, sensor)
 
-    def driver_stamp_ns(self, vessel: str, t: float, epoch_ns: int = 0) -> int:
-        """The stamp `vessel`'s driver takes at true time t: its vessel's clock, and its own offset if it has one."""
-        return self.clocks[vessel].stamp_ns(t, epoch_ns) + nanoseconds(self.sea.driver_offsets_ms.get(vessel, 0.0) * 1e-3)
+    def stamp_ns(self, vessel: str, t: float, epoch_ns: int = 0, driver: bool = True) -> int:
+        """The stamp `vessel`'s driver (`driver`; else its computer) takes at true time t (s from the run's
+        epoch): its vessel's clock, plus the driver's own offset if it has one. The clocks count from the epoch
+        the agents were given, `lag` s before the run's (a run that started late): so a step comes at the same
+        moment for the driver and the agent."""
+        offset = self.sea.driver_offsets_ms.get(vessel, 0.0) * 1e-3 if driver else 0.0
+        return self.clocks[vessel].stamp_ns(t + self.lag, epoch_ns) - nanoseconds(self.lag) + nanoseconds(offset)
 
     def period_ns(self, sensor: str) -> int:
         period_ms = self.timing(sensor).period_ms
@@ -544,7 +549,7 @@ class SeaSensors:
                         bearing, _ = _bearing(here, _lerp(before.target, after.target, w), noise, self._islands)
                         values = {"bearing": bearing}
                     stamped = t + latency if self.sea.stamps == "arrival" else t
-                    found.append(Measurement(vessel, sensor, t, t + latency, self.driver_stamp_ns(vessel, stamped),
+                    found.append(Measurement(vessel, sensor, t, t + latency, self.stamp_ns(vessel, stamped),
                                              values))
         return found
 

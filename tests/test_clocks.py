@@ -21,6 +21,7 @@ from agent.contract import CLOCK_SOURCE_SENSORS, Odometry, ShareMessage, encode
 from agent.shell.gate import OFFSET_MIN, OFFSET_WINDOW, InputGate, StampOffsets
 from agent.shell.wall_clock import SimulatedVesselClock, WallTimeline
 from mission_log.reader import read_log
+from mission_log.series import truth_of
 from sim_bridge.scenario import select_scenario
 from sim_bridge.world import VesselClock
 
@@ -167,7 +168,7 @@ def test_the_agent_reads_the_vessel_clock_the_sim_bridge_stamps_with():
 # ----- a sea-mode fleet through the launcher -----
 REPO = Path(__file__).resolve().parents[1]
 SEA_TRIAL = REPO / "configs" / "scenarios" / "sea_trial.yaml"
-DURATION = 10.0   # s of mission (after the launcher's SEA_LEAD of start-up)
+DURATION = 12.0   # s of mission (after the launcher's SEA_LEAD of start-up)
 
 
 def sea_scenario(folder: Path, **sea) -> Path:
@@ -189,6 +190,15 @@ def run_fleet(folder: Path, scenario: Path) -> tuple[subprocess.CompletedProcess
     return done, run
 
 
+def moving(run: Path, vessel: str, after: float) -> float:
+    """The share of the ticks from sim time `after` (s) on in which the vessel truly moved (faster than 0.1 m/s):
+    a vessel whose commands its driver refuses is stopped by the watchdog."""
+    truth = truth_of(read_log(run / "sim.mcap"))
+    t = truth.t_ns * 1e-9 - truth.t_ns[0] * 1e-9
+    speed = np.linalg.norm(np.diff(truth.vessels[vessel], axis=0), axis=1) / np.diff(t)
+    return float(np.mean(speed[t[1:] > after] > 0.1))
+
+
 def statuses(run: Path, vessel: str) -> list[dict]:
     return [message for _, message in read_log(run / f"agent-{vessel}.mcap").messages(f"usv/{vessel}/status")]
 
@@ -207,11 +217,16 @@ def test_a_driver_clock_a_second_ahead_is_an_alarm_and_the_vessel_still_runs(tmp
     told = statuses(run, "1")
     alarmed = [s for s in told if s["clocks"]]
     assert alarmed and all(s["clocks"][0]["source"] == "sensors" for s in alarmed)
-    assert all(abs(s["clocks"][0]["offset"] - 1.0) < 0.05 for s in alarmed)   # 1 s + 10 +- 5 ms of latency
-    # The vessel did not stand still: once the correction was in force it commanded motion.
-    moving = [s for s in told if s["ticked"] and s["command"][0] != 0.0]
-    assert len(moving) > 0.5 * DURATION / 0.1, f"{len(moving)} ticks commanded motion"
+    # 1 s plus the driver's latency (10 +- 5 ms), less however late the message reached the agent (a loaded
+    # machine delays it): never more than 1.015 s, and most of the time close to 1 s.
+    offsets = np.array([s["clocks"][0]["offset"] for s in alarmed])
+    assert np.all((offsets > 0.5) & (offsets <= 1.015)) and abs(np.median(offsets) - 1.0) < 0.1, offsets
+    # The vessel did not stand still: once the correction was in force it commanded motion, and its driver
+    # took the commands (stamped in the driver's clock).
+    commanded = [s for s in told if s["ticked"] and s["command"][0] != 0.0]
+    assert len(commanded) > 0.5 * DURATION / 0.1, f"{len(commanded)} ticks commanded motion"
     assert told[-1]["health"]["clock_corrected"] > 0
+    assert moving(run, "1", after=2.0) > 0.9
     for vessel in ("2", "3", "4"):   # the others' clocks agree: no alarm
         assert not any(s["clocks"] for s in statuses(run, vessel))
 
@@ -233,14 +248,16 @@ def test_a_vessel_clock_a_second_ahead_fails_the_run_naming_it(tmp_path):
 
 @pytest.mark.slow
 def test_a_clock_stepping_back_2_s_is_detected_and_the_neighbours_stay_admitted(tmp_path):
-    """Vessel 1's computer clock steps back 2 s at 4 s (its driver's stamps and its agent's clock alike).
-    Before: its shares were 2 s stale to the others and theirs 2 s in its future, from the step on, silently."""
-    step_at = 4.0
+    """Vessel 1's computer clock steps back 2 s at 7 s (its driver's stamps and its agent's clock alike; late
+    enough that its agent is up, however loaded the machine). Before: its shares were 2 s stale to the others
+    and theirs 2 s in its future, from the step on, silently."""
+    step_at = 7.0
     done, run = run_fleet(tmp_path, sea_scenario(tmp_path, offset_ms=0.0, steps={"1": [[step_at, -2000.0]]}))
     console = (run / "agent-1.log").read_text()
     assert "this computer's clock stepped back 2.0" in console, console[-2000:]
     assert done.returncode == 1 and "vessel 1's clock stepped (1 step)" in done.stderr, done.stderr[-3000:]
     told = statuses(run, "1")
+    assert moving(run, "1", after=step_at) > 0.9     # its driver still takes its commands
     assert told[-1]["health"]["clock_steps"] == 1 and told[-1]["health"]["clock_stepped_ms"] == pytest.approx(
         -2000, abs=5)
     # After the step every vessel still takes every other's fresh shares: the shares each tick used are
@@ -251,4 +268,4 @@ def test_a_clock_stepping_back_2_s_is_detected_and_the_neighbours_stay_admitted(
                                                if stamp * 1e-9 - share["odometry"]["stamp"] > 0.5))
                 for stamp, inputs in read_log(run / f"agent-{vessel}.mcap").messages(f"/{vessel}/inputs")
                 if stamp * 1e-9 - epoch > step_at + 1.0]
-        assert len(late) > 30 and not [t for t, stale in late if stale], (vessel, late[:5])
+        assert len(late) > 25 and not [t for t, stale in late if stale], (vessel, late[:5])

@@ -459,8 +459,11 @@ class AgentNode:
             self._tick_failed(error, inputs, stamp)
         # The command goes first: it is what the thrusters wait for (sensor to command), and building the share
         # costs more than the command. The status goes last: once the bridge has it, the share is on its way.
-        command = Cmd(stamp_ns=stamp, seq=self._next("cmd"), sender=self.id, surge=float(output.command.surge),
-                      yaw_rate=float(output.command.yaw_rate))
+        # The driver judges a command by its own clock: on the wall clock, stamped in it (the agent's time plus the
+        # correction its sensors' stamps need; the same time unless the driver's clock is off or this one stepped).
+        driver_stamp = stamp if clock is not None else nanoseconds(now + self.gate.offsets.applied)
+        command = Cmd(stamp_ns=driver_stamp, seq=self._next("cmd"), sender=self.id,
+                      surge=float(output.command.surge), yaw_rate=float(output.command.yaw_rate))
         wire = {"cmd": encode(command)}
         publishers["cmd"].put(wire["cmd"])
         self.reaction_cpu.add(time.thread_time() - tick_cpu)
