@@ -72,6 +72,13 @@ def test_the_alarm_is_raised_exactly_when_most_stamps_are_outside_the_window(see
             assert offsets.applied == 0.0
 
 
+def test_a_sensor_clock_hours_off_is_alarmed_but_not_corrected():
+    offsets = StampOffsets(max_age=1.0, max_future=0.5)
+    for _ in range(OFFSET_MIN):
+        offsets.observe(CLOCK_SOURCE_SENSORS, 2.0**62 * 1e-9)
+    assert offsets.alarms() == [(CLOCK_SOURCE_SENSORS, pytest.approx(2.0**62 * 1e-9))] and offsets.applied == 0.0
+
+
 def test_inconsistent_sensor_stamps_are_alarmed_but_never_corrected():
     """Stamps spread over seconds (a clock jumping about, or stamps forged at random) are not one clock that
     is off: no correction, so they are judged as they come."""

@@ -71,6 +71,7 @@ OFFSET_WINDOW = 64   # messages per source whose stamp offsets judge its clock (
 OFFSET_MIN = 16      # messages of a source before its clock is judged at all
 OFFSET_SPREAD = 0.1  # s: the largest median absolute deviation of a source's offsets for a correction
 OFFSET_SETTLE = 0.05  # s: a correction in force moves only when the median moved further than this
+MAX_CORRECTION = 3600.0  # s: a sensor clock further off than an hour is alarmed, never corrected: it is no clock
 
 
 class TokenBucket:
@@ -100,7 +101,9 @@ class StampOffsets:
     median is outside the window [-max_age, max_future]: most of its messages are refused for their stamp.
     For the own sensors, which come from one driver and one clock, `correction` then says how far to take
     their stamps back, once the offsets are also consistent (median absolute deviation within OFFSET_SPREAD):
-    the vessel then runs on its sensors mapped onto the agent's clock instead of standing still."""
+    the vessel then runs on its sensors mapped onto the agent's clock instead of standing still (up to
+    MAX_CORRECTION). This gives a spoofer of the sensor keys nothing it did not have: a forged message stamped
+    now is taken anyway; with TLS only the driver may publish them."""
 
     def __init__(self, max_age: float, max_future: float) -> None:
         self.max_age, self.max_future = max_age, max_future
@@ -129,7 +132,8 @@ class StampOffsets:
         else none; moved only by more than OFFSET_SETTLE, so that corrected stamps keep their order."""
         median = self.median(CLOCK_SOURCE_SENSORS)
         window = self._offsets[CLOCK_SOURCE_SENSORS]
-        if not self.outside(median) or float(np.median(np.abs(np.asarray(window) - median))) > OFFSET_SPREAD:
+        if (not self.outside(median) or abs(median) > MAX_CORRECTION
+                or float(np.median(np.abs(np.asarray(window) - median))) > OFFSET_SPREAD):
             self.applied = 0.0
         elif abs(median - self.applied) > OFFSET_SETTLE:
             self.applied = median
