@@ -22,6 +22,7 @@ from agent.shell.gate import OFFSET_MIN, OFFSET_WINDOW, InputGate, StampOffsets
 from agent.shell.wall_clock import SimulatedVesselClock, WallTimeline
 from mission_log.reader import read_log
 from mission_log.series import truth_of
+from sim_bridge.fleet import clock_verdict
 from sim_bridge.scenario import select_scenario
 from sim_bridge.world import VesselClock
 
@@ -276,3 +277,16 @@ def test_a_clock_stepping_back_2_s_is_detected_and_the_neighbours_stay_admitted(
                 for stamp, inputs in read_log(run / f"agent-{vessel}.mcap").messages(f"/{vessel}/inputs")
                 if stamp * 1e-9 - epoch > step_at + 1.0]
         assert len(late) > 25 and not [t for t, stale in late if stale], (vessel, late[:5])
+
+
+def test_the_launchers_verdict_names_the_vessel_whose_clock_is_off():
+    assert clock_verdict({}, {}) is None
+    # Vessel 1 runs 1 s ahead: the others see its shares 0.9 s ahead, it sees theirs 1.05 s behind.
+    seen = {"1": {"2": -1.05, "3": -1.06, "4": -1.04}, "2": {"1": 0.9}, "3": {"1": 0.91}, "4": {"1": 0.92}}
+    assert clock_verdict(seen, {}) == "the clocks disagree: vessel 1's clock 0.91 s ahead of that of vessels 2, 3, 4"
+    assert clock_verdict({"1": {"sensors": 1.02}}, {"1": 1}) == (
+        "the clocks disagree: vessel 1's clock stepped (1 step); vessel 1's sensor clock 1.02 s ahead of its agent's")
+    # Two vessels that see each other off: neither is the odd one out, both are named.
+    assert clock_verdict({"1": {"2": -2.0}, "2": {"1": 2.0}}, {}) == (
+        "the clocks disagree: vessel 1's clock 2.00 s ahead of that of vessel 2; "
+        "vessel 2's clock 2.00 s behind that of vessel 1")
