@@ -9,6 +9,7 @@ driver clock 1 s ahead, and one vessel's clock stepping back 2 s mid-mission.
 
 from __future__ import annotations
 
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -19,6 +20,8 @@ import yaml
 
 from agent.contract import CLOCK_SOURCE_SENSORS, Odometry, ShareMessage, encode
 from agent.shell.gate import OFFSET_MIN, OFFSET_WINDOW, InputGate, StampOffsets
+from agent.shell.node import AgentNode
+from agent.shell.settings import NodeSettings
 from agent.shell.wall_clock import SimulatedVesselClock, WallTimeline
 from mission_log.reader import read_log
 from mission_log.series import truth_of
@@ -218,15 +221,23 @@ def test_a_driver_clock_a_second_ahead_is_an_alarm_and_the_vessel_still_runs(tmp
     done, run = run_fleet(tmp_path, sea_scenario(tmp_path, driver_offsets_ms={"1": 1000.0}))
     assert done.returncode == 1, done.stderr[-3000:]
     verdict = [line for line in done.stderr.splitlines() if "the run fails" in line]
-    assert len(verdict) == 1 and "vessel 1's sensor clock 1.0" in verdict[0] and "ahead of" in verdict[0], verdict
+    said = re.fullmatch(r"usv-fleet: the run fails: the clocks disagree: vessel 1's sensor clock (\S+) s ahead of "
+                        r"its agent's", verdict[0]) if len(verdict) == 1 else None
+    # 1 s plus the driver's latency (10 +- 5 ms), less however late the message reached the agent (a loaded
+    # machine delays it): never more than 1.015 s.
+    assert said and 0.8 < float(said[1]) <= 1.02, verdict
     console = (run / "agent-1.log").read_text()
-    assert "sensor clock 1.0" in console and "ahead of this computer's" in console, console[-2000:]
-    assert "no bridge publishes" not in console
+    told = [float(x) for x in re.findall(r"sensor clock (\S+) s ahead of this computer's", console)]
+    assert told and all(0.5 < x <= 1.02 for x in told), console[-2000:]
+    # 'No bridge publishes' only if said before any sensor message came (the agent may be up seconds before
+    # the mission's epoch); once they come, refused or not, it is their clock that is told.
+    lines = console.splitlines()
+    blamed = [k for k, line in enumerate(lines) if "no bridge publishes" in line]
+    alarm = next(k for k, line in enumerate(lines) if "sensor clock" in line)
+    assert all(k < alarm for k in blamed), console[-2000:]
     told = statuses(run, "1")
     alarmed = [s for s in told if s["clocks"]]
     assert alarmed and all(s["clocks"][0]["source"] == "sensors" for s in alarmed)
-    # 1 s plus the driver's latency (10 +- 5 ms), less however late the message reached the agent (a loaded
-    # machine delays it): never more than 1.015 s, and most of the time close to 1 s.
     offsets = np.array([s["clocks"][0]["offset"] for s in alarmed])
     assert np.all((offsets > 0.5) & (offsets <= 1.015)) and abs(np.median(offsets) - 1.0) < 0.1, offsets
     # The vessel did not stand still: once the correction was in force it commanded motion, and its driver
@@ -246,10 +257,14 @@ def test_a_vessel_clock_a_second_ahead_fails_the_run_naming_it(tmp_path):
     done, run = run_fleet(tmp_path, sea_scenario(tmp_path, offsets_ms={"1": 1000.0, "2": 0.0, "3": 0.0, "4": 0.0}))
     assert done.returncode == 1, done.stderr[-3000:]
     verdict = [line for line in done.stderr.splitlines() if "the run fails" in line]
-    assert len(verdict) == 1 and "vessel 1's clock 0.9" in verdict[0], verdict
-    assert "ahead of that of vessels 2, 3, 4" in verdict[0], verdict
+    said = re.fullmatch(r"usv-fleet: the run fails: the clocks disagree: vessel 1's clock (\S+) s ahead of that of "
+                        r"vessels 2, 3, 4", verdict[0]) if len(verdict) == 1 else None
+    # 1 s less the age of a share when it arrives (its stamp is its sender's odometry, up to a tick old, and a
+    # loaded machine delays it).
+    assert said and 0.6 < float(said[1]) <= 1.02, verdict
     for vessel in ("2", "3", "4"):
-        assert "vessel 1's clock 0.9" in (run / f"agent-{vessel}.log").read_text()
+        told = re.findall(r"vessel 1's clock (\S+) s ahead of this computer's", (run / f"agent-{vessel}.log").read_text())
+        assert told and all(0.5 < float(x) <= 1.02 for x in told), (vessel, told)
         sources = {alarm["source"] for s in statuses(run, vessel) for alarm in s["clocks"]}
         assert sources == {"1"}
 
@@ -290,3 +305,14 @@ def test_the_launchers_verdict_names_the_vessel_whose_clock_is_off():
     assert clock_verdict({"1": {"2": -2.0}, "2": {"1": 2.0}}, {}) == (
         "the clocks disagree: vessel 1's clock 2.00 s ahead of that of vessel 2; "
         "vessel 2's clock 2.00 s behind that of vessel 1")
+
+
+def test_sensors_that_arrive_refused_are_not_blamed_on_a_missing_bridge(capsys):
+    """Before: a vessel whose every sensor message was refused for its stamp said 'no bridge publishes'."""
+    node = AgentNode("1", NodeSettings())
+    for k in range(OFFSET_MIN - 1):    # too few for a correction yet: every one refused as 'future'
+        node.gate.offer("usv/1/sensor/odom", odometry(T0 + 0.1 * k + 5.0, 0.0, k), T0 + 0.1 * k)
+    node._tell_if_no_sensors()
+    said = capsys.readouterr().err
+    assert "sensor messages arrive but none was taken" in said and "'future': 15" in said
+    assert "no bridge publishes" not in said

@@ -124,6 +124,10 @@ class StampOffsets:
         window = self._offsets.get(source)
         return float(np.median(window)) if window is not None and len(window) >= OFFSET_MIN else None
 
+    def heard(self, source: str) -> int:
+        """Messages of `source` in the window (at most OFFSET_WINDOW)."""
+        return len(self._offsets.get(source, ()))
+
     def outside(self, offset: float | None) -> bool:
         return offset is not None and not -self.max_age <= offset <= self.max_future
 

@@ -356,12 +356,13 @@ class AgentNode:
         that instead, with how far their clock runs from ours."""
         if any(self.gate.accepted[topic] for topic in OWN_TOPICS):
             return
-        offset = self.gate.offsets.median(CLOCK_SOURCE_SENSORS)
-        if offset is not None:
+        if self.gate.offsets.heard(CLOCK_SOURCE_SENSORS):
+            offset = self.gate.offsets.median(CLOCK_SOURCE_SENSORS)
+            why = "" if offset is None else f": {clock_alarm_words(CLOCK_SOURCE_SENSORS, offset)}"
             refused = {k: v for k, v in self.gate.rejected.items() if k in ("stale", "future")}
             print(f"usv-agent {self.id}: sensor messages arrive but none was taken in "
-                  f"{self.settings.no_sensor_warning:g} s: {clock_alarm_words(CLOCK_SOURCE_SENSORS, offset)} "
-                  f"(refused {refused}); commanding STOP until they are", file=sys.stderr)
+                  f"{self.settings.no_sensor_warning:g} s{why} (refused {refused}); commanding STOP until they are",
+                  file=sys.stderr)
             return
         clock = self._latest_clock()
         world = ""
