@@ -327,7 +327,7 @@ class WeakestPair(StrictModel):
     observability: Literal[VERDICTS]
 
 
-CLOCK_SOURCE_SENSORS = "sensors"   # ClockOffset.source of this vessel's own sensor stamps (its driver's clock)
+CLOCK_SOURCE_SENSORS = "sensors"   # ClockOffset.source of this vessel's sensor stamps (its driver's clock)
 
 
 class ClockOffset(StrictModel):
@@ -335,8 +335,8 @@ class ClockOffset(StrictModel):
     neighbour's shares) run consistently further from the agent's clock than its input window allows."""
 
     source: Annotated[str, Field(pattern=VESSEL_ID_PATTERN)] = Field(
-        description=f"'{CLOCK_SOURCE_SENSORS}' (this vessel's sensor stamps) or the id of the neighbour whose "
-                    "shares are stamped so")
+        description=f"'{CLOCK_SOURCE_SENSORS}' (this vessel's sensor stamps) or the id of the neighbour "
+                    "whose shares are stamped so")
     offset: Annotated[float, Field(ge=-1e9, le=1e9, allow_inf_nan=False)] = Field(
         description="its stamps minus the agent's clock at their arrival (s), the median over its recent "
                     "messages: > 0 ahead of the agent's clock, < 0 behind")
@@ -359,8 +359,8 @@ class Status(Header):
                                       description="the latest mission command judged from each sender")
     clocks: list[ClockOffset] = Field(
         default_factory=list, max_length=MAX_PEERS + 1,
-        description="the alarm of clocks that disagree: every source whose stamps run consistently outside the "
-                    "input window of the agent's clock (empty: none)")
+        description="the alarm of clocks that disagree: every source whose stamps run consistently outside "
+                    "the input window of the agent's clock (empty: none)")
 
 
 class Clock(StrictModel):

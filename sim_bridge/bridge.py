@@ -97,7 +97,7 @@ class SimBridge:
         if self.sea is not None and settings.mode != "realtime":
             raise ConfigError(f"scenario {scenario.name!r} runs in the sea mode, which needs the real-time mode "
                               "(bridge setting mode: realtime) and agents on the wall clock")
-        self.epoch_ns = settings.epoch_ns or 0   # wall time of sim time 0 in the sea mode (set as the run starts)
+        self.epoch_ns = settings.epoch_ns or 0   # wall time of sim time 0 in the sea mode (set at the start)
         self.alive: set[str] = set()
         self.commands: dict[str, Cmd] = {}
         self.statuses: dict[str, Status] = {}
@@ -174,8 +174,8 @@ class SimBridge:
         return time.monotonic() if self.sea is not None else self.world.time
 
     def _now_ns(self, message) -> int:
-        """The clock a message is judged by: sim time, or in the sea mode the wall clock as its vessel reads it
-        (a driver judges a command by its own clock: the vessel's, the agent's computer's, offset by the
+        """The clock a message is judged by: sim time, or in the sea mode the wall clock as its vessel reads
+        it (a driver judges a command by its own clock: the vessel's, the agent's computer's, offset by the
         driver's own if it has one; a vessel whose clock is off is judged by it, as aboard)."""
         now_ns = self.world.time_ns if self.sea is None else time.time_ns()
         if self.sea is not None and self.epoch_ns and message.sender in self.sea.clocks:
@@ -189,8 +189,8 @@ class SimBridge:
 
     def _stamp_in_bounds(self, message) -> bool:
         """A command stamped within `max_command_skew` of the bridge's clock (its sim time, or in the sea mode
-        the wall clock as the vessel reads it); a status not further ahead. An absurd stamp (2^62 from a corrupt
-        clock) would otherwise make a command look fresh forever, or hide every later one."""
+        the wall clock as the vessel reads it); a status not further ahead. An absurd stamp (2^62 from a
+        corrupt clock) would otherwise make a command look fresh forever, or hide every later one."""
         now_ns = self._now_ns(message)
         skew = self.settings.max_command_skew * 1e9
         ahead = message.stamp_ns - now_ns > skew

@@ -44,7 +44,17 @@ import yaml
 import zenoh
 
 from agent.config import ConfigError
-from agent.contract import CLOCK_KEY, CLOCK_SOURCE_SENSORS, LIVELINESS, Clock, Status, decode, every, key, seconds
+from agent.contract import (
+    CLOCK_KEY,
+    CLOCK_SOURCE_SENSORS,
+    LIVELINESS,
+    Clock,
+    Status,
+    decode,
+    every,
+    key,
+    seconds,
+)
 from agent.runtime.mcap_log import read_messages
 from agent.runtime.zenoh_session import ZenohSettings, zenoh_config
 from mission_log.metrics import truth_metrics
@@ -152,8 +162,8 @@ class Fleet:
         self.hard_killed: list[str] = []          # children that needed SIGKILL after SIGTERM
         self._logs: list = []
         self._sim_time = -math.inf
-        self.clock_alarms: dict[str, dict[str, float]] = {}   # vessel -> {source: offset (s)}, its latest alarm
-        self.clock_steps: dict[str, int] = {}                  # vessel -> steps of its clock its agent detected
+        self.clock_alarms: dict[str, dict[str, float]] = {}   # vessel -> its latest alarm, {source: offset s}
+        self.clock_steps: dict[str, int] = {}                  # vessel -> steps of its clock its agent saw
 
     def _write_settings(self, bridge_port: int) -> None:
         """bridge.yaml and each agent-<id>.yaml, for a sim bridge listening on `bridge_port`.
@@ -359,8 +369,9 @@ class Fleet:
                   f"again on port {self.bridge_port}", file=sys.stderr)
 
     def _on_status(self, sample) -> None:
-        """Note a clock alarm or a clock step an agent's status reports (from Zenoh's thread: quick, so a status
-        that reports neither, as the agent encodes it, is not decoded: lockstep sends thousands a second)."""
+        """Note a clock alarm or a clock step an agent's status reports (from Zenoh's thread: quick, so a
+        status that reports neither, as the agent encodes it, is not decoded: lockstep sends thousands a
+        second)."""
         payload = sample.payload.to_bytes()
         if payload.endswith(b'"clocks":[]}') and b'"clock_steps":0,' in payload:
             return
@@ -499,8 +510,8 @@ def clock_verdict(alarms: dict[str, dict[str, float]], steps: dict[str, int]) ->
     for vessel, sources in sorted(alarms.items()):
         if CLOCK_SOURCE_SENSORS in sources:
             offset = sources[CLOCK_SOURCE_SENSORS]
-            parts.append(f"vessel {vessel}'s sensor clock {abs(offset):.2f} s {'ahead of' if offset > 0 else 'behind'} "
-                         "its agent's")
+            way = "ahead of" if offset > 0 else "behind"
+            parts.append(f"vessel {vessel}'s sensor clock {abs(offset):.2f} s {way} its agent's")
     seen_by: dict[str, dict[str, float]] = {}
     for reporter, sources in alarms.items():
         for source, offset in sources.items():
@@ -510,7 +521,8 @@ def clock_verdict(alarms: dict[str, dict[str, float]], steps: dict[str, int]) ->
         if any(len(seen_by.get(reporter, {})) > len(reporters) for reporter in reporters):
             continue   # it sees them off because they see it off, and more see them: they are the odd one out
         offset = float(sorted(reporters.values())[len(reporters) // 2])
-        parts.append(f"vessel {source}'s clock {abs(offset):.2f} s {'ahead of' if offset > 0 else 'behind'} that of "
+        way = "ahead of" if offset > 0 else "behind"
+        parts.append(f"vessel {source}'s clock {abs(offset):.2f} s {way} that of "
                      f"vessel{'s' * (len(reporters) > 1)} {', '.join(sorted(reporters))}")
     return f"the clocks disagree: {'; '.join(parts)}" if parts else None
 

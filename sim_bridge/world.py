@@ -94,11 +94,13 @@ class SeaConfig(StrictModel):
     offsets_ms: dict[str, FiniteFloat] = Field(default_factory=dict, description="vessel id -> offset, not drawn")
     drifts_ppm: dict[str, FiniteFloat] = Field(default_factory=dict, description="vessel id -> drift, not drawn")
     steps: dict[str, list[tuple[NonNegativeFloat, FiniteFloat]]] = Field(
-        default_factory=dict, description="vessel id -> [(sim time s, step ms)]: its clock steps by that much then "
-                                          "(an NTP step, an operator's date -s), for its driver and agent alike")
+        default_factory=dict,
+        description="vessel id -> [(sim time s, step ms)]: its clock steps by that much then (an NTP step, "
+                    "an operator's date -s), for its driver and agent alike")
     driver_offsets_ms: dict[str, FiniteFloat] = Field(
-        default_factory=dict, description="vessel id -> how far its driver's clock runs from its computer's (ms): "
-                                          "a driver on a computer of its own; its sensors are stamped in that clock")
+        default_factory=dict,
+        description="vessel id -> how far its driver's clock runs from its computer's (ms): a driver on a "
+                    "computer of its own; its sensors are stamped in that clock")
     odometry: SensorTiming = Field(SensorTiming(), description="odometry (with the sonar, which rides along)")
     uwb: SensorTiming = SensorTiming()
     camera: SensorTiming = SensorTiming()
@@ -492,7 +494,8 @@ class SeaSensors:
             drift = rng.uniform(-1.0, 1.0) * sea.drift_ppm
             self.clocks[spec.id] = VesselClock(sea.offsets_ms.get(spec.id, offset) * 1e-3,
                                                sea.drifts_ppm.get(spec.id, drift) * 1e-6,
-                                               tuple((at, step * 1e-3) for at, step in sea.steps.get(spec.id, [])))
+                                               tuple((at, step * 1e-3) for at, step in
+                                                     sea.steps.get(spec.id, [])))
             for sensor in SEA_SENSORS:
                 timing = self.timing(sensor)
                 drawn = rng.uniform(0.0, 1.0) * self.period_ns(sensor)
@@ -504,11 +507,12 @@ class SeaSensors:
 
     def stamp_ns(self, vessel: str, t: float, epoch_ns: int = 0, driver: bool = True) -> int:
         """The stamp `vessel`'s driver (`driver`; else its computer) takes at true time t (s from the run's
-        epoch): its vessel's clock, plus the driver's own offset if it has one. The clocks count from the epoch
-        the agents were given, `lag` s before the run's (a run that started late): so a step comes at the same
-        moment for the driver and the agent."""
+        epoch): its vessel's clock, plus the driver's own offset if it has one. The clocks count from the
+        epoch the agents were given, `lag` s before the run's (a run that started late): so a step comes at
+        the same moment for the driver and the agent."""
         offset = self.sea.driver_offsets_ms.get(vessel, 0.0) * 1e-3 if driver else 0.0
-        return self.clocks[vessel].stamp_ns(t + self.lag, epoch_ns) - nanoseconds(self.lag) + nanoseconds(offset)
+        clock = self.clocks[vessel]
+        return clock.stamp_ns(t + self.lag, epoch_ns) - nanoseconds(self.lag) + nanoseconds(offset)
 
     def period_ns(self, sensor: str) -> int:
         period_ms = self.timing(sensor).period_ms

@@ -16,7 +16,7 @@ from agent.core.state import VesselState
 
 # Paired ranges a pair's target route needs before it is judged (`prior_from_target`): with ten, a route whose
 # distance misses the ranges' median by more than 4 sqrt(range_variance / 10) (1.9 m with Table II's 2.32 m^2)
-# is refused; one range alone lets 6 m through, and a restarted neighbour's target estimate is off by that much.
+# is refused; one range alone lets 6 m through, and a restarted neighbour's target estimate is that far off.
 ROUTE_RANGES = 10
 
 

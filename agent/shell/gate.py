@@ -67,11 +67,11 @@ from agent.core.records import Share, TickInputs
 OWN_TOPICS = ("sensor/odom", "sensor/uwb", "sensor/bearing", "sensor/sonar")
 DETAIL_CHARS = 200   # of a refusal's detail kept in `recent_reasons` (a key or a reason may be long)
 MAX_RANGE_SETS = 32  # UWB range sets kept between two ticks (a module ranging at up to 300 Hz), the oldest dropped
-OFFSET_WINDOW = 64   # messages per source whose stamp offsets judge its clock (1.6 s of own sensors, 6 s of shares)
+OFFSET_WINDOW = 64   # messages judging a source's clock (1.6 s of own sensors, 6 s of a neighbour's shares)
 OFFSET_MIN = 16      # messages of a source before its clock is judged at all
 OFFSET_SPREAD = 0.1  # s: the largest median absolute deviation of a source's offsets for a correction
 OFFSET_SETTLE = 0.05  # s: a correction in force moves only when the median moved further than this
-MAX_CORRECTION = 3600.0  # s: a sensor clock further off than an hour is alarmed, never corrected: it is no clock
+MAX_CORRECTION = 3600.0  # s: a sensor clock more than an hour off is alarmed, never corrected: it is no clock
 
 
 class TokenBucket:
@@ -143,7 +143,7 @@ class StampOffsets:
             self.applied = median
 
     def shift(self, source: str, delta: float) -> None:
-        """The clock of `source` stepped by `delta` against the agent's: what was measured of it moves along."""
+        """The clock of `source` stepped by `delta` against the agent's: what was measured of it moves too."""
         window = self._offsets.get(source)
         if window is not None:
             self._offsets[source] = deque((offset + delta for offset in window), maxlen=OFFSET_WINDOW)
@@ -286,7 +286,8 @@ class InputGate:
         correction in force: `StampOffsets`), else as it came."""
         own = topic in OWN_TOPICS
         with self._lock:
-            self.offsets.observe(CLOCK_SOURCE_SENSORS if own else message.sender, seconds(message.stamp_ns) - now)
+            source = CLOCK_SOURCE_SENSORS if own else message.sender
+            self.offsets.observe(source, seconds(message.stamp_ns) - now)
             correction = self.offsets.applied if own else 0.0
             if correction:
                 self.offsets.corrected += 1

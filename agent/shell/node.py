@@ -104,8 +104,8 @@ class AgentNode:
         self.clock = SimClock(settings.agent.dt, settings.max_clock_jump, settings.clock_confirm,
                               settings.clock_timeout)
         vessel_clock = settings.vessel_clock
-        self.timeline = WallTimeline(time.time if vessel_clock is None else lambda: vessel_clock.read(time.time_ns()),
-                                     on_step=self._clock_stepped)
+        system = time.time if vessel_clock is None else lambda: vessel_clock.read(time.time_ns())
+        self.timeline = WallTimeline(system, on_step=self._clock_stepped)
         self._clocks_told: dict[str, float] = {}   # source -> the offset last told on stderr
         self.orders = MissionOrders(vessel_id, settings.max_input_age, settings.max_input_future, self.gate.count)
         self.ticks = 0
@@ -173,9 +173,9 @@ class AgentNode:
         (this computer's clock) are taken back by the step, and the operator is told."""
         self.gate.clock_stepped(delta)
         print(f"usv-agent {self.id}: this computer's clock stepped {'back' if delta < 0 else 'forward'} "
-              f"{abs(delta):.3f} s (against the monotonic clock; {self.timeline.steps} steps so far): the agent keeps "
-              f"its time continuous with the fleet's and takes its sensors' stamps {abs(delta):.3f} s "
-              f"{'forward' if delta < 0 else 'back'}", file=sys.stderr)
+              f"{abs(delta):.3f} s (against the monotonic clock; {self.timeline.steps} steps so far): the "
+              f"agent keeps its time continuous with the fleet's and takes its sensors' stamps "
+              f"{abs(delta):.3f} s {'forward' if delta < 0 else 'back'}", file=sys.stderr)
 
     def _clock_alarms(self) -> list[ClockOffset]:
         """The clocks that disagree with the agent's, for the status; each told on stderr once (again when it
@@ -189,8 +189,9 @@ class AgentNode:
                 print(f"usv-agent {self.id}: {clock_alarm_words(source, offset)}", file=sys.stderr)
         for source in [s for s in self._clocks_told if s not in now]:
             del self._clocks_told[source]
-            print(f"usv-agent {self.id}: the {'sensor' if source == CLOCK_SOURCE_SENSORS else f'vessel {source}'} "
-                  "clock agrees with this computer's again", file=sys.stderr)
+            whose = "sensor" if source == CLOCK_SOURCE_SENSORS else f"vessel {source}"
+            print(f"usv-agent {self.id}: the {whose} clock agrees with this computer's again",
+                  file=sys.stderr)
         return alarms
 
     def _latest_clock(self) -> Clock | None:
@@ -361,8 +362,8 @@ class AgentNode:
             why = "" if offset is None else f": {clock_alarm_words(CLOCK_SOURCE_SENSORS, offset)}"
             refused = {k: v for k, v in self.gate.rejected.items() if k in ("stale", "future")}
             print(f"usv-agent {self.id}: sensor messages arrive but none was taken in "
-                  f"{self.settings.no_sensor_warning:g} s{why} (refused {refused}); commanding STOP until they are",
-                  file=sys.stderr)
+                  f"{self.settings.no_sensor_warning:g} s{why} (refused {refused}); commanding STOP until "
+                  "they are", file=sys.stderr)
             return
         clock = self._latest_clock()
         world = ""
@@ -460,8 +461,9 @@ class AgentNode:
             self._tick_failed(error, inputs, stamp)
         # The command goes first: it is what the thrusters wait for (sensor to command), and building the share
         # costs more than the command. The status goes last: once the bridge has it, the share is on its way.
-        # The driver judges a command by its own clock: on the wall clock, stamped in it (the agent's time plus the
-        # correction its sensors' stamps need; the same time unless the driver's clock is off or this one stepped).
+        # The driver judges a command by its own clock: on the wall clock, stamped in it (the agent's time
+        # plus the correction its sensors' stamps need; the same unless the driver's clock is off or this
+        # one stepped).
         driver_stamp = stamp if clock is not None else nanoseconds(now + self.gate.offsets.applied)
         command = Cmd(stamp_ns=driver_stamp, seq=self._next("cmd"), sender=self.id,
                       surge=float(output.command.surge), yaw_rate=float(output.command.yaw_rate))
@@ -596,8 +598,9 @@ def clock_alarm_words(source: str, offset: float) -> str:
     """One line on a clock that disagrees with the agent's: 'sensor clock 1.02 s ahead of this computer's'."""
     way = "ahead of" if offset > 0 else "behind"
     if source == CLOCK_SOURCE_SENSORS:
-        return (f"sensor clock {abs(offset):.2f} s {way} this computer's: beyond the input window, so the sensors' "
-                f"stamps are taken {abs(offset):.2f} s {'back' if offset > 0 else 'forward'} once consistent")
+        back = "back" if offset > 0 else "forward"
+        return (f"sensor clock {abs(offset):.2f} s {way} this computer's: beyond the input window, so the "
+                f"sensors' stamps are taken {abs(offset):.2f} s {back} once consistent")
     return (f"vessel {source}'s clock {abs(offset):.2f} s {way} this computer's: its shares are refused as "
             f"{'future' if offset > 0 else 'stale'}")
 

@@ -7,12 +7,13 @@ every share it sends 2 s stale to the others and every share it receives 2 s in 
 cut off from its neighbours. So `WallTimeline` reads the system clock against the monotonic clock: it follows
 every change of less than `max_step`, and holds its timeline across a larger one, counting the step and saying
 how far the system clock now runs from it (`stepped`). The driver on the same computer stamps the sensors
-with the stepped clock: the input gate's correction takes their stamps back by as much (`InputGate.clock_stepped`).
+with the stepped clock: the input gate's correction takes their stamps back by as much
+(`InputGate.clock_stepped`).
 When the system clock comes back within `max_step` of the timeline, the timeline follows it again.
 
 `SimulatedVesselClock` is the sim's sea mode's model of one vessel's clock (`sim_bridge/world.py`
-`VesselClock`, with which the sim bridge stamps that vessel's sensors): on a boat the driver and the agent read
-the same computer's clock, so in the sea mode the agent reads its vessel's clock, not the host's.
+`VesselClock`, with which the sim bridge stamps that vessel's sensors): on a boat the driver and the agent
+read the same computer's clock, so in the sea mode the agent reads its vessel's clock, not the host's.
 """
 
 from __future__ import annotations
@@ -51,8 +52,9 @@ class WallTimeline:
     """The agent's wall-clock time (s since 1970): `system`, held continuous across a step of it;
     `on_step(delta)` is called (on the reading thread) when a step of `delta` s is detected."""
 
-    def __init__(self, system: Callable[[], float] = time.time, monotonic: Callable[[], float] = time.monotonic,
-                 max_step: float = MAX_STEP, on_step: Callable[[float], None] | None = None) -> None:
+    def __init__(self, system: Callable[[], float] = time.time,
+                 monotonic: Callable[[], float] = time.monotonic, max_step: float = MAX_STEP,
+                 on_step: Callable[[float], None] | None = None) -> None:
         self._system, self._monotonic, self.max_step, self._on_step = system, monotonic, max_step, on_step
         self._lock = threading.Lock()   # read from the tick thread and Zenoh's: a step is counted once
         self.anchor = system() - monotonic()   # timeline - monotonic
