@@ -327,6 +327,21 @@ class WeakestPair(StrictModel):
     observability: Literal[VERDICTS]
 
 
+CLOCK_SOURCE_SENSORS = "sensors"   # ClockOffset.source of this vessel's sensor stamps (its driver's clock)
+
+
+class ClockOffset(StrictModel):
+    """A clock that disagrees with the agent's: the stamps of one source (this vessel's sensors, or one
+    neighbour's shares) run consistently further from the agent's clock than its input window allows."""
+
+    source: Annotated[str, Field(pattern=VESSEL_ID_PATTERN)] = Field(
+        description=f"'{CLOCK_SOURCE_SENSORS}' (this vessel's sensor stamps) or the id of the neighbour "
+                    "whose shares are stamped so")
+    offset: Annotated[float, Field(ge=-1e9, le=1e9, allow_inf_nan=False)] = Field(
+        description="its stamps minus the agent's clock at their arrival (s), the median over its recent "
+                    "messages: > 0 ahead of the agent's clock, < 0 behind")
+
+
 class Status(Header):
     phase: Finite
     command: tuple[Finite, Finite]
@@ -342,6 +357,10 @@ class Status(Header):
         None, description="r*: the radius of the circle this vessel steers to now (m)")
     mission: list[MissionAck] = Field(default_factory=list, max_length=8,
                                       description="the latest mission command judged from each sender")
+    clocks: list[ClockOffset] = Field(
+        default_factory=list, max_length=MAX_PEERS + 1,
+        description="the alarm of clocks that disagree: every source whose stamps run consistently outside "
+                    "the input window of the agent's clock (empty: none)")
 
 
 class Clock(StrictModel):

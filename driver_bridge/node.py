@@ -44,7 +44,7 @@ import zenoh
 from pydantic import Field
 
 from agent.config import PositiveFloat, StrictModel
-from agent.contract import LIVELINESS, Bearing, Cmd, Ranges, decode, encode, key, nanoseconds
+from agent.contract import LIVELINESS, Bearing, Cmd, Ranges, decode, encode, key
 from agent.runtime.process import stop_on_signals, vessel_process
 from agent.runtime.zenoh_session import ZenohSettings, zenoh_config
 from driver_bridge.bearing import BearingAdapter, CameraSettings, read_detection

@@ -97,7 +97,7 @@ class SimBridge:
         if self.sea is not None and settings.mode != "realtime":
             raise ConfigError(f"scenario {scenario.name!r} runs in the sea mode, which needs the real-time mode "
                               "(bridge setting mode: realtime) and agents on the wall clock")
-        self.epoch_ns = 0                  # wall time of sim time 0 in the sea mode (set as the run starts)
+        self.epoch_ns = settings.epoch_ns or 0   # wall time of sim time 0 in the sea mode (set at the start)
         self.alive: set[str] = set()
         self.commands: dict[str, Cmd] = {}
         self.statuses: dict[str, Status] = {}
@@ -154,7 +154,9 @@ class SimBridge:
                 self.refused_stamps += 1
                 return None
             previous = latest.get(vessel)
-            if previous is None or message.stamp_ns >= previous.stamp_ns:
+            # A latest one the vessel's clock has left behind (it stepped back past it) no longer holds newer
+            # messages off: each is judged against the clock's window, as the agents' gate judges its marks.
+            if previous is None or message.stamp_ns >= previous.stamp_ns or self._ahead(previous):
                 latest[vessel] = message
                 if model is Cmd:
                     self.arrivals[vessel] = arrived
@@ -173,11 +175,25 @@ class SimBridge:
         monotonic wall clock."""
         return time.monotonic() if self.sea is not None else self.world.time
 
+    def _now_ns(self, message) -> int:
+        """The clock a message is judged by: sim time, or in the sea mode the wall clock as its vessel reads
+        it (a driver judges a command by its own clock: the vessel's, the agent's computer's, offset by the
+        driver's own if it has one; a vessel whose clock is off is judged by it, as aboard)."""
+        now_ns = self.world.time_ns if self.sea is None else time.time_ns()
+        if self.sea is not None and self.epoch_ns and message.sender in self.sea.clocks:
+            t = (now_ns - self.epoch_ns) * 1e-9
+            now_ns = self.sea.stamp_ns(message.sender, t, self.epoch_ns, driver=isinstance(message, Cmd))
+        return now_ns
+
+    def _ahead(self, message) -> bool:
+        """Stamped further than `max_command_skew` ahead of the clock it is judged by (`_now_ns`)."""
+        return message.stamp_ns - self._now_ns(message) > self.settings.max_command_skew * 1e9
+
     def _stamp_in_bounds(self, message) -> bool:
-        """A command stamped within `max_command_skew` of the bridge's clock (its sim time, or the wall clock in
-        the sea mode, which the agents stamp with); a status not further ahead. An absurd stamp (2^62 from a
+        """A command stamped within `max_command_skew` of the bridge's clock (its sim time, or in the sea mode
+        the wall clock as the vessel reads it); a status not further ahead. An absurd stamp (2^62 from a
         corrupt clock) would otherwise make a command look fresh forever, or hide every later one."""
-        now_ns = time.time_ns() if self.sea is not None else self.world.time_ns
+        now_ns = self._now_ns(message)
         skew = self.settings.max_command_skew * 1e9
         ahead = message.stamp_ns - now_ns > skew
         return not ahead and (not isinstance(message, Cmd) or now_ns - message.stamp_ns <= skew)
@@ -292,6 +308,8 @@ class SimBridge:
                   "now instead", file=sys.stderr)
             wanted = None
         self.epoch_ns = now_ns if wanted is None else wanted
+        if self.settings.epoch_ns is not None:   # the agents' clocks count from the epoch they were given
+            self.sea.lag = (self.epoch_ns - self.settings.epoch_ns) * 1e-9
         start = now + (self.epoch_ns - now_ns) * 1e-9
         self.stopping.wait(max(0.0, start - time.monotonic()))
         return start

@@ -59,7 +59,17 @@ import yaml
 import zenoh
 
 from agent.config import ConfigError, read_yaml
-from agent.contract import CLOCK_KEY, LIVELINESS, Clock, decode, key, seconds
+from agent.contract import (
+    CLOCK_KEY,
+    CLOCK_SOURCE_SENSORS,
+    LIVELINESS,
+    Clock,
+    Status,
+    decode,
+    every,
+    key,
+    seconds,
+)
 from agent.runtime.mcap_log import part_path, read_messages
 from agent.runtime.process import guard_stderr
 from agent.runtime.zenoh_session import ZenohSettings, zenoh_config
@@ -174,6 +184,8 @@ class Fleet:
         self.logs_lost: list[str] = []            # processes whose MCAP log said it was suspended
         self._disk_told = False
         self._sim_time = -math.inf
+        self.clock_alarms: dict[str, dict[str, float]] = {}   # vessel -> its latest alarm, {source: offset s}
+        self.clock_steps: dict[str, int] = {}                  # vessel -> steps of its clock its agent saw
 
     def _write_settings(self, bridge_port: int) -> None:
         """bridge.yaml and each agent-<id>.yaml, for a sim bridge listening on `bridge_port`.
@@ -191,12 +203,7 @@ class Fleet:
         if sea is not None:
             epoch_ns = time.time_ns() + int(SEA_LEAD * 1e9)
             bridge.update(mode="realtime", epoch_ns=epoch_ns)
-            clocks = SeaSensors(self.scenario.world, streams(
-                self.scenario.seed if self.seed is None else self.seed).sea).clocks
-            for vessel, settings in configs.items():
-                settings["clock"] = "wall"
-                if settings["initial"]:
-                    settings["initial"]["stamp"] = clocks[vessel].stamp_ns(sea.hold_ms * 1e-3 / 2, epoch_ns) * 1e-9
+            at_sea(self.scenario, self.seed, epoch_ns, configs)
         (self.folder / "bridge.yaml").write_text(yaml.safe_dump(bridge))
         for vessel, settings in configs.items():
             (self.folder / f"agent-{vessel}.yaml").write_text(yaml.safe_dump(settings))
@@ -388,6 +395,7 @@ class Fleet:
             session = zenoh.open(zenoh_config(ZenohSettings(connect=[f"tcp/127.0.0.1:{self.bridge_port}"])))
             try:
                 session.declare_subscriber(CLOCK_KEY, on_clock)
+                session.declare_subscriber(every("status"), self._on_status)
                 if self._wait_for_bridge(session, deadline):
                     return session
             except BaseException:
@@ -409,6 +417,26 @@ class Fleet:
             attempt += 1
             print(f"usv-fleet: port {taken} was taken before the sim bridge could listen on it; starting it "
                   f"again on port {self.bridge_port}", file=sys.stderr)
+
+    def _on_status(self, sample) -> None:
+        """Note a clock alarm or a clock step an agent's status reports (from Zenoh's thread: quick, so a
+        status that reports neither, as the agent encodes it, is not decoded: lockstep sends thousands a
+        second)."""
+        payload = sample.payload.to_bytes()
+        if payload.endswith(b'"clocks":[]}') and b'"clock_steps":0,' in payload:
+            return
+        message, _ = decode(Status, payload)
+        if message is None:
+            return
+        if message.clocks:
+            self.clock_alarms[message.sender] = {alarm.source: alarm.offset for alarm in message.clocks}
+        steps = message.health.get("clock_steps", 0)
+        if steps:
+            self.clock_steps[message.sender] = max(steps, self.clock_steps.get(message.sender, 0))
+
+    def clocks_verdict(self) -> str | None:
+        """One line on the clocks that disagreed during the run (`clock_verdict`); None if none did."""
+        return clock_verdict(dict(self.clock_alarms), dict(self.clock_steps))
 
     def _wait_for_port(self, deadline: float) -> None:
         """Until the bridge's port takes a TCP connection, or the bridge has exited (its caller finds out)."""
@@ -527,6 +555,39 @@ class Fleet:
         self.write_file("memory.json", json.dumps(peaks, indent=2))
 
 
+class ClocksDisagree(RuntimeError):
+    """The mission ran, but a vessel's clocks disagreed: an agent raised the alarm in its status."""
+
+
+def clock_verdict(alarms: dict[str, dict[str, float]], steps: dict[str, int]) -> str | None:
+    """What the agents' clock alarms say, in one line naming each vessel and offset; None without any.
+
+    `alarms`: reporting vessel -> {source: offset s} (source: its own sensors, or a neighbour whose shares it
+    sees so far off); `steps`: vessel -> steps of its computer's clock its agent detected. Of two vessels that
+    see each other's clock off, the one more vessels report is named (the odd one out); a tie names both."""
+    parts = []
+    for vessel in sorted(steps):
+        parts.append(f"vessel {vessel}'s clock stepped ({steps[vessel]} step{'s' * (steps[vessel] > 1)})")
+    for vessel, sources in sorted(alarms.items()):
+        if CLOCK_SOURCE_SENSORS in sources:
+            offset = sources[CLOCK_SOURCE_SENSORS]
+            way = "ahead of" if offset > 0 else "behind"
+            parts.append(f"vessel {vessel}'s sensor clock {abs(offset):.2f} s {way} its agent's")
+    seen_by: dict[str, dict[str, float]] = {}
+    for reporter, sources in alarms.items():
+        for source, offset in sources.items():
+            if source != CLOCK_SOURCE_SENSORS:
+                seen_by.setdefault(source, {})[reporter] = offset
+    for source, reporters in sorted(seen_by.items()):
+        if any(len(seen_by.get(reporter, {})) > len(reporters) for reporter in reporters):
+            continue   # it sees them off because they see it off, and more see them: they are the odd one out
+        offset = float(sorted(reporters.values())[len(reporters) // 2])
+        way = "ahead of" if offset > 0 else "behind"
+        parts.append(f"vessel {source}'s clock {abs(offset):.2f} s {way} that of "
+                     f"vessel{'s' * (len(reporters) > 1)} {', '.join(sorted(reporters))}")
+    return f"the clocks disagree: {'; '.join(parts)}" if parts else None
+
+
 def _peak_resident_mb(pid: int) -> float | None:
     """Peak resident memory of a live process (Linux /proc VmHWM), in MB; None where unavailable."""
     try:
@@ -549,6 +610,9 @@ def launch(scenario_path: Path, variant: str | None, out: Path, seed: int | None
         analyse_cut_short(fleet, str(error))
         raise
     analyse(folder, fleet.planned_ticks)
+    verdict = fleet.clocks_verdict()
+    if verdict is not None:
+        raise ClocksDisagree(f"{folder}: {verdict}")
     return folder
 
 
@@ -563,6 +627,22 @@ def agent_configs(scenario, seed: int | None, folder: Path, zenoh) -> dict[str, 
     return {v.id: {"clock": "sim", "zenoh": zenoh(v.id), "log": str(folder / f"agent-{v.id}.mcap"),
                    "id_check": SIM_ID_CHECK, "agent": agent_params, "initial": starts.get(v.id, {})}
             for v in scenario.world.vessels}
+
+
+def at_sea(scenario, seed: int | None, epoch_ns: int, configs: dict[str, dict]) -> None:
+    """Turn `agent_configs` into a sea-mode run's, in place: each agent on the wall clock read through its
+    vessel's clock (`vessel_clock`: offset, drift and steps, the clock the sim bridge stamps its sensors with:
+    aboard, the agent and the driver share the computer's clock), and its deployment estimates stamped in
+    that clock in the middle of the hold at the start, when every vessel is still."""
+    sea = scenario.world.sea
+    clocks = SeaSensors(scenario.world, streams(scenario.seed if seed is None else seed).sea).clocks
+    for vessel, settings in configs.items():
+        clock = clocks[vessel]
+        settings["clock"] = "wall"
+        settings["vessel_clock"] = {"epoch_ns": epoch_ns, "offset": clock.offset, "drift": clock.drift,
+                                    "steps": [list(step) for step in clock.steps]}
+        if settings["initial"]:
+            settings["initial"]["stamp"] = clock.stamp_ns(sea.hold_ms * 1e-3 / 2, epoch_ns) * 1e-9
 
 
 def initial_settings(scenario, seed: int | None) -> dict[str, dict]:
@@ -733,6 +813,7 @@ def main(argv: list[str] | None = None) -> int:
         fleet.unwritten.append(f"the summary: the logs could not be analysed ({type(error).__name__}: "
                                f"{' '.join(str(error).split())[:300]})")
     print(summary_text)
+    verdict = fleet.clocks_verdict()
     summary = fleet.bridge_summary() or {}
     if summary.get("loop_seconds"):
         simulated = summary["ticks"] * fleet.scenario.world.dt
@@ -740,7 +821,11 @@ def main(argv: list[str] | None = None) -> int:
               f"{simulated / summary['loop_seconds']:.1f}x real time ({simulated / launched:.1f}x with the start-up "
               f"and shut-down of the processes, {launched:.1f} s)", file=sys.stderr)
     print(f"usv-fleet: run folder {fleet.folder} ({time.monotonic() - started:.1f} s)", file=sys.stderr)
-    if _say_losses(fleet):
+    lost = _say_losses(fleet)
+    if verdict is not None:
+        print(f"usv-fleet: the run fails: {verdict}", file=sys.stderr)
+        return 1
+    if lost:
         print(f"usv-fleet: the mission ran to its end but logs were lost (exit {LOGS_LOST})", file=sys.stderr)
         return LOGS_LOST
     return 0

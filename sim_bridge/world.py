@@ -93,6 +93,14 @@ class SeaConfig(StrictModel):
         0.0, description="each vessel's clock drift is drawn uniform in [-drift_ppm, drift_ppm]")
     offsets_ms: dict[str, FiniteFloat] = Field(default_factory=dict, description="vessel id -> offset, not drawn")
     drifts_ppm: dict[str, FiniteFloat] = Field(default_factory=dict, description="vessel id -> drift, not drawn")
+    steps: dict[str, list[tuple[NonNegativeFloat, FiniteFloat]]] = Field(
+        default_factory=dict,
+        description="vessel id -> [(sim time s, step ms)]: its clock steps by that much then (an NTP step, "
+                    "an operator's date -s), for its driver and agent alike")
+    driver_offsets_ms: dict[str, FiniteFloat] = Field(
+        default_factory=dict,
+        description="vessel id -> how far its driver's clock runs from its computer's (ms): a driver on a "
+                    "computer of its own; its sensors are stamped in that clock")
     odometry: SensorTiming = Field(SensorTiming(), description="odometry (with the sonar, which rides along)")
     uwb: SensorTiming = SensorTiming()
     camera: SensorTiming = SensorTiming()
@@ -145,7 +153,8 @@ class WorldConfig(StrictModel):
         if repeated:
             raise ValueError(f"vessel ids must be unique, repeated: {repeated}")
         if self.sea is not None:
-            unknown = sorted((set(self.sea.offsets_ms) | set(self.sea.drifts_ppm)) - set(ids))
+            unknown = sorted((set(self.sea.offsets_ms) | set(self.sea.drifts_ppm) | set(self.sea.steps)
+                              | set(self.sea.driver_offsets_ms)) - set(ids))
             if unknown:
                 raise ValueError(f"sea: clocks of unknown vessels {unknown}")
             steps = self.dt / (self.sea.step_ms * 1e-3)
@@ -389,13 +398,15 @@ SEA_SENSORS = ("odometry", "uwb", "camera")
 @dataclass(frozen=True)
 class VesselClock:
     """One vessel's own clock: c(t) = t + offset + drift * t (s from the run's epoch) at true time t (s of sim
-    time). A driver's stamp is epoch_ns + c(t) in whole nanoseconds."""
+    time), plus every step taken by t. A driver's stamp is epoch_ns + c(t) in whole nanoseconds. The agent of
+    the vessel reads the same clock (agent/shell/wall_clock.py `SimulatedVesselClock`)."""
 
     offset: float   # s
     drift: float    # s per s (1 ppm = 1e-6)
+    steps: tuple[tuple[float, float], ...] = ()   # (true time s, step s)
 
     def read(self, t: float) -> float:
-        return t + self.offset + self.drift * t
+        return t + self.offset + self.drift * t + sum(step for at, step in self.steps if at <= t)
 
     def stamp_ns(self, t: float, epoch_ns: int = 0) -> int:
         return epoch_ns + nanoseconds(self.read(t))
@@ -476,12 +487,15 @@ class SeaSensors:
         self._boundary = _boundary(config, self._islands)
         self._bearing_noise = IsotropicGaussianNoise(variance=config.bearing_variance)
         self.clocks: dict[str, VesselClock] = {}
+        self.lag = 0.0   # s from the epoch the vessels' clocks count from to the run's (`stamp_ns`)
         self.phases_ns: dict[tuple[str, str], int] = {}
         for spec in config.vessels:
             offset = rng.uniform(-1.0, 1.0) * sea.offset_ms
             drift = rng.uniform(-1.0, 1.0) * sea.drift_ppm
             self.clocks[spec.id] = VesselClock(sea.offsets_ms.get(spec.id, offset) * 1e-3,
-                                               sea.drifts_ppm.get(spec.id, drift) * 1e-6)
+                                               sea.drifts_ppm.get(spec.id, drift) * 1e-6,
+                                               tuple((at, step * 1e-3) for at, step in
+                                                     sea.steps.get(spec.id, [])))
             for sensor in SEA_SENSORS:
                 timing = self.timing(sensor)
                 drawn = rng.uniform(0.0, 1.0) * self.period_ns(sensor)
@@ -490,6 +504,15 @@ class SeaSensors:
 
     def timing(self, sensor: str) -> SensorTiming:
         return getattr(self.sea, sensor)
+
+    def stamp_ns(self, vessel: str, t: float, epoch_ns: int = 0, driver: bool = True) -> int:
+        """The stamp `vessel`'s driver (`driver`; else its computer) takes at true time t (s from the run's
+        epoch): its vessel's clock, plus the driver's own offset if it has one. The clocks count from the
+        epoch the agents were given, `lag` s before the run's (a run that started late): so a step comes at
+        the same moment for the driver and the agent."""
+        offset = self.sea.driver_offsets_ms.get(vessel, 0.0) * 1e-3 if driver else 0.0
+        clock = self.clocks[vessel]
+        return clock.stamp_ns(t + self.lag, epoch_ns) - nanoseconds(self.lag) + nanoseconds(offset)
 
     def period_ns(self, sensor: str) -> int:
         period_ms = self.timing(sensor).period_ms
@@ -507,7 +530,6 @@ class SeaSensors:
         span = after.time_ns - before.time_ns
         found = []
         for vessel in live:
-            clock = self.clocks[vessel]
             for sensor in SEA_SENSORS:
                 timing = self.timing(sensor)
                 for t_ns in self.times_ns(vessel, sensor, before.time_ns, after.time_ns):
@@ -531,7 +553,8 @@ class SeaSensors:
                         bearing, _ = _bearing(here, _lerp(before.target, after.target, w), noise, self._islands)
                         values = {"bearing": bearing}
                     stamped = t + latency if self.sea.stamps == "arrival" else t
-                    found.append(Measurement(vessel, sensor, t, t + latency, clock.stamp_ns(stamped), values))
+                    found.append(Measurement(vessel, sensor, t, t + latency, self.stamp_ns(vessel, stamped),
+                                             values))
         return found
 
 

@@ -29,7 +29,7 @@ from conftest import bridge_counts, wait_until
 
 from agent.core.build import InitialEstimates, initial_state
 from agent.core.control.formation import desired_offset, neighbour_gain
-from agent.core.membership import prior_from_target, receive_shares, store_ranges
+from agent.core.membership import ROUTE_RANGES, prior_from_target, receive_shares, store_ranges
 from agent.core.params import AgentParams
 from agent.core.records import OdometryReading, Share
 from mission_log.reader import read_log
@@ -93,6 +93,23 @@ def test_a_target_estimate_the_ranges_contradict_does_not_start_a_pair():
     params, state = _vessel_two((-6.0, 0.0), ONE, ticks=20)
     assert prior_from_target(params, state, state.tracks["1"]) is None
     assert state.health.priors_refused == 1
+
+
+@pytest.mark.parametrize("error", [(-6.0, 0.0), (5.9, -1.1), (-3.0, 2.0)])
+def test_a_target_route_waits_for_ranges_to_judge_it(error):
+    """A vessel heard again after its restart shares at once the estimate of its new target filter, which
+    believes it long before it is right (5.9 m off with a position trace of 0.3 m^2, measured). A pair started
+    from it on its first share, before any range could judge it, was localised at once on both sides, 7 m
+    wrong, and never corrected: the restarted vessel came back to a circle of 1-2 m. Now the route waits
+    for ROUTE_RANGES paired ranges and is refused then; a true one starts the pair then."""
+    for ticks in range(1, ROUTE_RANGES):
+        params, state = _vessel_two(error, ONE, ticks=ticks)
+        assert prior_from_target(params, state, state.tracks["1"]) is None, f"started after {ticks} ticks"
+        assert state.health.priors_refused == 0          # waiting, not refused
+    params, state = _vessel_two(error, ONE, ticks=ROUTE_RANGES)
+    assert prior_from_target(params, state, state.tracks["1"]) is None and state.health.priors_refused == 1
+    params, state = _vessel_two((0.0, 0.0), ONE, ticks=ROUTE_RANGES)
+    assert prior_from_target(params, state, state.tracks["1"]) is not None
 
 
 def test_every_neighbours_ranges_judge_our_target_estimate():

@@ -24,7 +24,7 @@ from agent.config import ConfigError
 from agent.core.records import Command
 from mission_log.reader import read_log
 from sim_bridge.bridge import BridgeSettings, SimBridge
-from sim_bridge.fleet import AGENT_LISTEN, agent_configs, free_port
+from sim_bridge.fleet import AGENT_LISTEN, agent_configs, at_sea, free_port
 from sim_bridge.scenario import Scenario, select_scenario
 from sim_bridge.world import Frame, SeaSensors, VesselClock, World, WorldConfig, sea_steps, sea_world, streams
 
@@ -211,9 +211,9 @@ def test_a_world_without_sea_is_the_world_it_was_before():
 
 def start_sea_fleet(scenario_path: Path, variant: str | None, folder: Path, duration: float | None = None,
                     seed: int | None = None, lead: float = 6.0) -> tuple[subprocess.Popen, dict, int]:
-    """What `usv-fleet run` does not do yet: the sim bridge in real time with an epoch `lead` s ahead, and one
-    agent per vessel on the wall clock, whose deployment estimates are stamped in its own clock at the middle
-    of the hold (when every vessel is still). Returns (bridge, {vessel: agent}, epoch_ns)."""
+    """What `usv-fleet run` does for a sea scenario, with the duration and lead chosen: the sim bridge in real
+    time with an epoch `lead` s ahead, and one agent per vessel on the wall clock read through its vessel's
+    clock (`at_sea`). Returns (bridge, {vessel: agent}, epoch_ns)."""
     name, scenario = select_scenario(scenario_path, variant)
     if duration is not None:
         data = scenario.model_dump(mode="json")
@@ -227,21 +227,18 @@ def start_sea_fleet(scenario_path: Path, variant: str | None, folder: Path, dura
     (folder / "bridge.yaml").write_text(yaml.safe_dump({
         "mode": "realtime", "epoch_ns": epoch_ns, "zenoh": {"listen": [f"tcp/127.0.0.1:{port}"]},
         "log": str(folder / "sim.mcap")}))
-    clocks = SeaSensors(scenario.world, streams(scenario.seed if seed is None else seed).sea).clocks
-    middle = scenario.world.sea.hold_ms * 1e-3 / 2
     agents = {}
-    for vessel, settings in agent_configs(scenario, seed, folder, lambda v: {
-            "listen": [AGENT_LISTEN], "connect": [f"tcp/127.0.0.1:{port}"]}).items():
-        settings["clock"] = "wall"
-        if settings["initial"]:
-            settings["initial"]["stamp"] = clocks[vessel].stamp_ns(middle, epoch_ns) * 1e-9
+    configs = agent_configs(scenario, seed, folder, lambda v: {
+        "listen": [AGENT_LISTEN], "connect": [f"tcp/127.0.0.1:{port}"]})
+    at_sea(scenario, seed, epoch_ns, configs)
+    for vessel, settings in configs.items():
         (folder / f"agent-{vessel}.yaml").write_text(yaml.safe_dump(settings))
     command = [sys.executable, "-m", "sim_bridge", "--scenario", str(scenario_path), "--config",
                str(folder / "bridge.yaml")]
     command += ["--variant", variant] if variant else []
     command += ["--seed", str(seed)] if seed is not None else []
     bridge = subprocess.Popen(command, stdout=(folder / "bridge.log").open("w"), stderr=subprocess.STDOUT)
-    for vessel in clocks:
+    for vessel in configs:
         agents[vessel] = subprocess.Popen(
             [sys.executable, "-m", "agent", "--vessel", vessel, "--config", str(folder / f"agent-{vessel}.yaml")],
             stdout=(folder / f"agent-{vessel}.log").open("w"), stderr=subprocess.STDOUT)

@@ -14,6 +14,11 @@ from agent.core.params import AgentParams
 from agent.core.records import Share
 from agent.core.state import VesselState
 
+# Paired ranges a pair's target route needs before it is judged (`prior_from_target`): with ten, a route whose
+# distance misses the ranges' median by more than 4 sqrt(range_variance / 10) (1.9 m with Table II's 2.32 m^2)
+# is refused; one range alone lets 6 m through, and a restarted neighbour's target estimate is that far off.
+ROUTE_RANGES = 10
+
 
 def receive_shares(params: AgentParams, state: VesselState, shares: Mapping[str, Share], now: float) -> None:
     """Keep each valid share in its neighbour's track; a share from a new id starts a track (a join)."""
@@ -122,16 +127,22 @@ def prior_from_target(params: AgentParams, state: VesselState, track: NeighbourT
     The target route waits until the trace of the two position covariances together is at most
     `fleet.target_route_factor` * P_io,0: a poor prior stays, because the range pairs barely observe some
     directions while the fleet holds formation (docs/fleet.md §7, the join). It also waits while our target
-    estimate disagrees with the ranges (`_target_agrees_with_ranges`; counted in `priors_refused`). After
-    `history_ticks` of waiting it takes the range instead."""
+    estimate disagrees with the ranges (`_target_agrees_with_ranges`; counted in `priors_refused`), and until
+    a range can judge it at all: a neighbour heard again after a restart shares at once a target estimate that
+    its own new filter believes long before it is right, and a pair started from it before any range is kept
+    (the track's histories begin with its first share) was localised at once, 7 m wrong on both sides of the
+    pair, and never corrected (the ranges then look like outliers to it). After `history_ticks` of waiting it
+    takes the range instead."""
     share = track.share
     stamp = share.odometry.stamp
     route = _route(state, track)
     if route is not None:
         if np.trace(route.covariance) <= params.fleet.target_route_factor * params.target.initial_covariance:
-            if _target_agrees_with_ranges(params, state, track, route):
+            agrees = _target_agrees_with_ranges(params, state, track, route)
+            if agrees:
                 return route
-            state.health.priors_refused += 1
+            if agrees is False:
+                state.health.priors_refused += 1
         if stamp - track.first_heard < params.fleet.history_ticks * params.dt:
             return None
     spread = params.relative.initial_covariance
@@ -157,7 +168,7 @@ def _route(state: VesselState, track: NeighbourTrack) -> NeighbourPrior | None:
 
 
 def _target_agrees_with_ranges(params: AgentParams, state: VesselState, track: NeighbourTrack,
-                               route: NeighbourPrior) -> bool:
+                               route: NeighbourPrior) -> bool | None:
     """Whether the target route of `track` agrees with the ranges kept to its neighbour, and our target
     estimate, placed among the shared one of the neighbour whose line of sight lies closest to our bearing,
     with the ranges to that one (`_agrees_with_ranges_kept`).
@@ -169,9 +180,11 @@ def _target_agrees_with_ranges(params: AgentParams, state: VesselState, track: N
     restart tests such pairs steered vessels to within 1.6 m of each other. That error lies along our
     bearing, and ranges see an error along their line of sight: the pair's own may not see it, the
     neighbour's closest to our bearing does. (One neighbour, not all: asking all of them for each pair
-    waiting to start costs a 50-vessel joiner a third of a second a tick.)"""
-    if not _agrees_with_ranges_kept(params, state, track, route):
-        return False
+    waiting to start costs a 50-vessel joiner a third of a second a tick.) None while no range of the pair's
+    own can judge the route yet."""
+    own = _agrees_with_ranges_kept(params, state, track, route, least=ROUTE_RANGES)
+    if not own:
+        return own
     bearing = state.tracker.state[:2]
     across, alignment = None, -1.0
     for other in state.tracks.values():
@@ -181,18 +194,18 @@ def _target_agrees_with_ranges(params: AgentParams, state: VesselState, track: N
             aligned = abs(float(other_route.position @ bearing)) / norm if norm > 0.0 else 0.0
             if aligned > alignment:
                 across, alignment = (other, other_route), aligned
-    return across is None or _agrees_with_ranges_kept(params, state, *across)
+    return across is None or _agrees_with_ranges_kept(params, state, *across) is not False
 
 
 def _agrees_with_ranges_kept(params: AgentParams, state: VesselState, track: NeighbourTrack,
-                             prior: NeighbourPrior) -> bool:
+                             prior: NeighbourPrior, least: int = 1) -> bool | None:
     """Whether `prior`, carried to the time of each range kept by both vessels' odometry, agrees with those
     ranges: the median of measured minus predicted |p_ij| within four standard deviations of a median of n
     ranges (range_variance / n; some 0.9 m with a full history). The prior's own covariance is left out: it
-    is what is in doubt. True when no range can be paired with both odometries yet."""
+    is what is in doubt. None while fewer than `least` ranges can be paired with both odometries."""
     mine_then, theirs_then, why = track.positions_at(state.own, stamp_key(prior.stamp))
     if why:
-        return True
+        return None
     position = np.asarray(prior.position, dtype=float)
     misses = []
     for key, measured in track.ranges.items():
@@ -201,6 +214,6 @@ def _agrees_with_ranges_kept(params: AgentParams, state: VesselState, track: Nei
             # (the histories keep (x, y) floats; as arrays here, where these sums run once per prior tried)
             carried = position + np.subtract(mine, mine_then) - np.subtract(theirs, theirs_then)
             misses.append(measured - float(np.hypot(*carried)))
-    if not misses:
-        return True
+    if len(misses) < least or not misses:
+        return None
     return float(median(misses)) ** 2 <= 16.0 * params.relative.range_variance / len(misses)

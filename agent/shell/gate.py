@@ -46,6 +46,7 @@ from collections.abc import Callable
 import numpy as np
 
 from agent.contract import (
+    CLOCK_SOURCE_SENSORS,
     MAX_PEERS,
     MAX_SPEED,
     TOPICS,
@@ -55,6 +56,7 @@ from agent.contract import (
     ReceivedShare,
     Sonar,
     decode,
+    nanoseconds,
     odometry_reading,
     seconds,
     share_from_message,
@@ -65,6 +67,11 @@ from agent.core.records import Share, TickInputs
 OWN_TOPICS = ("sensor/odom", "sensor/uwb", "sensor/bearing", "sensor/sonar")
 DETAIL_CHARS = 200   # of a refusal's detail kept in `recent_reasons` (a key or a reason may be long)
 MAX_RANGE_SETS = 32  # UWB range sets kept between two ticks (a module ranging at up to 300 Hz), the oldest dropped
+OFFSET_WINDOW = 64   # messages judging a source's clock (1.6 s of own sensors, 6 s of a neighbour's shares)
+OFFSET_MIN = 16      # messages of a source before its clock is judged at all
+OFFSET_SPREAD = 0.1  # s: the largest median absolute deviation of a source's offsets for a correction
+OFFSET_SETTLE = 0.05  # s: a correction in force moves only when the median moved further than this
+MAX_CORRECTION = 3600.0  # s: a sensor clock more than an hour off is alarmed, never corrected: it is no clock
 
 
 class TokenBucket:
@@ -82,6 +89,78 @@ class TokenBucket:
             self.tokens -= 1.0
             return True
         return False
+
+
+class StampOffsets:
+    """How far each source's stamps run from the agent's clock: the offsets stamp - now of its last
+    OFFSET_WINDOW messages judged by their stamp, accepted or refused (a source is this vessel's sensors,
+    `CLOCK_SOURCE_SENSORS`, or one neighbour's shares). The median is robust: a few late, early or forged
+    stamps do not move it, and it follows a clock that changes within half a window.
+
+    A source's clock disagrees with the agent's (`alarms`) when at least OFFSET_MIN offsets are in and their
+    median is outside the window [-max_age, max_future]: most of its messages are refused for their stamp.
+    For the own sensors, which come from one driver and one clock, `correction` then says how far to take
+    their stamps back, once the offsets are also consistent (median absolute deviation within OFFSET_SPREAD):
+    the vessel then runs on its sensors mapped onto the agent's clock instead of standing still (up to
+    MAX_CORRECTION). This gives a spoofer of the sensor keys nothing it did not have: a forged message stamped
+    now is taken anyway; with TLS only the driver may publish them."""
+
+    def __init__(self, max_age: float, max_future: float) -> None:
+        self.max_age, self.max_future = max_age, max_future
+        self._offsets: dict[str, deque[float]] = {}
+        self.applied = 0.0     # s: the correction in force on the own sensors' stamps
+        self.corrected = 0     # own sensor messages whose stamp was corrected
+
+    def observe(self, source: str, offset: float) -> None:
+        window = self._offsets.get(source)
+        if window is None:
+            window = self._offsets[source] = deque(maxlen=OFFSET_WINDOW)
+        window.append(offset)
+        if source == CLOCK_SOURCE_SENSORS:
+            self._settle()
+
+    def median(self, source: str) -> float | None:
+        """The median offset of `source` once OFFSET_MIN offsets are in, else None."""
+        window = self._offsets.get(source)
+        return float(np.median(window)) if window is not None and len(window) >= OFFSET_MIN else None
+
+    def heard(self, source: str) -> int:
+        """Messages of `source` in the window (at most OFFSET_WINDOW)."""
+        return len(self._offsets.get(source, ()))
+
+    def outside(self, offset: float | None) -> bool:
+        return offset is not None and not -self.max_age <= offset <= self.max_future
+
+    def _settle(self) -> None:
+        """The own sensors' correction: their median offset while it is outside the window and consistent,
+        else none; moved only by more than OFFSET_SETTLE, so that corrected stamps keep their order."""
+        median = self.median(CLOCK_SOURCE_SENSORS)
+        window = self._offsets[CLOCK_SOURCE_SENSORS]
+        if (not self.outside(median) or abs(median) > MAX_CORRECTION
+                or float(np.median(np.abs(np.asarray(window) - median))) > OFFSET_SPREAD):
+            self.applied = 0.0
+        elif abs(median - self.applied) > OFFSET_SETTLE:
+            self.applied = median
+
+    def shift(self, source: str, delta: float) -> None:
+        """The clock of `source` stepped by `delta` against the agent's: what was measured of it moves too."""
+        window = self._offsets.get(source)
+        if window is not None:
+            self._offsets[source] = deque((offset + delta for offset in window), maxlen=OFFSET_WINDOW)
+            if source == CLOCK_SOURCE_SENSORS:
+                self._settle()
+
+    def forget(self, source: str) -> None:
+        self._offsets.pop(source, None)
+
+    def clear(self) -> None:
+        self._offsets.clear()
+        self.applied = 0.0
+
+    def alarms(self) -> list[tuple[str, float]]:
+        """(source, median offset) of every source whose clock disagrees with the agent's, sensors first."""
+        found = [(source, median) for source in self._offsets if self.outside(median := self.median(source))]
+        return sorted(found, key=lambda item: (item[0] != CLOCK_SOURCE_SENSORS, item[0]))
 
 
 class InputGate:
@@ -114,6 +193,7 @@ class InputGate:
         self._bearing_used: int | None = None   # stamp_ns of the bearing message the last tick used
         self._range_sets: deque[Ranges] = deque(maxlen=MAX_RANGE_SETS)   # UWB messages since the last tick
         self._used_odometry = None            # the OdometryReading the last snapshot gave the tick
+        self.offsets = StampOffsets(max_age, max_future)   # how far each source's clock runs from ours
 
     # ----- the callback side -----
     def offer(self, key: str, payload: bytes | bytearray | memoryview, now: float | None) -> bool:
@@ -156,6 +236,8 @@ class InputGate:
                 return self._refuse("malformed", f"{key}: {reason}")
         if message.sender != vessel:
             return self._refuse("sender_mismatch", f"{key}: sender {message.sender!r}")
+        if now is not None:
+            message = self._on_clock_of(topic, message, now)
         stamp = seconds(message.stamp_ns)
         if now is not None and stamp < now - self.max_age:
             return self._refuse("stale", f"{key}: {now - stamp:.3f} s old")
@@ -197,6 +279,33 @@ class InputGate:
                 self._arrival.notify_all()
             self.accepted[topic] += 1
         return True
+
+    def _on_clock_of(self, topic: str, message, now: float):
+        """Measure the offset of the message's stamp from `now` for its source; an own sensor message comes
+        back with its stamp corrected while the sensors' clock is consistently outside the window (the
+        correction in force: `StampOffsets`), else as it came."""
+        own = topic in OWN_TOPICS
+        with self._lock:
+            source = CLOCK_SOURCE_SENSORS if own else message.sender
+            self.offsets.observe(source, seconds(message.stamp_ns) - now)
+            correction = self.offsets.applied if own else 0.0
+            if correction:
+                self.offsets.corrected += 1
+        if not correction:
+            return message
+        return message.model_copy(update={"stamp_ns": message.stamp_ns - nanoseconds(correction)})
+
+    def clock_stepped(self, delta: float) -> None:
+        """This computer's clock stepped by `delta` s against the agent's timeline (which holds on across the
+        step, `WallTimeline`): the own sensors, stamped by a driver on this computer's clock, step with it, so
+        their correction does at once; the neighbours' clocks did not step."""
+        with self._lock:
+            self.offsets.shift(CLOCK_SOURCE_SENSORS, delta)
+
+    def clock_alarms(self) -> list[tuple[str, float]]:
+        """Every source whose clock disagrees with the agent's: (source, median offset s), sensors first."""
+        with self._lock:
+            return self.offsets.alarms()
 
     def _plausible(self, reading, now: float) -> bool:
         """Own odometry the tick may use: not older than the one the last tick used, and no faster than
@@ -261,6 +370,7 @@ class InputGate:
                 del self._last_stamp[mark]
             self._buckets.pop(f"usv/{vessel}/share", None)
             self._senders.discard(vessel)
+            self.offsets.forget(vessel)
 
     def reset(self, now_ns: int) -> None:
         """The simulation restarted and its clock is now at `now_ns`: every freshness mark goes, and so does
@@ -270,6 +380,7 @@ class InputGate:
         low, high = now_ns - int(self.max_age * 1e9), now_ns + int(self.max_future * 1e9)
         with self._arrival:
             self._last_stamp.clear()
+            self.offsets.clear()
             self._held = {k: share for k, share in self._held.items() if low <= k[1] <= high}
             self._held_count = Counter(sender for sender, _ in self._held)
             self._shares.clear()

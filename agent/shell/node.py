@@ -39,11 +39,13 @@ import zenoh
 
 from agent.contract import (
     CLOCK_KEY,
+    CLOCK_SOURCE_SENSORS,
     FLEET_PREFIX,
     LIVELINESS,
     MAX_PEERS,
     MISSION_PREFIX,
     Clock,
+    ClockOffset,
     Cmd,
     Status,
     WeakestPair,
@@ -71,6 +73,7 @@ from agent.shell.mission import MissionOrders
 from agent.shell.reaction import ReactionTimes
 from agent.shell.settings import NodeSettings
 from agent.shell.tick_log import TickLogger, log_topic
+from agent.shell.wall_clock import WallTimeline
 
 HEARTBEAT = 0.1        # s between heartbeat statuses while there is no clock
 ERROR_REPEAT = 10.0    # s: a kind of tick error already told is told again at most this often
@@ -100,6 +103,10 @@ class AgentNode:
                               max_rate=settings.max_input_rate)
         self.clock = SimClock(settings.agent.dt, settings.max_clock_jump, settings.clock_confirm,
                               settings.clock_timeout)
+        vessel_clock = settings.vessel_clock
+        system = time.time if vessel_clock is None else lambda: vessel_clock.read(time.time_ns())
+        self.timeline = WallTimeline(system, on_step=self._clock_stepped)
+        self._clocks_told: dict[str, float] = {}   # source -> the offset last told on stderr
         self.orders = MissionOrders(vessel_id, settings.max_input_age, settings.max_input_future, self.gate.count)
         self.ticks = 0
         self.overruns = 0
@@ -150,7 +157,7 @@ class AgentNode:
         if self.settings.clock == "sim":
             latest = self.clock.latest
             return 0.0 if latest is None else seconds(latest.stamp_ns)
-        return time.time()
+        return self.timeline.read()
 
     def _input_time(self) -> float | None:
         """The time to judge an input's stamp by; None on sim time while there is no clock to judge by: before
@@ -160,7 +167,33 @@ class AgentNode:
             if self.clock.silent():
                 return None
             return seconds(self.clock.latest.stamp_ns)
-        return time.time()
+        return self.timeline.read()
+
+    def _clock_stepped(self, delta: float) -> None:
+        """This computer's clock stepped (`WallTimeline`): the agent's time holds on, the own sensors' stamps
+        (this computer's clock) are taken back by the step, and the operator is told."""
+        self.gate.clock_stepped(delta)
+        print(f"usv-agent {self.id}: this computer's clock stepped {'back' if delta < 0 else 'forward'} "
+              f"{abs(delta):.3f} s (against the monotonic clock; {self.timeline.steps} steps so far): the "
+              f"agent keeps its time continuous with the fleet's and takes its sensors' stamps "
+              f"{abs(delta):.3f} s {'forward' if delta < 0 else 'back'}", file=sys.stderr)
+
+    def _clock_alarms(self) -> list[ClockOffset]:
+        """The clocks that disagree with the agent's, for the status; each told on stderr once (again when it
+        moves by more than a tenth of a second, or is over)."""
+        alarms = [ClockOffset(source=source, offset=offset) for source, offset in self.gate.clock_alarms()]
+        now = {alarm.source: alarm.offset for alarm in alarms}
+        for source, offset in now.items():
+            told = self._clocks_told.get(source)
+            if told is None or abs(told - offset) > 0.1:
+                self._clocks_told[source] = offset
+                print(f"usv-agent {self.id}: {clock_alarm_words(source, offset)}", file=sys.stderr)
+        for source in [s for s in self._clocks_told if s not in now]:
+            del self._clocks_told[source]
+            whose = "sensor" if source == CLOCK_SOURCE_SENSORS else f"vessel {source}"
+            print(f"usv-agent {self.id}: the {whose} clock agrees with this computer's again",
+                  file=sys.stderr)
+        return alarms
 
     def _latest_clock(self) -> Clock | None:
         return self.clock.latest
@@ -321,8 +354,17 @@ class AgentNode:
 
     def _tell_if_no_sensors(self) -> None:
         """One line on stderr if no own sensor message has come since start-up (a vessel id no bridge
-        publishes for commands STOP for ever otherwise, silently)."""
+        publishes for commands STOP for ever otherwise, silently); if they come but their stamps are refused,
+        that instead, with how far their clock runs from ours."""
         if any(self.gate.accepted[topic] for topic in OWN_TOPICS):
+            return
+        if self.gate.offsets.heard(CLOCK_SOURCE_SENSORS):
+            offset = self.gate.offsets.median(CLOCK_SOURCE_SENSORS)
+            why = "" if offset is None else f": {clock_alarm_words(CLOCK_SOURCE_SENSORS, offset)}"
+            refused = {k: v for k, v in self.gate.rejected.items() if k in ("stale", "future")}
+            print(f"usv-agent {self.id}: sensor messages arrive but none was taken in "
+                  f"{self.settings.no_sensor_warning:g} s{why} (refused {refused}); commanding STOP until "
+                  "they are", file=sys.stderr)
             return
         clock = self._latest_clock()
         world = ""
@@ -420,8 +462,12 @@ class AgentNode:
             self._tick_failed(error, inputs, stamp)
         # The command goes first: it is what the thrusters wait for (sensor to command), and building the share
         # costs more than the command. The status goes last: once the bridge has it, the share is on its way.
-        command = Cmd(stamp_ns=stamp, seq=self._next("cmd"), sender=self.id, surge=float(output.command.surge),
-                      yaw_rate=float(output.command.yaw_rate))
+        # The driver judges a command by its own clock: on the wall clock, stamped in it (the agent's time
+        # plus the correction its sensors' stamps need; the same unless the driver's clock is off or this
+        # one stepped).
+        driver_stamp = stamp if clock is not None else nanoseconds(now + self.gate.offsets.applied)
+        command = Cmd(stamp_ns=driver_stamp, seq=self._next("cmd"), sender=self.id,
+                      surge=float(output.command.surge), yaw_rate=float(output.command.yaw_rate))
         wire = {"cmd": encode(command)}
         publishers["cmd"].put(wire["cmd"])
         self.reaction_cpu.add(time.thread_time() - tick_cpu)
@@ -484,7 +530,8 @@ class AgentNode:
 
     def _operator_view(self) -> dict:
         """What every status says for the operator: a hold in force, the circle steered to, the answers."""
-        return {"held": self.orders.held, "radius": self.params.control.radius, "mission": self.orders.acks()}
+        return {"held": self.orders.held, "radius": self.params.control.radius, "mission": self.orders.acks(),
+                "clocks": self._clock_alarms()}
 
     def _check_command(self, command: Command) -> None:
         """CommandOutOfLimits unless the command is finite and within U_v and U_omega_c + omega* (formation.py's
@@ -543,13 +590,26 @@ class AgentNode:
                       sim_restarts=self.sim_restarts, shares_unsent=self.shares_unsent,
                       # 1 while the log is suspended (its disk full): the messages it drops are counted here.
                       log_suspended=int(log is not None and log.suspended),
-                      log_dropped=log.dropped if log is not None else 0)
+                      log_dropped=log.dropped if log is not None else 0,
+                      clock_steps=self.timeline.steps, clock_stepped_ms=round(self.timeline.stepped * 1e3),
+                      clock_corrected=self.gate.offsets.corrected)
         return health
 
     def _next(self, stream: str) -> int:
         value = self._seq[stream]
         self._seq[stream] += 1
         return value
+
+
+def clock_alarm_words(source: str, offset: float) -> str:
+    """One line on a clock that disagrees with the agent's: 'sensor clock 1.02 s ahead of this computer's'."""
+    way = "ahead of" if offset > 0 else "behind"
+    if source == CLOCK_SOURCE_SENSORS:
+        back = "back" if offset > 0 else "forward"
+        return (f"sensor clock {abs(offset):.2f} s {way} this computer's: beyond the input window, so the "
+                f"sensors' stamps are taken {abs(offset):.2f} s {back} once consistent")
+    return (f"vessel {source}'s clock {abs(offset):.2f} s {way} this computer's: its shares are refused as "
+            f"{'future' if offset > 0 else 'stale'}")
 
 
 def weakest_pair(record) -> WeakestPair | None:

@@ -11,6 +11,7 @@ from agent.core.build import InitialEstimates
 from agent.core.params import AgentParams
 from agent.runtime.mcap_log import LogRotation
 from agent.runtime.zenoh_session import ZenohSettings
+from agent.shell.wall_clock import SimulatedVesselClock
 
 
 class NodeSettings(StrictModel):
@@ -49,5 +50,9 @@ class NodeSettings(StrictModel):
     snapshot_every: int = Field(
         50, ge=0, description="log the core's state every this many ticks (0: never), so that `usv-log replay "
                               "--start` can begin mid-mission; one costs about 8 kB compressed with 3 neighbours")
+    vessel_clock: SimulatedVesselClock | None = Field(
+        None, description="the sim's sea mode only: read the system clock through this vessel's "
+                          "simulated clock, the one the sim bridge stamps its sensors with (on a boat the "
+                          "agent and the driver share the computer's clock); null: the system clock")
     initial: InitialEstimates = InitialEstimates()
     agent: AgentParams = AgentParams()
