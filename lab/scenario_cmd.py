@@ -29,9 +29,9 @@ from lab.report import invocation, markdown_table
 from lab.runner import RunTrace
 from lab.runner import run as run_scenario
 from mission_log.metrics import RunMetrics, nan_mean
-from sim_bridge.scenario import Scenario, ScenarioFile, load_scenarios
+from sim_bridge.scenario import SCENARIOS_DIR, Scenario, ScenarioFile, load_scenarios, scenario_file, scenario_files
 
-DEFAULT_DIR = Path("configs/scenarios")
+DEFAULT_DIR = SCENARIOS_DIR
 ERRORS = ("e_ij", "e_io", "e_c")            # the per-tick errors kept from every run, in this order
 TIMING_KEYS = ("tick_ms", "p99_tick_ms")   # summary entries that depend on the machine, not the seed
 
@@ -55,31 +55,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 # Which files
 # ----------------------------------------------------------------------------------------------------------
 
-def known_files(directory: Path) -> list[Path]:
-    return sorted(directory.glob("*.yaml"))
-
-
 def resolve(names: Sequence[str], directory: Path) -> list[Path]:
     """The scenario files `names` stand for, in order, without repeats; ConfigError lists what exists."""
     paths: list[Path] = []
     for name in names:
         if name == "all":
-            found = known_files(directory)
+            found = scenario_files(directory)
             if not found:
                 raise ConfigError(f"no scenario files (*.yaml) in {directory}")
             paths += found
             continue
-        path = Path(name)
-        if path.is_file():
-            paths.append(path)
-            continue
-        candidate = directory / f"{name}.yaml"
-        if candidate.is_file():
-            paths.append(candidate)
-            continue
-        known = ", ".join(p.stem for p in known_files(directory)) or "none"
-        raise ConfigError(f"unknown scenario {name!r}: no such file and no {candidate}; "
-                          f"known in {directory}: {known} (or 'all')")
+        try:
+            paths.append(scenario_file(name, directory))
+        except ConfigError as error:
+            raise ConfigError(f"{error} (or 'all')") from None
     unique: dict[str, Path] = {}
     for path in paths:
         other = unique.setdefault(path.stem, path)

@@ -50,6 +50,7 @@ import signal
 import socket
 import subprocess
 import sys
+import tempfile
 import time
 import warnings
 from datetime import datetime, timezone
@@ -77,7 +78,7 @@ from mission_log.metrics import circle_words, truth_metrics
 from mission_log.plots import plot_run
 from mission_log.reader import LogError, load_run
 from sim_bridge.console import TAIL_BYTES, Console
-from sim_bridge.scenario import initial_estimates, select_scenario
+from sim_bridge.scenario import default_variant, initial_estimates, scenario_file, select_scenario, with_duration
 from sim_bridge.world import SeaSensors, World, streams
 
 SEA_LEAD = 10.0   # s from writing the settings to sim time 0 of a sea-mode run: time for every process to start
@@ -344,6 +345,9 @@ class Fleet:
                 restarting = dict(restarts or {})
                 print(f"usv-fleet: the sim bridge and {sum(v.join_time == 0 for v in pending.values())} agents "
                       f"starting; run folder {self.folder}", file=sys.stderr)
+                print(f"usv-fleet: watch and command the fleet from another terminal: usv-op --connect "
+                      f"tcp/127.0.0.1:{self.bridge_port} status (or hold, resume, set radius=R, view)",
+                      file=sys.stderr)
                 while self.bridge.poll() is None:
                     self._check_interrupted()
                     if time.monotonic() > deadline:
@@ -760,8 +764,12 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="usv-fleet", description="Run a simulated fleet as separate processes.")
     commands = parser.add_subparsers(dest="command", required=True)
     run = commands.add_parser("run", help="the sim bridge and one agent process per vessel")
-    run.add_argument("scenario", type=Path, help="scenario YAML, e.g. configs/scenarios/table2_estimators.yaml")
-    run.add_argument("--variant", default=None, help="variant of the file (default: the first)")
+    run.add_argument("scenario", help="a scenario file, or the name of one in configs/scenarios/ "
+                                      "(e.g. table2_estimators, cold_start)")
+    run.add_argument("--variant", default=None,
+                     help="variant of the file (default: the first that runs the product's default estimator, "
+                          "raw_range; else the first)")
+    run.add_argument("--duration", type=float, default=None, help="simulated seconds (default: the scenario's)")
     run.add_argument("--out", type=Path, default=Path("runs"), help="parent of the run folder")
     run.add_argument("--seed", type=int, default=None, help="override the scenario's seed")
     run.add_argument("--mode", choices=("lockstep", "realtime"), default="lockstep",
@@ -771,7 +779,13 @@ def main(argv: list[str] | None = None) -> int:
     guard_stderr()
     started = time.monotonic()
     try:
-        fleet = Fleet(args.scenario, args.variant, args.out, args.seed, mode=args.mode)
+        path = scenario_file(args.scenario)
+        if args.duration is not None and not args.duration > 0:
+            raise ConfigError(f"--duration {args.duration:g}: give the simulated seconds, more than 0")
+        if args.duration is not None:    # a copy of the file with its base's duration changed, named as it is
+            path = with_duration(path, tempfile.mkdtemp(prefix="usv-fleet-"), args.duration)
+        variant = args.variant if args.variant is not None else default_variant(path)
+        fleet = Fleet(path, variant, args.out, args.seed, mode=args.mode)
     except ConfigError as error:
         print(f"usv-fleet: {error}", file=sys.stderr)
         return 2

@@ -123,6 +123,38 @@ def with_duration(path: str | Path, folder: str | Path, duration: float) -> Path
     return copy
 
 
+# Where the shipped scenarios are: configs/scenarios of the working directory if it has one (the repository's
+# root, as the README runs things), else of the repository this package was installed from (editable).
+_SHIPPED = (Path("configs/scenarios"), Path(__file__).resolve().parents[1] / "configs" / "scenarios")
+SCENARIOS_DIR = next((folder for folder in _SHIPPED if folder.is_dir()), _SHIPPED[0])
+
+
+def scenario_files(directory: Path = SCENARIOS_DIR) -> list[Path]:
+    return sorted(Path(directory).glob("*.yaml"))
+
+
+def scenario_file(name: str, directory: Path = SCENARIOS_DIR) -> Path:
+    """The scenario file `name` stands for: a path, or the name of a file in `directory` (`table2_estimators`
+    for configs/scenarios/table2_estimators.yaml); ConfigError that lists the known names otherwise."""
+    path = Path(name)
+    if path.is_file():
+        return path
+    candidate = Path(directory) / f"{name}.yaml"
+    if candidate.is_file():
+        return candidate
+    known = ", ".join(p.stem for p in scenario_files(directory)) or "none"
+    raise ConfigError(f"unknown scenario {name!r}: no such file and no {candidate}; known in {directory}: {known}")
+
+
+def default_variant(path: str | Path) -> str:
+    """The variant a user gets when naming none: the first that runs the product's default estimator, else
+    the file's first (a file without variants: its one scenario)."""
+    _, variants = load_scenarios(path)
+    product = AgentParams().relative.estimator
+    return next((name for name, scenario in variants.items() if scenario.agent.relative.estimator == product),
+                next(iter(variants)))
+
+
 def select_scenario(path: str | Path, variant: str | None = None) -> tuple[str, Scenario]:
     """(name, scenario) of one variant of a file, the first when `variant` is None; a clear error otherwise."""
     _, variants = load_scenarios(path)

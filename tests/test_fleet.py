@@ -65,6 +65,27 @@ def test_fleet_run_leaves_a_run_folder_with_logs_plot_and_metrics(tmp_path, shor
             assert cpu["ticks"] == 121 and 0.0 < cpu["p50"] <= reaction["p50"] and cpu["p99"] <= reaction["p99"]
 
 
+def test_a_shipped_scenario_runs_by_name_from_anywhere_with_the_default_estimator_and_says_how_to_watch(tmp_path):
+    """`usv-fleet run table2_estimators --duration 2` from another directory: the file found by its name, the
+    variant that runs the product's default estimator (raw_range, not the file's first, rls), 2 s simulated,
+    and a line that says how to reach the running fleet with usv-op."""
+    result = subprocess.run([sys.executable, "-m", "sim_bridge.fleet_cli", "run", "table2_estimators", "--duration", "2",
+                             "--out", str(tmp_path / "runs")], capture_output=True, text=True, check=False, timeout=240,
+                            cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    (folder,) = list((tmp_path / "runs").iterdir())
+    assert folder.name.startswith("table2_estimators-raw_range-")
+    assert json.loads((folder / "metrics.json").read_text())["ticks"] == 21
+    port = yaml.safe_load((folder / "bridge.yaml").read_text())["zenoh"]["listen"][0].rsplit(":", 1)[1]
+    assert f"usv-op --connect tcp/127.0.0.1:{port} status" in result.stderr
+    wrong = subprocess.run([sys.executable, "-m", "sim_bridge.fleet_cli", "run", "no_such_scenario"],
+                           capture_output=True, text=True, check=False, timeout=60, cwd=tmp_path)
+    assert wrong.returncode == 2 and "known in" in wrong.stderr and "table2_estimators" in wrong.stderr
+    short = subprocess.run([sys.executable, "-m", "sim_bridge.fleet_cli", "run", "cold_start", "--duration", "-1"],
+                           capture_output=True, text=True, check=False, timeout=60, cwd=tmp_path)
+    assert short.returncode == 2 and "--duration -1" in short.stderr
+
+
 def test_unknown_variant_is_a_clear_error(tmp_path, short_scenario):
     scenario = short_scenario
     result = subprocess.run([sys.executable, "-m", "sim_bridge.fleet_cli", "run", str(scenario), "--variant", "x",
