@@ -8,7 +8,8 @@
 
 A command goes to `mission/all` (or `mission/<ID>`), stamped with the fleet's clock: the sim clock when one
 is heard (a simulated fleet), else this computer's clock (a fleet at sea runs on synchronised wall clocks).
-Its `seq` is the wall clock in ns, so it grows from one invocation to the next. The command then waits for
+Its `seq` is the wall clock in ns and its `session` a random one per invocation: an agent refuses a second
+command of the same sender, session and seq while it is within the stamp window (a replay). The command then waits for
 each live agent it addresses (liveliness) to answer in its status: exit 0 if every one applied it, 1 if one
 refused it or did not answer within --deadline (each is named), 2 on a usage error.
 
@@ -21,6 +22,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import secrets
 import signal
 import sys
 import threading
@@ -147,7 +149,7 @@ def _command(args: argparse.Namespace, stamp_ns: int) -> MissionCommand:
         except ValueError:
             raise ConfigError(f"{item!r}: {text!r} is not a number") from None
     return MissionCommand(stamp_ns=stamp_ns, seq=time.time_ns(), sender=args.sender, command=args.command,
-                          **values)
+                          session=secrets.token_hex(8), **values)
 
 
 def status_lines(statuses: dict[str, tuple[float, Status]], live: set[str], now: float,
