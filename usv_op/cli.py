@@ -43,7 +43,7 @@ from agent.contract import (
 )
 from agent.runtime.zenoh_session import SessionError, ZenohSettings, open_session
 from usv_op.layout import fleet_layout
-from usv_op.view import serve
+from usv_op.view import MAX_VESSELS, serve
 
 CLOCK_LISTEN = 0.5      # s to listen for a sim clock before stamping with the wall clock
 DISCOVERY = 1.0         # s to wait for the agents' liveliness tokens
@@ -229,6 +229,8 @@ def build_parser() -> argparse.ArgumentParser:
     view = commands.add_parser("view", help="serve the live fleet to Foxglove over its WebSocket protocol")
     view.add_argument("--host", default="127.0.0.1", help="address to serve on (0.0.0.0: every interface)")
     view.add_argument("--port", type=int, default=8765, help="port to serve on (0: any free one)")
+    view.add_argument("--max-vessels", type=int, default=MAX_VESSELS,
+                      help="vessels shown at most (each opens three channels; the first come are kept)")
     layout = commands.add_parser("layout", help="print the Foxglove layout (JSON) for a fleet")
     layout.add_argument("--vessels", nargs="+", default=["1", "2", "3", "4"], help="the fleet's vessel ids")
     for name, text in (("hold", "every addressed vessel stops and keeps station"),
@@ -261,7 +263,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.command == "status":
             code = watch(session, args.once)
         elif args.command == "view":
-            code = serve(session, args.host, args.port, _stop_on_signals())
+            code = serve(session, args.host, args.port, _stop_on_signals(), max_vessels=args.max_vessels)
         else:
             code = send(session, _command(args, fleet_stamp(session)), args.vessel, args.deadline)
     except (ConfigError, ValueError, ImportError) as error:
