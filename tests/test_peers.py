@@ -178,3 +178,18 @@ def test_genuine_claims_under_the_papers_range_noise_agree_within_the_tolerance(
             noise = np.where(outlier, rng.normal(0, math.sqrt(10), len(t)), rng.normal(0, math.sqrt(0.4), len(t)))
             misfits.append(range_misfit(own - own[0], theirs - theirs[0], np.hypot(*(own - theirs).T) + noise))
         assert np.quantile(misfits, 0.99) < table_module.TOLERANCE
+
+
+def test_an_id_proven_after_coming_back_loses_its_proof_when_its_claims_leave_the_ranges():
+    peers = table({"2"})
+    peers.declare("2")
+    run(peers, Mission(), range(0, 50), learn=True)
+    peers.undeclare("2")
+    peers.declare("2")
+    assert run(peers, Mission(), range(60, 140), learn=False)[-1]            # proven
+    sight = circle(0.0, 15.0) - circle(2.0, 15.0)
+    away = 4.0 * sight / np.hypot(*sight)      # from 15 s it claims to be 4 m further along the line of sight
+    jumped = Mission(claim=lambda t: circle(2.0, t) - circle(2.0, 0.0) + (away if t > 15.0 else 0.0))
+    reached = run(peers, jumped, range(140, 240), learn=False)
+    assert reached[0] and not any(reached[-50:])
+    assert peers.counts["peers_refuted"] == 1 and peers.candidates() == {"2"}

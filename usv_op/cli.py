@@ -28,6 +28,8 @@ import sys
 import threading
 import time
 
+import zenoh
+
 from agent.config import ConfigError
 from agent.contract import (
     CLOCK_KEY,
@@ -58,30 +60,41 @@ def _settings(args: argparse.Namespace) -> ZenohSettings:
 
 
 def live_vessels(session, wait: float = DISCOVERY) -> set[str]:
-    """The vessels whose agent holds its liveliness token now."""
+    """The vessels whose agent holds its liveliness token now. The replies go to a callback: iterating the
+    default channel hung for good once 256 tokens were declared (forged ones, without TLS)."""
     found: set[str] = set()
-    for reply in session.liveliness().get(every(LIVELINESS), timeout=wait):
+    done = threading.Event()
+
+    def on_reply(reply) -> None:
         if reply.ok is not None:
             vessel = vessel_of(str(reply.ok.key_expr))
             if vessel is not None:
                 found.add(vessel)
-    return found
+
+    session.liveliness().get(every(LIVELINESS), zenoh.handlers.Callback(on_reply, done.set), timeout=wait)
+    done.wait(wait + CLOSE_WAIT)
+    return set(found)
 
 
-def fleet_stamp(session) -> int:
-    """Now in the fleet's clock (ns): the latest sim clock heard within CLOCK_LISTEN, else the wall clock."""
-    heard: list[int] = []
-    subscriber = session.declare_subscriber(CLOCK_KEY, lambda sample: heard.append(sample.payload.to_bytes()))
+def fleet_clock(session):
+    """A function giving now in the fleet's clock (ns): the latest sim clock heard within CLOCK_LISTEN carried
+    on by the time since it was heard, else the wall clock. A command is stamped just before it goes out: the
+    discovery before it may take a second or two (a fleet with many tokens), and a command stamped before
+    it would come stale."""
+    heard: list[tuple[bytes, float]] = []
+    subscriber = session.declare_subscriber(
+        CLOCK_KEY, lambda sample: heard.append((sample.payload.to_bytes(), time.monotonic())))
     time.sleep(CLOCK_LISTEN)
     subscriber.undeclare()
-    for payload in reversed(heard):
+    for payload, arrived in reversed(heard):
         clock, _ = decode(Clock, payload)
         if clock is not None:
-            return clock.stamp_ns
-    return time.time_ns()
+            return lambda: clock.stamp_ns + round((time.monotonic() - arrived) * 1e9)
+    return time.time_ns
 
 
-def send(session, command: MissionCommand, vessel: str | None, deadline: float, out=print) -> int:
+
+def send(session, command: MissionCommand, vessel: str | None, deadline: float, out=print, clock=None) -> int:
     """Publish `command` to `vessel` (None: the fleet) and wait for the answers; the exit code.
 
     The vessels expected to answer are the live ones: those whose liveliness token this session sees, and
@@ -118,6 +131,8 @@ def send(session, command: MissionCommand, vessel: str | None, deadline: float, 
         if not addressed:
             out("usv-op: no live vessel to command")
             return 1
+        if clock is not None:   # stamped now, after the discovery
+            command = command.model_copy(update={"stamp_ns": clock()})
         session.put(mission_key(vessel), encode(command))
         done.wait(deadline)
     finally:
@@ -265,7 +280,8 @@ def main(argv: list[str] | None = None) -> int:
         elif args.command == "view":
             code = serve(session, args.host, args.port, _stop_on_signals(), max_vessels=args.max_vessels)
         else:
-            code = send(session, _command(args, fleet_stamp(session)), args.vessel, args.deadline)
+            clock = fleet_clock(session)
+            code = send(session, _command(args, clock()), args.vessel, args.deadline, clock=clock)
     except (ConfigError, ValueError, ImportError) as error:
         print(f"usv-op: {' '.join(str(error).split())}", file=sys.stderr)
         code = 2

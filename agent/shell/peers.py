@@ -12,11 +12,15 @@ any id, as often as they like. So the table (at most MAX_PEERS ids) is not first
 - a vessel id declared for the first time in this agent's life is taken at its word, as the deployment
   (or a joiner) says (the ranges judge its estimates in the core, agent/core/membership.py). An id declared
   again, after its token went away or was evicted, is a candidate: its shares and ranges do not reach the
-  core until its claimed odometry agrees with our ranges to it (`prove`), so a process that declares a dead
-  vessel's token is not taken for that vessel. The check (agent/core/vetting.py) uses the offset between
+  core until its claimed odometry agrees with our ranges to it (SUSTAIN judgements in a row), and it stays
+  under watch for its session: claims later found far from the ranges (REFUTE) take the proof away for
+  good. So a process that declares a dead vessel's token is not taken for that vessel while its claims
+  disagree with the ranges to the hull. The check (agent/core/vetting.py) uses the offset between
   the two odometry frames learnt from the core's own pair estimate while the vessel was here (a vessel whose
   odometry runs on, as a bridge's does through an agent's restart, keeps that offset), or, without one, the
-  best offset for the ranges alone, which only catches claims far from the truth.
+  best offset for the ranges alone, which only catches claims far from the truth. Ranges see a lie along
+  the line of sight only: a claim that moves across it (a dead vessel's slot on the circle, claimed while
+  the hull lies still on the circle) agrees with the ranges for a while, until the geometry turns it.
 What TLS adds: only a fleet certificate may declare a vessel's token, and only its own (docs/deploy.md);
 the table then holds the fleet. Ranges forged on our own `sensor/uwb` key, possible without TLS, would
 forge the evidence too.
@@ -43,17 +47,18 @@ MIN_SAMPLES = 20         # paired samples before a proof with a learnt offset is
 MIN_FREE_SAMPLES = 50    # ... and without one (the offset fitted too)
 TOLERANCE = 1.0          # m: the median |range - predicted| a proof allows
 SUSTAIN = 30             # judgements in a row that must agree (a lie that agrees by chance for a moment does not)
-REFUTE = 3.0             # a misfit beyond this many tolerances refutes the candidate for its session
+REFUTE = 2.0             # a misfit beyond this many tolerances refutes an id declared again, for its session
 PAIR_GAP = 0.5           # s: the widest gap between two odometry samples a range is interpolated across
 OFFSET_MAX_AGE = 60.0    # s: an offset learnt longer ago than this is not used
 
 
 class Entry:
-    __slots__ = ("agreed", "claimed", "declared", "pending", "proven", "refuted", "samples")
+    __slots__ = ("agreed", "claimed", "declared", "pending", "proven", "refuted", "samples", "watched")
 
     def __init__(self, declared: int, proven: bool) -> None:
         self.declared = declared          # the order of its declaration (oldest first out)
         self.proven = proven
+        self.watched = not proven         # declared again: judged by its ranges for the whole session
         self.agreed = 0                   # judgements in a row that found its claims in agreement
         self.refuted = False              # its claims were found far from the ranges: not for this session
         self.claimed: deque[tuple[float, float, float]] = deque(maxlen=HISTORY)   # (stamp, x, y) it claims
@@ -106,13 +111,13 @@ class PeerTable:
             self._entries[peer] = Entry(self._declarations, proven=not again)
             if again:
                 self.counts["peers_to_prove"] += 1
-            self._candidates = frozenset(p for p, e in self._entries.items() if not e.proven)
+            self._update()
             return True, evicted
 
     def undeclare(self, peer: str) -> None:
         with self._lock:
             self._entries.pop(peer, None)
-            self._candidates = frozenset(p for p, e in self._entries.items() if not e.proven)
+            self._update()
 
     def counted(self) -> dict[str, int]:
         with self._lock:
@@ -141,48 +146,52 @@ class PeerTable:
 
     # ----- the tick -----
     def vet(self, inputs: TickInputs) -> TickInputs:
-        """Gather the evidence of this tick for each candidate and judge it; the inputs without the shares and
-        ranges of the candidates still unproven (the inputs themselves when there is none)."""
+        """Gather the evidence of this tick for each id declared again and judge it; the inputs without the
+        shares and ranges of those not proven (the inputs themselves when there is none). A proven one stays
+        under watch for its session: a misfit beyond REFUTE tolerances later takes its proof away."""
         if inputs.odometry is not None and (not self._own or inputs.odometry.stamp > self._own[-1][0]):
             self._own.append((inputs.odometry.stamp, *map(float, inputs.odometry.position)))
-        candidates = self._candidates
-        if not candidates:
-            return inputs
         with self._lock:
-            entries = {p: self._entries[p] for p in candidates if p in self._entries}
-        proven = set()
+            entries = {p: e for p, e in self._entries.items() if e.watched}
+        if not entries:
+            return inputs
+        sets = [*inputs.earlier_ranges, (inputs.time if inputs.range_stamp is None else inputs.range_stamp,
+                                         inputs.ranges)]
+        verdicts = {}
         for peer, entry in entries.items():
+            if entry.refuted:
+                continue
             share = inputs.shares.get(peer)
             if share is not None and (not entry.claimed or share.odometry.stamp > entry.claimed[-1][0]):
                 entry.claimed.append((share.odometry.stamp, *map(float, share.odometry.position)))
-            sets = [*inputs.earlier_ranges, (inputs.time if inputs.range_stamp is None else inputs.range_stamp,
-                                             inputs.ranges)]
             entry.pending.extend((stamp, float(ranges[peer])) for stamp, ranges in sets if peer in ranges)
-            if entry.refuted:
-                continue
             self._pair(entry)
             misfit = self._misfit(peer, entry, inputs.time)
             if misfit is not None and misfit > REFUTE * self.tolerance:
-                entry.refuted = True
-                with self._lock:
-                    self.counts["peers_refuted"] += 1
+                verdicts[peer] = "refuted"
                 continue
             entry.agreed = entry.agreed + 1 if misfit is not None and misfit <= self.tolerance else 0
-            if entry.agreed >= SUSTAIN:
-                proven.add(peer)
+            if not entry.proven and entry.agreed >= SUSTAIN:
+                verdicts[peer] = "proven"
         with self._lock:
-            for peer in proven:
-                if self._entries.get(peer) is entries[peer]:
-                    entries[peer].proven = True
-                    self.counts["peers_proven"] += 1
-            self._candidates = frozenset(p for p, e in self._entries.items() if not e.proven)
-            withheld = candidates - proven
+            for peer, verdict in verdicts.items():
+                entry = entries[peer]
+                if self._entries.get(peer) is not entry:
+                    continue   # gone (or declared again) meanwhile
+                entry.proven, entry.refuted = verdict == "proven", verdict == "refuted"
+                self.counts[f"peers_{verdict}"] += 1
+            self._update()
+            withheld = self._candidates
         if not withheld:
             return inputs
         return replace(inputs, shares={p: s for p, s in inputs.shares.items() if p not in withheld},
                        ranges={p: r for p, r in inputs.ranges.items() if p not in withheld},
                        earlier_ranges=tuple((t, {p: r for p, r in ranges.items() if p not in withheld})
                                             for t, ranges in inputs.earlier_ranges))
+
+    def _update(self) -> None:
+        """(with the lock) The ids whose shares are withheld: declared again and not (or no longer) proven."""
+        self._candidates = frozenset(p for p, e in self._entries.items() if not e.proven)
 
     def learn(self, inputs: TickInputs, record: TickRecord | None) -> None:
         """The offset c between our odometry frame and each localised neighbour's (agent/core/vetting.py):
