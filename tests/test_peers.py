@@ -91,16 +91,22 @@ class Mission:
     """Vessel 1's inputs with neighbour 2 on a circle: our odometry, 2's share and the range to 2 each tick,
     and the core's record with its estimate of p_12 (the offset the table learns)."""
 
-    def __init__(self, claim=None, hull=None) -> None:
+    def __init__(self, claim=None, hull=None, seed: int = 5, mixture: bool = False) -> None:
         self.claim = claim or (lambda t: circle(2.0, t) - circle(2.0, 0.0))   # 2's odometry as it claims it
         self.hull = hull or (lambda t: circle(2.0, t))                       # where 2 really is
-        self.rng = np.random.default_rng(5)
+        self.rng = np.random.default_rng(seed)
+        self.mixture = mixture   # Table II's range noise 0.8 N(0, 0.4) + 0.2 N(0, 10), else N(0, 0.2^2)
+
+    def noise(self) -> float:
+        if not self.mixture:
+            return float(self.rng.normal(0, 0.2))
+        return float(self.rng.normal(0, math.sqrt(10.0 if self.rng.random() < 0.2 else 0.4)))
 
     def inputs(self, k: int) -> TickInputs:
         t = k * DT
         me = circle(0.0, t)
         share = Share("2", OdometryReading(t - DT, self.claim(t - DT), 0.0), np.zeros(2), 0.0)
-        rng = float(np.hypot(*(me - self.hull(t)))) + float(self.rng.normal(0, 0.2))
+        rng = float(np.hypot(*(me - self.hull(t)))) + self.noise()
         return TickInputs(time=t, odometry=OdometryReading(t, me - circle(0.0, 0.0), 0.0), ranges={"2": rng},
                           shares={"2": share})
 
@@ -193,3 +199,24 @@ def test_an_id_proven_after_coming_back_loses_its_proof_when_its_claims_leave_th
     reached = run(peers, jumped, range(140, 240), learn=False)
     assert reached[0] and not any(reached[-50:])
     assert peers.counts["peers_refuted"] == 1 and peers.candidates() == {"2"}
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_under_the_papers_range_noise_a_returning_vessel_proves_itself_and_a_slot_claimer_does_not(seed):
+    """Table II's range noise. Genuine: proven within 20 s of coming back. A process that claims the dead
+    vessel's slot on the circle while its hull lies still on it (the claim across the line of sight that ranges
+    see least): never, in a minute."""
+    for impostor in (False, True):
+        peers = table({"2"})
+        peers.declare("2")
+        run(peers, Mission(seed=seed, mixture=True), range(0, 50), learn=True)
+        peers.undeclare("2")
+        peers.declare("2")
+        stopped = circle(2.0, 5.0)
+        mission = Mission(seed=seed + 10, mixture=True,
+                          hull=(lambda t: stopped if t >= 5.0 else circle(2.0, t)) if impostor else None)
+        reached = run(peers, mission, range(70, 670), learn=False)
+        if impostor:
+            assert not any(reached) and peers.counts["peers_proven"] == 0
+        else:
+            assert any(reached[:200]) and all(reached[reached.index(True):])

@@ -38,12 +38,25 @@ def best_offset(anchors: np.ndarray, ranges: np.ndarray, iterations: int = 8) ->
     return offset
 
 
-def range_misfit(own: np.ndarray, claimed: np.ndarray, ranges: np.ndarray) -> float:
-    """The median |r_k - |c - q_k|| at the best offset c: how far (m) the claimed odometry `claimed` (K, 2)
-    and our own `own` (K, 2), taken at the times of the ranges `ranges` (K,), are from the ranges (a median,
-    so that a few stray UWB ranges do not refuse a genuine vessel)."""
+def range_residuals(own: np.ndarray, claimed: np.ndarray, ranges: np.ndarray,
+                    offset: np.ndarray | None = None) -> np.ndarray:
+    """r_k - |c - q_k| for our odometry `own` (K, 2), the claimed odometry `claimed` (K, 2), both at the times
+    of the ranges `ranges` (K,), at the offset c given (None: the best one, `best_offset`)."""
     anchors = np.asarray(claimed, dtype=float) - np.asarray(own, dtype=float)
     ranges = np.asarray(ranges, dtype=float)
-    offset = best_offset(anchors, ranges)
-    residuals = ranges - np.hypot(*(offset - anchors).T)
-    return float(np.median(np.abs(residuals)))
+    offset = best_offset(anchors, ranges) if offset is None else np.asarray(offset, dtype=float)
+    return ranges - np.hypot(*(offset - anchors).T)
+
+
+def range_misfit(own: np.ndarray, claimed: np.ndarray, ranges: np.ndarray) -> float:
+    """The median |r_k - |c - q_k|| at the best offset c: how far (m) the claims are from the ranges (a
+    median, so that a few stray UWB ranges do not refuse a genuine vessel)."""
+    return float(np.median(np.abs(range_residuals(own, claimed, ranges))))
+
+
+def residual_trend(residuals: np.ndarray) -> float:
+    """How far (m) the residuals moved over their window: the median of the last third less that of the first.
+    A claim whose motion differs from the ranged one leaves a trend (a range rate the claims do not have)
+    before it leaves a large residual; a median of each third, so that stray ranges do not make one."""
+    third = max(1, len(residuals) // 3)
+    return float(np.median(residuals[-third:]) - np.median(residuals[:third]))

@@ -12,7 +12,8 @@ any id, as often as they like. So the table (at most MAX_PEERS ids) is not first
 - a vessel id declared for the first time in this agent's life is taken at its word, as the deployment
   (or a joiner) says (the ranges judge its estimates in the core, agent/core/membership.py). An id declared
   again, after its token went away or was evicted, is a candidate: its shares and ranges do not reach the
-  core until its claimed odometry agrees with our ranges to it (SUSTAIN judgements in a row), and it stays
+  core until its claimed odometry agrees with our ranges to it (SUSTAIN judgements in a row: residuals small,
+  without a trend, and no worse than those of a hull lying still), and it stays
   under watch for its session: claims later found far from the ranges (REFUTE) take the proof away for
   good. So a process that declares a dead vessel's token is not taken for that vessel while its claims
   disagree with the ranges to the hull. The check (agent/core/vetting.py) uses the offset between
@@ -37,19 +38,21 @@ import numpy as np
 
 from agent.contract import MAX_PEERS
 from agent.core.records import TickInputs, TickRecord
-from agent.core.vetting import range_misfit
+from agent.core.vetting import range_residuals, residual_trend
 
 RANGED_WITHIN = 2.0      # s: a range to an id this recent is evidence of it
 MAX_SEEN = 4 * MAX_PEERS  # ids remembered as declared before (a forged token's id is forgotten first)
 HISTORY = 64             # odometry samples (own, and each candidate's claimed) kept for pairing with ranges
-WINDOW = 30              # paired samples a proof is judged over (3 s at 10 Hz)
-MIN_SAMPLES = 20         # paired samples before a proof with a learnt offset is judged
+WINDOW = 50              # paired samples a proof is judged over (5 s at 10 Hz)
+MIN_SAMPLES = 30         # paired samples before a proof with a learnt offset is judged
 MIN_FREE_SAMPLES = 50    # ... and without one (the offset fitted too)
 TOLERANCE = 1.0          # m: the median |range - predicted| a proof allows
+TREND = 0.6              # m: how far the residuals may move over the window (agent/core/vetting.py residual_trend)
+STILL_MARGIN = 0.2       # m: how much worse than a hull lying still the claims may fit the ranges
 SUSTAIN = 30             # judgements in a row that must agree (a lie that agrees by chance for a moment does not)
 REFUTE = 2.0             # a misfit beyond this many tolerances refutes an id declared again, for its session
 PAIR_GAP = 0.5           # s: the widest gap between two odometry samples a range is interpolated across
-OFFSET_MAX_AGE = 60.0    # s: an offset learnt longer ago than this is not used
+OFFSET_MAX_AGE = 600.0   # s: an offset learnt longer ago than this is not used
 
 
 class Entry:
@@ -63,7 +66,7 @@ class Entry:
         self.refuted = False              # its claims were found far from the ranges: not for this session
         self.claimed: deque[tuple[float, float, float]] = deque(maxlen=HISTORY)   # (stamp, x, y) it claims
         self.pending: deque[tuple[float, float]] = deque(maxlen=HISTORY)          # (stamp, range) to pair
-        self.samples: deque[tuple[float, float, float, float, float]] = deque(maxlen=max(WINDOW, MIN_FREE_SAMPLES))
+        self.samples: deque[tuple[float, float, float, float, float]] = deque(maxlen=WINDOW)
 
 
 class PeerTable:
@@ -166,11 +169,13 @@ class PeerTable:
                 entry.claimed.append((share.odometry.stamp, *map(float, share.odometry.position)))
             entry.pending.extend((stamp, float(ranges[peer])) for stamp, ranges in sets if peer in ranges)
             self._pair(entry)
-            misfit = self._misfit(peer, entry, inputs.time)
-            if misfit is not None and misfit > REFUTE * self.tolerance:
+            judged = self._misfit(peer, entry, inputs.time)
+            if judged is not None and judged[0] > REFUTE * self.tolerance:
                 verdicts[peer] = "refuted"
                 continue
-            entry.agreed = entry.agreed + 1 if misfit is not None and misfit <= self.tolerance else 0
+            agrees = (judged is not None and judged[0] <= self.tolerance and abs(judged[1]) <= TREND
+                      and judged[2] <= STILL_MARGIN)
+            entry.agreed = entry.agreed + 1 if agrees else 0
             if not entry.proven and entry.agreed >= SUSTAIN:
                 verdicts[peer] = "proven"
         with self._lock:
@@ -225,22 +230,24 @@ class PeerTable:
                 keep.append((stamp, value))
         entry.pending = keep
 
-    def _misfit(self, peer: str, entry: Entry, now: float) -> float | None:
-        """The median |range - predicted| (m) of the candidate's latest samples: at the offset learnt while
-        it was here (the last WINDOW samples), else at the offset that fits best (all kept); None while
-        there are too few samples."""
-        samples = np.asarray(entry.samples, dtype=float).reshape(-1, 5)
+    def _misfit(self, peer: str, entry: Entry, now: float) -> tuple[float, float, float] | None:
+        """(the median |range - predicted| (m), how far the residuals moved over the window (m), how much worse
+        the claims fit than a hull lying still (m)) of the latest WINDOW samples: at the offset learnt while it
+        was here, else at the offset that fits them best; None while there are too few samples."""
+        samples = np.asarray(entry.samples, dtype=float).reshape(-1, 5)[-WINDOW:]
         learnt = self._offsets.get(peer)
         if learnt is not None and now - learnt[1] > OFFSET_MAX_AGE:
             learnt = None
         if len(samples) < (MIN_SAMPLES if learnt is not None else MIN_FREE_SAMPLES):
             return None
-        own, claimed, ranges = samples[:, 0:2], samples[:, 2:4], samples[:, 4]
-        if learnt is None:
-            return range_misfit(own, claimed, ranges)
-        anchors = (claimed - own)[-WINDOW:]
-        predicted = np.hypot(*(learnt[0] - anchors).T)
-        return float(np.median(np.abs(ranges[-WINDOW:] - predicted)))
+        residuals = range_residuals(samples[:, 0:2], samples[:, 2:4], samples[:, 4],
+                                    None if learnt is None else learnt[0])
+        misfit = float(np.median(np.abs(residuals)))
+        # The simpler story: a hull lying still where the ranges put it. Claims of motion that fit the ranges
+        # worse than that are not believed (a dead vessel's slot on the circle, claimed while its hull drifts).
+        still = float(np.median(np.abs(range_residuals(samples[:, 0:2], np.zeros((len(samples), 2)),
+                                                       samples[:, 4]))))
+        return misfit, residual_trend(residuals), misfit - still
 
 
 def _at(history: deque, stamp: float) -> tuple[float, float] | None:
