@@ -541,13 +541,17 @@ def run(args: argparse.Namespace) -> int:
             print(f"  tick {done}/{total}", flush=True)
 
     results = run_campaign(per_key=args.per_key, seed=args.seed, progress=progress)
+    print(f"attacks on the mission keys and liveliness, seed {args.seed} ...", flush=True)
+    attacks = run_attacks(seed=args.seed, progress=lambda name: print(f"  {name}", flush=True))
     args.out.mkdir(parents=True, exist_ok=True)
     path = args.out / "fuzz.md"
-    path.write_text(render(invocation(args), results, baseline))
+    path.write_text(render(invocation(args), results, baseline) + "\n".join(render_attacks(attacks)))
     print(f"wrote {path}")
     sound = (results.alive_at_end and results.exit_code == 0 and not results.bad_commands
              and results.after_storm_moving > 0)
-    return 0 if sound else 1
+    guarded = (attacks.alive_at_end and attacks.exit_code == 0 and not attacks.bad_commands
+               and all(a.verdict and a.operator_applied for a in attacks.attacks))
+    return 0 if sound and guarded else 1
 
 
 def render(command: str, results: Results, baseline: Results) -> str:
@@ -640,8 +644,9 @@ ATTACKS = ("seq_lockout", "junk_senders_replay", "flood", "spoofed_alive_restart
 MISSION_ATTACKS, LIVELINESS_ATTACKS = ATTACKS[:3], ATTACKS[3:]
 FORGED_TOKENS = 300
 JUNK_SENDERS = 300
-FLOOD_RATE = 3000        # commands per second from one sender
+FLOOD_RATE = 10000       # commands per second from one sender (at most: what one Python session puts)
 PROOF_WAIT = 12.0        # s of sim time a returning vessel is given to prove itself
+OP_TIMEOUT = 30.0        # s a usv-op command may take (it waits 3 s for its answers)
 
 
 @dataclass
@@ -790,9 +795,12 @@ class AttackHarness:
         clock in its half second of listening (a loaded machine) and so stamped with the wall clock: that is
         usv-op's start-up, not the attack (counted in `op_retries`)."""
         for _ in range(2):
-            result = subprocess.run([sys.executable, "-m", "usv_op", "--connect", f"tcp/127.0.0.1:{self.port}",
-                                     *args, "--vessel", VESSEL], capture_output=True, text=True, timeout=60,
-                                    check=False)
+            try:
+                result = subprocess.run([sys.executable, "-m", "usv_op", "--connect", f"tcp/127.0.0.1:{self.port}",
+                                         *args, "--vessel", VESSEL], capture_output=True, text=True, timeout=OP_TIMEOUT,
+                                        check=False)
+            except subprocess.TimeoutExpired:
+                return " ".join(args), -1, f"usv-op did not finish in {OP_TIMEOUT:g} s"
             said = (result.stdout + result.stderr).strip()[-500:]
             if not re.search(r"refused: future: stamped \d{6,}", said):
                 break
@@ -841,10 +849,10 @@ class AttackHarness:
         """The operator holds and resumes within half a second; JUNK_SENDERS new senders speak; the hold,
         captured, is replayed within the window: it must not be applied again."""
         seq = time.time_ns()
-        hold = self.mission("operator", seq, "hold")
+        hold = self.mission("console", seq, "hold")   # an operator's console of its own
         self.put("mission/all", hold)
         self.wait_ticks(2)
-        self.put("mission/all", self.mission("operator", seq + 1, "resume"))
+        self.put("mission/all", self.mission("console", seq + 1, "resume"))
         self.wait_ticks(2)
         for n in range(JUNK_SENDERS):
             self.put("mission/all", self.mission(f"junk{n}", 1, "set", radius=RADIUS, direction="ccw"))
@@ -872,13 +880,15 @@ class AttackHarness:
             sent[0] = n
 
         thread = threading.Thread(target=flood, daemon=True)
+        began = time.monotonic()
         thread.start()
         time.sleep(0.5)
         attack.operator.append(self.op("hold"))
         held = bool(self.latest().get("held"))
         done.set()
         thread.join(timeout=10)
-        attack.figures = {"flood_commands": sent[0], "held": held,
+        attack.figures = {"flood_commands": sent[0], "flood_per_s": round(sent[0] / max(1e-9, time.monotonic() - began)),
+                          "held": held,
                           "refused_flood": self.latest().get("health", {}).get("rejected_mission_flood", 0)}
         attack.verdict = attack.operator[-1][1] == 0 and held
 
@@ -986,16 +996,19 @@ def render_attacks(results: AttackResults) -> list[str]:
         "",
         "One agent process on sim time at the pace of real time, its world played by a Zenoh session (vessels 2",
         "and 3 share and are ranged); each case in turn, then `usv-op hold` and `usv-op resume` to vessel 1 as an",
-        "operator runs them (`lab/fuzz_bench.py` AttackHarness): seq_lockout sends one `resume` with seq 2^63 - 1",
-        f"as \"operator\"; junk_senders_replay holds and resumes within 0.2 s, lets {JUNK_SENDERS} new senders",
-        "speak, and replays the captured hold 0.5 s after it was stamped; flood sends "
-        f"{FLOOD_RATE} commands/s from one sender while usv-op holds; spoofed_alive_restart declares "
-        f"{FORGED_TOKENS} forged tokens, then vessel 2 restarts (1.5 s away); takeover_after_kill kills vessel 3",
-        "(its hull stops) and a process declares its token and shares the circle it would be on.",
+        "operator runs them (`lab/fuzz_bench.py` AttackHarness):",
+        "- seq_lockout: one `resume` with seq 2^63 - 1 as \"operator\";",
+        f"- junk_senders_replay: a console holds and resumes within 0.2 s, {JUNK_SENDERS} new senders speak, and",
+        "  the captured hold is replayed 0.5 s after it was stamped;",
+        f"- flood: up to {FLOOD_RATE} commands/s from one sender while usv-op holds;",
+        f"- spoofed_alive_restart: {FORGED_TOKENS} forged tokens, then vessel 2 restarts (1.5 s away);",
+        "- takeover_after_kill: vessel 3 is killed (its hull stops where it is) and a process declares its token",
+        "  and shares the slot on the circle it would be on.",
         "",
         markdown_table(["case", "guarded", "operator's hold and resume applied", "figures"], rows),
         "",
         (f"Commands: {results.commands}, non-finite or beyond the limits: **{len(results.bad_commands)}**; agent "
-         f"alive at the end: **{results.alive_at_end}**, exit code {results.exit_code}; {results.seconds:.0f} s."),
+         f"alive at the end: **{results.alive_at_end}**, exit code {results.exit_code}; {results.seconds:.0f} s; "
+         f"usv-op run again for want of a sim clock heard: {results.op_retries}."),
         "",
     ]
