@@ -692,7 +692,8 @@ class AttackHarness:
         self.port = free_port()
         self.stderr_path = folder / "agent.err"
         params = AgentParams()
-        self.limits = (params.control.max_speed, params.control.max_correction_yaw_rate + params.control.yaw_rate)
+        control = params.control
+        self.limits = (control.max_speed, control.max_correction_yaw_rate + control.yaw_rate)
         self.process = subprocess.Popen([sys.executable, "-m", "agent", "--vessel", VESSEL, "--config",
                                          str(_agent_config(folder, port=self.port, world=self.world))],
                                         stderr=self.stderr_path.open("w"))
@@ -703,13 +704,11 @@ class AttackHarness:
         self.status: dict = {}
         self.commands = 0
         self.bad_commands: list = []
-        self.mission_payloads: list[bytes] = []
         self.op_retries = 0
         self.stop = threading.Event()
         self.session = zenoh.open(zenoh_config(ZenohSettings(connect=[f"tcp/127.0.0.1:{self.port}"])))
         self.session.declare_subscriber(f"usv/{VESSEL}/cmd", self._on_command)
         self.session.declare_subscriber(f"usv/{VESSEL}/status", self._on_status)
-        self.session.declare_subscriber("mission/**", lambda s: self.mission_payloads.append(s.payload.to_bytes()))
         self.tokens = {j: self.session.liveliness().declare_token(f"usv/{j}/alive") for j in PEERS}
         self.publishers: dict[str, object] = {}
         self.others: list = []   # the forger's and the impostor's sessions
@@ -738,7 +737,8 @@ class AttackHarness:
                 t = k * DT
                 sensors = self.world.sensors(k)
                 me = self.world.position(VESSEL, t)
-                sensors["sensor/uwb"]["ranges"] = {j: float(np.linalg.norm(me - self.position(j, t))) for j in PEERS}
+                sensors["sensor/uwb"]["ranges"] = {j: float(np.linalg.norm(me - self.position(j, t)))
+                                                   for j in PEERS}
                 speakers = dict(self.speakers)
             for topic, body in sensors.items():
                 self.put(f"usv/{VESSEL}/{topic}", json.dumps(body).encode())
@@ -796,9 +796,10 @@ class AttackHarness:
         usv-op's start-up, not the attack (counted in `op_retries`)."""
         for _ in range(2):
             try:
-                result = subprocess.run([sys.executable, "-m", "usv_op", "--connect", f"tcp/127.0.0.1:{self.port}",
-                                         *args, "--vessel", VESSEL], capture_output=True, text=True, timeout=OP_TIMEOUT,
-                                        check=False)
+                result = subprocess.run([sys.executable, "-m", "usv_op", "--connect",
+                                         f"tcp/127.0.0.1:{self.port}", *args, "--vessel", VESSEL],
+                                        capture_output=True, text=True,
+                                        timeout=OP_TIMEOUT, check=False)
             except subprocess.TimeoutExpired:
                 return " ".join(args), -1, f"usv-op did not finish in {OP_TIMEOUT:g} s"
             said = (result.stdout + result.stderr).strip()[-500:]
@@ -887,8 +888,8 @@ class AttackHarness:
         held = bool(self.latest().get("held"))
         done.set()
         thread.join(timeout=10)
-        attack.figures = {"flood_commands": sent[0], "flood_per_s": round(sent[0] / max(1e-9, time.monotonic() - began)),
-                          "held": held,
+        rate = round(sent[0] / max(1e-9, time.monotonic() - began))
+        attack.figures = {"flood_commands": sent[0], "flood_per_s": rate, "held": held,
                           "refused_flood": self.latest().get("health", {}).get("rejected_mission_flood", 0)}
         attack.verdict = attack.operator[-1][1] == 0 and held
 
@@ -897,7 +898,8 @@ class AttackHarness:
         for 1.5 s and come back): it must be a neighbour again."""
         forger = zenoh.open(zenoh_config(ZenohSettings(connect=[f"tcp/127.0.0.1:{self.port}"])))
         self.others.append(forger)
-        self.held_tokens += [forger.liveliness().declare_token(f"usv/forged{n}/alive") for n in range(FORGED_TOKENS)]
+        self.held_tokens += [forger.liveliness().declare_token(f"usv/forged{n}/alive")
+                             for n in range(FORGED_TOKENS)]
         self.wait_ticks(10)
         before = self.latest().get("health", {})
         with self.lock:
@@ -949,9 +951,10 @@ class AttackHarness:
         self.wait_ticks(round(PROOF_WAIT / DT))
         watcher.undeclare()
         health = self.latest().get("health", {})
-        steered = sum(estimates[-round(PROOF_WAIT / DT / 2):])   # shares of the last half with an estimate of 3
-        attack.figures = {"seconds_watched": round((self.k - came) * DT, 1), "shares_with_3_in_last_half": steered,
-                          "refuted": health.get("peers_refuted", 0), "unproven": health.get("peers_unproven", 0)}
+        steered = sum(estimates[-round(PROOF_WAIT / DT / 2):])   # shares of the last half estimating 3
+        attack.figures = {"seconds_watched": round((self.k - came) * DT, 1),
+                          "shares_with_3_in_last_half": steered, "refuted": health.get("peers_refuted", 0),
+                          "unproven": health.get("peers_unproven", 0)}
         attack.verdict = steered == 0
 
 
@@ -994,21 +997,21 @@ def render_attacks(results: AttackResults) -> list[str]:
     return [
         "## Attacks on the mission keys and on liveliness",
         "",
-        "One agent process on sim time at the pace of real time, its world played by a Zenoh session (vessels 2",
-        "and 3 share and are ranged); each case in turn, then `usv-op hold` and `usv-op resume` to vessel 1 as an",
-        "operator runs them (`lab/fuzz_bench.py` AttackHarness):",
+        "One agent process on sim time at the pace of real time, its world played by a Zenoh session",
+        "(vessels 2 and 3 share and are ranged); each case in turn, then `usv-op hold` and `usv-op resume`",
+        "to vessel 1 as an operator runs them (`lab/fuzz_bench.py` AttackHarness):",
         "- seq_lockout: one `resume` with seq 2^63 - 1 as \"operator\";",
-        f"- junk_senders_replay: a console holds and resumes within 0.2 s, {JUNK_SENDERS} new senders speak, and",
-        "  the captured hold is replayed 0.5 s after it was stamped;",
+        f"- junk_senders_replay: a console holds and resumes within 0.2 s, {JUNK_SENDERS} new senders",
+        "  speak, and the captured hold is replayed 0.5 s after it was stamped;",
         f"- flood: up to {FLOOD_RATE} commands/s from one sender while usv-op holds;",
         f"- spoofed_alive_restart: {FORGED_TOKENS} forged tokens, then vessel 2 restarts (1.5 s away);",
-        "- takeover_after_kill: vessel 3 is killed (its hull stops where it is) and a process declares its token",
-        "  and shares the slot on the circle it would be on.",
+        "- takeover_after_kill: vessel 3 is killed (its hull stops where it is) and a process declares its",
+        "  token and shares the slot on the circle it would be on.",
         "",
         markdown_table(["case", "guarded", "operator's hold and resume applied", "figures"], rows),
         "",
-        (f"Commands: {results.commands}, non-finite or beyond the limits: **{len(results.bad_commands)}**; agent "
-         f"alive at the end: **{results.alive_at_end}**, exit code {results.exit_code}; {results.seconds:.0f} s; "
-         f"usv-op run again for want of a sim clock heard: {results.op_retries}."),
+        (f"Commands: {results.commands}, non-finite or beyond the limits: **{len(results.bad_commands)}**; "
+         f"agent alive at the end: **{results.alive_at_end}**, exit code {results.exit_code}; "
+         f"{results.seconds:.0f} s; usv-op run again for want of a sim clock heard: {results.op_retries}."),
         "",
     ]

@@ -9,9 +9,9 @@
 A command goes to `mission/all` (or `mission/<ID>`), stamped with the fleet's clock: the sim clock when one
 is heard (a simulated fleet), else this computer's clock (a fleet at sea runs on synchronised wall clocks).
 Its `seq` is the wall clock in ns and its `session` a random one per invocation: an agent refuses a second
-command of the same sender, session and seq while it is within the stamp window (a replay). The command then waits for
-each live agent it addresses (liveliness) to answer in its status: exit 0 if every one applied it, 1 if one
-refused it or did not answer within --deadline (each is named), 2 on a usage error.
+command of the same sender, session and seq while it is within the stamp window (a replay). The command
+then waits for each live agent it addresses (liveliness) to answer in its status: exit 0 if every one
+applied it, 1 if one refused it or did not answer within --deadline (each is named), 2 on a usage error.
 
 Zenoh: `--connect` endpoints (the shore router, or a vessel's agent on loopback), or the ZENOH_CONFIG file
 and ZENOH_CONFIG_OVERRIDE as for every process (agent/runtime/zenoh_session.py).

@@ -149,7 +149,8 @@ class LiveView:
             self.refused += 1
 
 
-def serve(session, host: str, port: int, stop: threading.Event, out=print, max_vessels: int = MAX_VESSELS) -> int:
+def serve(session, host: str, port: int, stop: threading.Event, out=print,
+          max_vessels: int = MAX_VESSELS) -> int:
     """Serve the live view until `stop` is set; the exit code."""
     sdk = load_sdk()
     view = LiveView(sdk, max_vessels)

@@ -38,9 +38,9 @@ from agent.contract import (
 )
 from agent.core.params import AgentParams
 
-MAX_SENDERS = 256         # senders remembered; beyond, the least recently heard one not heard within the window goes
+MAX_SENDERS = 256         # senders remembered; beyond, the least recently heard goes if idle within the window
 MAX_IDS_PER_SENDER = 64   # a sender's commands remembered within the window; more in one window is a flood
-MAX_PENDING_PER_SENDER = 16   # a sender's accepted commands waiting for a tick; more is a flood (a hold always goes)
+MAX_PENDING_PER_SENDER = 16   # a sender's commands waiting for a tick; more is a flood (a hold always goes)
 DRAIN_PER_TICK = 32       # commands a tick applies at least, in rounds of one per sender, whole rounds
 STATUS_ACKS = 8           # answers a status carries (Status.mission): those not yet shown first
 MAX_LOGGED = 256          # refusals a tick logs at most (each is counted in the health all the same)
@@ -96,7 +96,7 @@ class MissionOrders:
         self._senders: OrderedDict[str, Sender] = OrderedDict()   # least recently heard first
         self._arrivals = 0
         self._acks: OrderedDict[str, MissionAck] = OrderedDict()
-        self._unshown: OrderedDict[str, None] = OrderedDict()     # senders whose latest answer no status carried
+        self._unshown: OrderedDict[str, None] = OrderedDict()   # senders whose latest answer no status carried
         # For the log, drained by the tick: (command, answer, when it came).
         self._judged: list[tuple[MissionCommand | None, MissionAck, int]] = []
 
@@ -119,7 +119,8 @@ class MissionOrders:
             return self._refuse(message, now_ns, "stale", f"stamped {now - stamp:.3f} s ago")
         if now is not None and stamp > now + self.max_future:
             return self._refuse(message, now_ns, "future", f"stamped {stamp - now:.3f} s ahead")
-        window = None if now is None else (nanoseconds(now - self.max_age), nanoseconds(now + self.max_future))
+        window = (None if now is None
+                  else (nanoseconds(now - self.max_age), nanoseconds(now + self.max_future)))
         with self._lock:
             sender = self._sender(message.sender, window)
             if sender is None:
@@ -267,10 +268,11 @@ class MissionOrders:
         self._unshown.move_to_end(ack.sender)
         if len(self._acks) > MAX_SENDERS:
             # The oldest refusal goes first: a storm of refused senders does not push out an applied answer.
-            forgotten = next((name for name, a in self._acks.items() if not a.applied), next(iter(self._acks)))
+            refused = (name for name, a in self._acks.items() if not a.applied)
+            forgotten = next(refused, next(iter(self._acks)))
             del self._acks[forgotten]
             self._unshown.pop(forgotten, None)
-        # Refusals are logged up to a bound a tick (a flood's); what is applied, always (DRAIN_PER_TICK and up).
+        # Refusals are logged up to a bound a tick (a flood's); what is applied, always.
         if ack.applied or len(self._judged) < MAX_LOGGED:
             self._judged.append((message, ack, max(0, received)))
 

@@ -47,9 +47,9 @@ WINDOW = 50              # paired samples a proof is judged over (5 s at 10 Hz)
 MIN_SAMPLES = 30         # paired samples before a proof with a learnt offset is judged
 MIN_FREE_SAMPLES = 50    # ... and without one (the offset fitted too)
 TOLERANCE = 1.0          # m: the median |range - predicted| a proof allows
-TREND = 0.6              # m: how far the residuals may move over the window (agent/core/vetting.py residual_trend)
+TREND = 0.6              # m: how far the residuals may move over the window (vetting.py residual_trend)
 STILL_MARGIN = 0.2       # m: how much worse than a hull lying still the claims may fit the ranges
-SUSTAIN = 30             # judgements in a row that must agree (a lie that agrees by chance for a moment does not)
+SUSTAIN = 30             # judgements in a row that must agree (a lie agreeing by chance for a moment does not)
 REFUTE = 2.0             # a misfit beyond this many tolerances refutes an id declared again, for its session
 PAIR_GAP = 0.5           # s: the widest gap between two odometry samples a range is interpolated across
 OFFSET_MAX_AGE = 600.0   # s: an offset learnt longer ago than this is not used
@@ -83,7 +83,7 @@ class PeerTable:
         self._entries: dict[str, Entry] = {}
         self._declarations = 0
         self._seen: OrderedDict[str, None] = OrderedDict()   # ids declared before (ranged ones kept longest)
-        self._offsets: dict[str, tuple[np.ndarray, float]] = {}   # id -> (c, when learnt), see agent/core/vetting.py
+        self._offsets: dict[str, tuple[np.ndarray, float]] = {}   # id -> (c, when learnt): vetting.py
         self._own: deque[tuple[float, float, float]] = deque(maxlen=HISTORY)
         self._candidates: frozenset[str] = frozenset()
 
@@ -215,7 +215,8 @@ class PeerTable:
             if np.all(np.isfinite(offset)):
                 self._offsets[peer] = (offset, inputs.time)
         if len(self._offsets) > MAX_PEERS:
-            for peer in sorted(self._offsets, key=lambda p: self._offsets[p][1])[:len(self._offsets) - MAX_PEERS]:
+            oldest = sorted(self._offsets, key=lambda p: self._offsets[p][1])
+            for peer in oldest[:len(self._offsets) - MAX_PEERS]:
                 del self._offsets[peer]
 
     def _pair(self, entry: Entry) -> None:
@@ -226,7 +227,7 @@ class PeerTable:
             own, claimed = _at(self._own, stamp), _at(entry.claimed, stamp)
             if own is not None and claimed is not None:
                 entry.samples.append((*own, *claimed, value))
-            elif (self._own and stamp >= self._own[0][0]) and (not entry.claimed or stamp >= entry.claimed[0][0]):
+            elif self._own and stamp >= self._own[0][0] and (not entry.claimed or stamp >= entry.claimed[0][0]):
                 keep.append((stamp, value))
         entry.pending = keep
 
