@@ -645,7 +645,7 @@ MISSION_ATTACKS, LIVELINESS_ATTACKS = ATTACKS[:3], ATTACKS[3:]
 FORGED_TOKENS = 300
 JUNK_SENDERS = 300
 FLOOD_RATE = 10000       # commands per second from one sender (at most: what one Python session puts)
-PROOF_WAIT = 12.0        # s of sim time a returning vessel is given to prove itself
+PROOF_WAIT = 16.0        # s of sim time a returning vessel is given to prove itself (and an impostor watched)
 OP_TIMEOUT = 30.0        # s a usv-op command may take (it waits 3 s for its answers)
 
 
@@ -954,7 +954,7 @@ class AttackHarness:
         steered = sum(estimates[-round(PROOF_WAIT / DT / 2):])   # shares of the last half estimating 3
         attack.figures = {"seconds_watched": round((self.k - came) * DT, 1),
                           "shares_with_3_in_last_half": steered, "refuted": health.get("peers_refuted", 0),
-                          "unproven": health.get("peers_unproven", 0)}
+                          "withheld": health.get("peers_withheld", 0)}
         attack.verdict = steered == 0
 
 

@@ -538,7 +538,8 @@ class AgentNode:
             health.update(pairs_mirror_ambiguous=verdicts.count(MIRROR_AMBIGUOUS),
                           pairs_unobservable=verdicts.count(UNOBSERVABLE))
         health.update({f"rejected_{k}": v for k, v in self.gate.rejected.items()})
-        health.update(self.peers.counted(), peers_unproven=len(self.peers.candidates()))
+        health.update(self.peers.counted(), peers_withheld=len(self.peers.withheld()),
+                      peers_unproven=len(self.peers.unproven()))
         health.update(overruns=self.overruns, log_errors=self.log_errors, tick_errors=self.tick_errors,
                       core_rebuilds=self.core_rebuilds, sim_restarts=self.sim_restarts,
                       shares_unsent=self.shares_unsent)

@@ -11,17 +11,20 @@ any id, as often as they like. So the table (at most MAX_PEERS ids) is not first
   keep a genuine vessel out: its ranges get it in (`peers_evicted` counts the ones that made room).
 - a vessel id declared for the first time in this agent's life is taken at its word, as the deployment
   (or a joiner) says (the ranges judge its estimates in the core, agent/core/membership.py). An id declared
-  again, after its token went away or was evicted, is a candidate: its shares and ranges do not reach the
-  core until its claimed odometry agrees with our ranges to it (SUSTAIN judgements in a row: residuals small,
-  without a trend, and no worse than those of a hull lying still), and it stays
-  under watch for its session: claims later found far from the ranges (REFUTE) take the proof away for
-  good. So a process that declares a dead vessel's token is not taken for that vessel while its claims
-  disagree with the ranges to the hull. The check (agent/core/vetting.py) uses the offset between
-  the two odometry frames learnt from the core's own pair estimate while the vessel was here (a vessel whose
-  odometry runs on, as a bridge's does through an agent's restart, keeps that offset), or, without one, the
-  best offset for the ranges alone, which only catches claims far from the truth. Ranges see a lie along
-  the line of sight only: a claim that moves across it (a dead vessel's slot on the circle, claimed while
-  the hull lies still on the circle) agrees with the ranges for a while, until the geometry turns it.
+  again, after its token went away or was evicted, is watched for its session: each tick its claimed
+  odometry is judged against our ranges to it (agent/core/vetting.py) at the offset between the two
+  odometry frames learnt from the core's own pair estimate while it was here (a vessel whose odometry runs
+  on, as a bridge's does through an agent's restart, keeps that offset), or without one at the offset that
+  fits best (which only catches claims far from the truth). It agrees when the residuals are small, move
+  no more than TREND over the window, and fit no worse than those of a hull lying still (the simpler story
+  for a dead vessel's id). SUSTAIN agreements in a row prove it; DOUBT disagreements in a row before that, or
+  one misfit beyond REFUTE tolerances at any time, refute it: its shares and ranges no longer reach the
+  core, for the rest of its session. Its shares do reach the core until then: a restarted vessel that its
+  neighbours ignored for the seconds of a proof would be a vessel they do not keep their distance from (a
+  restart test came to 1.4 m that way). So a process that declares a dead vessel's id steers for the few
+  seconds before it is refuted (about 5 s), not for good.
+  Ranges see a lie along the line of sight only: a claim that moves across it agrees with the ranges for
+  a while, and the hull-lying-still test is what catches the dead vessel's slot claimed on the circle.
 What TLS adds: only a fleet certificate may declare a vessel's token, and only its own (docs/deploy.md);
 the table then holds the fleet. Ranges forged on our own `sensor/uwb` key, possible without TLS, would
 forge the evidence too.
@@ -51,18 +54,20 @@ TREND = 0.6              # m: how far the residuals may move over the window (ve
 STILL_MARGIN = 0.2       # m: how much worse than a hull lying still the claims may fit the ranges
 SUSTAIN = 30             # judgements in a row that must agree (a lie agreeing by chance for a moment does not)
 REFUTE = 2.0             # a misfit beyond this many tolerances refutes an id declared again, for its session
+DOUBT = 20               # judgements in a row that disagree refute an id not yet proven
 PAIR_GAP = 0.5           # s: the widest gap between two odometry samples a range is interpolated across
 OFFSET_MAX_AGE = 600.0   # s: an offset learnt longer ago than this is not used
 
 
 class Entry:
-    __slots__ = ("agreed", "claimed", "declared", "pending", "proven", "refuted", "samples", "watched")
+    __slots__ = ("agreed", "claimed", "declared", "doubted", "pending", "proven", "refuted", "samples", "watched")
 
     def __init__(self, declared: int, proven: bool) -> None:
         self.declared = declared          # the order of its declaration (oldest first out)
         self.proven = proven
         self.watched = not proven         # declared again: judged by its ranges for the whole session
         self.agreed = 0                   # judgements in a row that found its claims in agreement
+        self.doubted = 0                  # ... and that did not
         self.refuted = False              # its claims were found far from the ranges: not for this session
         self.claimed: deque[tuple[float, float, float]] = deque(maxlen=HISTORY)   # (stamp, x, y) it claims
         self.pending: deque[tuple[float, float]] = deque(maxlen=HISTORY)          # (stamp, range) to pair
@@ -85,7 +90,7 @@ class PeerTable:
         self._seen: OrderedDict[str, None] = OrderedDict()   # ids declared before (ranged ones kept longest)
         self._offsets: dict[str, tuple[np.ndarray, float]] = {}   # id -> (c, when learnt): vetting.py
         self._own: deque[tuple[float, float, float]] = deque(maxlen=HISTORY)
-        self._candidates: frozenset[str] = frozenset()
+        self._withheld: frozenset[str] = frozenset()
 
     # ----- tokens (Zenoh's threads) -----
     def declare(self, peer: str) -> tuple[bool, list[str]]:
@@ -130,8 +135,14 @@ class PeerTable:
         with self._lock:
             return frozenset(self._entries)
 
-    def candidates(self) -> frozenset[str]:
-        return self._candidates
+    def withheld(self) -> frozenset[str]:
+        """The ids whose shares and ranges do not reach the core (refuted)."""
+        return self._withheld
+
+    def unproven(self) -> frozenset[str]:
+        """The ids declared again whose claims have not (yet) agreed with the ranges long enough."""
+        with self._lock:
+            return frozenset(p for p, e in self._entries.items() if e.watched and not e.proven)
 
     def _victim(self, newcomer_ranged: bool) -> str | None:
         """The entry a new token evicts: the oldest without ranges, unproven before proven; for a ranged
@@ -150,43 +161,14 @@ class PeerTable:
     # ----- the tick -----
     def vet(self, inputs: TickInputs) -> TickInputs:
         """Gather the evidence of this tick for each id declared again and judge it; the inputs without the
-        shares and ranges of those not proven (the inputs themselves when there is none). A proven one stays
-        under watch for its session: a misfit beyond REFUTE tolerances later takes its proof away."""
+        shares and ranges of those refuted (the inputs themselves when there is none)."""
         if inputs.odometry is not None and (not self._own or inputs.odometry.stamp > self._own[-1][0]):
             self._own.append((inputs.odometry.stamp, *map(float, inputs.odometry.position)))
         with self._lock:
-            entries = {p: e for p, e in self._entries.items() if e.watched}
-        if not entries:
-            return inputs
-        sets = [*inputs.earlier_ranges, (inputs.time if inputs.range_stamp is None else inputs.range_stamp,
-                                         inputs.ranges)]
-        verdicts = {}
-        for peer, entry in entries.items():
-            if entry.refuted:
-                continue
-            share = inputs.shares.get(peer)
-            if share is not None and (not entry.claimed or share.odometry.stamp > entry.claimed[-1][0]):
-                entry.claimed.append((share.odometry.stamp, *map(float, share.odometry.position)))
-            entry.pending.extend((stamp, float(ranges[peer])) for stamp, ranges in sets if peer in ranges)
-            self._pair(entry)
-            judged = self._misfit(peer, entry, inputs.time)
-            if judged is not None and judged[0] > REFUTE * self.tolerance:
-                verdicts[peer] = "refuted"
-                continue
-            agrees = (judged is not None and judged[0] <= self.tolerance and abs(judged[1]) <= TREND
-                      and judged[2] <= STILL_MARGIN)
-            entry.agreed = entry.agreed + 1 if agrees else 0
-            if not entry.proven and entry.agreed >= SUSTAIN:
-                verdicts[peer] = "proven"
-        with self._lock:
-            for peer, verdict in verdicts.items():
-                entry = entries[peer]
-                if self._entries.get(peer) is not entry:
-                    continue   # gone (or declared again) meanwhile
-                entry.proven, entry.refuted = verdict == "proven", verdict == "refuted"
-                self.counts[f"peers_{verdict}"] += 1
-            self._update()
-            withheld = self._candidates
+            entries = {p: e for p, e in self._entries.items() if e.watched and not e.refuted}
+        if entries:
+            self._judge(inputs, entries)
+        withheld = self._withheld
         if not withheld:
             return inputs
         return replace(inputs, shares={p: s for p, s in inputs.shares.items() if p not in withheld},
@@ -194,9 +176,43 @@ class PeerTable:
                        earlier_ranges=tuple((t, {p: r for p, r in ranges.items() if p not in withheld})
                                             for t, ranges in inputs.earlier_ranges))
 
+    def _judge(self, inputs: TickInputs, entries: dict[str, Entry]) -> None:
+        sets = [*inputs.earlier_ranges, (inputs.time if inputs.range_stamp is None else inputs.range_stamp,
+                                         inputs.ranges)]
+        verdicts = {}
+        for peer, entry in entries.items():
+            share = inputs.shares.get(peer)
+            if share is not None and (not entry.claimed or share.odometry.stamp > entry.claimed[-1][0]):
+                entry.claimed.append((share.odometry.stamp, *map(float, share.odometry.position)))
+            entry.pending.extend((stamp, float(ranges[peer])) for stamp, ranges in sets if peer in ranges)
+            self._pair(entry)
+            judged = self._misfit(peer, entry, inputs.time)
+            if judged is None:
+                continue
+            if judged[0] > REFUTE * self.tolerance:
+                verdicts[peer] = "refuted"
+                continue
+            agrees = judged[0] <= self.tolerance and abs(judged[1]) <= TREND and judged[2] <= STILL_MARGIN
+            entry.agreed, entry.doubted = (entry.agreed + 1, 0) if agrees else (0, entry.doubted + 1)
+            if not entry.proven and entry.doubted >= DOUBT:
+                verdicts[peer] = "refuted"
+            elif not entry.proven and entry.agreed >= SUSTAIN:
+                verdicts[peer] = "proven"
+        with self._lock:
+            for peer, verdict in verdicts.items():
+                entry = entries[peer]
+                if self._entries.get(peer) is not entry:
+                    continue   # gone (or declared again) meanwhile
+                if verdict == "refuted":
+                    entry.refuted, entry.proven = True, False
+                else:
+                    entry.proven = True
+                self.counts[f"peers_{verdict}"] += 1
+            self._update()
+
     def _update(self) -> None:
-        """(with the lock) The ids whose shares are withheld: declared again and not (or no longer) proven."""
-        self._candidates = frozenset(p for p, e in self._entries.items() if not e.proven)
+        """(with the lock) The ids whose shares and ranges are withheld from the core: refuted ones."""
+        self._withheld = frozenset(p for p, e in self._entries.items() if e.refuted)
 
     def learn(self, inputs: TickInputs, record: TickRecord | None) -> None:
         """The offset c between our odometry frame and each localised neighbour's (agent/core/vetting.py):
