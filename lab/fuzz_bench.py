@@ -22,6 +22,11 @@ Every command the agent publishes is recorded and checked (finite, |surge| <= U_
 omega*); the agent's peak resident memory is read from /proc (VmHWM) before and after; after the storm a
 few genuine ticks must bring commands that move the vessel again. `tests/test_fuzz.py` runs a campaign of
 5,000 payloads per key; `usv-lab fuzz` a larger one and writes docs/results/fuzz.md.
+
+`usv-lab fuzz` then plays targeted attacks on the mission keys and on liveliness (`run_attacks`, ATTACKS):
+a seq of 2^63 - 1, 300 new senders and a replayed hold, a flood from one sender while usv-op holds, 300
+forged liveliness tokens and a vessel's restart, a dead vessel's id declared by another process; after
+each, the operator's `usv-op hold` and `usv-op resume` must be applied. `tests/test_attacks.py` runs them.
 """
 
 from __future__ import annotations
@@ -541,8 +546,8 @@ def run(args: argparse.Namespace) -> int:
             print(f"  tick {done}/{total}", flush=True)
 
     results = run_campaign(per_key=args.per_key, seed=args.seed, progress=progress)
-    print(f"attacks on the mission keys and liveliness, seed {args.seed} ...", flush=True)
-    attacks = run_attacks(seed=args.seed, progress=lambda name: print(f"  {name}", flush=True))
+    print("attacks on the mission keys and liveliness ...", flush=True)
+    attacks = run_attacks(progress=lambda name: print(f"  {name}", flush=True))
     args.out.mkdir(parents=True, exist_ok=True)
     path = args.out / "fuzz.md"
     path.write_text(render(invocation(args), results, baseline) + "\n".join(render_attacks(attacks)))
@@ -683,10 +688,9 @@ class AttackHarness:
     (ranges to 2 and 3 from where their hulls are), the shares of 2 and 3 (or of whoever speaks for them),
     their liveliness tokens and the sim clock."""
 
-    def __init__(self, folder: Path, seed: int) -> None:
+    def __init__(self, folder: Path) -> None:
         from sim_bridge.fleet import free_port
 
-        self.rng = np.random.default_rng(seed)
         self.world = World()
         self.folder = folder
         self.port = free_port()
@@ -958,15 +962,15 @@ class AttackHarness:
         attack.verdict = steered == 0
 
 
-def run_attacks(seed: int = 1, cases: tuple[str, ...] = ATTACKS, folder: Path | None = None,
-                progress=None) -> AttackResults:
+def run_attacks(cases: tuple[str, ...] = ATTACKS, folder: Path | None = None, progress=None) -> AttackResults:
     """Play `cases` (names from ATTACKS, in that order) against one agent process; after each, the operator's
-    `hold` and `resume` to vessel 1 through usv-op."""
+    `hold` and `resume` to vessel 1 through usv-op. The cases draw no random numbers: what varies from run to
+    run is the timing of the processes."""
     temporary = tempfile.TemporaryDirectory(prefix="usv-attacks-") if folder is None else None
     folder = Path(temporary.name) if temporary is not None else folder
     folder.mkdir(parents=True, exist_ok=True)
     started = time.monotonic()
-    harness = AttackHarness(folder, seed)
+    harness = AttackHarness(folder)
     attacks = []
     try:
         harness.start()

@@ -14,12 +14,12 @@ pytestmark = pytest.mark.slow   # an agent process and usv-op over Zenoh at the 
 
 @pytest.fixture(scope="module")
 def mission_attacks(tmp_path_factory):
-    return run_attacks(seed=1, cases=MISSION_ATTACKS, folder=tmp_path_factory.mktemp("mission"))
+    return run_attacks(cases=MISSION_ATTACKS, folder=tmp_path_factory.mktemp("mission"))
 
 
 @pytest.fixture(scope="module")
 def liveliness_attacks(tmp_path_factory):
-    return run_attacks(seed=2, cases=LIVELINESS_ATTACKS, folder=tmp_path_factory.mktemp("liveliness"))
+    return run_attacks(cases=LIVELINESS_ATTACKS, folder=tmp_path_factory.mktemp("liveliness"))
 
 
 def check_sound(results) -> None:
