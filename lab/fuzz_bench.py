@@ -899,7 +899,7 @@ class AttackHarness:
 
     def spoofed_alive_restart(self, attack: Attack) -> None:
         """FORGED_TOKENS forged tokens fill the table; then vessel 2 restarts (its token and shares go away
-        for 1.5 s and come back): it must be a neighbour again."""
+        for 1.5 s and come back) while 20 more are declared: it must be a neighbour again."""
         forger = zenoh.open(zenoh_config(ZenohSettings(connect=[f"tcp/127.0.0.1:{self.port}"])))
         self.others.append(forger)
         self.held_tokens += [forger.liveliness().declare_token(f"usv/forged{n}/alive")
@@ -909,7 +909,11 @@ class AttackHarness:
         with self.lock:
             self.speakers["2"] = None
         self.tokens["2"].undeclare()
-        self.wait_ticks(15)
+        self.wait_ticks(5)
+        # The forger goes on declaring new ids: the place vessel 2 left is taken before it comes back.
+        self.held_tokens += [forger.liveliness().declare_token(f"usv/forged{n}/alive")
+                             for n in range(FORGED_TOKENS, FORGED_TOKENS + 20)]
+        self.wait_ticks(10)
         self.tokens["2"] = self.session.liveliness().declare_token("usv/2/alive")
         with self.lock:
             self.speakers["2"] = self.world.share
@@ -1008,7 +1012,8 @@ def render_attacks(results: AttackResults) -> list[str]:
         f"- junk_senders_replay: a console holds and resumes within 0.2 s, {JUNK_SENDERS} new senders",
         "  speak, and the captured hold is replayed 0.5 s after it was stamped;",
         f"- flood: up to {FLOOD_RATE} commands/s from one sender while usv-op holds;",
-        f"- spoofed_alive_restart: {FORGED_TOKENS} forged tokens, then vessel 2 restarts (1.5 s away);",
+        f"- spoofed_alive_restart: {FORGED_TOKENS} forged tokens, then vessel 2 restarts (1.5 s away) while",
+        "  20 more are declared;",
         "- takeover_after_kill: vessel 3 is killed (its hull stops where it is) and a process declares its",
         "  token and shares the slot on the circle it would be on.",
         "",

@@ -54,6 +54,7 @@ def test_a_flood_from_one_sender_does_not_refuse_the_operators_hold(mission_atta
 def test_300_forged_tokens_do_not_keep_a_restarted_vessel_out(liveliness_attacks):
     attack = liveliness_attacks.by_name()["spoofed_alive_restart"]
     assert attack.figures["peers_in_status"] >= 200                      # the forgeries did fill the table
+    assert attack.figures["evicted"] >= 1                                # and took the place 2 left
     assert attack.figures["vessel_2_live"] and attack.figures["proven_after_s"], attack.figures
     check_operator(attack)
     check_sound(liveliness_attacks)
