@@ -283,11 +283,15 @@ class ReceivedShare(_ShareBody):
 
 class MissionCommand(Header):
     """What the operator tells the fleet (`mission/all`) or one vessel (`mission/<id>`). `sender` is the
-    operator's id; `seq` must grow from one command of a sender to the next (an agent refuses a replayed one).
+    operator's id; (`sender`, `session`, `seq`) names one command: an agent refuses a second one of the same
+    name while its stamp is within the input window (a replay), and a sender starting again takes a new
+    session (usv-op: a random one per invocation), so that its seqs may start anywhere.
     `hold`: stop and keep station, as the watchdog does; `resume`, `start`: circle again; `set`: a new circle
     radius, yaw rate (its size) and/or direction, taken at the next tick."""
 
     command: Literal["start", "hold", "resume", "set"]
+    session: str = Field("", max_length=32, pattern=r"^[A-Za-z0-9_-]*$",
+                         description="the sender's session: a new one for each run of the sender")
     # strict: JSON true is not a radius of 1 m.
     radius: Annotated[float, Field(gt=0, le=MAX_RADIUS, allow_inf_nan=False, strict=True)] | None = Field(
         None, description="set: r*, the circle's radius (m)")

@@ -22,6 +22,11 @@ Every command the agent publishes is recorded and checked (finite, |surge| <= U_
 omega*); the agent's peak resident memory is read from /proc (VmHWM) before and after; after the storm a
 few genuine ticks must bring commands that move the vessel again. `tests/test_fuzz.py` runs a campaign of
 5,000 payloads per key; `usv-lab fuzz` a larger one and writes docs/results/fuzz.md.
+
+`usv-lab fuzz` then plays targeted attacks on the mission keys and on liveliness (`run_attacks`, ATTACKS):
+a seq of 2^63 - 1, 300 new senders and a replayed hold, a flood from one sender while usv-op holds, 300
+forged liveliness tokens and a vessel's restart, a dead vessel's id declared by another process; after
+each, the operator's `usv-op hold` and `usv-op resume` must be applied. `tests/test_attacks.py` runs them.
 """
 
 from __future__ import annotations
@@ -29,6 +34,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import re
 import signal
 import subprocess
 import sys
@@ -36,6 +42,7 @@ import tempfile
 import threading
 import time
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -543,13 +550,18 @@ def run(args: argparse.Namespace) -> int:
 
     results = run_campaign(per_key=args.per_key, seed=args.seed, progress=progress)
     serial_section, serial_sound = serial_fuzz.page_section(args.serial_lines, args.seed, invocation(args))
+    print("attacks on the mission keys and liveliness ...", flush=True)
+    attacks = run_attacks(progress=lambda name: print(f"  {name}", flush=True))
     args.out.mkdir(parents=True, exist_ok=True)
     path = args.out / "fuzz.md"
-    path.write_text(render(invocation(args), results, baseline) + "\n" + serial_section)
+    path.write_text(render(invocation(args), results, baseline) + "\n".join(render_attacks(attacks)) + "\n"
+                    + serial_section)
     print(f"wrote {path}")
     sound = (results.alive_at_end and results.exit_code == 0 and not results.bad_commands
              and results.after_storm_moving > 0 and serial_sound)
-    return 0 if sound else 1
+    guarded = (attacks.alive_at_end and attacks.exit_code == 0 and not attacks.bad_commands
+               and all(a.verdict and a.operator_applied for a in attacks.attacks))
+    return 0 if sound and guarded else 1
 
 
 def render(command: str, results: Results, baseline: Results) -> str:
@@ -632,3 +644,388 @@ def render(command: str, results: Results, baseline: Results) -> str:
         "",
     ]
     return "\n".join(lines)
+
+
+# ----- attacks on the mission keys and on liveliness -----
+# Each case is played against one agent process on sim time, ticked at the pace of real time (usv-op stamps
+# with the sim clock and waits for the answers in the statuses); after each, the operator's genuine commands
+# (`usv-op hold` and `usv-op resume`, to vessel 1) must be applied.
+ATTACKS = ("seq_lockout", "junk_senders_replay", "flood", "spoofed_alive_restart", "takeover_after_kill")
+MISSION_ATTACKS, LIVELINESS_ATTACKS = ATTACKS[:3], ATTACKS[3:]
+FORGED_TOKENS = 300
+JUNK_SENDERS = 300
+FLOOD_RATE = 10000       # commands per second from one sender (at most: what one Python session puts)
+PROOF_WAIT = 16.0        # s of sim time a returning vessel is given to prove itself (and an impostor watched)
+OP_TIMEOUT = 30.0        # s a usv-op command may take (it waits 3 s for its answers)
+
+
+@dataclass
+class Attack:
+    name: str
+    verdict: bool = False      # what the case guards against did not happen
+    operator: list = field(default_factory=list)   # (usv-op command, exit code, its output), after the case
+    figures: dict = field(default_factory=dict)
+    detail: str = ""
+
+    @property
+    def operator_applied(self) -> bool:
+        return bool(self.operator) and all(code == 0 for _, code, _ in self.operator)
+
+
+@dataclass
+class AttackResults:
+    attacks: list[Attack] = field(default_factory=list)
+    commands: int = 0
+    bad_commands: list = field(default_factory=list)
+    alive_at_end: bool = False
+    exit_code: int | None = None
+    seconds: float = 0.0
+    health: dict[str, int] = field(default_factory=dict)
+    stderr_tail: str = ""
+    op_retries: int = 0
+
+    def by_name(self) -> dict[str, Attack]:
+        return {a.name: a for a in self.attacks}
+
+
+class AttackHarness:
+    """One agent process (vessel 1) and the world around it, ticked by a thread at real time: its sensors
+    (ranges to 2 and 3 from where their hulls are), the shares of 2 and 3 (or of whoever speaks for them),
+    their liveliness tokens and the sim clock."""
+
+    def __init__(self, folder: Path) -> None:
+        from sim_bridge.fleet import free_port
+
+        self.world = World()
+        self.folder = folder
+        self.port = free_port()
+        self.stderr_path = folder / "agent.err"
+        params = AgentParams()
+        control = params.control
+        self.limits = (control.max_speed, control.max_correction_yaw_rate + control.yaw_rate)
+        self.process = subprocess.Popen([sys.executable, "-m", "agent", "--vessel", VESSEL, "--config",
+                                         str(_agent_config(folder, port=self.port, world=self.world))],
+                                        stderr=self.stderr_path.open("w"))
+        self.lock = threading.Lock()
+        self.k = 0
+        self.frozen: dict[str, float] = {}            # vessel -> time its hull stopped
+        self.speakers: dict[str, Callable | None] = {j: self.world.share for j in PEERS}   # j -> share(j, k)
+        self.status: dict = {}
+        self.commands = 0
+        self.bad_commands: list = []
+        self.op_retries = 0
+        self.stop = threading.Event()
+        self.session = zenoh.open(zenoh_config(ZenohSettings(connect=[f"tcp/127.0.0.1:{self.port}"])))
+        self.session.declare_subscriber(f"usv/{VESSEL}/cmd", self._on_command)
+        self.session.declare_subscriber(f"usv/{VESSEL}/status", self._on_status)
+        self.tokens = {j: self.session.liveliness().declare_token(f"usv/{j}/alive") for j in PEERS}
+        self.publishers: dict[str, object] = {}
+        self.others: list = []   # the forger's and the impostor's sessions
+        self.held_tokens: list = []   # theirs (a token dropped is undeclared)
+        self.ticker = threading.Thread(target=self._tick_on, daemon=True)
+
+    # ----- the world -----
+    def now_ns(self) -> int:
+        return round(self.k * DT * SECOND)
+
+    def position(self, vessel: str, t: float) -> np.ndarray:
+        return self.world.position(vessel, min(t, self.frozen.get(vessel, t)))
+
+    def put(self, key: str, payload: bytes) -> None:
+        publisher = self.publishers.get(key)
+        if publisher is None:
+            publisher = self.publishers[key] = self.session.declare_publisher(
+                key, congestion_control=zenoh.CongestionControl.BLOCK)
+        publisher.put(payload)
+
+    def _tick_on(self) -> None:
+        next_at = time.monotonic()
+        while not self.stop.is_set() and self.process.poll() is None:
+            with self.lock:
+                k = self.k
+                t = k * DT
+                sensors = self.world.sensors(k)
+                me = self.world.position(VESSEL, t)
+                sensors["sensor/uwb"]["ranges"] = {j: float(np.linalg.norm(me - self.position(j, t)))
+                                                   for j in PEERS}
+                speakers = dict(self.speakers)
+            for topic, body in sensors.items():
+                self.put(f"usv/{VESSEL}/{topic}", json.dumps(body).encode())
+            for j, speaker in speakers.items():
+                if speaker is not None:
+                    self.put(f"usv/{j}/share", json.dumps(speaker(j, k)).encode())
+            self.put("sim/clock", json.dumps(self.world.clock(k)).encode())
+            with self.lock:
+                self.k += 1
+            next_at += DT
+            self.stop.wait(max(0.0, next_at - time.monotonic()))
+
+    def _on_command(self, sample) -> None:
+        try:
+            command = json.loads(sample.payload.to_bytes())
+            surge, yaw_rate = float(command["surge"]), float(command["yaw_rate"])
+            sound = (math.isfinite(surge) and math.isfinite(yaw_rate) and abs(surge) <= self.limits[0]
+                     and abs(yaw_rate) <= self.limits[1] * (1 + 1e-9))
+        except (ValueError, KeyError, TypeError) as error:
+            command, sound = {"error": str(error)}, False
+        with self.lock:
+            self.commands += 1
+            if not sound:
+                self.bad_commands.append(command)
+
+    def _on_status(self, sample) -> None:
+        try:
+            status = json.loads(sample.payload.to_bytes())
+        except ValueError:
+            return
+        if status.get("ticked"):
+            with self.lock:
+                self.status = status
+
+    def latest(self) -> dict:
+        with self.lock:
+            return dict(self.status)
+
+    def wait_ticks(self, n: int) -> None:
+        target = self.k + n
+        _wait(lambda: self.k >= target or self.process.poll() is not None, n * DT * 10 + 5)
+
+    def start(self) -> None:
+        self.ticker.start()
+        deadline = time.monotonic() + 60
+        while not set(PEERS) <= set(self.latest().get("peers", [])):
+            if self.process.poll() is not None or time.monotonic() > deadline:
+                raise RuntimeError(f"the agent did not come up: {self.stderr_path.read_text()[-2000:]}")
+            time.sleep(0.05)
+        self.wait_ticks(30)   # the pairs localise
+
+    def op(self, *args: str) -> tuple[str, int, str]:
+        """The operator's command line, as an operator runs it, to vessel 1. Run again once if it heard no sim
+        clock in its half second of listening (a loaded machine) and so stamped with the wall clock: that is
+        usv-op's start-up, not the attack (counted in `op_retries`)."""
+        for _ in range(2):
+            try:
+                result = subprocess.run([sys.executable, "-m", "usv_op", "--connect",
+                                         f"tcp/127.0.0.1:{self.port}", *args, "--vessel", VESSEL],
+                                        capture_output=True, text=True,
+                                        timeout=OP_TIMEOUT, check=False)
+            except subprocess.TimeoutExpired:
+                return " ".join(args), -1, f"usv-op did not finish in {OP_TIMEOUT:g} s"
+            said = (result.stdout + result.stderr).strip()[-500:]
+            if not re.search(r"refused: future: stamped \d{6,}", said):
+                break
+            self.op_retries += 1
+        return " ".join(args), result.returncode, said
+
+    def mission(self, sender: str, seq: int, command: str, stamp_ns: int | None = None, **values) -> bytes:
+        return json.dumps({"stamp_ns": self.now_ns() if stamp_ns is None else stamp_ns, "seq": seq,
+                           "sender": sender, "command": command, **values}).encode()
+
+    def close(self) -> AttackResults:
+        results = AttackResults()
+        self.stop.set()
+        self.ticker.join(timeout=10)
+        results.alive_at_end = self.process.poll() is None
+        results.health = dict(self.latest().get("health", {}))
+        for token in self.tokens.values():
+            if token is not None:
+                token.undeclare()
+        for token in self.held_tokens:
+            token.undeclare()
+        for session in self.others:
+            session.close()
+        self.session.close()
+        if self.process.poll() is None:
+            self.process.send_signal(signal.SIGTERM)
+            try:
+                self.process.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                self.process.kill()
+                self.process.wait()
+        results.exit_code = self.process.returncode
+        results.commands, results.bad_commands = self.commands, list(self.bad_commands)
+        results.op_retries = self.op_retries
+        results.stderr_tail = self.stderr_path.read_text(errors="replace")[-3000:]
+        return results
+
+    # ----- the cases -----
+    def seq_lockout(self, attack: Attack) -> None:
+        """One `resume` from "operator" with seq 2^63 - 1 must not lock the operator out."""
+        self.put("mission/all", self.mission("operator", 2**63 - 1, "resume"))
+        self.wait_ticks(3)
+        attack.verdict = True   # the operator's commands that follow are the verdict
+
+    def junk_senders_replay(self, attack: Attack) -> None:
+        """The operator holds and resumes within half a second; JUNK_SENDERS new senders speak; the hold,
+        captured, is replayed within the window: it must not be applied again."""
+        seq = time.time_ns()
+        hold = self.mission("console", seq, "hold")   # an operator's console of its own
+        self.put("mission/all", hold)
+        self.wait_ticks(2)
+        self.put("mission/all", self.mission("console", seq + 1, "resume"))
+        self.wait_ticks(2)
+        for n in range(JUNK_SENDERS):
+            self.put("mission/all", self.mission(f"junk{n}", 1, "set", radius=RADIUS, direction="ccw"))
+        self.wait_ticks(1)
+        self.put("mission/all", hold)   # stamped 0.5 s ago: within the window
+        self.wait_ticks(5)
+        status = self.latest()
+        attack.figures = {"held_after_replay": bool(status.get("held")),
+                          "refused_replayed": status.get("health", {}).get("rejected_mission_replayed", 0)}
+        attack.verdict = not status.get("held")
+
+    def flood(self, attack: Attack) -> None:
+        """One sender floods FLOOD_RATE commands a second while the operator's `hold` goes out."""
+        done = threading.Event()
+        sent = [0]
+
+        def flood() -> None:
+            started, n = time.monotonic(), 0
+            while not done.is_set():
+                self.put("mission/all", self.mission("flood", n + 1, "set", radius=RADIUS, direction="ccw"))
+                n += 1
+                ahead = n / FLOOD_RATE - (time.monotonic() - started)
+                if ahead > 0:
+                    time.sleep(ahead)
+            sent[0] = n
+
+        thread = threading.Thread(target=flood, daemon=True)
+        began = time.monotonic()
+        thread.start()
+        time.sleep(0.5)
+        attack.operator.append(self.op("hold"))
+        held = bool(self.latest().get("held"))
+        done.set()
+        thread.join(timeout=10)
+        rate = round(sent[0] / max(1e-9, time.monotonic() - began))
+        attack.figures = {"flood_commands": sent[0], "flood_per_s": rate, "held": held,
+                          "refused_flood": self.latest().get("health", {}).get("rejected_mission_flood", 0)}
+        attack.verdict = attack.operator[-1][1] == 0 and held
+
+    def spoofed_alive_restart(self, attack: Attack) -> None:
+        """FORGED_TOKENS forged tokens fill the table; then vessel 2 restarts (its token and shares go away
+        for 1.5 s and come back) while 20 more are declared: it must be a neighbour again."""
+        forger = zenoh.open(zenoh_config(ZenohSettings(connect=[f"tcp/127.0.0.1:{self.port}"])))
+        self.others.append(forger)
+        self.held_tokens += [forger.liveliness().declare_token(f"usv/forged{n}/alive")
+                             for n in range(FORGED_TOKENS)]
+        self.wait_ticks(10)
+        before = self.latest().get("health", {})
+        with self.lock:
+            self.speakers["2"] = None
+        self.tokens["2"].undeclare()
+        self.wait_ticks(5)
+        # The forger goes on declaring new ids: the place vessel 2 left is taken before it comes back.
+        self.held_tokens += [forger.liveliness().declare_token(f"usv/forged{n}/alive")
+                             for n in range(FORGED_TOKENS, FORGED_TOKENS + 20)]
+        self.wait_ticks(10)
+        self.tokens["2"] = self.session.liveliness().declare_token("usv/2/alive")
+        with self.lock:
+            self.speakers["2"] = self.world.share
+        back = self.k
+        deadline = back + round(PROOF_WAIT / DT)
+        _wait(lambda: self.latest().get("health", {}).get("peers_proven", 0) > before.get("peers_proven", 0)
+              or self.k >= deadline or self.process.poll() is not None, PROOF_WAIT * 3)
+        status = self.latest()
+        health = status.get("health", {})
+        attack.figures = {
+            "forged_tokens": FORGED_TOKENS, "peers_in_status": len(status.get("peers", [])),
+            "vessel_2_live": "2" in status.get("peers", []),
+            "proven_after_s": round((self.k - back) * DT, 1) if health.get("peers_proven", 0) else None,
+            "shares_refused_unknown_sender": health.get("rejected_unknown_sender", 0)
+            - before.get("rejected_unknown_sender", 0),
+            "evicted": health.get("peers_evicted", 0)}
+        attack.verdict = "2" in status.get("peers", []) and bool(attack.figures["proven_after_s"])
+
+    def takeover_after_kill(self, attack: Attack) -> None:
+        """Vessel 3 is killed (its token and shares go; its hull stops where it is); a process declares its
+        token and shares odometry that goes on circling: it must not become vessel 3."""
+        with self.lock:
+            self.speakers["3"] = None
+            self.frozen["3"] = self.k * DT
+        self.tokens["3"].undeclare()
+        self.tokens["3"] = None
+        self.wait_ticks(15)
+        impostor = zenoh.open(zenoh_config(ZenohSettings(connect=[f"tcp/127.0.0.1:{self.port}"])))
+        self.others.append(impostor)
+        self.held_tokens.append(impostor.liveliness().declare_token("usv/3/alive"))
+        with self.lock:
+            self.speakers["3"] = self.world.share     # the circle it would be on, not where its hull is
+        came = self.k
+        estimates: list[bool] = []
+
+        def on_share(sample) -> None:
+            try:
+                estimates.append("3" in json.loads(sample.payload.to_bytes()).get("neighbours", {}))
+            except ValueError:
+                pass
+
+        watcher = self.session.declare_subscriber(f"usv/{VESSEL}/share", on_share)
+        self.wait_ticks(round(PROOF_WAIT / DT))
+        watcher.undeclare()
+        health = self.latest().get("health", {})
+        steered = sum(estimates[-round(PROOF_WAIT / DT / 2):])   # shares of the last half estimating 3
+        attack.figures = {"seconds_watched": round((self.k - came) * DT, 1),
+                          "shares_with_3_in_last_half": steered, "refuted": health.get("peers_refuted", 0),
+                          "withheld": health.get("peers_withheld", 0)}
+        attack.verdict = steered == 0
+
+
+def run_attacks(cases: tuple[str, ...] = ATTACKS, folder: Path | None = None, progress=None) -> AttackResults:
+    """Play `cases` (names from ATTACKS, in that order) against one agent process; after each, the operator's
+    `hold` and `resume` to vessel 1 through usv-op. The cases draw no random numbers: what varies from run to
+    run is the timing of the processes."""
+    temporary = tempfile.TemporaryDirectory(prefix="usv-attacks-") if folder is None else None
+    folder = Path(temporary.name) if temporary is not None else folder
+    folder.mkdir(parents=True, exist_ok=True)
+    started = time.monotonic()
+    harness = AttackHarness(folder)
+    attacks = []
+    try:
+        harness.start()
+        for name in cases:
+            if progress is not None:
+                progress(name)
+            attack = Attack(name)
+            try:
+                getattr(harness, name)(attack)
+            except Exception as error:  # noqa: BLE001  (a broken case is a failed one, said so)
+                attack.detail = f"{type(error).__name__}: {error}"
+            attack.operator += [harness.op("hold"), harness.op("resume")]
+            attacks.append(attack)
+    finally:
+        results = harness.close()
+        results.attacks = attacks
+        results.seconds = time.monotonic() - started
+        if temporary is not None:
+            temporary.cleanup()
+    return results
+
+
+def render_attacks(results: AttackResults) -> list[str]:
+    """The attacks' section of the fuzz page."""
+    rows = [[a.name, "yes" if a.verdict else "**no**", "yes" if a.operator_applied else "**no**",
+             ", ".join(f"{k} {v}" for k, v in a.figures.items()) + (f" ({a.detail})" if a.detail else "")]
+            for a in results.attacks]
+    return [
+        "## Attacks on the mission keys and on liveliness",
+        "",
+        "One agent process on sim time at the pace of real time, its world played by a Zenoh session",
+        "(vessels 2 and 3 share and are ranged); each case in turn, then `usv-op hold` and `usv-op resume`",
+        "to vessel 1 as an operator runs them (`lab/fuzz_bench.py` AttackHarness):",
+        "- seq_lockout: one `resume` with seq 2^63 - 1 as \"operator\";",
+        f"- junk_senders_replay: a console holds and resumes within 0.2 s, {JUNK_SENDERS} new senders",
+        "  speak, and the captured hold is replayed 0.5 s after it was stamped;",
+        f"- flood: up to {FLOOD_RATE} commands/s from one sender while usv-op holds;",
+        f"- spoofed_alive_restart: {FORGED_TOKENS} forged tokens, then vessel 2 restarts (1.5 s away) while",
+        "  20 more are declared;",
+        "- takeover_after_kill: vessel 3 is killed (its hull stops where it is) and a process declares its",
+        "  token and shares the slot on the circle it would be on.",
+        "",
+        markdown_table(["case", "guarded", "operator's hold and resume applied", "figures"], rows),
+        "",
+        (f"Commands: {results.commands}, non-finite or beyond the limits: **{len(results.bad_commands)}**; "
+         f"agent alive at the end: **{results.alive_at_end}**, exit code {results.exit_code}; "
+         f"{results.seconds:.0f} s; usv-op run again for want of a sim clock heard: {results.op_retries}."),
+        "",
+    ]

@@ -8,9 +8,10 @@
 
 A command goes to `mission/all` (or `mission/<ID>`), stamped with the fleet's clock: the sim clock when one
 is heard (a simulated fleet), else this computer's clock (a fleet at sea runs on synchronised wall clocks).
-Its `seq` is the wall clock in ns, so it grows from one invocation to the next. The command then waits for
-each live agent it addresses (liveliness) to answer in its status: exit 0 if every one applied it, 1 if one
-refused it or did not answer within --deadline (each is named), 2 on a usage error.
+Its `seq` is the wall clock in ns and its `session` a random one per invocation: an agent refuses a second
+command of the same sender, session and seq while it is within the stamp window (a replay). The command
+then waits for each live agent it addresses (liveliness) to answer in its status: exit 0 if every one
+applied it, 1 if one refused it or did not answer within --deadline (each is named), 2 on a usage error.
 
 Zenoh: `--connect` endpoints (the shore router, or a vessel's agent on loopback), or the ZENOH_CONFIG file
 and ZENOH_CONFIG_OVERRIDE as for every process (agent/runtime/zenoh_session.py).
@@ -21,10 +22,13 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import secrets
 import signal
 import sys
 import threading
 import time
+
+import zenoh
 
 from agent.config import ConfigError
 from agent.contract import (
@@ -41,7 +45,7 @@ from agent.contract import (
 )
 from agent.runtime.zenoh_session import SessionError, ZenohSettings, open_session
 from usv_op.layout import fleet_layout
-from usv_op.view import serve
+from usv_op.view import MAX_VESSELS, serve
 
 CLOCK_LISTEN = 0.5      # s to listen for a sim clock before stamping with the wall clock
 DISCOVERY = 1.0         # s to wait for the agents' liveliness tokens
@@ -56,30 +60,41 @@ def _settings(args: argparse.Namespace) -> ZenohSettings:
 
 
 def live_vessels(session, wait: float = DISCOVERY) -> set[str]:
-    """The vessels whose agent holds its liveliness token now."""
+    """The vessels whose agent holds its liveliness token now. The replies go to a callback: iterating the
+    default channel hung for good once 256 tokens were declared (forged ones, without TLS)."""
     found: set[str] = set()
-    for reply in session.liveliness().get(every(LIVELINESS), timeout=wait):
+    done = threading.Event()
+
+    def on_reply(reply) -> None:
         if reply.ok is not None:
             vessel = vessel_of(str(reply.ok.key_expr))
             if vessel is not None:
                 found.add(vessel)
-    return found
+
+    session.liveliness().get(every(LIVELINESS), zenoh.handlers.Callback(on_reply, done.set), timeout=wait)
+    done.wait(wait + CLOSE_WAIT)
+    return set(found)
 
 
-def fleet_stamp(session) -> int:
-    """Now in the fleet's clock (ns): the latest sim clock heard within CLOCK_LISTEN, else the wall clock."""
-    heard: list[int] = []
-    subscriber = session.declare_subscriber(CLOCK_KEY, lambda sample: heard.append(sample.payload.to_bytes()))
+def fleet_clock(session):
+    """A function giving now in the fleet's clock (ns): the latest sim clock heard within CLOCK_LISTEN carried
+    on by the time since it was heard, else the wall clock. A command is stamped just before it goes out: the
+    discovery before it may take a second or two (a fleet with many tokens), and a command stamped before
+    it would come stale."""
+    heard: list[tuple[bytes, float]] = []
+    subscriber = session.declare_subscriber(
+        CLOCK_KEY, lambda sample: heard.append((sample.payload.to_bytes(), time.monotonic())))
     time.sleep(CLOCK_LISTEN)
     subscriber.undeclare()
-    for payload in reversed(heard):
+    for payload, arrived in reversed(heard):
         clock, _ = decode(Clock, payload)
         if clock is not None:
-            return clock.stamp_ns
-    return time.time_ns()
+            return lambda: clock.stamp_ns + round((time.monotonic() - arrived) * 1e9)
+    return time.time_ns
 
 
-def send(session, command: MissionCommand, vessel: str | None, deadline: float, out=print) -> int:
+
+def send(session, command: MissionCommand, vessel: str | None, deadline: float, out=print, clock=None) -> int:
     """Publish `command` to `vessel` (None: the fleet) and wait for the answers; the exit code.
 
     The vessels expected to answer are the live ones: those whose liveliness token this session sees, and
@@ -116,6 +131,8 @@ def send(session, command: MissionCommand, vessel: str | None, deadline: float, 
         if not addressed:
             out("usv-op: no live vessel to command")
             return 1
+        if clock is not None:   # stamped now, after the discovery
+            command = command.model_copy(update={"stamp_ns": clock()})
         session.put(mission_key(vessel), encode(command))
         done.wait(deadline)
     finally:
@@ -147,7 +164,7 @@ def _command(args: argparse.Namespace, stamp_ns: int) -> MissionCommand:
         except ValueError:
             raise ConfigError(f"{item!r}: {text!r} is not a number") from None
     return MissionCommand(stamp_ns=stamp_ns, seq=time.time_ns(), sender=args.sender, command=args.command,
-                          **values)
+                          session=secrets.token_hex(8), **values)
 
 
 def status_lines(statuses: dict[str, tuple[float, Status]], live: set[str], now: float,
@@ -227,6 +244,8 @@ def build_parser() -> argparse.ArgumentParser:
     view = commands.add_parser("view", help="serve the live fleet to Foxglove over its WebSocket protocol")
     view.add_argument("--host", default="127.0.0.1", help="address to serve on (0.0.0.0: every interface)")
     view.add_argument("--port", type=int, default=8765, help="port to serve on (0: any free one)")
+    view.add_argument("--max-vessels", type=int, default=MAX_VESSELS,
+                      help="vessels shown at most (each opens three channels; the first come are kept)")
     layout = commands.add_parser("layout", help="print the Foxglove layout (JSON) for a fleet")
     layout.add_argument("--vessels", nargs="+", default=["1", "2", "3", "4"], help="the fleet's vessel ids")
     for name, text in (("hold", "every addressed vessel stops and keeps station"),
@@ -259,9 +278,10 @@ def main(argv: list[str] | None = None) -> int:
         if args.command == "status":
             code = watch(session, args.once)
         elif args.command == "view":
-            code = serve(session, args.host, args.port, _stop_on_signals())
+            code = serve(session, args.host, args.port, _stop_on_signals(), max_vessels=args.max_vessels)
         else:
-            code = send(session, _command(args, fleet_stamp(session)), args.vessel, args.deadline)
+            clock = fleet_clock(session)
+            code = send(session, _command(args, clock()), args.vessel, args.deadline, clock=clock)
     except (ConfigError, ValueError, ImportError) as error:
         print(f"usv-op: {' '.join(str(error).split())}", file=sys.stderr)
         code = 2

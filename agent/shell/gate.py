@@ -194,6 +194,7 @@ class InputGate:
         self._range_sets: deque[Ranges] = deque(maxlen=MAX_RANGE_SETS)   # UWB messages since the last tick
         self._used_odometry = None            # the OdometryReading the last snapshot gave the tick
         self.offsets = StampOffsets(max_age, max_future)   # how far each source's clock runs from ours
+        self._ranged: dict[str, float] = {}   # vessel id -> stamp (s) of the last accepted range to it
 
     # ----- the callback side -----
     def offer(self, key: str, payload: bytes | bytearray | memoryview, now: float | None) -> bool:
@@ -273,6 +274,7 @@ class InputGate:
             else:
                 self._latest[topic] = message
                 if isinstance(message, Ranges):
+                    self._note_ranged(message)
                     if len(self._range_sets) == MAX_RANGE_SETS:
                         self.rejected["range_sets_dropped"] += 1   # the oldest, which the deque drops
                     self._range_sets.append(message)
@@ -306,6 +308,21 @@ class InputGate:
         """Every source whose clock disagrees with the agent's: (source, median offset s), sensors first."""
         with self._lock:
             return self.offsets.alarms()
+
+    def _note_ranged(self, message: Ranges) -> None:
+        """Remember when our UWB module last ranged to each id (evidence that such a vessel is out there, for
+        agent/shell/peers.py); bounded: beyond 2 * MAX_PEERS ids, the MAX_PEERS last ranged are kept."""
+        stamp = seconds(message.stamp_ns)
+        for peer in message.ranges:
+            self._ranged[peer] = stamp
+        if len(self._ranged) > 2 * MAX_PEERS:
+            newest = sorted(self._ranged.items(), key=lambda item: item[1])[-MAX_PEERS:]
+            self._ranged = dict(newest)
+
+    def ranged_within(self, peer: str, now: float | None, within: float) -> bool:
+        """Whether our UWB module ranged to `peer` within `within` s of `now` (None: at all)."""
+        stamp = self._ranged.get(peer)
+        return stamp is not None and (now is None or abs(now - stamp) <= within)
 
     def _plausible(self, reading, now: float) -> bool:
         """Own odometry the tick may use: not older than the one the last tick used, and no faster than

@@ -3,22 +3,24 @@
 A command comes on `mission/all` (every vessel) or `mission/<id>` (one vessel; the agent sees the others'
 too, so that one addressed to a vessel nobody knows is refused, not lost in silence). It is refused, counted
 and answered when it is malformed, stale or ahead of the agent's clock (the same window as every input),
-replayed (its `seq` not above the last one judged from its sender), or addressed to an unknown vessel; a
+replayed (its sender, session and seq already judged within the window), one too many of its sender (a
+flood, or a new sender while the table is full of senders heard within the window: `MissionOrders`), or
+addressed to an unknown vessel; a
 `set` whose values the controller's parameters refuse is refused when applied. Nothing is half-applied: a
 `set` is checked whole before anything changes. Accepted commands wait for the next tick, which applies
 them in order before it runs the core:
 - `hold`: the tick commands STOP (as the watchdog would) until `resume` or `start`; the core still runs, so
   the estimates stay current;
 - `set`: the tick runs with the new radius, yaw rate and/or direction (r*, and omega*'s size and sign).
-Every judgement is an acknowledgement (`MissionAck`); the status carries the latest one of each sender, and
-the log gets every one.
+Every judgement is an acknowledgement (`MissionAck`); the statuses carry the latest one of each sender (eight
+a status, those not yet carried first), and the log gets every one (refusals up to a bound a tick).
 """
 
 from __future__ import annotations
 
 import json
 import threading
-from collections import OrderedDict
+from collections import OrderedDict, deque
 from collections.abc import Callable
 
 from pydantic import ValidationError
@@ -31,16 +33,59 @@ from agent.contract import (
     MissionAck,
     MissionCommand,
     decode,
+    nanoseconds,
     seconds,
 )
 from agent.core.params import AgentParams
 
-MAX_SENDERS = 8      # operators remembered (their last seq and ack); the oldest is forgotten beyond
-MAX_PENDING = 64     # accepted commands waiting for the next tick; more is a flood, refused
+MAX_SENDERS = 256         # senders remembered; beyond, the least recently heard goes if idle within the window
+MAX_IDS_PER_SENDER = 64   # a sender's commands remembered within the window; more in one window is a flood
+MAX_PENDING_PER_SENDER = 16   # a sender's commands waiting for a tick; more is a flood (a hold always goes)
+DRAIN_PER_TICK = 32       # commands a tick applies at least, in rounds of one per sender, whole rounds
+STATUS_ACKS = 8           # answers a status carries (Status.mission): those not yet shown first
+MAX_LOGGED = 256          # refusals a tick logs at most (each is counted in the health all the same)
+
+
+class Sender:
+    """What one sender's commands leave behind: the ids (session, seq) of those accepted, with their stamps,
+    for as long as a replay of them could still pass the stamp window, and those waiting for a tick."""
+
+    __slots__ = ("ids", "newest", "pending")
+
+    def __init__(self) -> None:
+        self.ids: dict[tuple[str, int], int] = {}   # (session, seq) -> stamp_ns, in the order accepted
+        self.newest = -1                              # the latest stamp among `ids` (ns)
+        self.pending: deque[tuple[int, MissionCommand, int]] = deque()   # (arrival number, command, when)
+
+    def expire(self, low_ns: int, high_ns: int) -> None:
+        """Forget the ids whose stamps lie outside [low_ns, high_ns], the window around the clock: a replay of
+        one is refused as stale (or future) before its id is looked at."""
+        if self.newest < low_ns:
+            self.ids.clear()
+        else:
+            self.ids = {i: s for i, s in self.ids.items() if low_ns <= s <= high_ns}
+        self.newest = max(self.ids.values(), default=-1)
+
+    def idle(self, low_ns: int | None) -> bool:
+        """Nothing waits and no id is within the window (None: no clock; only an empty record is idle)."""
+        return not self.pending and (not self.ids if low_ns is None else self.newest < low_ns)
 
 
 class MissionOrders:
-    """The mission commands of one agent. `offer` runs on Zenoh's threads, `apply` on the tick thread."""
+    """The mission commands of one agent. `offer` runs on Zenoh's threads, `apply` on the tick thread.
+
+    Replays are judged by the stamp window and the sender's sessions, never by a high-water mark that outlives
+    them: a command is one (sender, session, seq), remembered while its stamp is within the window (after that
+    a replay of it is stale), and within a session the seqs must grow (a reordered pair is not applied the
+    wrong way round). So a seq of 2^63 - 1 blocks one session of one sender until its stamp leaves the window
+    (1.5 s) and nothing else, and a sender that starts again with a new session (usv-op: one per invocation)
+    may count its seqs from anywhere. The table of senders
+    is bounded (MAX_SENDERS); a new sender takes the place of the least recently heard one only if that one has
+    no command within the window, else it is refused (`too_many_senders`): new senders never push out one that
+    spoke within the window, whose replays must still be refused. Each sender has its own queue
+    (MAX_PENDING_PER_SENDER) and the tick drains the queues in rounds, one command of each sender a round: a
+    flood from one sender fills its own queue and delays nobody else's command. A `hold` is never refused for a
+    full queue: it takes the place of its sender's oldest waiting command (refused as `flood`)."""
 
     def __init__(self, vessel: str, max_age: float, max_future: float, count: Callable[[str, str], None]) -> None:
         self.vessel = vessel
@@ -48,9 +93,10 @@ class MissionOrders:
         self._count = count
         self.held = False
         self._lock = threading.Lock()
-        self._pending: list[tuple[MissionCommand, int]] = []   # and when each came (agent time, ns)
-        self._last_seq: OrderedDict[str, int] = OrderedDict()
+        self._senders: OrderedDict[str, Sender] = OrderedDict()   # least recently heard first
+        self._arrivals = 0
         self._acks: OrderedDict[str, MissionAck] = OrderedDict()
+        self._unshown: OrderedDict[str, None] = OrderedDict()   # senders whose latest answer no status carried
         # For the log, drained by the tick: (command, answer, when it came).
         self._judged: list[tuple[MissionCommand | None, MissionAck, int]] = []
 
@@ -73,21 +119,74 @@ class MissionOrders:
             return self._refuse(message, now_ns, "stale", f"stamped {now - stamp:.3f} s ago")
         if now is not None and stamp > now + self.max_future:
             return self._refuse(message, now_ns, "future", f"stamped {stamp - now:.3f} s ahead")
+        window = (None if now is None
+                  else (nanoseconds(now - self.max_age), nanoseconds(now + self.max_future)))
         with self._lock:
-            last = self._last_seq.get(message.sender)
+            sender = self._sender(message.sender, window)
+            if sender is None:
+                return self._refuse(message, now_ns, "too_many_senders",
+                                    f"{MAX_SENDERS} senders heard within {self.max_age:g} s", locked=True)
+            self._senders.move_to_end(message.sender)
+            if window is not None:
+                sender.expire(*window)
+            ident = (message.session, message.seq)
+            last = max((seq for session, seq in sender.ids if session == message.session), default=None)
             if last is not None and message.seq <= last:
-                return self._refuse(message, now_ns, "replayed", f"seq {message.seq} not after {last}", locked=True)
-            if len(self._pending) >= MAX_PENDING:
-                return self._refuse(message, now_ns, "flood", f"{MAX_PENDING} commands wait already", locked=True)
-            self._remember(self._last_seq, message.sender, message.seq)
-            self._pending.append((message, now_ns))
+                where = f" in session {message.session}" if message.session else ""
+                return self._refuse(message, now_ns, "replayed", f"seq {message.seq} not after {last}{where}",
+                                    locked=True)
+            hold = message.command == "hold"
+            if len(sender.ids) >= MAX_IDS_PER_SENDER and not hold:
+                return self._refuse(message, now_ns, "flood",
+                                    f"{MAX_IDS_PER_SENDER} commands of {message.sender!r} within the window",
+                                    locked=True)
+            if len(sender.pending) >= MAX_PENDING_PER_SENDER:
+                if not hold:
+                    return self._refuse(message, now_ns, "flood",
+                                        f"{MAX_PENDING_PER_SENDER} commands of {message.sender!r} wait already",
+                                        locked=True)
+                _, dropped, received = sender.pending.popleft()
+                self._refuse(dropped, now_ns, "flood", "dropped for a later hold of its sender", locked=True,
+                             received=received)
+            if len(sender.ids) >= MAX_IDS_PER_SENDER:   # a hold: the oldest id goes (a flood in its own name)
+                del sender.ids[next(iter(sender.ids))]
+            sender.ids[ident] = message.stamp_ns
+            sender.newest = max(sender.newest, message.stamp_ns)
+            self._arrivals += 1
+            sender.pending.append((self._arrivals, message, now_ns))
         return True
+
+    def _sender(self, name: str, window: tuple[int, int] | None) -> Sender | None:
+        """The record of `name`, made if new; None if the table is full of senders heard within the window."""
+        sender = self._senders.get(name)
+        if sender is not None:
+            return sender
+        if len(self._senders) >= MAX_SENDERS:
+            oldest_name, oldest = next(iter(self._senders.items()))
+            if window is not None:
+                oldest.expire(*window)
+            if not oldest.idle(None if window is None else window[0]):
+                return None
+            del self._senders[oldest_name]
+        sender = self._senders[name] = Sender()
+        return sender
+
+    def _drain(self) -> list[tuple[MissionCommand, int]]:
+        """The commands this tick applies, in the order they came: rounds of one command of each sender with
+        one waiting, until DRAIN_PER_TICK are taken (a round is always finished)."""
+        taken: list[tuple[int, MissionCommand, int]] = []
+        waiting = [s for s in self._senders.values() if s.pending]
+        while waiting and len(taken) < DRAIN_PER_TICK:
+            taken += [s.pending.popleft() for s in waiting]
+            waiting = [s for s in waiting if s.pending]
+        taken.sort(key=lambda item: item[0])
+        return [(message, received) for _, message, received in taken]
 
     def apply(self, params: AgentParams, stamp_ns: int) -> AgentParams:
         """The commands that came since the last tick, in order, at the tick stamped `stamp_ns`; the
         parameters to tick with."""
         with self._lock:
-            pending, self._pending = self._pending, []
+            pending = self._drain()
         for message, received in pending:
             reason = ""
             if message.command == "hold":
@@ -114,9 +213,19 @@ class MissionOrders:
         return params
 
     def acks(self) -> list[MissionAck]:
-        """The latest acknowledgement of each sender (at most MAX_SENDERS), oldest first."""
+        """What a status carries: the latest answer of up to STATUS_ACKS senders, oldest first; those no status
+        carried yet come first, so that a storm of senders cannot keep an answer out of every status."""
         with self._lock:
-            return list(self._acks.values())
+            unshown = sorted(self._unshown, key=lambda name: not self._acks[name].applied)   # applied first
+            chosen = unshown[:STATUS_ACKS]
+            for name in chosen:
+                del self._unshown[name]
+            for name in reversed(self._acks):
+                if len(chosen) >= STATUS_ACKS:
+                    break
+                if name not in chosen:
+                    chosen.append(name)
+            return sorted((self._acks[name] for name in chosen), key=lambda ack: ack.stamp_ns)
 
     def judged(self) -> list[tuple[MissionCommand | None, MissionAck, int]]:
         """Every judgement since the last call: the command (None if it could not be read), the answer, and
@@ -126,9 +235,11 @@ class MissionOrders:
         return judged
 
     def reset(self) -> None:
-        """A new mission (the simulation restarted): no hold, nothing pending; senders' seqs are kept."""
+        """A new mission (the simulation restarted): no hold, nothing pending; senders' ids are kept (those
+        outside the new clock's window go when their sender is next heard)."""
         with self._lock:
-            self._pending.clear()
+            for sender in self._senders.values():
+                sender.pending.clear()
             self.held = False
 
     # ----- internals -----
@@ -151,16 +262,19 @@ class MissionOrders:
                 self._record(message, ack, received)
 
     def _record(self, message: MissionCommand | None, ack: MissionAck, received: int) -> None:
-        self._remember(self._acks, ack.sender, ack)
-        if len(self._judged) < MAX_PENDING * 4:
+        self._acks[ack.sender] = ack
+        self._acks.move_to_end(ack.sender)
+        self._unshown[ack.sender] = None
+        self._unshown.move_to_end(ack.sender)
+        if len(self._acks) > MAX_SENDERS:
+            # The oldest refusal goes first: a storm of refused senders does not push out an applied answer.
+            refused = (name for name, a in self._acks.items() if not a.applied)
+            forgotten = next(refused, next(iter(self._acks)))
+            del self._acks[forgotten]
+            self._unshown.pop(forgotten, None)
+        # Refusals are logged up to a bound a tick (a flood's); what is applied, always.
+        if ack.applied or len(self._judged) < MAX_LOGGED:
             self._judged.append((message, ack, max(0, received)))
-
-    @staticmethod
-    def _remember(table: OrderedDict, sender: str, value) -> None:
-        table[sender] = value
-        table.move_to_end(sender)
-        while len(table) > MAX_SENDERS:
-            table.popitem(last=False)
 
 
 def _who(payload: bytes) -> tuple[str, int, str]:

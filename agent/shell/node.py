@@ -7,7 +7,8 @@ takes the gate's snapshot, calls the pure core, and publishes the share, the com
 priority) and the status. On sim time the clock message also says which neighbours' shares of the tick
 before the simulated radio delivers; in lockstep the tick waits (bounded) for those to arrive. Neighbours
 are discovered and forgotten through their liveliness tokens, and only a vessel with a live token counts
-as one. SIGINT and SIGTERM stop it cleanly.
+as one; the table of tokens is bounded and ranked by evidence, and an id that comes back proves itself
+before its shares steer this vessel (agent/shell/peers.py). SIGINT and SIGTERM stop it cleanly.
 
 What it survives:
 - Any exception in a tick (`_tick`): counted (`tick_errors`), told on stderr and logged on `/<id>/errors`
@@ -42,7 +43,6 @@ from agent.contract import (
     CLOCK_SOURCE_SENSORS,
     FLEET_PREFIX,
     LIVELINESS,
-    MAX_PEERS,
     MISSION_PREFIX,
     Clock,
     ClockOffset,
@@ -70,6 +70,7 @@ from agent.runtime.process import startup_error, stop_on_signals, vessel_process
 from agent.runtime.zenoh_session import SessionError, open_session
 from agent.shell.gate import OWN_TOPICS, InputGate, SimClock
 from agent.shell.mission import MissionOrders
+from agent.shell.peers import RANGED_WITHIN, PeerTable
 from agent.shell.reaction import ReactionTimes
 from agent.shell.settings import NodeSettings
 from agent.shell.tick_log import TickLogger, log_topic
@@ -96,8 +97,8 @@ class AgentNode:
         self.settings = settings
         self.params = settings.agent
         self.state = state or initial_state(vessel_id, settings.agent, settings.initial)
-        self.live_peers: set[str] = set()
         self._live_view: frozenset[str] = frozenset()   # what the gate reads from Zenoh's threads
+        self.peers = PeerTable(lambda peer: self.gate.ranged_within(peer, self._input_time(), RANGED_WITHIN))
         self.gate = InputGate(vessel_id, max_age=settings.max_input_age, max_future=settings.max_input_future,
                               known_peers=lambda: self._live_view, hold_shares=settings.clock == "sim",
                               max_rate=settings.max_input_rate)
@@ -238,17 +239,19 @@ class AgentNode:
                 self._id_seen = True   # ours once we have declared it; before that, another agent's
             return
         if sample.kind == zenoh.SampleKind.PUT:
-            if peer in self.live_peers:
+            if peer in self._live_view:
                 return
-            if len(self.live_peers) >= MAX_PEERS:
+            admitted, evicted = self.peers.declare(peer)
+            for other in evicted:
+                self.gate.forget(other)
+            if not admitted:
                 self.gate.count("too_many_peers", f"liveliness: {peer}")
                 return
             self.gate.forget(peer)   # a new liveliness session: nothing of an earlier one counts
-            self.live_peers.add(peer)
         else:
-            self.live_peers.discard(peer)
+            self.peers.undeclare(peer)
             self.gate.forget(peer)
-        self._live_view = frozenset(self.live_peers)
+        self._live_view = self.peers.live()
 
     # ----- the loop -----
     def run(self, max_ticks: int | None = None) -> None:
@@ -449,9 +452,10 @@ class AgentNode:
         try:
             if clock is not None:
                 self._deliver_shares(clock)
-            inputs = self.gate.snapshot(now)
+            inputs = self.peers.vet(self.gate.snapshot(now))   # a vessel id come back proves itself first
             core_started = time.thread_time()
             self.state, output = step(self.params, self.state, inputs)
+            self.peers.learn(inputs, output.record)
             self.core_seconds += time.thread_time() - core_started
             self._check_command(output.command)
             self._failed_in_a_row = 0
@@ -583,6 +587,8 @@ class AgentNode:
             health.update(pairs_mirror_ambiguous=verdicts.count(MIRROR_AMBIGUOUS),
                           pairs_unobservable=verdicts.count(UNOBSERVABLE))
         health.update({f"rejected_{k}": v for k, v in self.gate.rejected.items()})
+        health.update(self.peers.counted(), peers_withheld=len(self.peers.withheld()),
+                      peers_unproven=len(self.peers.unproven()))
         log = self.log
         health.update(overruns=self.overruns,
                       log_errors=self.log_errors + (log.errors if log is not None else 0),
