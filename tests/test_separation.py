@@ -347,3 +347,50 @@ def test_an_accepted_set_is_reached_tick_by_tick_and_a_later_one_changes_the_goa
         rates.append(params.control.yaw_rate)
     assert rates[0] > 0.0 and rates[-1] == -math.pi / 30 and 0.0 not in rates
     assert np.all(np.abs(np.diff(rates)) <= CIRCLE_ACCELERATION * DT / 5.0 + 2e-9)
+
+
+# ----- over real processes -----
+@pytest.mark.slow   # a lockstep fleet of agent processes over Zenoh, and usv-op
+def test_the_issues_fast_yaw_rate_sent_with_usv_op_keeps_the_safety_distance(tmp_path):
+    """Issue 27: `usv-op set yaw_rate=3.14159` to the Table II fleet (four agent processes and the sim bridge
+    in lockstep) at 10 s. Every vessel refuses it and says why, usv-op exits 1, and no two vessels come
+    closer than the 3 m safety distance (the code before applied it: 5 m/s and 2.30 m)."""
+    import subprocess
+    import sys
+    import threading
+    from itertools import combinations
+
+    from conftest import wait_until
+
+    from mission_log.reader import load_run
+    from sim_bridge.fleet import Fleet
+    from sim_bridge.scenario import with_duration
+
+    fleet = Fleet(with_duration(SCENARIOS / "table2_estimators.yaml", tmp_path, 30.0), "raw_range",
+                  tmp_path / "runs")
+    said: dict = {}
+
+    def operator() -> None:
+        if wait_until(lambda: fleet._sim_time >= 10.0, timeout=120):
+            said["set"] = subprocess.run(
+                [sys.executable, "-m", "usv_op", "--connect", f"tcp/127.0.0.1:{fleet.bridge_port}", "set",
+                 "yaw_rate=3.14159"], capture_output=True, text=True, timeout=60, check=False)
+
+    thread = threading.Thread(target=operator, daemon=True)
+    thread.start()
+    folder = fleet.run(timeout=300)
+    thread.join(timeout=60)
+    result = said["set"]
+    assert result.returncode == 1, (result.stdout, result.stderr)
+    for vessel in "1234":
+        assert (f"vessel {vessel}: set refused: infeasible: yaw rate 3.14159 rad/s: 15.71 m/s on the circle of "
+                "5 m") in result.stdout, result.stdout
+    run_log = load_run(folder)
+    positions = np.array([[m["vessels"][v]["position"] for v in "1234"] for _, m in run_log.sim.messages("/truth")])
+    assert len(positions) >= 250
+    closest = min(float(np.min(np.hypot(*(positions[:, i] - positions[:, j]).T)))
+                  for i, j in combinations(range(4), 2))
+    assert closest >= 3.0, f"closest approach {closest:.2f} m"
+    # After the set the fleet went on circling at its own speed (0.5 m/s on the circle, the target's 0.5).
+    speeds = [abs(m["surge"]) for log in run_log.vessels.values() for t, m in log.topic("cmd") if t >= 11e9]
+    assert len(speeds) > 100 and max(speeds) < 2.0

@@ -198,8 +198,10 @@ class ControlParams(StrictModel):
         3.0, description="the separation guard keeps the vessels at least this far apart (m): closer than "
                          "this by the ranges to a neighbour it has not localised, the vessel does not move")
     separation_margin: NonNegativeFloat = Field(
-        0.5, description="the guard keeps each neighbour's estimated distance at least min_separation + this "
-                         "(m): room for the estimate's error (agent/core/control/separation.py)")
+        0.5, description="the guard keeps a neighbour's estimated distance at least min_separation + this "
+                         "(m): room for the estimate's error. It keeps apart from the localised neighbours and "
+                         "from those whose pair covariance has a trace within this squared "
+                         "(agent/core/control/separation.py)")
     separation_rate: PositiveFloat = Field(
         2.0, description="closing speed the guard allows towards a neighbour per metre beyond its distance "
                          "(1/s); rate * dt at most 1/2, so that a pair never closes past it in a period")

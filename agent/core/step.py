@@ -71,7 +71,8 @@ def step(params: AgentParams, state: VesselState, inputs: TickInputs) -> tuple[V
     lent: list[tuple[NeighbourTrack, float, float]] = []   # localised tracks' p^_ij at now, for fuse_targets
     medians: dict[str, float | None] = {}
     distances: dict[str, float] = {}
-    estimated: list[tuple[float, float]] = []     # every p^_ij at now, localised or not, for the guard
+    estimated: list[tuple[float, float]] = []     # the p^_ij at now the separation guard keeps apart from
+    guard_trace = params.control.separation_margin ** 2
     records: dict[str, NeighbourRecord] = {}
     shared: dict[str, tuple[np.ndarray, np.ndarray, float]] = {}
     now_key = stamp_key(now)     # the tracks take the tick's time as a history key: converted once, not per track
@@ -90,11 +91,12 @@ def step(params: AgentParams, state: VesselState, inputs: TickInputs) -> tuple[V
         estimate = np.array(p_ij)
         medians[j] = median = _recent_range(track)
         distances[j] = distance = math.hypot(*p_ij)
-        estimated.append(p_ij)
         is_localised = _localised(params, track, distance, median)
         if is_localised:
             localised[j] = estimate
             lent.append((track, *p_ij))
+        if is_localised or track.best_trace() <= guard_trace:
+            estimated.append(p_ij)
         records[j] = _neighbour_record(track, estimate, is_localised)
         shared[j] = _shared_estimate(track)
     health.ranges_unpaired += unusable["unpaired"]
@@ -188,12 +190,16 @@ def _keep_apart(params: AgentParams, state: VesselState, ranges, localised: dict
                 estimated: list[tuple[float, float]], heading: float, command: Command) -> Command:
     """The last guard, after (31): no command moves the vessel into a neighbour.
 
-    Every neighbour with an estimate p^_ij (`estimated`), localised or not, bounds the surge: the motion
-    over the period, along the heading as it turns, closes on it no faster than the separation guard allows
+    Every neighbour in `estimated` bounds the surge by its estimate p^_ij: the motion over the period,
+    along the heading as it turns, closes on it no faster than the separation guard allows
     (agent/core/control/separation.py), which keeps its estimated distance at least `control.min_separation`
-    + `control.separation_margin` whatever the formation asks. An estimate only ever takes speed away here,
-    so one not trusted to steer by still counts: a converged estimate that a burst of outlying ranges made
-    "unlocalised" for a moment was the only sign of a neighbour 3.5 m away while its ranges' median said 6 m.
+    + `control.separation_margin` whatever the formation asks. `estimated` holds the localised neighbours and
+    those whose covariance puts their estimate within the margin (trace P_ij <= margin^2): a converged
+    estimate that a burst of outlying ranges made disagree with their median for a few ticks was the only
+    sign of a neighbour 3.5 m away while the median said 6 m (12 vessels on a 5 m circle). Not every
+    estimate: a wrong one (the RLS's, metres off) would stop vessels for phantoms, and vessels that stop
+    give their pair filters no motion to learn from (its closest approaches fell from 2.55 m to 1.45 m over
+    Table II's seeds 0-9 when every estimate counted).
     And the ranges stop the vessel (forward or astern) where the estimates cannot be trusted: an
     unlocalised neighbour closer than `min_separation` by its raw range, or a localised one whose last
     `SEPARATION_RANGES` ranges' median is under `min_separation` while its estimate is not (a stray UWB
