@@ -246,16 +246,16 @@ def _table_two(duration: float = 40.0) -> Scenario:
     ({"radius": 0.1}, "radius 0.1 m: neighbours 0.14 m apart on the circle of 4 vessels, under the 4.5 m"),
 ])
 def test_the_issues_sets_on_table_two_keep_the_safety_distance(fields, words):
-    """Issue 27's two cases on the Table II fleet at 20 s, seeds 0 and 1: sent as `set`, every vessel
-    refuses it with the reason; forced into the parameters, the guard holds the safety distance (the code
-    before: 2.12 and 2.30 m for the yaw rate, 2.86 and 2.89 m for the radius)."""
+    """Issue 27's two cases on the Table II fleet at 20 s: sent as `set`, every vessel refuses it with the
+    reason (seed 0); forced into the parameters, the guard holds the safety distance (seeds 0 and 1; the
+    code before: 2.12 and 2.30 m for the yaw rate, 2.86 and 2.89 m for the radius)."""
     scenario = _table_two()
+    plan = MissionPlan([(20.0, fields)])
+    judged = run(scenario, 0, plan)
+    assert sorted(vessel for _, vessel, _ in plan.refusals) == ["1", "2", "3", "4"]
+    assert all(words in reason for _, _, reason in plan.refusals), plan.refusals
+    _assert_safe(judged, scenario.agent, f"{fields} judged")
     for seed in (0, 1):
-        plan = MissionPlan([(20.0, fields)])
-        judged = run(scenario, seed, plan)
-        assert sorted(vessel for _, vessel, _ in plan.refusals) == ["1", "2", "3", "4"]
-        assert all(words in reason for _, _, reason in plan.refusals), plan.refusals
-        _assert_safe(judged, scenario.agent, f"{fields} judged, seed {seed}")
         forced = run(scenario, seed, Unjudged([(20.0, fields)]))
         _assert_safe(forced, scenario.agent, f"{fields} forced, seed {seed}")
 
