@@ -12,11 +12,13 @@ from __future__ import annotations
 import gc
 import math
 import time as clock
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 
 from agent.core.build import InitialEstimates, initial_state
+from agent.core.params import AgentParams
 from agent.core.records import Command, Share, TickInputs, TickRecord
 from agent.core.state import VesselState
 from agent.core.step import step
@@ -56,19 +58,26 @@ class RunTrace:
 GC_YOUNG_THRESHOLD = 10_000
 
 
-def run(scenario: Scenario, seed: np.random.SeedSequence | int | None = None) -> RunTrace:
+# retune(vessel, time, vessels alive, its parameters) -> the parameters it ticks with (lab/mission_plan.py)
+Retune = Callable[[str, float, int, AgentParams], AgentParams]
+
+
+def run(scenario: Scenario, seed: np.random.SeedSequence | int | None = None,
+        retune: Retune | None = None) -> RunTrace:
     """One run of `scenario`; `seed` defaults to the scenario's own. A vessel that joins later, or one the
     scenario starts cold, starts with no estimates (its target from its first bearing, its neighbours from
-    the ranges and shares), as its agent process would."""
+    the ranges and shares), as its agent process would. `retune`, if given, gives each live vessel at each
+    tick the parameters it ticks with, from those of its previous tick (the scenario's at first): an
+    operator's mission commands (lab/mission_plan.py)."""
     thresholds = gc.get_threshold()
     gc.set_threshold(max(thresholds[0], GC_YOUNG_THRESHOLD), *thresholds[1:])
     try:
-        return _run(scenario, seed)
+        return _run(scenario, seed, retune)
     finally:
         gc.set_threshold(*thresholds)
 
 
-def _run(scenario: Scenario, seed: np.random.SeedSequence | int | None) -> RunTrace:
+def _run(scenario: Scenario, seed: np.random.SeedSequence | int | None, retune: Retune | None) -> RunTrace:
     sequence = seed if isinstance(seed, np.random.SeedSequence) else np.random.SeedSequence(
         scenario.seed if seed is None else seed)
     random = streams(sequence)
@@ -80,6 +89,7 @@ def _run(scenario: Scenario, seed: np.random.SeedSequence | int | None) -> RunTr
     trace = _empty_trace(scenario, int(sequence.entropy) if isinstance(sequence.entropy, int) else 0, ids, steps)
 
     agents: dict[str, VesselState] = {}
+    tuned: dict[str, AgentParams] = {}    # each vessel's parameters, when retuned
     inbox: dict[str, dict[str, Share]] = {}
     sent: dict[str, Share] = {}
     for k in range(steps):
@@ -92,6 +102,7 @@ def _run(scenario: Scenario, seed: np.random.SeedSequence | int | None) -> RunTr
         present = set(live)
         for gone in [v for v in agents if v not in present]:
             del agents[gone]
+            tuned.pop(gone, None)
             inbox.pop(gone, None)
             for box in inbox.values():
                 box.pop(gone, None)
@@ -111,8 +122,10 @@ def _run(scenario: Scenario, seed: np.random.SeedSequence | int | None) -> RunTr
                                 shares=dict(box), bearing=reading.bearing,
                                 obstacle_points=reading.obstacle_points)
             # CPU time of this thread: what the tick costs, not what a loaded machine adds while it waits for a core
+            if retune is not None:
+                tuned[i] = retune(i, truth.time, len(live), tuned.get(i, params))
             started = clock.thread_time()
-            agents[i], output = step(params, agents[i], inputs)
+            agents[i], output = step(params if retune is None else tuned[i], agents[i], inputs)
             trace.tick_seconds[k, index[i]] = clock.thread_time() - started
             commands[i] = output.command
             if output.share is not None:

@@ -55,12 +55,21 @@ def test_a_hold_waits_for_the_tick_and_lasts_until_resume():
     assert not mission.held and mission.acks()[0].seq == 2
 
 
-def test_a_set_changes_the_circle_whole_at_the_next_tick():
+def settle(mission: MissionOrders, params: AgentParams, ticks: int = 200) -> AgentParams:
+    """The parameters after `ticks` ticks: a set moves the circle at a bounded rate (mission_limits)."""
+    for _ in range(ticks):
+        params = mission.apply(params, NOW_NS)
+    return params
+
+
+def test_a_set_changes_the_circle_from_the_next_tick_on():
     mission, _ = orders()
     params = AgentParams()
     assert offer(mission, payload("set", seq=5, radius=8.0))
     assert offer(mission, payload("set", seq=6, yaw_rate=0.05))
     changed = mission.apply(params, NOW_NS)
+    assert changed.control.radius > 5.0 and changed.control.yaw_rate < params.control.yaw_rate   # on its way
+    changed = settle(mission, changed)
     assert (changed.control.radius, changed.control.yaw_rate) == (8.0, 0.05)
     assert params.control.radius == 5.0                                   # the old parameters are untouched
     assert changed.control.max_speed == params.control.max_speed
@@ -71,12 +80,12 @@ def test_a_direction_is_the_sign_of_the_yaw_rate_and_keeps_its_size():
     mission, _ = orders()
     params = AgentParams()
     assert offer(mission, payload("set", seq=1, direction="cw"))
-    clockwise = mission.apply(params, NOW_NS)
+    clockwise = settle(mission, params)
     assert clockwise.control.yaw_rate == -params.control.yaw_rate
     assert offer(mission, payload("set", seq=2, yaw_rate=0.2))          # a new size keeps the direction
-    assert mission.apply(clockwise, NOW_NS).control.yaw_rate == -0.2
+    assert settle(mission, clockwise).control.yaw_rate == -0.2
     assert offer(mission, payload("set", seq=3, direction="ccw", yaw_rate=0.05))
-    assert mission.apply(clockwise, NOW_NS).control.yaw_rate == 0.05
+    assert settle(mission, clockwise).control.yaw_rate == 0.05
     assert decode(MissionCommand, payload("set", direction="up"))[0] is None
 
 
@@ -152,8 +161,8 @@ def test_an_unreadable_payload_is_counted_without_an_answer_to_anyone():
 
 def test_no_payload_makes_the_judgement_raise_or_apply_anything_half():
     """Random bytes, random JSON and genuine commands with one field replaced by a random value: each is
-    refused with a reason or taken whole; nothing raises, and the parameters are either the old ones or the
-    new circle, never a mixture."""
+    refused with a reason or taken whole; nothing raises, and the parameters are the old ones or on their
+    way to the new circle (its radius, at the bounded rate), never anything else."""
     import numpy as np
 
     rng = np.random.default_rng(20261201)
@@ -173,7 +182,7 @@ def test_no_payload_makes_the_judgement_raise_or_apply_anything_half():
         mission.offer(str(rng.choice(["mission/all", "mission/1", "mission/2", "mission/x/y", "other"])), body,
                       NOW, NOW_NS, lambda: frozenset({"2"}))
         changed = mission.apply(params, NOW_NS)
-        assert changed.control.radius in (params.control.radius, 7.0)
+        assert params.control.radius <= changed.control.radius <= 7.0
         assert changed.control.yaw_rate == params.control.yaw_rate
     assert all(a.stamp_ns == NOW_NS for a in mission.acks())
 

@@ -195,8 +195,16 @@ class ControlParams(StrictModel):
         1.0, description="safety filter: closing speed allowed per metre of clearance left (1/s)"
     )
     min_separation: NonNegativeFloat = Field(
-        3.0, description="closer than this (m) to a neighbour, the vessel does not move "
-                         "unless the neighbour is localised (judged by its estimate) and the command leads away")
+        3.0, description="the separation guard keeps the vessels at least this far apart (m): closer than "
+                         "this by the ranges to a neighbour it has not localised, the vessel does not move")
+    separation_margin: NonNegativeFloat = Field(
+        0.5, description="the guard keeps a neighbour's estimated distance at least min_separation + this "
+                         "(m): room for the estimate's error. It keeps apart from the localised neighbours and "
+                         "from those whose pair covariance has a trace within this squared "
+                         "(agent/core/control/separation.py)")
+    separation_rate: PositiveFloat = Field(
+        2.0, description="closing speed the guard allows towards a neighbour per metre beyond its distance "
+                         "(1/s); rate * dt at most 1/2, so that a pair never closes past it in a period")
     safety_filter: bool = Field(True, description="apply the safety filter after (35); false: (35) alone")
     oscillator_gain: PositiveFloat = Field(
         1.0, description="K of (28): K_m = K for m <= n/2, 0 above (the paper leaves K_m open)"
@@ -270,6 +278,14 @@ class AgentParams(StrictModel):
     relative: RelativeEstimationParams = RelativeEstimationParams()
     target: TargetEstimationParams = TargetEstimationParams()
     control: ControlParams = ControlParams()
+
+    @model_validator(mode="after")
+    def _guard_holds(self) -> AgentParams:
+        if self.control.separation_rate * self.dt > 0.5:
+            raise ValueError(f"control.separation_rate * dt must be at most 0.5 (is "
+                             f"{self.control.separation_rate * self.dt:g}): both vessels of a pair closing "
+                             "faster would pass the separation guard's distance within one period")
+        return self
 
 
 if __name__ == "__main__":

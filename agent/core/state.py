@@ -34,7 +34,7 @@ class Health:
     ranges_gap: int = 0           # their time fell in a gap of an odometry history
     priors_stale: int = 0         # initial estimates too old to carry to now
     priors_refused: int = 0       # initial estimates the measured range contradicts
-    separation_stops: int = 0     # ticks the surge was held at zero by the range guard
+    separation_stops: int = 0     # ticks the separation guard stopped or cut the surge
     target_restarts: int = 0      # target filter started again: its estimate went behind the bearing
 
     def as_dict(self) -> dict[str, int]:

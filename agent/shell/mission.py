@@ -5,13 +5,14 @@ too, so that one addressed to a vessel nobody knows is refused, not lost in sile
 and answered when it is malformed, stale or ahead of the agent's clock (the same window as every input),
 replayed (its sender, session and seq already judged within the window), one too many of its sender (a
 flood, or a new sender while the table is full of senders heard within the window: `MissionOrders`), or
-addressed to an unknown vessel; a
-`set` whose values the controller's parameters refuse is refused when applied. Nothing is half-applied: a
-`set` is checked whole before anything changes. Accepted commands wait for the next tick, which applies
+addressed to an unknown vessel; a `set` whose values the controller's parameters refuse, or that asks for a
+circle the fleet cannot fly (agent/core/mission_limits.py), is refused when applied. Nothing is half-applied:
+a `set` is checked whole before anything changes. Accepted commands wait for the next tick, which applies
 them in order before it runs the core:
 - `hold`: the tick commands STOP (as the watchdog would) until `resume` or `start`; the core still runs, so
   the estimates stay current;
-- `set`: the tick runs with the new radius, yaw rate and/or direction (r*, and omega*'s size and sign).
+- `set`: from that tick on, the radius, yaw rate and/or direction (r*, and omega*'s size and sign) move to
+  the new ones at a bounded rate (mission_limits.toward; docs/operator.md).
 Every judgement is an acknowledgement (`MissionAck`); the statuses carry the latest one of each sender (eight
 a status, those not yet carried first), and the log gets every one (refusals up to a bound a tick).
 """
@@ -36,6 +37,7 @@ from agent.contract import (
     nanoseconds,
     seconds,
 )
+from agent.core.mission_limits import infeasible, toward
 from agent.core.params import AgentParams
 
 MAX_SENDERS = 256         # senders remembered; beyond, the least recently heard goes if idle within the window
@@ -97,6 +99,7 @@ class MissionOrders:
         self._arrivals = 0
         self._acks: OrderedDict[str, MissionAck] = OrderedDict()
         self._unshown: OrderedDict[str, None] = OrderedDict()   # senders whose latest answer no status carried
+        self._goal: tuple[float, float] | None = None     # (r*, omega*) of the last set, until reached
         # For the log, drained by the tick: (command, answer, when it came).
         self._judged: list[tuple[MissionCommand | None, MissionAck, int]] = []
 
@@ -182,34 +185,46 @@ class MissionOrders:
         taken.sort(key=lambda item: item[0])
         return [(message, received) for _, message, received in taken]
 
-    def apply(self, params: AgentParams, stamp_ns: int) -> AgentParams:
-        """The commands that came since the last tick, in order, at the tick stamped `stamp_ns`; the
-        parameters to tick with."""
+    def apply(self, params: AgentParams, stamp_ns: int, vessels: int = 1) -> AgentParams:
+        """The commands that came since the last tick, in order, at the tick stamped `stamp_ns`, by a vessel
+        that knows `vessels` alive (itself included); the parameters to tick with. A `set` the fleet cannot
+        fly is refused (agent/core/mission_limits.py); an accepted one becomes the goal that r* and omega*
+        move towards, a tick at a time."""
         with self._lock:
             pending = self._drain()
         for message, received in pending:
-            reason = ""
+            reason, kind = "", "refused"
             if message.command == "hold":
                 self.held = True
             elif message.command in ("resume", "start"):
                 self.held = False
             else:
-                changes = {} if message.radius is None else {"radius": message.radius}
-                if message.yaw_rate is not None or message.direction is not None:
-                    # omega*'s sign is the direction (agent/core/params.py): the size and the sign are set apart.
-                    size = abs(params.control.yaw_rate) if message.yaw_rate is None else message.yaw_rate
-                    clockwise = (params.control.yaw_rate < 0 if message.direction is None
-                                 else message.direction == "cw")
-                    changes["yaw_rate"] = -size if clockwise else size
+                # A set changes the goal (the circle being moved to, if any): what it leaves out stays.
+                radius, rate = self._goal or (params.control.radius, params.control.yaw_rate)
+                radius = radius if message.radius is None else message.radius
+                # omega*'s sign is the direction (agent/core/params.py): the size and the sign are set apart.
+                size = abs(rate) if message.yaw_rate is None else message.yaw_rate
+                clockwise = rate < 0 if message.direction is None else message.direction == "cw"
+                rate = -size if clockwise else size
                 try:
-                    params = updated(params, control=updated(params.control, **changes))
+                    updated(params, control=updated(params.control, radius=radius, yaw_rate=rate))
+                    reason = infeasible(radius, rate, vessels, params.control) or ""
+                    kind = "infeasible"
                 except (ValidationError, ValueError) as error:
                     reason = f"the controller refuses it: {' '.join(str(error).split())[:200]}"
+                if not reason:
+                    self._goal = (radius, rate)
             if reason:
-                self._refuse(message, stamp_ns, "refused", reason, received=received)
+                self._refuse(message, stamp_ns, kind, reason, received=received)
             else:
                 self._ack(message, MissionAck(sender=message.sender, seq=message.seq, command=message.command,
                                               applied=True, stamp_ns=stamp_ns), received)
+        if self._goal is not None:
+            control = params.control
+            radius, rate = toward(control.radius, control.yaw_rate, self._goal, params.dt, control)
+            params = updated(params, control=updated(control, radius=radius, yaw_rate=rate))
+            if (radius, rate) == self._goal:
+                self._goal = None
         return params
 
     def acks(self) -> list[MissionAck]:
@@ -241,6 +256,7 @@ class MissionOrders:
             for sender in self._senders.values():
                 sender.pending.clear()
             self.held = False
+            self._goal = None
 
     # ----- internals -----
     def _refuse(self, message: MissionCommand | None, stamp_ns: int, kind: str, reason: str,

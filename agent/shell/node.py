@@ -448,7 +448,7 @@ class AgentNode:
         now = self.now() if clock is None else seconds(clock.stamp_ns)
         stamp = nanoseconds(now)
         inputs = None
-        self.params = self.orders.apply(self.params, stamp)
+        self.params = self.orders.apply(self.params, stamp, vessels=len(self._live_view) + 1)
         try:
             if clock is not None:
                 self._deliver_shares(clock)
