@@ -202,6 +202,24 @@ def test_the_status_console_shows_each_vessel_its_rate_hold_and_last_answer():
     assert tick_rate([0.0, 0.1, 0.2, 0.3, 0.4], now=0.45) == pytest.approx(10.0)
     assert tick_rate([0.0, 5.0, 5.5], now=6.0) == pytest.approx(2.0)      # only the last two seconds
     assert tick_rate([5.0], now=6.0) == 0.0
+    # A vessel silent for more than LOST_AFTER (2 s) is lost, even if a token or a peer list says alive.
+    lost = status_lines({"2": (7.9, held)}, {"2"}, now=10.0)
+    assert lost[1].split()[:3] == ["2", "LOST", "2.1"]
+    assert status_lines({"2": (8.1, held)}, {"2"}, now=10.0)[1].split()[1] == "yes"
+
+
+@pytest.mark.slow   # a Zenoh session and usv-op's waits
+def test_usv_op_status_says_when_no_fleet_is_reachable(tmp_path):
+    import subprocess
+    import sys
+
+    from sim_bridge.fleet import free_port
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    result = subprocess.run([sys.executable, "-m", "usv_op", "--connect", endpoint, "status", "--once"],
+                            capture_output=True, text=True, timeout=60, check=False)
+    assert result.returncode == 1 and result.stdout == ""
+    assert f"usv-op: no fleet reachable at {endpoint}" in result.stderr
 
 
 # ----- with real processes: a fleet in real time, usv-op, and raw payloads on the mission keys -----

@@ -53,6 +53,7 @@ SETTABLE = ("radius", "yaw_rate", "direction")
 CLOSE_WAIT = 1.0        # s to wait for the session to close before exiting without it
 ONCE_WAIT = 3.0         # s `status --once` waits for a status of every live vessel
 RATE_WINDOW = 2.0       # s of statuses the console's tick rate is counted over
+LOST_AFTER = 2.0        # s without a status after which the console calls a vessel lost (20 ticks at 10 Hz)
 
 
 def _settings(args: argparse.Namespace) -> ZenohSettings:
@@ -169,7 +170,8 @@ def _command(args: argparse.Namespace, stamp_ns: int) -> MissionCommand:
 
 def status_lines(statuses: dict[str, tuple[float, Status]], live: set[str], now: float,
                  rates: dict[str, float] | None = None) -> list[str]:
-    """The fleet as the console shows it: one line per vessel heard or alive."""
+    """The fleet as the console shows it: one line per vessel heard or alive. A vessel whose last status is
+    more than LOST_AFTER s old is LOST, whatever its liveliness token says (a frozen process keeps it)."""
     rates = rates or {}
     lines = [f"{'vessel':8} {'alive':5} {'age s':>6} {'Hz':>5} {'held':4} {'surge':>6} {'yaw r.':>7} {'refused':>7} "
              f"{'weakest pair':22} last mission command"]
@@ -185,7 +187,8 @@ def status_lines(statuses: dict[str, tuple[float, Status]], live: set[str], now:
                                          + ("applied" if last.applied else f"refused ({last.reason})"))
         weakest = status.weakest_pair
         pair = "-" if weakest is None else f"{weakest.neighbour}: {weakest.observability}"
-        lines.append(f"{vessel:8} {'yes' if vessel in live else 'no':5} {now - arrived:6.1f} "
+        alive = "LOST" if now - arrived > LOST_AFTER else "yes" if vessel in live else "no"
+        lines.append(f"{vessel:8} {alive:5} {now - arrived:6.1f} "
                      f"{rates.get(vessel, 0.0):5.1f} {'HOLD' if status.held else '':4} {status.command[0]:6.2f} "
                      f"{status.command[1]:7.3f} {refused:7d} {pair[:22]:22} {said}")
     return lines
@@ -197,8 +200,9 @@ def tick_rate(arrivals: list[float], now: float) -> float:
     return (len(recent) - 1) / (recent[-1] - recent[0]) if len(recent) > 1 and recent[-1] > recent[0] else 0.0
 
 
-def watch(session, once: bool, period: float = 0.5, out=print) -> int:
-    """The status console: refreshed in place every `period` s until Ctrl-C (`once`: print once and exit)."""
+def watch(session, once: bool, period: float = 0.5, out=print, where: str = "the configured endpoints") -> int:
+    """The status console: refreshed in place every `period` s until Ctrl-C (`once`: print once and exit 0,
+    or exit 1 saying so when no vessel answered at `where`)."""
     statuses: dict[str, tuple[float, Status]] = {}
     arrivals: dict[str, list[float]] = {}
 
@@ -216,12 +220,22 @@ def watch(session, once: bool, period: float = 0.5, out=print) -> int:
     try:
         while True:
             live = live_vessels(session, wait=period)
-            live |= {peer for _, status in list(statuses.values()) for peer in status.peers}   # a frozen one too
+            # the peers that live agents see (a frozen one too), from statuses that are not old themselves
+            now = time.monotonic()
+            live |= {peer for arrived, status in list(statuses.values()) if now - arrived <= LOST_AFTER
+                     for peer in status.peers}
             heard = {v for v, times in list(arrivals.items()) if len(times) >= 3}   # enough for a rate
             if once and not (heard and live <= heard) and time.monotonic() - started < ONCE_WAIT:
                 continue   # a new subscription takes a moment to reach every agent
             now = time.monotonic()
             rates = {v: tick_rate(times, now) for v, times in list(arrivals.items())}
+            if not statuses and not live:
+                if once:
+                    print(f"usv-op: no fleet reachable at {where}: no agent's status or liveliness token in "
+                          f"{ONCE_WAIT:.0f} s", file=sys.stderr)
+                    return 1
+                out(f"\x1b[H\x1b[2Jno fleet reachable at {where} (yet): waiting", end="", flush=True)
+                continue
             lines = status_lines(dict(statuses), live, now, rates)
             if once:
                 out("\n".join(lines))
@@ -276,7 +290,8 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     try:
         if args.command == "status":
-            code = watch(session, args.once)
+            where = ", ".join(args.connect) if args.connect else "the Zenoh configuration's endpoints"
+            code = watch(session, args.once, where=where)
         elif args.command == "view":
             code = serve(session, args.host, args.port, _stop_on_signals(), max_vessels=args.max_vessels)
         else:
