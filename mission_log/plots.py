@@ -353,8 +353,10 @@ def _ranges_figure(run: RunLog, beliefs, colours, t0: int, path: Path) -> Path:
         for ax in axes[-1]:
             ax.set_xlabel("time (s)")
         senders = ordered({u.neighbour for found in updates.values() for u in found})
-        fig.legend(handles=_innovation_legend(senders, markers), loc="outside lower center",
-                   ncol=len(senders) + 3, fontsize=8, title="Right-hand panels", title_fontsize=8)
+        # at most 4 entries a row: a fleet's every neighbour in one row ran off both sides of the figure
+        handles = _innovation_legend(senders, markers)
+        fig.legend(handles=handles, loc="outside lower center", ncol=min(4, len(handles)), fontsize=8,
+                   title="Right-hand panels", title_fontsize=8)
         fig.suptitle("Inter-vessel ranges: measurements, estimates and how the range filter weighed them")
     return path
 

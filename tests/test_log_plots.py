@@ -18,6 +18,7 @@ TICKS = 30
 TICK_NS = 100_000_000
 ABSENT = {"2": range(10, 25)}     # vessel 2 drops out for half the run
 RADIUS = 4.0
+FLEET = ("1", "2")                # the vessels the synthetic logs speak of
 
 
 def _target(k: int) -> tuple[float, float]:
@@ -58,7 +59,7 @@ def _estimate(vid: str, k: int) -> dict:
     neighbours = {
         j: {"position": [x + 0.1 for x in _minus(own, _position(j, k))], "covariance": [0.04, 0, 0, 0.04],
             "epoch": 0.1 * k, "iterations": 2, "updates": k, "rejected": 0, "outcomes": _outcomes(k, j)}
-        for j in ("1", "2") if j != vid and _present(j, k)
+        for j in FLEET if j != vid and _present(j, k)
     }
     state = None if k == 5 else [*_minus(own, target), 0.5, 0.0]
     return {"time": 0.1 * k, "phase": 0.0, "neighbours": neighbours, "target_state": state,
@@ -68,7 +69,7 @@ def _estimate(vid: str, k: int) -> dict:
 
 def _inputs(vid: str, k: int) -> dict:
     own = _position(vid, k)
-    ranges = {j: math.dist(own, _position(j, k)) for j in ("1", "2") if j != vid and _present(j, k)}
+    ranges = {j: math.dist(own, _position(j, k)) for j in FLEET if j != vid and _present(j, k)}
     return {"time": 0.1 * k, "odometry": {"stamp": 0.1 * k, "position": list(own), "heading": 0.0},
             "ranges": ranges, "bearing": None, "obstacle_points": None, "shares": {}}
 
@@ -89,7 +90,7 @@ def _vessel(vid: str, settings: bool = True, estimates: bool = True) -> VesselLo
 def _sim() -> Log:
     truth = [(k * TICK_NS, {"time": 0.1 * k, "target": list(_target(k)), "target_velocity": [0.5, 0.0],
                             "vessels": {vid: {"position": list(_position(vid, k)), "heading": 0.0}
-                                        for vid in ("1", "2") if _present(vid, k)}})
+                                        for vid in FLEET if _present(vid, k)}})
              for k in range(TICKS)]
     island = {"frame_id": "world", "id": "island/0",
               "lines": [{"points": [{"x": 8.0, "y": -1.0, "z": 0.0}, {"x": 10.0, "y": -1.0, "z": 0.0},
@@ -145,3 +146,29 @@ def test_importing_the_module_does_not_load_matplotlib():
     code = "import sys, mission_log.plots; sys.exit('matplotlib' in sys.modules)"
     done = subprocess.run([sys.executable, "-c", code], cwd=Path(__file__).parents[1], check=False)
     assert done.returncode == 0
+
+
+def test_every_legend_lies_inside_its_figure(tmp_path, monkeypatch):
+    """A legend wider than its figure is cut off at both sides in the PNG (ranges.png's legend below the
+    panels did, with every neighbour in one row)."""
+    from matplotlib.figure import Figure
+
+    save = Figure.savefig
+    outside = []
+
+    def checked(fig, path, *args, **kwargs):
+        fig.canvas.draw()
+        box = fig.bbox
+        for legend in [*fig.legends, *(ax.get_legend() for ax in fig.axes if ax.get_legend() is not None)]:
+            extent = legend.get_window_extent()
+            if extent.x0 < box.x0 - 1 or extent.x1 > box.x1 + 1 or extent.y0 < box.y0 - 1:
+                outside.append((Path(path).name, extent.x0, extent.x1, box.x1))
+        return save(fig, path, *args, **kwargs)
+
+    monkeypatch.setattr(Figure, "savefig", checked)
+    monkeypatch.setattr(sys.modules[__name__], "FLEET", ("1", "2", "3", "4", "5"))   # four neighbours each
+    run = _run()
+    for vessel in "345":
+        run.vessels[vessel] = _vessel(vessel, settings=False)
+    plot_run(run, tmp_path)
+    assert outside == []
