@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from agent.contract import Clock, Cmd, ShareMessage, decode, encode, key
-from agent.core.records import Command
+from agent.core.records import STOP, Command
 from agent.shell.gate import InputGate
 from agent.shell.node import AgentNode
 from agent.shell.settings import NodeSettings
@@ -96,12 +96,25 @@ def test_in_real_time_the_gate_takes_each_senders_newest_share_whether_late_or_o
     assert list(g._held) == [("2", 4 * TICK_NS)]     # only what is newer than the tick is still held
 
 
-def late_answering_fleet(seconds: float, late_ticks: int) -> dict:
+def test_in_real_time_a_senders_first_share_is_its_oldest_so_that_a_deployment_estimate_can_start():
+    g = InputGate("1", known_peers=lambda: {"2"}, hold_shares=True)
+    for k in (0, 6, 7):      # 2 ticked at 0 s, stalled, and ticked again at 0.6 and 0.7 s
+        assert g.offer("usv/2/share", share_message(k, "2", k * TICK_NS), 0.75)
+    g.deliver_shares(7 * TICK_NS, set(), lost=set())
+    assert g.snapshot(0.8).shares["2"].odometry.stamp == 0.0   # 2's odometry of 0 s, the estimates' time
+    g.deliver_shares(8 * TICK_NS, set(), lost=set())
+    assert round(g.snapshot(0.9).shares["2"].odometry.stamp, 6) == 0.7
+    assert not g._held
+
+
+def late_answering_fleet(seconds: float, late_ticks: int, resume: dict[str, float] | None = None) -> dict:
     """The short scenario's fleet of agent nodes on the sim bridge's world in real time, in process and
     without threads: each tick the bridge publishes the sensors and a clock that lists no sender (every agent
     answered the tick before after the clock went out), every agent ticks, and each share reaches the other
     agents `late_ticks` ticks later, after their own tick (the timing of a loaded machine, seen in a real-time
-    fleet's logs). Returns the nodes, the closest approach (m) and the final radii (m)."""
+    fleet's logs). An agent in `resume` stalls after its first tick and ticks again at that time (s), its
+    vessel under its last command until the bridge's watchdog stops it. Returns the nodes, the closest
+    approach (m) and the final radii (m)."""
     _, scenario = select_scenario(SCENARIO)
     bridge = SimBridge(scenario, BridgeSettings(mode="realtime"))
     ids = bridge.world.live()
@@ -119,6 +132,8 @@ def late_answering_fleet(seconds: float, late_ticks: int) -> dict:
     in_flight: list[tuple[int, str, bytes]] = []     # (tick it arrives after, key, payload)
     closest = math.inf
     previous = None
+    commands: dict[str, tuple[Command, float]] = {}
+    watchdog = BridgeSettings().watchdog
     for k in range(int(round(seconds / scenario.world.dt)) + 1):
         stamp = bridge.world.time_ns
         bridge._publish_sensors(session, stamp)
@@ -127,16 +142,17 @@ def late_answering_fleet(seconds: float, late_ticks: int) -> dict:
         session.outbox.clear()
         clock = encode(Clock(stamp_ns=stamp, seq=k, previous_ns=previous, vessels=ids, senders=[],
                              lockstep=False))
-        commands = {}
         for vessel, node in nodes.items():
             node._on_clock(sample("sim/clock", clock))
+            if 0 < k < round((resume or {}).get(vessel, 0.0) / scenario.world.dt):
+                continue
             node._tick(publishers[vessel], node._latest_clock())
             for key_expr, payload in outboxes[vessel]:
                 if key_expr.endswith("/share"):
                     in_flight.append((k + late_ticks, key_expr, payload))
                 elif key_expr.endswith("/cmd"):
                     command = decode(Cmd, payload)[0]
-                    commands[vessel] = Command(command.surge, command.yaw_rate)
+                    commands[vessel] = (Command(command.surge, command.yaw_rate), bridge.world.time)
             outboxes[vessel].clear()
         for arrives, key_expr, payload in [m for m in in_flight if m[0] <= k]:
             for vessel, node in nodes.items():
@@ -147,7 +163,8 @@ def late_answering_fleet(seconds: float, late_ticks: int) -> dict:
         positions = np.array([truth.positions[v] for v in ids])
         gaps = np.linalg.norm(positions[:, None] - positions[None], axis=-1) + np.eye(len(ids)) * 1e9
         closest = min(closest, float(gaps.min()))
-        bridge.world.step(commands)
+        bridge.world.step({v: c if bridge.world.time - when <= watchdog else STOP
+                           for v, (c, when) in commands.items()})
         previous = stamp
     truth = bridge.world.truth()
     radii = {v: float(np.hypot(*(truth.positions[v] - truth.target_position))) for v in ids}
@@ -167,3 +184,12 @@ def test_a_fleet_whose_shares_all_come_a_tick_late_keeps_its_deployment_estimate
     safety = run["nodes"]["1"].params.control.safety_distance
     assert run["closest"] >= safety
     assert all(abs(r - 5.0) <= 0.5 for r in run["radii"].values()), run["radii"]
+
+
+def test_agents_that_stall_after_their_first_tick_still_start_from_their_deployment_estimates():
+    # Every agent of a loaded real-time fleet ticked at 0 s and then not before 0.5-0.8 s (seen in its logs);
+    # vessel 1 comes back two ticks after the others, when their shares of 0.7 s are in beside those of 0 s.
+    run = late_answering_fleet(seconds=3.0, late_ticks=1, resume={"1": 0.9, "2": 0.7, "3": 0.7})
+    for vessel, node in run["nodes"].items():
+        assert set(node.state.tracks) == set(run["nodes"]) - {vessel}
+        assert node.state.health.priors_stale == 0, (vessel, node.state.health.as_dict())

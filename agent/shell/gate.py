@@ -33,7 +33,8 @@ Every per-sender map is bounded by MAX_PEERS senders (the node admits at most th
 shares by `max_held` per sender, and a share keeps of the sender's estimates only the one of this vessel.
 
 On sim time the gate holds each share until the sim clock says whether the simulated radio delivers it
-(`deliver_shares`), so a fleet over Zenoh uses exactly the shares the in-process runner uses.
+(`deliver_shares`), so a fleet over Zenoh in lockstep uses exactly the shares the in-process runner uses; in
+real time each neighbour's newest share that has come is taken, unless the radio lost it.
 """
 
 from __future__ import annotations
@@ -335,18 +336,27 @@ class InputGate:
     def _deliver_newest(self, stamp_ns: int, lost: set[str]) -> None:
         """`deliver_shares` in real time; the caller holds the lock. The marks let a sender's stamps only go
         up, and what is delivered leaves the held shares, so a held share is always newer than its sender's
-        latest. `_delivered_through` stays: a share that comes after its tick is still the sender's newest."""
-        newest: dict[str, tuple[int, Share]] = {}
-        for (sender, stamp), share in list(self._held.items()):
-            if stamp > stamp_ns:
+        latest. `_delivered_through` stays: a share that comes after its tick is still the sender's newest.
+
+        A sender's first share is its oldest one instead (the later ones stay held for the next tick): a pair
+        filter starts from the deployment estimate at its stamp, and needs the neighbour's odometry of that
+        time. Agents that all stalled after their first tick (a loaded machine) otherwise met with shares
+        0.7 s later and found their deployment estimates stale."""
+        chosen: dict[str, tuple[int, Share]] = {}
+        for (sender, stamp), share in sorted(self._held.items(), key=lambda item: item[0][1]):
+            if stamp > stamp_ns or stamp == stamp_ns and sender in lost:
                 continue
-            if not (stamp == stamp_ns and sender in lost) and stamp > newest.get(sender, (-1, None))[0]:
-                newest[sender] = (stamp, share)
-            del self._held[(sender, stamp)]
-            self._held_count[sender] -= 1
-            if self._held_count[sender] <= 0:
-                del self._held_count[sender]
-        for sender, (_, share) in newest.items():
+            if sender not in self._shares and sender in chosen:
+                continue    # a first contact: its oldest share is taken, the later ones wait
+            chosen[sender] = (stamp, share)
+        for (sender, stamp) in list(self._held):
+            if stamp <= stamp_ns and (sender in self._shares or stamp <= chosen.get(sender, (stamp_ns,))[0]
+                                      or stamp == stamp_ns and sender in lost):
+                del self._held[(sender, stamp)]
+                self._held_count[sender] -= 1
+                if self._held_count[sender] <= 0:
+                    del self._held_count[sender]
+        for sender, (_, share) in chosen.items():
             self._shares[sender] = share
 
     def snapshot(self, now: float) -> TickInputs:
