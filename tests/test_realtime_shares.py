@@ -11,19 +11,40 @@ These tests give the agents that timing, deterministically, without a loaded mac
 
 from __future__ import annotations
 
+import json
 import math
+import threading
 from pathlib import Path
 
 import numpy as np
+import pytest
 
-from agent.contract import Clock, Cmd, ShareMessage, decode, encode, key
+from agent.contract import (
+    LIVELINESS,
+    Bearing,
+    Clock,
+    Cmd,
+    Odometry,
+    Ranges,
+    ShareMessage,
+    Sonar,
+    Status,
+    decode,
+    encode,
+    key,
+)
+from agent.core.build import InitialEstimates
 from agent.core.records import STOP, Command
+from agent.runtime.zenoh_session import ZenohSettings
 from agent.shell.gate import InputGate
 from agent.shell.node import AgentNode
 from agent.shell.settings import NodeSettings
 from sim_bridge.bridge import BridgeSettings, SimBridge
+from sim_bridge.fleet import free_port
 from sim_bridge.scenario import initial_estimates, select_scenario
 from sim_bridge.world import streams
+
+from conftest import wait_until  # noqa: E402
 
 SCENARIO = Path(__file__).parent / "data" / "short_scenario.yaml"
 TICK_NS = 100_000_000
@@ -193,3 +214,57 @@ def test_agents_that_stall_after_their_first_tick_still_start_from_their_deploym
     for vessel, node in run["nodes"].items():
         assert set(node.state.tracks) == set(run["nodes"]) - {vessel}
         assert node.state.health.priors_stale == 0, (vessel, node.state.health.as_dict())
+
+
+@pytest.mark.slow
+def test_over_zenoh_an_agent_on_a_real_time_clock_takes_a_neighbours_shares_that_come_a_tick_late(tmp_path):
+    """The agent node on a real Zenoh session; the test plays the real-time sim bridge (sensors, then a
+    clock that lists no sender) and vessel 2, alive, whose share of each tick comes after the next clock."""
+    zenoh = pytest.importorskip("zenoh")
+    port = free_port()
+    initial = InitialEstimates(target=(-5.0, 0.0, -0.5, 0.0), neighbours={"2": (-4.0, 0.0)}, stamp=0.0)
+    settings = NodeSettings(clock="sim", zenoh=ZenohSettings(listen=[f"tcp/127.0.0.1:{port}"]),
+                            initial=initial, id_check=0.0)
+    node = AgentNode("1", settings)
+    ticks = 30
+    thread = threading.Thread(target=node.run, daemon=True)
+    thread.start()
+    config = zenoh.Config()
+    config.insert_json5("mode", '"peer"')
+    config.insert_json5("scouting/multicast/enabled", "false")
+    config.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
+    statuses = []
+    with zenoh.open(config) as session:
+        session.declare_subscriber(key("1", "status"),
+                                   lambda s: statuses.append(decode(Status, s.payload.to_bytes())[0]))
+        token = session.liveliness().declare_token(key("2", LIVELINESS))
+        assert wait_until(lambda: statuses and statuses[-1].peers == ["2"], timeout=20)
+        previous = None
+        for k in range(ticks):
+            stamp, t = k * TICK_NS, k * 0.1
+            mine, theirs = (0.5 * t, 0.0), (4.0 + 0.5 * t, 0.3 * t)   # 2 ahead of 1, drifting aside
+            session.put(key("1", "sensor/odom"), encode(Odometry(stamp_ns=stamp, seq=k, sender="1",
+                                                                 position=mine, heading=0.0)))
+            session.put(key("1", "sensor/uwb"), encode(Ranges(stamp_ns=stamp, seq=k, sender="1", ranges={
+                "2": float(np.hypot(theirs[0] - mine[0], theirs[1] - mine[1]))})))
+            session.put(key("1", "sensor/bearing"), encode(Bearing(stamp_ns=stamp, seq=k, sender="1",
+                                                                   bearing=(-1.0, 0.0))))
+            session.put(key("1", "sensor/sonar"), encode(Sonar(stamp_ns=stamp, seq=k, sender="1", points=[])))
+            assert wait_until(lambda: node.gate.accepted["sensor/sonar"] == k + 1)
+            session.put("sim/clock", encode(Clock(stamp_ns=stamp, seq=k, previous_ns=previous,
+                                                  vessels=["1", "2"], senders=[], lockstep=False)))
+            assert wait_until(lambda: node.ticks == k + 1)
+            # 2's share of this tick: after 1's tick, and not listed by the next clock
+            session.put(key("2", "share"), encode(ShareMessage(
+                stamp_ns=stamp, seq=k, sender="2", position=theirs, heading=0.0, velocity=(0.5, 0.3),
+                phase=0.0)))
+            assert wait_until(lambda: node.gate.accepted["share"] == k + 1)
+            previous = stamp
+        node.stopping.set()
+        thread.join(timeout=10)
+        token.undeclare()
+    assert not thread.is_alive()
+    health = statuses[-1].health
+    assert health.get("neighbours_joined") == 1 and health.get("neighbours_dropped", 0) == 0, health
+    assert health.get("priors_stale", 0) == 0 and health.get("rejected_late_share", 0) == 0, health
+    assert "2" in node.state.tracks and node.state.tracks["2"].updates > 0
