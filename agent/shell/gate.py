@@ -33,7 +33,8 @@ Every per-sender map is bounded by MAX_PEERS senders (the node admits at most th
 shares by `max_held` per sender, and a share keeps of the sender's estimates only the one of this vessel.
 
 On sim time the gate holds each share until the sim clock says whether the simulated radio delivers it
-(`deliver_shares`), so a fleet over Zenoh uses exactly the shares the in-process runner uses.
+(`deliver_shares`), so a fleet over Zenoh in lockstep uses exactly the shares the in-process runner uses; in
+real time each neighbour's newest share that has come is taken, unless the radio lost it.
 """
 
 from __future__ import annotations
@@ -410,15 +411,23 @@ class InputGate:
 
     # ----- the tick side -----
     def deliver_shares(self, stamp_ns: int | None, senders: set[str] | None, wait: float = 0.0,
-                       sensors_ns: int | None = None, wait_for_shares: bool = True) -> set[str]:
+                       sensors_ns: int | None = None, wait_for_shares: bool = True,
+                       lost: set[str] | None = None) -> set[str]:
         """Make the held shares stamped `stamp_ns` from `senders` (None: from anyone) this agent's latest, and
         drop every other held share that old. With `wait` > 0, first wait up to that many seconds for this
         vessel's sensors stamped `sensors_ns` and (if `wait_for_shares`) for all of `senders` to arrive: the
-        network may bring a tick's messages in any order. Returns the senders still missing."""
+        network may bring a tick's messages in any order. Returns the senders still missing.
+
+        `lost` given (sim time in real time): the network, not the clock, decides what is in time. From each
+        sender, its newest held share stamped up to `stamp_ns` becomes its latest, unless that is its share of
+        `stamp_ns` and the sender is in `lost` (the simulated radio's loss); `senders` is not asked. A share
+        that came after its tick, or is stamped off the clock's ticks (its sender ticked on older odometry, or
+        skipped a clock), is late, not lost: taken only when stamped exactly `stamp_ns`, a loaded fleet went
+        over a second without shares, dropped its neighbours and started cold (docs/fleet.md §6)."""
         deadline = time.monotonic() + wait
         with self._arrival:
             def absent() -> set[str]:
-                if stamp_ns is None or senders is None:
+                if stamp_ns is None or senders is None or lost is not None:
                     return set()
                 return {j for j in senders if (j, stamp_ns) not in self._held}
 
@@ -438,6 +447,9 @@ class InputGate:
                 return missing
             if missing and wait_for_shares:
                 self.rejected["shares_missing"] += len(missing)
+            if lost is not None:
+                self._deliver_newest(stamp_ns, lost)
+                return missing
             for (sender, stamp), share in list(self._held.items()):
                 if stamp == stamp_ns and (senders is None or sender in senders):
                     self._shares[sender] = share
@@ -448,6 +460,32 @@ class InputGate:
                         del self._held_count[sender]
             self._delivered_through = max(stamp_ns, self._delivered_through or 0)
         return missing
+
+    def _deliver_newest(self, stamp_ns: int, lost: set[str]) -> None:
+        """`deliver_shares` in real time; the caller holds the lock. The marks let a sender's stamps only go
+        up, and what is delivered leaves the held shares, so a held share is always newer than its sender's
+        latest. `_delivered_through` stays: a share that comes after its tick is still the sender's newest.
+
+        A sender's first share is its oldest one instead (the later ones stay held for the next tick): a pair
+        filter starts from the deployment estimate at its stamp, and needs the neighbour's odometry of that
+        time. Agents that all stalled after their first tick (a loaded machine) otherwise met with shares
+        0.7 s later and found their deployment estimates stale."""
+        chosen: dict[str, tuple[int, Share]] = {}
+        for (sender, stamp), share in sorted(self._held.items(), key=lambda item: item[0][1]):
+            if stamp > stamp_ns or stamp == stamp_ns and sender in lost:
+                continue
+            if sender not in self._shares and sender in chosen:
+                continue    # a first contact: its oldest share is taken, the later ones wait
+            chosen[sender] = (stamp, share)
+        for (sender, stamp) in list(self._held):
+            if stamp <= stamp_ns and (sender in self._shares or stamp <= chosen.get(sender, (stamp_ns,))[0]
+                                      or stamp == stamp_ns and sender in lost):
+                del self._held[(sender, stamp)]
+                self._held_count[sender] -= 1
+                if self._held_count[sender] <= 0:
+                    del self._held_count[sender]
+        for sender, (_, share) in chosen.items():
+            self._shares[sender] = share
 
     def snapshot(self, now: float) -> TickInputs:
         """This tick's inputs: the freshest odometry and sonar, the bearing if not used before, every range set

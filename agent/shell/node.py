@@ -433,13 +433,17 @@ class AgentNode:
 
     def _deliver_shares(self, clock: Clock) -> None:
         """Sim time: take the shares of the tick before that the sim's radio delivers to this vessel, once this
-        tick's own sensors are in; in lockstep, first wait (bounded) for those shares too."""
+        tick's own sensors are in; in lockstep, first wait (bounded) for those shares too. In real time, each
+        neighbour's newest share up to the tick before (`InputGate.deliver_shares`, `lost`)."""
         # In real time only this tick's own sensors are worth a short wait (they were published just before
-        # the clock); a late share is the radio's loss, as it would be at sea.
+        # the clock), and each neighbour's newest share that has come is taken, late or not, unless the radio
+        # lost it: at sea a late share is still the neighbour's latest word.
         wait = self.settings.share_wait if clock.lockstep else 0.25 * self.settings.agent.dt
         sensed = clock.vessels is not None and self.id in clock.vessels
+        lost = None if clock.lockstep else {sender for sender, to in clock.lost if to == self.id}
         self.gate.deliver_shares(clock.previous_ns, clock.delivered_to(self.id), wait,
-                                 clock.stamp_ns if sensed else None, wait_for_shares=clock.lockstep)
+                                 clock.stamp_ns if sensed else None, wait_for_shares=clock.lockstep,
+                                 lost=lost)
 
     def _tick(self, publishers, clock: Clock | None = None) -> None:
         """One tick: on sim time `clock` is the sim/clock message it answers, on wall time None. Whatever
