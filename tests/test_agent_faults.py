@@ -547,3 +547,16 @@ def test_the_sim_bridge_killed_and_restarted_is_followed(tmp_path, short_scenari
                 process.kill()
                 process.wait()
 
+
+
+@pytest.mark.slow
+def test_an_agent_on_sim_time_without_a_simulation_says_so_and_one_without_a_log_too(tmp_path):
+    """No sim/clock at all: the agent says that no simulation runs (it ticks on sim time), not that no
+    bridge publishes its sensors; and with no `log:` in its settings it says it records nothing."""
+    agent = AgentProcess(tmp_path, vessel="4", no_sensor_warning=1.0)
+    from conftest import wait_until
+    assert wait_until(lambda: "no sim/clock" in agent.stderr(), timeout=15)
+    said = agent.stderr()
+    assert "no simulation is running" in said and "no sensor data" not in said
+    assert "usv-agent 4: no MCAP log: the settings name none" in said
+    agent.stop()

@@ -138,6 +138,9 @@ class AgentNode:
         StartupError (one line) if it cannot be written. `run` opens it only after the id check, so that an
         agent refused for a taken id never truncates the log of the agent that has it."""
         if not self.settings.log:
+            if not self.sim_restarts:
+                print(f"usv-agent {self.id}: no MCAP log: the settings name none (log: FILE, e.g. "
+                      "agent-{vessel}-{start}.mcap, records the mission for usv-log)", file=sys.stderr)
             return
         start = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
         path = Path(self.settings.log.replace("{vessel}", self.id).replace("{start}", start))
@@ -370,6 +373,11 @@ class AgentNode:
                   "they are", file=sys.stderr)
             return
         clock = self._latest_clock()
+        if self.settings.clock == "sim" and clock is None:
+            print(f"usv-agent {self.id}: no sim/clock in {self.settings.no_sensor_warning:g} s: this agent ticks "
+                  "on sim time (clock: sim) and no simulation is running (start usv-sim, or clock: wall on a "
+                  "boat); commanding STOP until one does", file=sys.stderr)
+            return
         world = ""
         if clock is not None and clock.vessels is not None and self.id not in clock.vessels:
             world = f"; the sim clock lists vessels {', '.join(clock.vessels[:10]) or 'none'}, not {self.id}"
