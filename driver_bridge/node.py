@@ -68,7 +68,14 @@ class Port(StrictModel):
     baud: int = Field(115_200, gt=0)
 
 
+# What each device is, for a line that says which one could not be opened.
+DEVICES = {"uwb": "the UWB module", "odometry": "the speed log and compass", "camera": "the camera",
+           "thrusters": "the thrusters' controller"}
+
+
 class UwbPort(Port):
+    # LinkTrack's own UART rate: Nooploop's driver (nlink_parser) opens the module at 921600.
+    baud: int = Field(921_600, gt=0)
     module: UwbSettings
 
 
@@ -260,7 +267,13 @@ class DriverBridge:
         for name in ("uwb", "odometry", "camera", "thrusters"):
             port = getattr(self.settings, name)
             if port is not None:
-                ports[name] = open_serial(port.device, port.baud)
+                try:
+                    ports[name] = open_serial(port.device, port.baud)
+                except OSError as error:
+                    for fd in ports.values():
+                        os.close(fd)
+                    raise OSError(f"cannot open {DEVICES[name]} ({name}.device {port.device} at {port.baud} "
+                                  f"baud): {error.strerror or error}") from None
         handlers = {"uwb": self._on_uwb, "odometry": self._on_odometry, "camera": self._on_camera}
         readers = {fd: handlers[name] for name, fd in ports.items() if name in handlers}
         started = time.monotonic()

@@ -39,7 +39,7 @@ def baud_constant(baud: int) -> int:
     return constant
 
 
-def open_serial(path: str, baud: int = 921_600) -> int:
+def open_serial(path: str, baud: int) -> int:
     """Open `path` read-write as a raw 8N1 port at `baud`; returns a non-blocking file descriptor."""
     speed = baud_constant(baud)
     fd = os.open(path, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)  # NOCTTY: never become our controlling tty

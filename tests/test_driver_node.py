@@ -187,6 +187,19 @@ def test_a_bad_driver_config_is_a_clear_error(tmp_path):
     assert result.returncode == 2 and "thrusters.hull" in result.stderr and "Traceback" not in result.stderr
 
 
+def test_a_missing_serial_device_is_named_with_what_it_is(tmp_path):
+    """A device that is not there: one line naming the device's role, its path and baud (the UWB module's
+    default is LinkTrack's 921600), not a bare [Errno 2] with a path."""
+    config = tmp_path / "driver.yaml"
+    missing = tmp_path / "ttyUSB-not-there"
+    config.write_text(yaml.safe_dump({"uwb": {"device": str(missing), "module": {"peers": {2: "2"}}}}))
+    result = subprocess.run([sys.executable, "-m", "driver_bridge", "--vessel", "1", "--config", str(config)],
+                            capture_output=True, text=True, check=False, timeout=60)
+    assert result.returncode == 1 and "Traceback" not in result.stderr
+    assert result.stderr.strip() == (f"usv-driver: cannot open the UWB module (uwb.device {missing} at 921600 baud): "
+                                     "No such file or directory")
+
+
 REVERSE = "$THR,-0.250,-0.250*"      # -1 m/s: what the spoofer asks for, never the real agent
 
 
