@@ -21,6 +21,7 @@ from usv_op.layout import fleet_layout
 
 ROOT = Path(__file__).resolve().parents[1]
 websockets = pytest.importorskip("websockets.sync.client")
+websockets_exceptions = pytest.importorskip("websockets.exceptions")
 jsonschema = pytest.importorskip("jsonschema")
 
 
@@ -51,6 +52,9 @@ def test_a_foxglove_client_gets_every_live_vessels_frames_from_the_live_view(tmp
         url = re.search(r"ws://[0-9.]+:\d+", line)
         assert url, line + view.stderr.read()
         channels, schemas, received, subscriptions = {}, {}, {}, {}
+        # The SDK's server speaks only its own subprotocol: an older client's offer is refused (docs/operator.md).
+        with pytest.raises(websockets_exceptions.InvalidStatus, match="400"):
+            websockets.connect(url[0], subprotocols=["foxglove.websocket.v1"], open_timeout=10)
         with websockets.connect(url[0], subprotocols=["foxglove.sdk.v1"], open_timeout=10) as client:
             def subscribe(channel: int) -> None:
                 client.send(json.dumps({"op": "subscribe", "subscriptions": [
