@@ -163,7 +163,7 @@ def test_a_target_filter_started_without_an_estimate_says_its_range_is_unknown()
             along = x[:2] / np.hypot(*x[:2])
             error = float(along @ (x[:2] - relative))
             normalised = error**2 / float(along @ P[:2, :2] @ along)
-            assert normalised <= bound, f"seed {seed}, {k * DT:.1f} s: range {error:+.2f} m off, {normalised:.0f}"
+            assert normalised <= bound, f"seed {seed}, {k * DT:.1f} s: {error:+.2f} m along, {normalised:.0f}"
 
 
 RESTART_SEEDS = range(1, 6)
