@@ -56,4 +56,5 @@ def _start_tracker(params: AgentParams, state: VesselState, bearing: np.ndarray)
     p = params.target
     guess = bearing / np.linalg.norm(bearing) * p.initial_range_guess
     covariance = np.diag([p.initial_range_guess**2] * 2 + [p.initial_covariance] * 2)
-    state.tracker = PLKF(p, np.concatenate([guess, -state.motion.velocity]), covariance, dt=params.dt)
+    state.tracker = PLKF(p, np.concatenate([guess, -state.motion.velocity]), covariance, dt=params.dt,
+                         range_unobserved=True)
