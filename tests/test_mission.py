@@ -423,3 +423,18 @@ def test_a_lockstep_fleet_of_processes_holds_from_the_next_tick_boundary_until_r
         assert all((s, w) == (0.0, 0.0) for t, s, w in commands if start <= t < end), vessel
         assert sum(start <= t < end for t, _, _ in commands) >= 5
         assert any(s != 0.0 for t, s, _ in commands if t >= end) and any(s != 0.0 for t, s, _ in commands if t < start)
+
+
+def test_usv_op_says_a_bad_value_in_one_line_as_typed():
+    import argparse
+
+    from agent.config import ConfigError
+    from usv_op.cli import _command
+
+    for values, said in ((["radius=-3"], "radius=-3.0: input should be greater than 0"),
+                         (["yaw_rate=9"], "yaw_rate=9.0: input should be less than or equal to 3.14159"),
+                         (["radius=x"], "'radius=x': 'x' is not a number")):
+        args = argparse.Namespace(values=values, sender="operator", command="set")
+        with pytest.raises(ConfigError) as raised:
+            _command(args, NOW_NS)
+        assert str(raised.value).startswith(said) and "pydantic" not in str(raised.value)

@@ -29,6 +29,7 @@ import threading
 import time
 
 import zenoh
+from pydantic import ValidationError
 
 from agent.config import ConfigError
 from agent.contract import (
@@ -164,8 +165,14 @@ def _command(args: argparse.Namespace, stamp_ns: int) -> MissionCommand:
             values[name] = float(text)
         except ValueError:
             raise ConfigError(f"{item!r}: {text!r} is not a number") from None
-    return MissionCommand(stamp_ns=stamp_ns, seq=time.time_ns(), sender=args.sender, command=args.command,
-                          session=secrets.token_hex(8), **values)
+    try:
+        return MissionCommand(stamp_ns=stamp_ns, seq=time.time_ns(), sender=args.sender, command=args.command,
+                              session=secrets.token_hex(8), **values)
+    except ValidationError as error:     # one line, the field as the user typed it: 'radius=-3: ...'
+        first = error.errors()[0]
+        field = ".".join(str(part) for part in first["loc"])
+        given = f"{field}={first['input']}" if field in values else field or args.command
+        raise ConfigError(f"{given}: {first['msg'][0].lower()}{first['msg'][1:]}") from None
 
 
 def status_lines(statuses: dict[str, tuple[float, Status]], live: set[str], now: float,
