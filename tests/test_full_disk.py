@@ -178,10 +178,15 @@ def test_logging_resumes_when_there_is_room_again(full_disk, tmp_path):
     # mission_log's reader joins the parts: every vessel's log reads, and the summary was written from them.
     run = load_run(watched.folder)
     assert sorted(run.vessels) == ["1", "2", "3"] and run.has_truth
-    # The ticks of the gap are missing from the ground truth's log, and the summary says so (not "cut short").
+    # Where the bridge's own log was suspended, the ticks of the gap are missing from the ground truth's log
+    # (whether its writes met the full disk depends on when its chunks were flushed); either way the run is
+    # complete, and the summary says how many of the ticks simulated the logs hold (not "cut short").
     metrics = json.loads((watched.folder / "metrics.json").read_text())
-    assert metrics["complete"] and 0 < metrics["ticks"] < watched.planned
     assert {"agent-1", "agent-2", "agent-3"} <= set(metrics["logs_lost"])
+    if "bridge" in metrics["logs_lost"]:
+        assert metrics["complete"] and 0 < metrics["ticks"] < watched.planned
+    else:
+        assert metrics["complete"] and metrics["ticks"] == watched.planned
     summary = (watched.folder / "summary.md").read_text()
     assert f"{metrics['ticks']} of the {watched.planned} ticks simulated" in summary
     assert "cut short" not in summary

@@ -269,8 +269,8 @@ def test_an_agent_that_ignores_sigterm_is_killed_for_its_restart_and_its_token_w
     # The launch's short look for a namesake goes too: an agent with this id has just been there.
     assert original["id_check"] < NodeSettings().id_check and "id_check" not in settings
     assert settings == {k: v for k, v in original.items() if k not in ("initial", "log", "id_check")}
-    for handle in fleet._logs:
-        handle.close()
+    for console in fleet.consoles.values():
+        console.close()
 
 
 def _gaps(positions: np.ndarray, target: np.ndarray, vessel: int) -> np.ndarray:
