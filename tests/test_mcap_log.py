@@ -124,3 +124,20 @@ def test_a_log_that_cannot_be_finished_does_not_hide_the_error_that_ended_the_bl
     said = getattr(raised.value, "__notes__", None) or capsys.readouterr().err.splitlines()
     assert any("closing the log /dev/full failed: OSError" in note for note in said)
     assert log._file.closed
+
+
+def test_a_log_cut_at_any_byte_reads_up_to_its_cut_without_raising(tmp_path):
+    """A part cut by a full disk may end inside a record's header: read with a warning, never struct.error
+    (the launcher's analysis died on one)."""
+    import warnings
+
+    path = tmp_path / "a.mcap"
+    with McapLog(path) as log:
+        for k in range(200):
+            log.log("t", {"k": k}, log_time_ns=k)
+    data = path.read_bytes()
+    for cut in range(9, len(data), 7):
+        path.write_bytes(data[:cut])
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            list(read_messages(path))

@@ -35,6 +35,7 @@ from __future__ import annotations
 import contextlib
 import json
 import stat
+import struct
 import sys
 import time
 import uuid
@@ -432,7 +433,7 @@ def read_messages(path: str | Path) -> Iterator[tuple[str, int, dict]]:
                     channels[record.id] = record.topic
                 elif isinstance(record, Message):
                     yield channels.get(record.channel_id, "?"), record.log_time, orjson.loads(record.data)
-        except (McapError, EOFError, ValueError) as error:
+        except (McapError, EOFError, ValueError, struct.error) as error:   # struct: cut inside a record header
             warnings.warn(f"{path}: unfinished MCAP, read up to the last complete record ({error})",
                           stacklevel=2)
 
@@ -446,6 +447,6 @@ def read_metadata(path: str | Path) -> dict[str, dict[str, str]]:
             for record in StreamReader(handle, skip_magic=False).records:
                 if isinstance(record, Metadata):
                     found[record.name] = dict(record.metadata)
-        except (McapError, EOFError, ValueError):
+        except (McapError, EOFError, ValueError, struct.error):
             pass  # read_messages warns about an unfinished file; the metadata before the cut is all there
     return found
