@@ -194,7 +194,9 @@ def test_every_readme_example_is_run(tmp_path):
     op_example = re.search(r"(set radius=\S+ yaw_rate=\S+ direction=\S+)", help_examples).group(1)
     replay_examples = re.search(r"e\.g\. (relative\.\S+) or (relative\.\S+)", help_examples).groups()
     ran: set[str] = set()
-    env = {**os.environ, "PATH": f"{BIN}{os.pathsep}{os.environ.get('PATH', '')}"}
+    scratch = tmp_path / "tmp"       # the fleet's temporary files, to see that it leaves none behind
+    scratch.mkdir()
+    env = {**os.environ, "PATH": f"{BIN}{os.pathsep}{os.environ.get('PATH', '')}", "TMPDIR": str(scratch)}
 
     # The README's real-time fleet, run as written; it prints the usv-op line to watch it with.
     fleet_line = "usv-fleet run cold_start --duration 30 --mode realtime"
@@ -247,6 +249,7 @@ def test_every_readme_example_is_run(tmp_path):
             fleet.wait()
         for reader in readers:
             reader.join(timeout=10)
+    assert not list(scratch.glob("usv-fleet-*")), "usv-fleet left its copy of the scenario behind"
     run = Path(re.search(r"run folder (\S+)", "".join(said)).group(1))
     run = run if run.is_absolute() else tmp_path / run
     assert (run / "sim.mcap").is_file()
