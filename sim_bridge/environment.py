@@ -24,6 +24,8 @@ from sim_bridge.current import Current, CurrentConfig
 from sim_bridge.waves import Waves, WavesConfig
 from sim_bridge.wind import Wind, WindConfig
 
+_ROUNDING = 1e-9   # s: a time this much before the last one counts as the same (sums of substeps vs products)
+
 
 class EnvironmentConfig(StrictModel):
     """Each part optional: a missing one is still water, still air or a flat sea."""
@@ -45,9 +47,9 @@ class Environment:
     def advance(self, t: float) -> None:
         """Move the current's Gauss-Markov part and the wind's gust on from the last time to t (s)."""
         dt = t - self.time
-        if not dt >= 0.0:
+        if not dt >= -_ROUNDING:
             raise ValueError(f"the environment cannot go back in time (from {self.time} s to {t} s)")
-        if dt == 0.0:
+        if dt <= 0.0:     # the same time, or a rounding error's worth before it (t computed two ways)
             return
         self.time = t
         if self._current is not None:
