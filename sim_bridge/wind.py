@@ -32,7 +32,7 @@ class WindConfig(StrictModel):
     cx: NonNegativeFloat = Field(0.8, description="C_X, on the frontal area (VRX's drag of a box-like body)")
     cy: NonNegativeFloat = Field(0.8, description="C_Y, on the lateral area (VRX's drag of a box-like body)")
     cn: NonNegativeFloat = Field(
-        0.1, description="C_N, on lateral area x length (VRX's WAM-V coefficients' ratio; Fossen: 0.05-0.2)")
+        0.1, description="C_N, on lateral area x length (from VRX's WAM-V coefficients' ratio, 0.108)")
 
 
 class Wind:
