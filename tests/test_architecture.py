@@ -8,7 +8,7 @@ function, under `if TYPE_CHECKING`, relative ones, and `importlib.import_module`
   (agent.contract), typed configuration (agent.config), angles (agent.angles) and the runtime
   (agent.runtime: Zenoh session settings, the vessel-process command line, MCAP logs).
 - `sim_bridge` takes the same, plus the core's pure vocabulary that its scenario and world model share with
-  the in-process runner (lab.runner), so that both build a mission the same way: the parameters
+  the in-process runner (lab.harness.runner), so that both build a mission the same way: the parameters
   (agent.core.params), the per-tick records (agent.core.records) and the builder of a vessel's core and
   initial estimates (agent.core.build). Never the agent process (agent.shell).
 - Layers: `mission_log` and `sim_bridge` never import `lab`; `mission_log` never imports `sim_bridge`;

@@ -1,4 +1,4 @@
-"""lab/bound.py: Fisher information of the range-noise models and the posterior Cramér–Rao bound, each against
+"""lab/experiments/bound.py: Fisher information of the range-noise models and the posterior Cramér–Rao bound, each against
 values worked out another way (closed forms, a direct grid integration, the joint information matrix)."""
 
 from __future__ import annotations
@@ -8,8 +8,8 @@ import math
 import numpy as np
 import pytest
 
-from lab.bound import fisher_information, pcrlb, rms_bound
-from lab.comparison import ComparisonConfig, nees_band, relative_trajectory, run_comparison
+from lab.experiments.bound import fisher_information, pcrlb, rms_bound
+from lab.experiments.comparison import ComparisonConfig, nees_band, relative_trajectory, run_comparison
 from sim_bridge.noise import GaussianMixtureNoise, GaussianNoise, LogNormalNoise
 
 TABLE_II_GMM = GaussianMixtureNoise(outlier_fraction=0.2, variance=0.4, outlier_variance=10.0)

@@ -71,7 +71,7 @@ def fisher_information(noise) -> float:
 def _gaussian_mixture_information(weights: tuple[float, ...], variances: tuple[float, ...]) -> float:
     """I_f of sum_i w_i N(0, v_i). The score is s(x) = -x sum_i g_i(x) / v_i, with g_i(x) the posterior
     weight of component i at x (computed from log-densities, so it is exact where the densities underflow)."""
-    from scipy import integrate  # here, not at the top: importing lab.comparison stays light
+    from scipy import integrate  # here, not at the top: importing lab.experiments.comparison stays light
 
     parts = [(w, v) for w, v in zip(weights, variances) if w > 0]
     if any(v == 0 for _, v in parts):

@@ -9,7 +9,7 @@ from pathlib import Path
 from agent.config import load_yaml, updated
 from agent.core.params import ESTIMATOR_NAMES
 from lab import arguments
-from lab.comparison import (
+from lab.experiments.comparison import (
     LS_TIMES,
     WORST_RUN_FROM,
     ComparisonConfig,
@@ -17,9 +17,9 @@ from lab.comparison import (
     nees_band,
     run_comparison,
 )
-from lab.estimator_plots import LABELS, rmse_figure
-from lab.parallel import add_engine_arguments, campaign_notes, engine_from, report_failures
-from lab.report import invocation, markdown_table
+from lab.harness.parallel import add_engine_arguments, campaign_notes, engine_from, report_failures
+from lab.report.estimator_plots import LABELS, rmse_figure
+from lab.report.markdown import invocation, markdown_table
 
 DEFAULT_CONFIG = Path("configs/experiments/estimator_comparison.yaml")
 # Variants run after the main experiment on the same seeds, to show what the ranking depends on: the level
@@ -116,7 +116,7 @@ def _header(config: ComparisonConfig, elapsed: float, command: str, where: str =
         "",
         *([*notes, ""] if notes else []),
         ("The dashed black line in each figure is the posterior Cramér–Rao bound "
-         "([lab/bound.py](../../lab/bound.py)): "
+         "([lab/experiments/bound.py](../../lab/experiments/bound.py)): "
          "the floor on the RMSE of any unbiased estimate of p_ij from the same data (the initial estimate, both "
          "vessels' odometry, one range per epoch including the first), for an estimator that knows the range "
          "noise's density, not only its variance. Information recursion J_k = (Q + J_(k-1)^-1)^-1 + I_f H_k^T H_k "

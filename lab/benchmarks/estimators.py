@@ -61,8 +61,8 @@ from agent.core.estimators.pseudolinear import equivalent_noise_variance, pseudo
 from agent.core.estimators.raw_range import NO_PRIOR_VARIANCE
 from agent.core.params import ESTIMATOR_NAMES, AgentParams, RelativeEstimationParams
 from lab import arguments
-from lab.comparison import ComparisonConfig, relative_trajectory
-from lab.report import invocation, markdown_table
+from lab.experiments.comparison import ComparisonConfig, relative_trajectory
+from lab.report.markdown import invocation, markdown_table
 from sim_bridge.noise import GaussianMixtureNoise, IsotropicGaussianNoise
 
 DT = 0.1

@@ -21,10 +21,10 @@ from agent.config import PositiveFloat, StrictModel, updated
 from agent.core.checks import valid_range
 from agent.core.estimators import make_relative_estimator
 from agent.core.params import ESTIMATOR_NAMES, AgentParams, LogNormalNoiseParams, RawRangeParams
-from lab.bound import fisher_information, rms_bound
-from lab.errors import ErrorHistory, RunningMoments, moments_by_name
-from lab.mixture_fit import em_mixture
-from lab.parallel import Engine
+from lab.experiments.bound import fisher_information, rms_bound
+from lab.experiments.mixture_fit import em_mixture
+from lab.harness.errors import ErrorHistory, RunningMoments, moments_by_name
+from lab.harness.parallel import Engine
 from sim_bridge.noise import (
     GaussianMixtureNoise,
     GaussianNoise,
@@ -153,7 +153,7 @@ def relative_trajectory(config: ComparisonConfig) -> tuple[np.ndarray, np.ndarra
 
 
 def position_bound(config: ComparisonConfig, noise: RangeNoise, paths: list[np.ndarray]) -> tuple[float, np.ndarray]:
-    """The noise model's Fisher information, and the posterior Cramér–Rao bound (lab/bound.py) on the RMSE
+    """The noise model's Fisher information, and the posterior Cramér–Rao bound (lab/experiments/bound.py) on the RMSE
     over runs along the runs' true paths p_ij = p_i - p_j: sqrt(mean over runs of trace(J_k^{-1})), the floor
     of the mean squared error the RMSE curves square-average. Process noise Q = 2 R_delta I (both vessels'
     odometry, (15)); J_0 = P_0^{-1} (the initial estimate); one range per epoch, counting the one at epoch 0,
