@@ -9,8 +9,9 @@ function, under `if TYPE_CHECKING`, relative ones, and `importlib.import_module`
   (agent.runtime: Zenoh session settings, the vessel-process command line, MCAP logs).
 - `sim_bridge` takes the same, plus the core's pure vocabulary that its scenario and world model share with
   the in-process runner (lab.harness.runner), so that both build a mission the same way: the parameters
-  (agent.core.params), the per-tick records (agent.core.records) and the builder of a vessel's core and
-  initial estimates (agent.core.build). Never the agent process (agent.shell).
+  (agent.core.params), the per-tick records (agent.core.records), the builder of a vessel's core and
+  initial estimates (agent.core.build) and the range noise the world samples and the filters assume
+  (agent.core.range_noise). Never the agent process (agent.shell).
 - Layers: `mission_log` and `sim_bridge` never import `lab`; `mission_log` never imports `sim_bridge`;
   nothing outside `lab` imports `lab` (the tests may); `agent` imports none of sim_bridge, driver_bridge, lab,
   mission_log, usv_deploy.
@@ -37,7 +38,7 @@ CORE_FORBIDDEN = ("zenoh", "mcap", "matplotlib", "threading", "socket", "subproc
                   "agent.shell", "agent.runtime", "agent.contract",
                   "sim_bridge", "driver_bridge", "lab", "mission_log", "usv_deploy", "usv_op")
 SHARED_FROM_AGENT = ("agent.contract", "agent.config", "agent.angles", "agent.runtime")
-CORE_VOCABULARY = ("agent.core.params", "agent.core.records", "agent.core.build")
+CORE_VOCABULARY = ("agent.core.params", "agent.core.records", "agent.core.build", "agent.core.range_noise")
 
 
 @dataclass(frozen=True)

@@ -43,7 +43,8 @@ def test_an_unknown_subcommand_is_refused_in_one_line(capsys):
 
 def documented_commands() -> set[tuple[str, str]]:
     """(file, subcommand) of each `usv-lab WORD` in the README, docs/ and the configs' comments."""
-    files = [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md")), *sorted((ROOT / "configs").rglob("*.yaml"))]
+    files = [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md")),
+             *sorted((ROOT / "configs").rglob("*.yaml"))]
     return {(str(path.relative_to(ROOT)), match) for path in files
             for match in re.findall(r"usv-lab ([a-z][a-z-]*)", path.read_text(encoding="utf-8"))}
 

@@ -92,6 +92,7 @@ def run(args: argparse.Namespace) -> int:
 
 def _header(config: ComparisonConfig, elapsed: float, command: str, where: str = "this machine",
             notes: list[str] = ()) -> str:
+    world = config.filter_noise == "world"
     return "\n".join([
         "# Experiment 1: inter-vessel estimators under non-Gaussian range noise (paper Figs. 4-5)",
         "",
@@ -106,12 +107,13 @@ def _header(config: ComparisonConfig, elapsed: float, command: str, where: str =
         f"{config.agent.control.yaw_rate:.6f} rad/s, dt = {config.agent.dt} s, {config.duration} s per run; "
         f"{config.runs} Monte Carlo runs per noise model, root seed {config.seed}; initial estimate drawn from "
         f"N(p_ij0, {config.agent.relative.initial_covariance} I); the rest from Table I. R_z from (14) with "
-        f"the '{config.filter_range_variance}' range variance of each noise model (x {config.variance_scale}). "
+        + ("each noise model's variance" if world else "the configured range variance")
+        + f" (x {config.variance_scale}). "
         "The raw-range estimator ([agent/core/estimators/raw_range.py](../../agent/core/estimators/raw_range.py)) "
         "uses the ranges themselves, not (12), and assumes "
         + ("each run's noise density (the GMM exactly; for the log-normal a fitted Gaussian mixture in the batch "
            "fix and its exact density in tracking)"
-           if config.raw_range_noise == "model" else "the noise_components of its parameters")
+           if world else "the noise_components of its parameters")
         + f". Wall time {elapsed:.1f} s; ran on {where}.",
         "",
         *([*notes, ""] if notes else []),

@@ -45,9 +45,9 @@ from pathlib import Path
 import numpy as np
 
 from agent.config import ConfigError, load_yaml, yaml_scalar
+from agent.core.mixture_fit import em_mixture
 from agent.core.params import ESTIMATOR_NAMES, AgentParams
 from lab import arguments
-from lab.experiments.mixture_fit import em_mixture
 from lab.experiments.replay import RangeLog, parse_csv, range_residuals, replay
 from lab.harness.parallel import Engine, add_engine_arguments, campaign_notes, engine_from, report_failures
 from lab.report.estimator_plots import LABELS
