@@ -1,7 +1,7 @@
 """The simulated world: vessels, target, islands and every sensor, advanced one sampling period at a time.
 
 The paper's world and sensor models (Sec. II): surge-yaw kinematics (1), (2); the target (3), (4) and its
-other motions in `targets.py`; odometry (5); ranges (6) with the noise of (7) or (8) (`noise.py`); bearings
+other motions in `targets.py`; odometry (5); ranges (6) with the noise of (7) or (8) (agent/core/range_noise.py); bearings
 (9). docs/equations.md says where the simulation departs from them (ranges clipped at 0, unit bearings).
 
 Pure code: no clock, no I/O. All randomness comes from the generator given to `World`, drawn in the same
@@ -37,13 +37,14 @@ from pydantic import Field, field_validator, model_validator
 from agent.angles import wrap_angle
 from agent.config import NonNegativeFloat, PositiveFloat, StrictModel
 from agent.contract import nanoseconds, seconds
+from agent.core.range_noise import GaussianMixtureNoise, RangeNoise
 from agent.core.records import Command, OdometryReading
 from sim_bridge.geometry import (
     is_simple_polygon,
     sample_boundary,
     segment_intersects_polygon,
 )
-from sim_bridge.noise import GaussianMixtureNoise, IsotropicGaussianNoise, RangeNoise
+from sim_bridge.noise import IsotropicGaussianNoise
 from sim_bridge.targets import FiniteFloat, Point, TargetSpec, make_target
 
 TIME_TOLERANCE = 1e-9   # s; join and leave times this close to a tick count as reached

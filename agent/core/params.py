@@ -9,6 +9,7 @@ from pydantic import Field, model_validator
 
 from agent.config import NonNegativeFloat, PositiveFloat, StrictModel, commented_yaml
 from agent.core.observability import ObservabilityParams
+from agent.core.range_noise import LogNormalNoise
 
 EstimatorName = Literal["mckf", "kf", "akf", "rls", "huber_rls", "raw_range"]
 ESTIMATOR_NAMES: tuple[str, ...] = ("rls", "huber_rls", "kf", "akf", "mckf", "raw_range")
@@ -47,13 +48,6 @@ class HuberParams(StrictModel):
     scale_window: int = Field(50, ge=5, le=10_000, description="residuals kept for the MAD scale estimate")
 
 
-class LogNormalNoiseParams(StrictModel):
-    """A range noise known to be the paper's shifted log-normal (8): ln(mu + r_s) ~ N(0, R)."""
-
-    log_variance: PositiveFloat = Field(description="R, variance of ln(mu + r_s)")
-    shift: NonNegativeFloat = Field(description="r_s (m): the noise is above -r_s")
-
-
 class RawRangeParams(StrictModel):
     """Raw-range estimator (agent/core/estimators/raw_range.py): a batch fix over a window of ranges, then a
     moment-matching update on each range r = |p| + noise."""
@@ -73,7 +67,7 @@ class RawRangeParams(StrictModel):
                                 "(the others scaled by 1 - this), so that a gross error (multipath, a wrong "
                                 "reply) has a bounded effect: its weight falls once it is beyond the modelled tails")
     gross_error_variance: PositiveFloat = Field(1e4, description="variance of that component (m^2)")
-    tracking_lognormal: LogNormalNoiseParams | None = Field(
+    tracking_lognormal: LogNormalNoise | None = Field(
         None, description="when the range noise is known to be the shifted log-normal (8): once fixed, tracking "
                           "uses its exact density (with the gross-error component) instead of noise_components, "
                           "which stay the batch fix's. A mixture fitted to it misses the information at its "

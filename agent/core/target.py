@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 
 from agent.core.estimators import PLKF
-from agent.core.estimators.plkf import BearingOutcome
 from agent.core.params import AgentParams
+from agent.core.records import BearingOutcome
 from agent.core.state import VesselState
 
 

@@ -7,7 +7,7 @@ agents, commands and statuses back to the bridge), in the order the lockstep pro
 step of a tick is timed except the transport: decoding and the gates, the core's `step`, building, checking
 and encoding messages, the logs, and the bridge's world and sensors. CPU time of this one thread: unlike
 the fleet over Zenoh (`runtime_bench.py`), six processes sharing two cores do not move these figures much,
-so a change to the shells shows here first. The commands equal the in-process runner's (lab/runner.py).
+so a change to the shells shows here first. The commands equal the in-process runner's (lab/harness/runner.py).
 """
 
 from __future__ import annotations

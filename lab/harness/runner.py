@@ -58,7 +58,7 @@ class RunTrace:
 GC_YOUNG_THRESHOLD = 10_000
 
 
-# retune(vessel, time, vessels alive, its parameters) -> the parameters it ticks with (lab/mission_plan.py)
+# retune(vessel, time, vessels alive, its parameters) -> the parameters it ticks with (lab/harness/mission_plan.py)
 Retune = Callable[[str, float, int, AgentParams], AgentParams]
 
 
@@ -68,7 +68,7 @@ def run(scenario: Scenario, seed: np.random.SeedSequence | int | None = None,
     scenario starts cold, starts with no estimates (its target from its first bearing, its neighbours from
     the ranges and shares), as its agent process would. `retune`, if given, gives each live vessel at each
     tick the parameters it ticks with, from those of its previous tick (the scenario's at first): an
-    operator's mission commands (lab/mission_plan.py)."""
+    operator's mission commands (lab/harness/mission_plan.py)."""
     thresholds = gc.get_threshold()
     gc.set_threshold(max(thresholds[0], GC_YOUNG_THRESHOLD), *thresholds[1:])
     try:

@@ -15,8 +15,8 @@
     included; from each process's own summary record), which is what the two cores have to share.
 (d) The peak resident memory of every process of each run (/proc VmHWM).
 (e) Where an agent's and the bridge's CPU per tick goes, against two floors measured in the same run: the
-    shells in one process without Zenoh (lab/shell_bench.py: decoding, gate, core, messages, logs, by
-    section) and the transport floor (lab/transport_floor.py: the same lockstep message pattern between
+    shells in one process without Zenoh (lab/benchmarks/shell.py: decoding, gate, core, messages, logs, by
+    section) and the transport floor (lab/benchmarks/transport_floor.py: the same lockstep message pattern between
     processes that do nothing else). What the fleet costs beyond the sum of the two is the price of six
     processes sharing two cores: thread hand-offs, cold caches, the scheduler.
 (f) What one share costs its receiver to decode, by fleet size: a share carries the sender's n - 1 pair
@@ -41,13 +41,12 @@ import zenoh
 
 from agent.contract import PairEstimate, ReceivedShare, ShareMessage, decode, encode
 from agent.runtime.mcap_log import read_messages
-from agent.runtime.zenoh_session import ZenohSettings, zenoh_config
 from lab import arguments
-from lab.report import invocation, markdown_table
-from lab.runner import run as run_in_process
-from lab.scenario_cmd import DEFAULT_DIR
-from lab.shell_bench import AGENT_SECTIONS, SECTION_TEXT, run_shells
-from lab.transport_floor import SIZES, transport_floor
+from lab.benchmarks.shell import AGENT_SECTIONS, SECTION_TEXT, run_shells
+from lab.benchmarks.transport_floor import SIZES, loopback_config, transport_floor
+from lab.experiments.scenarios import DEFAULT_DIR
+from lab.harness.runner import run as run_in_process
+from lab.report.markdown import invocation, markdown_table
 from sim_bridge.fleet import Fleet, free_port
 from sim_bridge.scenario import select_scenario, with_duration
 
@@ -62,20 +61,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--sizes", type=arguments.positive_int, nargs="+", default=[4, 12],
                         help="fleet sizes of the latency runs (variants n<size>_r5 of table4_scale)")
     parser.add_argument("--floor-ticks", type=arguments.positive_int, default=1000,
-                        help="ticks of the transport floor (lab/transport_floor.py)")
+                        help="ticks of the transport floor (lab/benchmarks/transport_floor.py)")
     parser.add_argument("--out", type=Path, default=Path("docs/results"), help="where runtime_benchmark.md goes")
     parser.add_argument("--scenarios-dir", type=Path, default=DEFAULT_DIR, help="where the scenario files are")
 
 
-def _session_config(listen: int | None = None, connect: int | None = None):
-    """The agents' session settings (`zenoh_config`) on loopback."""
-    return zenoh_config(ZenohSettings(listen=[f"tcp/127.0.0.1:{listen}"] if listen is not None else [],
-                                      connect=[f"tcp/127.0.0.1:{connect}"] if connect is not None else []))
-
-
 def echo(port: int, seconds: float) -> None:
     """The echo side of (a): answer each ping at once, adding the one-way latency it measured."""
-    with zenoh.open(_session_config(listen=port)) as session:
+    with zenoh.open(loopback_config(listen=port)) as session:
         pong = session.declare_publisher("bench/pong")
 
         def on_ping(sample) -> None:
@@ -92,11 +85,11 @@ def bare_zenoh(pings: int) -> dict[str, float]:
     port = free_port()
     seconds = WARM_UP_SECONDS + 5.0 + pings * 0.004
     child = subprocess.Popen([sys.executable, "-c",
-                              f"from lab.runtime_bench import echo; echo({port}, {seconds})"])
+                              f"from lab.benchmarks.runtime import echo; echo({port}, {seconds})"])
     one_way, round_trip = [], []
     counted_from = [time.monotonic_ns()]   # pongs of pings sent before this are the warm-up's, not counted
     try:
-        with zenoh.open(_session_config(connect=port)) as session:
+        with zenoh.open(loopback_config(connect=port)) as session:
             def on_pong(sample) -> None:
                 now = time.monotonic_ns()
                 text = bytes(sample.payload.to_bytes()[:40]).decode()
@@ -139,7 +132,7 @@ def bare_zenoh(pings: int) -> dict[str, float]:
             "round_trip_p99": float(np.percentile(round_trip, 99)), "samples": len(round_trip)}
 
 
-def _bridge_records(folder: Path) -> tuple[list[float], dict]:
+def bridge_records(folder: Path) -> tuple[list[float], dict]:
     latencies, summary = [], {}
     for topic, _, message in read_messages(folder / "sim.mcap"):
         if topic == "/bridge/command_latency":
@@ -199,7 +192,7 @@ def run(args: argparse.Namespace) -> int:
             baseline = bare_zenoh(args.pings)
             fleet = Fleet(with_duration(scale, scratch, args.seconds), f"n{size}_r5", scratch / "runs", mode="realtime")
             folder = fleet.run()
-            latencies, summary = _bridge_records(folder)
+            latencies, summary = bridge_records(folder)
             expected = size * summary.get("ticks", 0)
             p50, p99 = np.percentile(latencies, 50), np.percentile(latencies, 99)
             own, cpu = _reactions(folder)
@@ -216,7 +209,7 @@ def run(args: argparse.Namespace) -> int:
         fleet = Fleet(table2, "mckf", scratch / "runs")
         folder = fleet.run()
         launch_seconds = time.monotonic() - started
-        _, summary = _bridge_records(folder)
+        _, summary = bridge_records(folder)
         cpu = _cpu_per_tick(folder)
         simulated = summary["ticks"] * fleet.scenario.world.dt
         memory_rows.append(["lockstep Table II, 4 vessels", *_memory_cells(_memory(folder))])
@@ -290,8 +283,8 @@ def run(args: argparse.Namespace) -> int:
                         "sum over processes", "factor if the cores were never idle", "CPU budget per tick for 50x"],
                        cpu_rows), "",
         "The same CPU against two floors measured in this run: the shells of the bridge and the agents in one "
-        "process without Zenoh (lab/shell_bench.py: the processes' own objects handing each other the wire "
-        "bytes; an agent's tick by section), and the transport floor (lab/transport_floor.py: bridge and "
+        "process without Zenoh (lab/benchmarks/shell.py: the processes' own objects handing each other the wire "
+        "bytes; an agent's tick by section), and the transport floor (lab/benchmarks/transport_floor.py: bridge and "
         f"{len(scenario.world.vessels)} agent processes exchanging the lockstep messages, payloads of "
         f"{', '.join(f'{k} {v} B' for k, v in SIZES.items())}, with no work on them; {floor['shares_per_tick']:.2f} "
         f"shares reached each agent per tick). In process the agent costs {shells.agent_ms / shell_core:.2f} "

@@ -42,10 +42,10 @@ from agent.config import ConfigError, load_yaml, updated
 from agent.core.estimators import make_relative_estimator
 from agent.core.params import ESTIMATOR_NAMES, AgentParams, RelativeEstimationParams
 from lab import arguments
-from lab.errors import ErrorHistory, RunningMoments, moments_by_name
-from lab.estimator_plots import LABELS, rmse_figure
-from lab.parallel import Engine, add_engine_arguments, campaign_notes, engine_from, report_failures
-from lab.report import invocation, markdown_table
+from lab.harness.errors import ErrorHistory, RunningMoments, moments_by_name
+from lab.harness.parallel import Engine, add_engine_arguments, campaign_notes, engine_from, report_failures
+from lab.report.estimator_plots import LABELS, rmse_figure
+from lab.report.markdown import invocation, markdown_table
 from sim_bridge.noise import IsotropicGaussianNoise
 
 COLUMNS: tuple[str, ...] = ("t", "range", "ax", "ay", "bx", "by")

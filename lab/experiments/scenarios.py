@@ -22,14 +22,21 @@ import numpy as np
 
 from agent.config import ConfigError, updated
 from lab import arguments
-from lab.errors import RunningMoments
-from lab.fleet_plots import error_figure, trajectory_figure
-from lab.parallel import Engine, add_engine_arguments, campaign_notes, engine_from, report_failures
-from lab.report import invocation, markdown_table
-from lab.runner import RunTrace
-from lab.runner import run as run_scenario
+from lab.harness.errors import RunningMoments
+from lab.harness.parallel import Engine, add_engine_arguments, campaign_notes, engine_from, report_failures
+from lab.harness.runner import RunTrace
+from lab.harness.runner import run as run_scenario
+from lab.report.fleet_plots import error_figure, trajectory_figure
+from lab.report.markdown import invocation, markdown_table
 from mission_log.metrics import RunMetrics, nan_mean
-from sim_bridge.scenario import SCENARIOS_DIR, Scenario, ScenarioFile, load_scenarios, scenario_file, scenario_files
+from sim_bridge.scenario import (
+    SCENARIOS_DIR,
+    Scenario,
+    ScenarioFile,
+    load_scenarios,
+    scenario_file,
+    scenario_files,
+)
 
 DEFAULT_DIR = SCENARIOS_DIR
 ERRORS = ("e_ij", "e_io", "e_c")            # the per-tick errors kept from every run, in this order

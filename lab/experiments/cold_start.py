@@ -1,6 +1,6 @@
 """A fleet that starts with nothing: the closest approach between vessels and the settling, seed by seed.
 
-    python -m lab.cold_start [--scenario FILE] [--variant NAME] [--seeds FIRST LAST] [--duration S] [--cold all|ID]
+    usv-lab cold-start [--scenario FILE] [--variant NAME] [--seeds FIRST LAST] [--duration S] [--cold all|ID]
 
 Every vessel (or the one named) starts without initial estimates (the scenario's `initial.cold`), as a fleet
 deployed without an `initial:` section or a vessel restarted mid-mission does, and the in-process runner
@@ -18,22 +18,23 @@ from pathlib import Path
 import numpy as np
 
 from agent.config import updated
-from lab import runner
-from lab.scenario_cmd import closest_approach, mean_after
+from lab.experiments.scenarios import closest_approach, mean_after
+from lab.harness import runner
 from sim_bridge.scenario import select_scenario
 
-DEFAULT = Path(__file__).resolve().parents[1] / "configs" / "scenarios" / "table2_estimators.yaml"
+DEFAULT = Path(__file__).resolve().parents[2] / "configs" / "scenarios" / "table2_estimators.yaml"
 LATE = 20.0     # s: the errors are averaged from here to the end
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m lab.cold_start", description=__doc__.splitlines()[0])
+def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scenario", type=Path, default=DEFAULT)
     parser.add_argument("--variant", default="mckf")
     parser.add_argument("--seeds", type=int, nargs=2, default=(0, 10), metavar=("FIRST", "LAST"))
     parser.add_argument("--duration", type=float, default=90.0)
     parser.add_argument("--cold", default="all", help="'all', or the id of the one vessel that starts cold")
-    args = parser.parse_args(argv)
+
+
+def run(args: argparse.Namespace) -> int:
     _, scenario = select_scenario(args.scenario, args.variant)
     cold = "all" if args.cold == "all" else [args.cold]
     scenario = updated(scenario, duration=args.duration, initial=updated(scenario.initial, cold=cold))
@@ -53,7 +54,3 @@ def main(argv: list[str] | None = None) -> int:
     print(f"\nsettled {settled}/{len(late_ij)}; e_ij after {LATE:.0f} s: mean {np.mean(late_ij):.3f} m, "
           f"worst run {np.max(late_ij):.3f} m")
     return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -1,7 +1,7 @@
 """Which pairs of a fleet are observable, and from when: each pair filter's verdict (agent/core/observability.py)
 over in-process runs, seed by seed.
 
-    python -m lab.observability [--scenario FILE] [--variant NAME] [--seeds FIRST LAST] [--duration S] [--cold]
+    usv-lab observability [--scenario FILE] [--variant NAME] [--seeds FIRST LAST] [--duration S] [--cold]
                                 [--abreast DISTANCE] [--weave AMPLITUDE] [--min-width W] [--window TAU]
 
 Per seed, the settling time and the closest approach of two vessels; per pair i-j (vessel i's filter of
@@ -9,7 +9,7 @@ neighbour j): when the filter started and its error |p^_ij - p_ij| then, when th
 when a `raw_range` filter first fixed its position (the mirror resolved), when the pair was first localised
 (steered the formation), the seconds it spent mirror-ambiguous or unobservable before it was first
 observable and after, and the smallest eigenvalue of its path spread at the end. `--cold` starts every vessel
-without initial estimates, as `python -m lab.cold_start` does; `--abreast D` puts the vessels in a line abreast, 4 m apart, D metres west of the target and heading
+without initial estimates, as `usv-lab cold-start` does; `--abreast D` puts the vessels in a line abreast, 4 m apart, D metres west of the target and heading
 east, so that they move in parallel towards it.
 
 `--weave A` tries an excitation manoeuvre: during the first `WEAVE_UNTIL` seconds, while any of a vessel's
@@ -33,12 +33,12 @@ from agent.config import updated
 from agent.core.observability import OBSERVABLE, ObservabilityParams
 from agent.core.records import Command, TickOutput
 from agent.core.step import step
-from lab import runner
-from lab.cold_start import LATE
-from lab.scenario_cmd import closest_approach, mean_after
+from lab.experiments.cold_start import LATE
+from lab.experiments.scenarios import closest_approach, mean_after
+from lab.harness import runner
 from sim_bridge.scenario import select_scenario
 
-DEFAULT = Path(__file__).resolve().parents[1] / "configs" / "scenarios" / "table2_estimators.yaml"
+DEFAULT = Path(__file__).resolve().parents[2] / "configs" / "scenarios" / "table2_estimators.yaml"
 WEAVE_PERIOD = 6.0    # s
 WEAVE_UNTIL = 30.0    # s
 
@@ -92,8 +92,7 @@ def line_abreast(scenario, distance: float):
     return scenario.model_copy(update={"world": world.model_copy(update={"vessels": vessels})})
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m lab.observability", description=__doc__.splitlines()[0])
+def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scenario", type=Path, default=DEFAULT)
     parser.add_argument("--variant", default="raw_range")
     parser.add_argument("--seeds", type=int, nargs=2, default=(0, 3), metavar=("FIRST", "LAST"))
@@ -105,7 +104,9 @@ def main(argv: list[str] | None = None) -> int:
                         help="yaw-rate amplitude (rad/s) of the trial excitation manoeuvre (default: none)")
     parser.add_argument("--min-width", type=float, default=None, metavar="W", help="w_min (m) to judge with")
     parser.add_argument("--window", type=float, default=None, metavar="TAU", help="tau (s) to judge with")
-    args = parser.parse_args(argv)
+
+
+def run(args: argparse.Namespace) -> int:
     _, scenario = select_scenario(args.scenario, args.variant)
     if args.duration is not None:
         scenario = scenario.model_copy(update={"duration": args.duration})
@@ -144,7 +145,3 @@ def main(argv: list[str] | None = None) -> int:
 
 def _time(value: float | None) -> str:
     return "never" if value is None else f"{value:.1f}"
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -2,7 +2,7 @@
 cluster with as many worker processes, in one run; what the scheduler costs per run. A benchmark, not a test.
 
 The campaign is a scenario file's variants (Table II by default) with `--runs` runs each. Both engines get
-the same job list and seeds (lab/scenario_cmd.py `run_monte_carlo`), and the command checks that their
+the same job list and seeds (lab/experiments/scenarios.py `run_monte_carlo`), and the command checks that their
 errors agree bit for bit before it writes anything. The cluster's start (its worker processes importing
 the lab) is timed apart from the campaign; the overhead per run is the difference of the two campaigns'
 wall times over the runs.
@@ -28,10 +28,10 @@ from pathlib import Path
 import numpy as np
 
 from lab import arguments
-from lab.comparison import ComparisonConfig, run_comparison
-from lab.parallel import Engine, connect_client
-from lab.report import invocation, machine, markdown_table
-from lab.scenario_cmd import DEFAULT_DIR, load, resolve, run_monte_carlo
+from lab.experiments.comparison import ComparisonConfig, run_comparison
+from lab.experiments.scenarios import DEFAULT_DIR, load, resolve, run_monte_carlo
+from lab.harness.parallel import Engine, connect_client
+from lab.report.markdown import invocation, machine, markdown_table
 from sim_bridge.fleet import free_port
 
 MEMORY_DURATION = 10.0   # simulated seconds of each run of the client-memory part
@@ -113,14 +113,14 @@ def run(args: argparse.Namespace) -> int:
     started = time.perf_counter()
     with Engine(cluster=f"local:{args.workers}") as cluster:
         # The workers are new interpreters (a pool's are forks of this one): their imports belong to the start.
-        cluster.prepare("lab.scenario_cmd")
+        cluster.prepare("lab.experiments.scenarios")
         start_seconds = time.perf_counter() - started
         cluster_seconds, cluster_results = _campaign(files, cluster)
         cluster_where = cluster.where()
     print(f"cluster-bench: client memory, Experiment 1 with {args.memory_runs} and {8 * args.memory_runs} runs "
           f"on a scheduler and {args.workers} workers started as processes", file=sys.stderr)
     with _scheduler_and_workers(args.workers) as address, Engine(cluster=address) as remote:
-        remote.prepare("lab.comparison")
+        remote.prepare("lab.experiments.comparison")
         memory = [(n, *_client_peak(remote, n)) for n in (args.memory_runs, 8 * args.memory_runs)]
     ours, theirs = pool_results[path.stem], cluster_results[path.stem]
     same = all(np.array_equal(getattr(theirs[v], field), getattr(ours[v], field), equal_nan=True)
@@ -137,7 +137,7 @@ def run(args: argparse.Namespace) -> int:
         *[f"- {line}" for line in machine()], "",
         f"The same campaign, {runs} runs ({len(scenarios)} variants of `{path.name}` x {args.runs} runs, "
         f"{next(iter(scenarios.values())).duration:g} s simulated each), first on this machine's process pool "
-        f"and then on a local Dask cluster with as many worker processes (lab/parallel.py). The errors of every "
+        f"and then on a local Dask cluster with as many worker processes (lab/harness/parallel.py). The errors of every "
         "run are the same bit for bit on both (checked before this page is written). The cluster's start (its "
         "worker processes starting and importing the lab, which a pool's forked workers need not) is apart from "
         "the campaign's wall time; the overhead per run is the difference of the two wall times over the runs, "

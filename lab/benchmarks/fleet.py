@@ -19,10 +19,10 @@ import numpy as np
 from agent.config import ConfigError, deep_merge, parse_mapping
 from agent.core.params import ESTIMATOR_NAMES
 from lab import arguments
-from lab.parallel import add_engine_arguments, campaign_notes, engine_from, report_failures
-from lab.report import invocation, machine, markdown_table
-from lab.runner import run as run_scenario
-from lab.scenario_cmd import DEFAULT_DIR, load, resolve, run_monte_carlo
+from lab.experiments.scenarios import DEFAULT_DIR, load, resolve, run_monte_carlo
+from lab.harness.parallel import add_engine_arguments, campaign_notes, engine_from, report_failures
+from lab.harness.runner import run as run_scenario
+from lab.report.markdown import invocation, machine, markdown_table
 from sim_bridge.scenario import Scenario
 
 RADIUS = 20.0          # r* (m) of every fleet-size run
@@ -109,7 +109,7 @@ def run(args: argparse.Namespace) -> int:
 
     jobs = sum(s.runs for s in mc_variants.values())
     with engine_from(args) as engine, tqdm(total=jobs, unit="run", desc="Monte Carlo", dynamic_ncols=True) as bar:
-        engine.prepare("lab.scenario_cmd")   # a cluster's workers import before the clock runs, as a fork has
+        engine.prepare("lab.experiments.scenarios")   # a cluster's workers import before the clock runs, as a fork has
         started = time.perf_counter()
         run_monte_carlo({mc_path.stem: mc_variants}, engine, bar.update)
         mc_seconds = time.perf_counter() - started

@@ -22,13 +22,13 @@ from pathlib import Path
 import numpy as np
 
 from lab.arguments import seed as seed_type
-from lab.report import invocation, markdown_table
+from lab.report.markdown import invocation, markdown_table
 from mission_log.metrics import truth_metrics
 from mission_log.reader import load_run
 from sim_bridge.fleet import launch
 from sim_bridge.scenario import select_scenario
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 DEFAULT_SCENARIO = ROOT / "configs" / "scenarios" / "sea_trial.yaml"
 DEFAULT_PAGE = ROOT / "docs" / "results" / "sea_mode.md"
 LIMIT = 1.10    # the sea mode's mean e_ij over the ideal's, at most

@@ -60,10 +60,11 @@ from agent.core.estimators import PLKF, make_relative_estimator
 from agent.core.estimators.pseudolinear import equivalent_noise_variance, pseudo_measurement
 from agent.core.estimators.raw_range import NO_PRIOR_VARIANCE
 from agent.core.params import ESTIMATOR_NAMES, AgentParams, RelativeEstimationParams
+from agent.core.range_noise import GaussianMixtureNoise
 from lab import arguments
-from lab.comparison import ComparisonConfig, relative_trajectory
-from lab.report import invocation, markdown_table
-from sim_bridge.noise import GaussianMixtureNoise, IsotropicGaussianNoise
+from lab.experiments.comparison import ComparisonConfig, relative_trajectory
+from lab.report.markdown import invocation, markdown_table
+from sim_bridge.noise import IsotropicGaussianNoise
 
 DT = 0.1
 RADIUS = 5.0

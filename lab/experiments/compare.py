@@ -9,7 +9,7 @@ from pathlib import Path
 from agent.config import load_yaml, updated
 from agent.core.params import ESTIMATOR_NAMES
 from lab import arguments
-from lab.comparison import (
+from lab.experiments.comparison import (
     LS_TIMES,
     WORST_RUN_FROM,
     ComparisonConfig,
@@ -17,9 +17,9 @@ from lab.comparison import (
     nees_band,
     run_comparison,
 )
-from lab.estimator_plots import LABELS, rmse_figure
-from lab.parallel import add_engine_arguments, campaign_notes, engine_from, report_failures
-from lab.report import invocation, markdown_table
+from lab.harness.parallel import add_engine_arguments, campaign_notes, engine_from, report_failures
+from lab.report.estimator_plots import LABELS, rmse_figure
+from lab.report.markdown import invocation, markdown_table
 
 DEFAULT_CONFIG = Path("configs/experiments/estimator_comparison.yaml")
 # Variants run after the main experiment on the same seeds, to show what the ranking depends on: the level
@@ -92,6 +92,7 @@ def run(args: argparse.Namespace) -> int:
 
 def _header(config: ComparisonConfig, elapsed: float, command: str, where: str = "this machine",
             notes: list[str] = ()) -> str:
+    world = config.filter_noise == "world"
     return "\n".join([
         "# Experiment 1: inter-vessel estimators under non-Gaussian range noise (paper Figs. 4-5)",
         "",
@@ -106,17 +107,18 @@ def _header(config: ComparisonConfig, elapsed: float, command: str, where: str =
         f"{config.agent.control.yaw_rate:.6f} rad/s, dt = {config.agent.dt} s, {config.duration} s per run; "
         f"{config.runs} Monte Carlo runs per noise model, root seed {config.seed}; initial estimate drawn from "
         f"N(p_ij0, {config.agent.relative.initial_covariance} I); the rest from Table I. R_z from (14) with "
-        f"the '{config.filter_range_variance}' range variance of each noise model (x {config.variance_scale}). "
+        + ("each noise model's variance" if world else "the configured range variance")
+        + f" (x {config.variance_scale}). "
         "The raw-range estimator ([agent/core/estimators/raw_range.py](../../agent/core/estimators/raw_range.py)) "
         "uses the ranges themselves, not (12), and assumes "
         + ("each run's noise density (the GMM exactly; for the log-normal a fitted Gaussian mixture in the batch "
            "fix and its exact density in tracking)"
-           if config.raw_range_noise == "model" else "the noise_components of its parameters")
+           if world else "the noise_components of its parameters")
         + f". Wall time {elapsed:.1f} s; ran on {where}.",
         "",
         *([*notes, ""] if notes else []),
         ("The dashed black line in each figure is the posterior Cramér–Rao bound "
-         "([lab/bound.py](../../lab/bound.py)): "
+         "([lab/experiments/bound.py](../../lab/experiments/bound.py)): "
          "the floor on the RMSE of any unbiased estimate of p_ij from the same data (the initial estimate, both "
          "vessels' odometry, one range per epoch including the first), for an estimator that knows the range "
          "noise's density, not only its variance. Information recursion J_k = (Q + J_(k-1)^-1)^-1 + I_f H_k^T H_k "

@@ -1,5 +1,5 @@
 """The operator's mission commands in an in-process run: `usv-op set` at given times, judged and applied by
-each vessel as its agent does (agent/shell/mission.py's MissionOrders), for lab/runner.py's `retune`.
+each vessel as its agent does (agent/shell/mission.py's MissionOrders), for lab/harness/runner.py's `retune`.
 
 Each command is sent on `mission/all` at its time; a vessel takes it at its first tick at or after that
 time, with the number of vessels alive at that tick as the fleet it knows. Only `set` is simulated (a hold

@@ -15,7 +15,7 @@ def rmse_figure(time: np.ndarray, curves: dict[str, tuple[np.ndarray, np.ndarray
     """RMSE over time on a log axis, one line per estimator with a +-1 std band across runs.
 
     `curves` maps an estimator name to (rmse, std), each shaped like `time`. `bound`, if given, is a
-    (label, values) floor drawn as a black dashed line (the Cramér–Rao bound of lab/bound.py).
+    (label, values) floor drawn as a black dashed line (the Cramér–Rao bound of lab/experiments/bound.py).
     """
     # Matplotlib (the optional 'lab' extra, and slow to import) only when a figure is drawn: `usv-lab --help`
     # and every command module stay light.

@@ -1,12 +1,12 @@
 """Public UWB range data sets with ground truth, turned into replay CSVs for `usv-lab replay`.
 
-    python -m lab.uwb_datasets convert hanyang|cuhksz|murp SOURCE OUT
-    python -m lab.uwb_datasets fit-noise hanyang|cuhksz|murp SOURCE [--out FILE]
-    python -m lab.uwb_datasets fit-noise csv RUN.csv... [--out FILE]
-    python -m lab.uwb_datasets page DIR... [--config FILE]... [--sensor-configs DIR] [--runs N] [--out FILE]
+    usv-lab uwb-convert hanyang|cuhksz|murp SOURCE OUT
+    usv-lab fit-noise hanyang|cuhksz|murp SOURCE [--out FILE]
+    usv-lab fit-noise csv RUN.csv... [--out FILE]
+    usv-lab uwb-page DIR... [--config FILE]... [--sensor-configs DIR] [--runs N] [--out FILE]
 
-SOURCE is a checkout of the data set's repository (`SOURCES`). `convert` writes one CSV per run, header
-`t,range,ax,ay,bx,by` (lab/range_replay.py), and `runs.csv`, the manifest: the run's file, condition (LOS or
+SOURCE is a checkout of the data set's repository (`SOURCES`). `uwb-convert` writes one CSV per run, header
+`t,range,ax,ay,bx,by` (lab/experiments/replay.py), and `runs.csv`, the manifest: the run's file, condition (LOS or
 NLOS), kind (tag-anchor, one end static, moving pair) and the source files it came from. Times start at 0 at
 the run's first range; lengths are in metres, rounded to the millimetre.
 
@@ -25,8 +25,8 @@ the conditions of the mission (moving), that are never scored. `fit-noise` reads
 Hanyang's case 1, CUHK-SZ's tags 1 and 2, MURP's moving calibration trials 8-12) and writes
 configs/uwb/<data set>.yaml: a pair's constant bias, whose prior variance is the spread of the calibration
 runs' mean residuals (raw_range's `bias_variance`), and a Gaussian mixture fitted to the residuals about each
-run's own mean. `convert` leaves the calibration runs out, so no scored run was seen by a fit. `fit-noise csv`
-fits your own sensor's runs the same way, from replay CSVs with ground truth. `page` replays
+run's own mean. `uwb-convert` leaves the calibration runs out, so no scored run was seen by a fit. `fit-noise csv`
+fits your own sensor's runs the same way, from replay CSVs with ground truth. `uwb-page` replays
 every run with the noise of each config given, and with each data set's own calibrated config
 (`--sensor-configs`), never with a truth-derived variance, and writes docs/results/real_uwb.md.
 """
@@ -45,13 +45,13 @@ from pathlib import Path
 import numpy as np
 
 from agent.config import ConfigError, load_yaml, yaml_scalar
+from agent.core.mixture_fit import em_mixture
 from agent.core.params import ESTIMATOR_NAMES, AgentParams
 from lab import arguments
-from lab.estimator_plots import LABELS
-from lab.mixture_fit import em_mixture
-from lab.parallel import Engine, add_engine_arguments, campaign_notes, engine_from, report_failures
-from lab.range_replay import RangeLog, parse_csv, range_residuals, replay
-from lab.report import markdown_table
+from lab.experiments.replay import RangeLog, parse_csv, range_residuals, replay
+from lab.harness.parallel import Engine, add_engine_arguments, campaign_notes, engine_from, report_failures
+from lab.report.estimator_plots import LABELS
+from lab.report.markdown import markdown_table
 
 DEFAULT_ESTIMATOR = AgentParams().relative.estimator
 MANIFEST = "runs.csv"
@@ -504,7 +504,7 @@ def sensor_config_text(sensor: str, calibration: str, noise: SensorNoise, argv: 
         f"# Range noise of {sensor}: every key not named is the default (configs/agent.yaml).",
         (f"# Fitted to calibration runs, which no score uses: {calibration} ({noise.runs} runs, {noise.ranges} "
          "ranges)."),
-        "# Regenerate with: python -m lab.uwb_datasets " + " ".join(argv),
+        "# Regenerate with: usv-lab " + " ".join(argv),
         "relative:",
         (f"  range_variance: {yaml_scalar(range_variance)}  # the residuals' variance, the runs' biases included "
          "(pseudo-linear filters)"),
@@ -747,7 +747,7 @@ def write_page(manifests: Sequence[Sequence[Entry]], configs: Sequence[Config], 
     missing = sorted({e.dataset for e in entries} - set(sensor_configs or {})) if sensor_configs is not None else []
     if missing:
         raise ConfigError(f"no sensor config for {', '.join(missing)}: each data set replayed needs its own "
-                          "(python -m lab.uwb_datasets fit-noise DATASET SOURCE)")
+                          "(usv-lab fit-noise DATASET SOURCE)")
     chosen: list[tuple[str, dict[str | None, Config]]] = [
         (f"`{path}`" if path is not None else "the default config (configs/agent.yaml)", {None: (path, params)})
         for path, params in configs]
@@ -761,7 +761,7 @@ def write_page(manifests: Sequence[Sequence[Entry]], configs: Sequence[Config], 
         totals.append(total)
         sections += lines
         outcomes_first = outcomes_first or outcomes
-    command = "python -m lab.uwb_datasets " + " ".join(argv)
+    command = "usv-lab " + " ".join(argv)
     text = "\n".join([
         "# Real UWB ranges: every estimator on public data sets, noise from the config",
         "",
@@ -769,7 +769,7 @@ def write_page(manifests: Sequence[Sequence[Entry]], configs: Sequence[Config], 
         command,
         "```",
         "",
-        (f"Each run is replayed by `usv-lab replay` (lab/range_replay.py): {runs} Monte Carlo runs, seed {seed}, "
+        (f"Each run is replayed by `usv-lab replay` (lab/experiments/replay.py): {runs} Monte Carlo runs, seed {seed}, "
          "each drawing its own synthetic odometry noise and initial estimate p0 ~ N(p, P0). The filters' range "
          "noise comes from the config named, never from the runs' ground truth. The score is the RMSE over the "
          "Monte Carlo runs at each range epoch, averaged over the whole run by time (the start included). "
@@ -783,11 +783,11 @@ def write_page(manifests: Sequence[Sequence[Entry]], configs: Sequence[Config], 
         _datasets(outcomes_first),
         "",
         ("Ranges are 3-D; each is mapped to the horizontal range sqrt(r^2 - dz^2) with the two antennas' heights "
-         "from the ground truth (lab/uwb_datasets.py says why). Tag-anchor runs have the moving tag as end a and "
+         "from the ground truth (lab/experiments/uwb_datasets.py says why). Tag-anchor runs have the moving tag as end a and "
          "the fixed anchor as end b. docs/real_data.md gives each data set's source and the commands that convert it "
          "(none of the data is kept in this repository)."),
         "",
-        ("A sensor config (configs/uwb/<data set>.yaml, `python -m lab.uwb_datasets fit-noise`) is fitted to its "
+        ("A sensor config (configs/uwb/<data set>.yaml, `usv-lab fit-noise`) is fitted to its "
          "data set's calibration runs, which are never scored: "
          + "; ".join(f"{name}: {words}" for name, words in CALIBRATION.items()) + "."),
         "",
@@ -801,9 +801,8 @@ def write_page(manifests: Sequence[Sequence[Entry]], configs: Sequence[Config], 
     return out
 
 
-# ----------------------------------------------------------------------------------------------- command
-def _add_convert(commands) -> None:
-    parser = commands.add_parser("convert", help="a data set's checkout to replay CSVs and their manifest")
+# ----------------------------------------------------------------------------------------------- commands
+def add_convert_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("dataset", choices=sorted(READERS))
     parser.add_argument("source", type=Path, help="checkout of the data set's repository")
     parser.add_argument("out", type=Path, help="directory of the CSVs and runs.csv")
@@ -812,8 +811,13 @@ def _add_convert(commands) -> None:
                              "the agent's tick); MURP's 1 Hz windows are kept as they are")
 
 
-def _add_fit(commands) -> None:
-    parser = commands.add_parser("fit-noise", help="a sensor's noise config from its calibration runs")
+def run_convert(args: argparse.Namespace) -> int:
+    written = convert(args.dataset, args.source, args.out, args.interval)
+    print(f"wrote {len(written)} runs and {MANIFEST} to {args.out}")
+    return 0
+
+
+def add_fit_noise_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("dataset", choices=[*sorted(READERS), "csv"],
                         help="a data set (its calibration runs), or csv: your own runs as replay CSV files")
     parser.add_argument("source", type=Path, nargs="+",
@@ -824,9 +828,29 @@ def _add_fit(commands) -> None:
                         help="write the config here, e.g. configs/uwb/DATASET.yaml (default: print it)")
 
 
-def _add_page(commands) -> None:
-    parser = commands.add_parser("page", help="replay every run with config noise; write the result page")
-    parser.add_argument("dirs", type=Path, nargs="+", help="directories written by `convert`")
+def run_fit_noise(args: argparse.Namespace) -> int:
+    if args.dataset == "csv":
+        noise = fit_sensor_noise([parse_csv(path) for path in args.source], args.components)
+        sensor, words = "a UWB sensor", "the replay CSVs " + ", ".join(p.name for p in args.source)
+    else:
+        if len(args.source) != 1:
+            raise ConfigError(f"fit-noise {args.dataset} takes one checkout, got {len(args.source)} paths")
+        noise = fit_sensor_noise(list(calibration_runs(args.dataset, args.source[0])), args.components)
+        sensor = f"the {args.dataset} data set's UWB sensor (docs/results/real_uwb.md)"
+        words = CALIBRATION[args.dataset]
+    text = sensor_config_text(sensor, words, noise, args.argv)
+    if args.out is None:
+        print(text, end="")
+    else:
+        args.out.write_text(text, encoding="utf-8")
+        spread = math.sqrt(mixture_variance(noise.mixture))
+        print(f"wrote {args.out}: {noise.runs} calibration runs, {noise.ranges} ranges; the runs' biases "
+              f"spread {math.sqrt(noise.bias_variance):.3f} m (sd), the rest {spread:.3f} m (sd)")
+    return 0
+
+
+def add_page_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("dirs", type=Path, nargs="+", help="directories written by `uwb-convert`")
     parser.add_argument("--config", type=Path, action="append", default=None,
                         help="agent parameters for every run, repeatable (one section each); default: the "
                              "built-in defaults (configs/agent.yaml), unless --sensor-configs is given alone")
@@ -839,54 +863,16 @@ def _add_page(commands) -> None:
     add_engine_arguments(parser)
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m lab.uwb_datasets", description=__doc__.split("\n\n")[0])
-    commands = parser.add_subparsers(dest="command", required=True)
-    _add_convert(commands)
-    _add_fit(commands)
-    _add_page(commands)
-    argv = sys.argv[1:] if argv is None else list(argv)
-    args = parser.parse_args(argv)
-    try:
-        if args.command == "convert":
-            written = convert(args.dataset, args.source, args.out, args.interval)
-            print(f"wrote {len(written)} runs and {MANIFEST} to {args.out}")
-        elif args.command == "fit-noise":
-            if args.dataset == "csv":
-                noise = fit_sensor_noise([parse_csv(path) for path in args.source], args.components)
-                sensor, words = "a UWB sensor", "the replay CSVs " + ", ".join(p.name for p in args.source)
-            else:
-                if len(args.source) != 1:
-                    raise ConfigError(f"fit-noise {args.dataset} takes one checkout, got {len(args.source)} paths")
-                noise = fit_sensor_noise(list(calibration_runs(args.dataset, args.source[0])), args.components)
-                sensor = f"the {args.dataset} data set's UWB sensor (docs/results/real_uwb.md)"
-                words = CALIBRATION[args.dataset]
-            text = sensor_config_text(sensor, words, noise, argv)
-            if args.out is None:
-                print(text, end="")
-            else:
-                args.out.write_text(text, encoding="utf-8")
-                spread = math.sqrt(mixture_variance(noise.mixture))
-                print(f"wrote {args.out}: {noise.runs} calibration runs, {noise.ranges} ranges; the runs' biases "
-                      f"spread {math.sqrt(noise.bias_variance):.3f} m (sd), the rest {spread:.3f} m (sd)")
-        else:
-            params = [(path, load_yaml(AgentParams, path)) for path in args.config] if args.config else (
-                [] if args.sensor_configs is not None else [(None, AgentParams())])
-            manifests = [read_manifest(d) for d in args.dirs]
-            sensors = None
-            if args.sensor_configs is not None:
-                replayed = {e.dataset for m in manifests for e in m}
-                paths = [args.sensor_configs / f"{name}.yaml" for name in SOURCES if name in replayed]
-                sensors = {path.stem: (path, load_yaml(AgentParams, path)) for path in paths}
-            with engine_from(args) as engine:
-                write_page(manifests, params, args.runs, args.seed, args.out, argv, engine, sensors)
-            print(f"wrote {args.out}")
-            return report_failures(engine)
-    except ConfigError as error:
-        print(f"uwb_datasets {args.command}: {error}", file=sys.stderr)
-        return 2
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())
+def run_page(args: argparse.Namespace) -> int:
+    params = [(path, load_yaml(AgentParams, path)) for path in args.config] if args.config else (
+        [] if args.sensor_configs is not None else [(None, AgentParams())])
+    manifests = [read_manifest(d) for d in args.dirs]
+    sensors = None
+    if args.sensor_configs is not None:
+        replayed = {e.dataset for m in manifests for e in m}
+        paths = [args.sensor_configs / f"{name}.yaml" for name in SOURCES if name in replayed]
+        sensors = {path.stem: (path, load_yaml(AgentParams, path)) for path in paths}
+    with engine_from(args) as engine:
+        write_page(manifests, params, args.runs, args.seed, args.out, args.argv, engine, sensors)
+    print(f"wrote {args.out}")
+    return report_failures(engine)

@@ -10,30 +10,20 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from functools import lru_cache
-from typing import Literal
 
 import numpy as np
-from pydantic import Field, TypeAdapter
+from pydantic import Field
 from scipy.stats import chi2
 
 from agent.config import PositiveFloat, StrictModel, updated
 from agent.core.checks import valid_range
 from agent.core.estimators import make_relative_estimator
-from agent.core.params import ESTIMATOR_NAMES, AgentParams, LogNormalNoiseParams, RawRangeParams
-from lab.bound import fisher_information, rms_bound
-from lab.errors import ErrorHistory, RunningMoments, moments_by_name
-from lab.mixture_fit import em_mixture
-from lab.parallel import Engine
-from sim_bridge.noise import (
-    GaussianMixtureNoise,
-    GaussianNoise,
-    IsotropicGaussianNoise,
-    LogNormalNoise,
-    RangeNoise,
-)
-
-_NOISE_ADAPTER = TypeAdapter(RangeNoise)
+from agent.core.params import ESTIMATOR_NAMES, AgentParams, RelativeEstimationParams
+from agent.core.range_noise import GaussianMixtureNoise, LogNormalNoise, RangeNoise
+from lab.experiments.bound import fisher_information, rms_bound
+from lab.harness.errors import ErrorHistory, RunningMoments, moments_by_name
+from lab.harness.parallel import Engine
+from sim_bridge.noise import FILTER_NOISE_DESCRIPTION, FilterNoise, IsotropicGaussianNoise, assumed_relative
 
 
 class ComparisonConfig(StrictModel):
@@ -44,13 +34,7 @@ class ComparisonConfig(StrictModel):
     runs: int = Field(100, ge=1, le=100_000, description="Monte Carlo runs per noise model")
     seed: int = Field(2024, ge=0, description="root seed of every random number")
     settle_time: float = Field(10.0, ge=0, description="the 'after' column averages from this time on (s)")
-    filter_range_variance: Literal["total", "nominal"] = Field(
-        "total",
-        description=(
-            "range variance given to the Kalman-type filters for R_z: the noise model's true variance "
-            "('total'), or, for a mixture, only its nominal component ('nominal')"
-        ),
-    )
+    filter_noise: FilterNoise = Field("world", description=FILTER_NOISE_DESCRIPTION)
     noise_models: dict[str, RangeNoise] = Field(
         default_factory=lambda: {
             "gmm": GaussianMixtureNoise(outlier_fraction=0.2, variance=0.4, outlier_variance=10.0),
@@ -62,15 +46,6 @@ class ComparisonConfig(StrictModel):
         1.0, description="multiplies the filters' range variance; 1 is the derivation, others diagnose"
     )
     estimators: tuple[str, ...] = ESTIMATOR_NAMES
-    raw_range_noise: Literal["model", "params"] = Field(
-        "model",
-        description=(
-            "range-noise density the raw-range estimator assumes: the run's noise model ('model': a mixture "
-            "exactly, otherwise a Gaussian mixture fitted to it for the batch fix and, for the log-normal, its "
-            "exact density for tracking), as the Cramér–Rao bound does, or "
-            "agent.relative.raw_range.noise_components as configured ('params')"
-        ),
-    )
     agent: AgentParams = AgentParams()
 
 
@@ -153,7 +128,7 @@ def relative_trajectory(config: ComparisonConfig) -> tuple[np.ndarray, np.ndarra
 
 
 def position_bound(config: ComparisonConfig, noise: RangeNoise, paths: list[np.ndarray]) -> tuple[float, np.ndarray]:
-    """The noise model's Fisher information, and the posterior Cramér–Rao bound (lab/bound.py) on the RMSE
+    """The noise model's Fisher information, and the posterior Cramér–Rao bound (lab/experiments/bound.py) on the RMSE
     over runs along the runs' true paths p_ij = p_i - p_j: sqrt(mean over runs of trace(J_k^{-1})), the floor
     of the mean squared error the RMSE curves square-average. Process noise Q = 2 R_delta I (both vessels'
     odometry, (15)); J_0 = P_0^{-1} (the initial estimate); one range per epoch, counting the one at epoch 0,
@@ -165,45 +140,19 @@ def position_bound(config: ComparisonConfig, noise: RangeNoise, paths: list[np.n
     return fisher, bound
 
 
-def filter_variance(noise: RangeNoise, config: ComparisonConfig) -> float:
-    """The range variance the Kalman-type filters are given to build R_z."""
-    if config.filter_range_variance == "nominal" and isinstance(noise, GaussianMixtureNoise):
-        base = noise.variance
-    else:
-        base = noise.total_variance
+def filter_range_variance(noise: RangeNoise, config: ComparisonConfig) -> float:
+    """The range variance the filters are given to build R_z, as `config.filter_noise` says, x variance_scale."""
+    base = noise.total_variance if config.filter_noise == "world" else config.agent.relative.range_variance
     return base * config.variance_scale
 
 
-def noise_components(noise: RangeNoise) -> tuple[tuple[float, float, float], ...]:
-    """The range-noise density as (weight, mean, variance) Gaussian components for the raw-range estimator:
-    exact for a Gaussian (variance floored at 1e-8) or a Gaussian mixture, else a 6-component mixture fitted to it by EM."""
-    if isinstance(noise, GaussianMixtureNoise):
-        eps = noise.outlier_fraction
-        return ((1.0 - eps, 0.0, noise.variance), (eps, 0.0, noise.outlier_variance))
-    if isinstance(noise, GaussianNoise):
-        return ((1.0, 0.0, max(noise.variance, 1e-8)),)
-    return _fitted_mixture(noise.model_dump_json())
-
-
-def raw_range_density(raw_range: RawRangeParams, noise: RangeNoise) -> RawRangeParams:
-    """raw_range's parameters assuming the noise model itself: its mixture (`noise_components`) for the batch
-    fix and, for the log-normal (8), its exact density for tracking (`tracking_lognormal`)."""
-    exact = (LogNormalNoiseParams(log_variance=noise.log_variance, shift=noise.shift)
-             if isinstance(noise, LogNormalNoise) else None)
-    return updated(raw_range, noise_components=noise_components(noise), tracking_lognormal=exact)
-
-
-@lru_cache(maxsize=16)
-def _fitted_mixture(noise_json: str, components: int = 6, samples: int = 50_000, iterations: int = 200
-                    ) -> tuple[tuple[float, float, float], ...]:
-    """EM fit of a Gaussian mixture to samples of the noise model (fixed seed: the same fit every time)."""
-    noise = _NOISE_ADAPTER.validate_json(noise_json)
-    x = np.sort(noise.sample(np.random.default_rng(0), samples))
-    weight, mean, variance = em_mixture(
-        x, np.full(len(x), 1.0 / len(x)), np.full(components, 1.0 / components),
-        np.quantile(x, (np.arange(components) + 0.5) / components), np.full(components, x.var() / components),
-        iterations, 1e-4)
-    return tuple((float(w), float(m), float(v)) for w, m, v in zip(weight, mean, variance))
+def filter_relative(noise: RangeNoise, config: ComparisonConfig) -> RelativeEstimationParams:
+    """The relative-estimation parameters every estimator of a run is given, as `config.filter_noise` says:
+    assuming the run's noise model, or as configured with R_z's range variance x variance_scale."""
+    relative = config.agent.relative
+    if config.filter_noise == "configured":
+        return updated(relative, range_variance=filter_range_variance(noise, config))
+    return assumed_relative(relative, noise, config.variance_scale, raw_range="raw_range" in config.estimators)
 
 
 def run_once(config: ComparisonConfig, noise: RangeNoise, seed_sequence: np.random.SeedSequence
@@ -222,9 +171,7 @@ def run_once(config: ComparisonConfig, noise: RangeNoise, seed_sequence: np.rand
     displacement = measured_own - measured_other
     initial = truth[0] + rng.normal(0.0, math.sqrt(relative.initial_covariance), size=2)
 
-    params = updated(relative, range_variance=filter_variance(noise, config))
-    if config.raw_range_noise == "model":
-        params = updated(params, raw_range=raw_range_density(params.raw_range, noise))
+    params = filter_relative(noise, config)
     errors = np.empty((len(config.estimators), steps + 1))
     nees = np.empty((len(config.estimators), steps + 1))
     iterations = np.zeros(steps, dtype=np.int16)
@@ -318,7 +265,8 @@ def run_comparison(config: ComparisonConfig, noise_name: str, engine: Engine | i
     fisher, bound = position_bound(config, noise, [own - other])
     result = ComparisonResult(
         time=t, moments=moments_by_name(config.estimators, len(t)), noise_name=noise_name,
-        range_bias=noise.mean, filter_range_variance=filter_variance(noise, config), fisher=fisher, bound=bound,
+        range_bias=noise.mean, filter_range_variance=filter_range_variance(noise, config), fisher=fisher,
+        bound=bound,
         nees=moments_by_name(config.estimators, len(t)), least_squares=RunningMoments(len(LS_TIMES)),
         worst_late=dict.fromkeys(config.estimators, 0.0))
 

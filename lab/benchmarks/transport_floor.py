@@ -20,6 +20,7 @@ from collections import Counter
 
 import zenoh
 
+from agent.runtime.zenoh_session import ZenohSettings, zenoh_config
 from sim_bridge.fleet import free_port
 
 # Bytes of each payload: about those of the Table II mission's messages.
@@ -33,16 +34,16 @@ TICK_TIMEOUT = 2.0     # s a tick waits for its answers
 WARM_UP = 50           # ticks run before the measured ones: the agents' links to each other come up meanwhile
 
 
-def _config(listen: int | None = None, connect: int | None = None):
-    from lab.runtime_bench import _session_config  # the agents' session settings
-
-    return _session_config(listen=listen, connect=connect)
+def loopback_config(listen: int | None = None, connect: int | None = None):
+    """The agents' session settings (`zenoh_config`) on loopback."""
+    return zenoh_config(ZenohSettings(listen=[f"tcp/127.0.0.1:{listen}"] if listen is not None else [],
+                                      connect=[f"tcp/127.0.0.1:{connect}"] if connect is not None else []))
 
 
 def agent(vessel: int, port: int, ticks: int, vessels: int) -> None:
     """One agent of the floor (run in its own process): prints its CPU and shares received per measured
     tick as JSON at the end."""
-    with zenoh.open(_config(listen=0, connect=port)) as session:   # listening, as agents do: they link up
+    with zenoh.open(loopback_config(listen=0, connect=port)) as session:   # listening, as agents do: they link up
         tick, ended = threading.Event(), threading.Event()
         shares = [0]
         by_tick: Counter[int] = Counter()   # shares received, by the tick they were sent in
@@ -99,7 +100,7 @@ def transport_floor(vessels: int = 4, ticks: int = 1000) -> dict[str, float]:
     """Run the floor: the tick loop's wall time and each process's CPU, in milliseconds per tick."""
     port = free_port()
     payloads = {name: b"x" * size for name, size in SIZES.items()}
-    with zenoh.open(_config(listen=port)) as session:
+    with zenoh.open(loopback_config(listen=port)) as session:
         answered = threading.Condition()
         answers: set[str] = set()
         ready: set[str] = set()
@@ -113,7 +114,7 @@ def transport_floor(vessels: int = 4, ticks: int = 1000) -> dict[str, float]:
         sensors = [session.declare_publisher(f"floor/{v}/sensor/{name}")
                    for v in range(vessels) for name in ("odom", "uwb", "bearing", "sonar")]
         clock = session.declare_publisher("floor/clock")
-        code = "from lab.transport_floor import agent; agent({}, {}, {}, {})"
+        code = "from lab.benchmarks.transport_floor import agent; agent({}, {}, {}, {})"
         children = [subprocess.Popen([sys.executable, "-c", code.format(v, port, ticks, vessels)],
                                      stdout=subprocess.PIPE, text=True) for v in range(vessels)]
         try:

@@ -8,8 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
-from lab.estimator_plots import COLOURS, LABELS
-from lab.runner import RunTrace
+from lab.harness.runner import RunTrace
+from lab.report.estimator_plots import COLOURS, LABELS
 from sim_bridge.scenario import Scenario
 
 OCCLUSION_STRIDE = 10        # draw every 10th blocked line of sight; all of them would hide the paths

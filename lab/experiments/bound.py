@@ -36,7 +36,7 @@ from itertools import pairwise
 
 import numpy as np
 
-from sim_bridge.noise import GaussianMixtureNoise, GaussianNoise, LogNormalNoise
+from agent.core.range_noise import GaussianMixtureNoise, GaussianNoise, LogNormalNoise, MixtureNoise
 
 # --------------------------------------------------------------------------------------------------------
 # Fisher information of a range-noise density
@@ -53,6 +53,7 @@ def fisher_information(noise) -> float:
     - `GaussianMixtureNoise` (7), (1 - eps) N(0, R) + eps N(0, R_out): no closed form; it lies between
       1 / Var (the Gaussian of the same variance, the least informative) and (1 - eps) / R + eps / R_out
       (I_f is convex in f). For Table II (eps 0.2, R 0.4, R_out 10): 1.625 m^-2, against 1 / 2.32 = 0.431.
+    - `MixtureNoise` sum_k w_k N(m_k, v_k) (a calibration's): as the mixture (7), over the whole line.
     - `LogNormalNoise` (8), mu = exp(Z) - r_s with Z ~ N(0, R): the shift r_s moves f without changing I_f;
       integrated over z = ln(mu + r_s). The closed form is exp(2 R) (1 + 1 / R) (9.848 m^-2 for R = 0.7,
       against 1 / Var = 0.490): the density rises steeply from its lower end at mu = -r_s, and that edge is
@@ -65,13 +66,15 @@ def fisher_information(noise) -> float:
         return _gaussian_mixture_information((1.0 - eps, eps), (noise.variance, noise.outlier_variance))
     if isinstance(noise, LogNormalNoise):
         return _log_normal_information(noise.log_variance)
+    if isinstance(noise, MixtureNoise):
+        return _shifted_mixture_information(*zip(*noise.mixture()))
     raise TypeError(f"no Fisher information for range noise {type(noise).__name__}")
 
 
 def _gaussian_mixture_information(weights: tuple[float, ...], variances: tuple[float, ...]) -> float:
     """I_f of sum_i w_i N(0, v_i). The score is s(x) = -x sum_i g_i(x) / v_i, with g_i(x) the posterior
     weight of component i at x (computed from log-densities, so it is exact where the densities underflow)."""
-    from scipy import integrate  # here, not at the top: importing lab.comparison stays light
+    from scipy import integrate  # here, not at the top: importing lab.experiments.comparison stays light
 
     parts = [(w, v) for w, v in zip(weights, variances) if w > 0]
     if any(v == 0 for _, v in parts):
@@ -100,6 +103,36 @@ def _gaussian_mixture_information(weights: tuple[float, ...], variances: tuple[f
         value, _ = integrate.quad(integrand, a, b, epsabs=0.0, epsrel=1e-12, limit=200)
         total += value
     return 2.0 * total
+
+
+def _shifted_mixture_information(weights: tuple[float, ...], means: tuple[float, ...],
+                                 variances: tuple[float, ...]) -> float:
+    """I_f of sum_i w_i N(m_i, v_i): the score is s(x) = -sum_i g_i(x) (x - m_i) / v_i, integrated over the line
+    split at each mean and at 1, 3, 8 and 40 standard deviations either side of it."""
+    from scipy import integrate
+
+    w = np.array(weights, dtype=float) / sum(weights)
+    m = np.array(means, dtype=float)
+    v = np.array(variances, dtype=float)
+    log_norm = np.log(w) - 0.5 * np.log(2 * math.pi * v)
+
+    def integrand(x: float) -> float:
+        log_terms = log_norm - 0.5 * (x - m) ** 2 / v
+        top = log_terms.max()
+        terms = np.exp(log_terms - top)
+        g = terms / terms.sum()
+        score = -float(np.sum(g * (x - m) / v))
+        return math.exp(top) * float(terms.sum()) * score * score
+
+    widest = math.sqrt(v.max())
+    cuts = sorted({*(float(c) for c in m), *(float(mi + c * math.sqrt(vi)) for mi, vi in zip(m, v)
+                                            for c in (-8.0, -3.0, -1.0, 1.0, 3.0, 8.0)),
+                   float(m.min() - 40.0 * widest), float(m.max() + 40.0 * widest)})
+    total = 0.0
+    for a, b in pairwise(cuts):
+        value, _ = integrate.quad(integrand, a, b, epsabs=0.0, epsrel=1e-12, limit=200)
+        total += value
+    return total
 
 
 def _log_normal_information(log_variance: float) -> float:

@@ -1,6 +1,6 @@
 """A Gaussian mixture fitted by EM to weighted samples: the raw-range estimator's noise density
-(`relative.raw_range.noise_components`) from samples of a noise model (lab/comparison.py) or from calibration
-ranges (lab/uwb_datasets.py)."""
+(`relative.raw_range.noise_components`) from samples of a noise model (agent/core/range_noise.py) or from
+calibration ranges (lab/experiments/uwb_datasets.py)."""
 
 from __future__ import annotations
 

@@ -3,7 +3,7 @@
 On this 2-core machine one lockstep fleet run moves by 15-30 % from the next (docs/results/runtime_profile.md),
 more than most single changes are worth, so a change is judged by pairs of runs taken alternately
 (before, after, after, before, ...) and their medians. Each pair runs, for each side:
-- the shells in process (lab/shell_bench.py, Table II with the MCKF): CPU per tick of an agent by section and
+- the shells in process (lab/benchmarks/shell.py, Table II with the MCKF): CPU per tick of an agent by section and
   of the sim bridge, on one thread, the steady figure;
 - the same mission as a lockstep fleet over Zenoh (bridge and 4 agent processes): each process's CPU per tick
   from its log's summary, the tick loop's and the whole launch's real-time factors;
@@ -12,8 +12,8 @@ more than most single changes are worth, so a change is judged by pairs of runs 
 
 "Before" is a git revision, checked out in a temporary worktree; "after" is this checkout (or another
 revision). Each side runs in its own interpreter with its own code on the path, the fleet's processes too.
-A revision older than the shell bench gets this checkout's lab/shell_bench.py (it drives the bridge and agent
-through the same methods they had then). The result is appended to a JSON record and the page
+A revision without lab/benchmarks/shell.py (older than the shell bench or than lab/'s rooms) gets this
+checkout's (it drives the bridge and agent through the same methods they had then). The result is appended to a JSON record and the page
 `runtime_changes.md` is written from the whole record.
 """
 
@@ -33,10 +33,11 @@ from pathlib import Path
 
 from lab import arguments
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 SCENARIO = Path("configs/scenarios/table2_estimators.yaml")
 VARIANT = "mckf"
 REALTIME_SCENARIO, REALTIME_VARIANT = Path("configs/scenarios/table4_scale.yaml"), "n4_r5"
+SHELL_BENCH = Path("lab/benchmarks/shell.py")
 REALTIME_SECONDS = 20.0   # 200 ticks: 800 commands timed
 FIGURES = {   # key: (what it is, unit, decimals)
     "shell_agent_ms": ("agent, in process", "ms", 3),
@@ -71,8 +72,7 @@ def measure(root: Path) -> dict[str, float]:
     import numpy as np
 
     from agent.runtime.mcap_log import read_messages
-    from lab.runtime_bench import _bridge_records
-    from lab.shell_bench import run_shells
+    from lab.benchmarks.shell import run_shells
     from sim_bridge.fleet import Fleet
     from sim_bridge.scenario import select_scenario, with_duration
 
@@ -103,7 +103,9 @@ def measure(root: Path) -> dict[str, float]:
     figures["fleet_agent_per_core"] = figures["fleet_agent_ms"] / figures["shell_core_ms"]
     with tempfile.TemporaryDirectory() as scratch:
         path = with_duration(root / REALTIME_SCENARIO, Path(scratch), REALTIME_SECONDS)
-        latencies, _ = _bridge_records(Fleet(path, REALTIME_VARIANT, Path(scratch) / "runs", mode="realtime").run())
+        folder = Fleet(path, REALTIME_VARIANT, Path(scratch) / "runs", mode="realtime").run()
+        latencies = [value for topic, _, message in read_messages(folder / "sim.mcap")
+                     if topic == "/bridge/command_latency" for value in message["milliseconds"].values()]
     figures.update(latency_p50_ms=float(np.percentile(latencies, 50)),
                    latency_p99_ms=float(np.percentile(latencies, 99)))
     return figures
@@ -125,11 +127,13 @@ def _git(*args: str) -> str:
 
 
 def _checkout(revision: str, folder: Path) -> Path:
-    """A worktree of `revision` in `folder`; this checkout's shell bench if the revision predates it."""
+    """A worktree of `revision` in `folder`; this checkout's shell bench if the revision has none at its path."""
     _git("worktree", "add", "--detach", str(folder), revision)
-    bench = folder / "lab" / "shell_bench.py"
-    if not bench.exists():
-        shutil.copy(ROOT / "lab" / "shell_bench.py", bench)
+    bench = folder / SHELL_BENCH
+    if not bench.exists():   # a revision from before lab/ had rooms, or before the shell bench
+        bench.parent.mkdir(exist_ok=True)
+        (bench.parent / "__init__.py").touch()
+        shutil.copy(ROOT / SHELL_BENCH, bench)
     return folder
 
 
@@ -165,7 +169,7 @@ def compare(before: str, after: str | None, pairs: int, progress=print) -> dict:
 
 # ----------------------------------------------------------------------------------------------- page
 def page(record: list[dict]) -> str:
-    from lab.report import markdown_table
+    from lab.report.markdown import markdown_table
 
     header = ["change", "before → after", "pairs"] + [f"{text} ({unit})" if unit else text
                                                       for text, unit, _ in FIGURES.values()]
@@ -185,10 +189,10 @@ def page(record: list[dict]) -> str:
         rows.append([entry["label"], f"`{entry['before']}` → `{entry['after']}`", entry["pairs"], *cells])
     return "\n".join([
         "# What each change to the runtime bought", "",
-        "Each row is one run of `usv-lab runtime-ab --before REV --label TEXT` (lab/runtime_ab.py): the medians "
+        "Each row is one run of `usv-lab runtime-ab --before REV --label TEXT` (lab/benchmarks/runtime_ab.py): the medians "
         "of alternating pairs of runs before and after the change, on this machine (2 cores), with the "
         "after/before ratio in brackets and, below, the range of each side's runs. CPU figures are milliseconds per tick; \"in process\" is the shells "
-        "in one thread without Zenoh (lab/shell_bench.py), \"fleet over Zenoh\" the lockstep Table II fleet, "
+        "in one thread without Zenoh (lab/benchmarks/shell.py), \"fleet over Zenoh\" the lockstep Table II fleet, "
         "bridge and 4 agent processes sharing the 2 cores. The targets of issue #14 are in "
         "runtime_benchmark.md.", "",
         markdown_table(header, rows), "",
