@@ -31,8 +31,7 @@ BIN = Path(sys.executable).parent
 
 # Each console command and the function behind it, as pyproject.toml installs them.
 SCRIPTS = dict(re.findall(r'^(usv-[a-z]+) = "([\w.]+:\w+)"', (ROOT / "pyproject.toml").read_text(), re.M))
-MODULE_COMMANDS = {"python -m lab.uwb_datasets": "lab.uwb_datasets:main"}
-STARTS = (*MODULE_COMMANDS, "python -m ", "make ", "source ", ".venv/bin/")
+STARTS = ("python -m ", "make ", "source ", ".venv/bin/")
 
 # What the walk-through fills in; anything else in capitals, brackets or alternatives is a placeholder.
 FILLED = ("PORT", "$RUN")
@@ -64,9 +63,8 @@ def is_synopsis(line: str, filled: tuple[str, ...] = ()) -> bool:
 
 def help_text(*words: str) -> str:
     """The `--help` of a command and subcommands (`usv-log`, `replay`), run in this process."""
-    command = " ".join(words[:3]) if words[0] == "python" else words[0]
-    rest = list(words[3:] if words[0] == "python" else words[1:])
-    module, function = (SCRIPTS.get(command) or MODULE_COMMANDS[command]).split(":")
+    module, function = SCRIPTS[words[0]].split(":")
+    rest = list(words[1:])
     out = io.StringIO()
     with contextlib.redirect_stdout(out), pytest.raises(SystemExit) as exited:
         getattr(import_module(module), function)([*rest, "--help"])
@@ -82,8 +80,8 @@ def subcommands(text: str) -> list[str]:
 
 def all_help_texts() -> dict[tuple[str, ...], str]:
     texts = {}
-    for command in (*SCRIPTS, *MODULE_COMMANDS):
-        words = tuple(command.split())
+    for command in SCRIPTS:
+        words = (command,)
         texts[words] = top = help_text(*words)
         for sub in subcommands(top):
             texts[(*words, sub)] = help_text(*words, sub)
@@ -93,7 +91,7 @@ def all_help_texts() -> dict[tuple[str, ...], str]:
 def synopsis_parts(line: str) -> tuple[list[tuple[str, ...]], list[str]]:
     """The command paths a synopsis line names (`usv-log summary|metrics|plot RUN` names three) and its options."""
     words = shlex.split(line.replace("[", " ").replace("]", " ").replace("\\|", "|"))
-    command = words[:3] if words[0] == "python" else words[:1]
+    command = words[:1]
     rest = words[len(command):]
     paths = [tuple(command)]
     if rest and re.fullmatch(r"[a-z][\w-]*(\|[a-z][\w-]*)*", rest[0]):
@@ -108,7 +106,7 @@ def test_every_command_option_and_subcommand_the_readme_names_exists():
     texts = all_help_texts()
     checked = 0
     for line in readme_commands():
-        if line.split()[0] not in SCRIPTS and not line.startswith(tuple(MODULE_COMMANDS)):
+        if line.split()[0] not in SCRIPTS:
             continue
         paths, options = synopsis_parts(line)
         for path in paths:
@@ -140,7 +138,7 @@ def test_every_python_m_the_readme_names_runs():
     """`python -m agent` and the others the README offers beside the commands start as their command does."""
     modules = [line.split()[2] for line in readme_commands()
                if line.startswith("python -m ") and line != "python -m agent.core.params"]
-    assert {"agent", "sim_bridge", "mission_log", "lab", "lab.uwb_datasets"} <= set(modules)
+    assert {"agent", "sim_bridge", "mission_log", "lab"} <= set(modules)
     for module in dict.fromkeys(modules):
         result = subprocess.run([sys.executable, "-m", module, "--help"], cwd=ROOT, capture_output=True, text=True,
                                 check=False)
