@@ -327,6 +327,19 @@ def _wrap(angle: float) -> float:
     return (angle + math.pi) % (2 * math.pi) - math.pi
 
 
+def white_displacement_variance(model: PaperOdometry | WaterLogCompass | DvlGyro, speed: float, dt: float,
+                                displacement_variance: float = 0.0) -> tuple[float, float]:
+    """The variance (m^2) of one step's dead-reckoned displacement from the white noises alone, along and
+    across the track, at `speed` (m/s) over dt: what a filter's R_delta of (5) stands for. The constant errors
+    (scale, compass bias, gyro bias) are not white and not in it. water_log_compass: along q_s dt (n_s dt with
+    n_s ~ N(0, q_s / dt)), across (s dt sigma_c)^2; dvl_gyro: q_v dt on each axis; paper: R_delta on each."""
+    if isinstance(model, WaterLogCompass):
+        return model.speed_noise_density**2 * dt, (speed * dt * model.compass_noise_deg * DEG) ** 2
+    if isinstance(model, DvlGyro):
+        return (model.velocity_noise_density**2 * dt,) * 2
+    return displacement_variance, displacement_variance
+
+
 def uwb_faults(model: Uwb, true_ranges: np.ndarray, measured: np.ndarray, rng: np.random.Generator
                ) -> tuple[np.ndarray, np.ndarray]:
     """The measured ranges with outliers added, and which are reported (not dropped), judged at the true

@@ -10,6 +10,7 @@ import math
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from agent.config import ConfigError, parse_mapping
 from agent.core.records import Command
@@ -25,8 +26,10 @@ from sim_bridge.sensors import (
     rotate,
     speed_log,
     start_odometry,
+    tilt,
     tilted_azimuth,
     uwb_faults,
+    white_displacement_variance,
 )
 from sim_bridge.world import World, WorldConfig
 
@@ -212,6 +215,25 @@ def test_one_odometry_step_is_the_kernels_applied_to_the_stated_draws():
         assert after.bias == pytest.approx(float(bias), abs=1e-15)
 
 
+def test_the_white_displacement_variance_is_what_one_step_of_the_model_spreads():
+    model = WaterLogCompass(speed_noise_density=0.01, compass_noise_deg=5.0)
+    along, across = white_displacement_variance(model, 2.0, 0.1)
+    # By hand: (0.01 m/s/sqrt(Hz))^2 * 0.1 s = 1e-5 m^2; (2 m/s * 0.1 s * 5 deg)^2 = (0.2 * 0.0872665)^2.
+    assert along == pytest.approx(1e-5, rel=1e-12)
+    assert across == pytest.approx((0.2 * 5 * DEG) ** 2, rel=1e-12)
+    assert white_displacement_variance(DvlGyro(velocity_noise_density=0.02), 1.0, 0.1) == pytest.approx(
+        (4e-5, 4e-5), rel=1e-12)
+    # Against the model: one step east at 2 m/s from a fresh compass reading, many times. Each noise alone,
+    # so the other's second-order part (cos of a small angle) does not blur the comparison.
+    rng, m = np.random.default_rng(8), 20000
+    for noise, axis, expected in ((WaterLogCompass(speed_noise_density=0.01), 0, along),
+                                  (WaterLogCompass(compass_noise_deg=5.0), 1, across)):
+        steps = np.array([advance_odometry(noise, start_odometry(noise, "a", 0.0, rng), (2.0, 0.0), (2.0, 0.0),
+                                           0.0, 0.0, 0.1, rng).position for _ in range(m)])
+        # sin of a N(0, s^2) angle has variance (1 - exp(-2 s^2)) / 2, 0.8 % under s^2 at 5 deg: inside 4 sigma.
+        assert abs(steps[:, axis].var(ddof=1) - expected) < 4 * expected * math.sqrt(2 / (m - 1))
+
+
 # --- UWB -------------------------------------------------------------------------------------------------------
 
 TWO = [{"id": "a", "position": (0.0, 0.0), "heading": 0.0},
@@ -229,14 +251,33 @@ def test_the_range_is_between_antennas_that_turn_with_the_hull():
 
 def test_roll_and_pitch_move_a_raised_antenna():
     uwb = {"antenna": (0.0, 0.0, 1.0), "antennas": {"b": (0.0, 0.0, 0.0)}}
-    attitude = lambda t, x, y, heading: (0.1, 0.0) if x < 5 else (0.0, 0.0)   # noqa: E731
-    rolled = world(TWO, {"uwb": uwb}, attitude=attitude)
-    # a heads east and rolls 0.1 rad starboard down: its masthead swings to starboard (south) by sin 0.1.
-    assert rolled.sense()["a"].ranges["b"] == pytest.approx(math.hypot(10.0, math.sin(0.1)), abs=1e-12)
+    north = [{"id": "a", "position": (0.0, 0.0), "heading": 0.0}, {"id": "b", "position": (0.0, 10.0)}]
+    rolled = world(north, {"uwb": uwb}, attitude=lambda t, x, y, heading: (0.1, 0.0) if y < 5 else (0.0, 0.0))
+    # a heads east and rolls 0.1 rad starboard down: its masthead swings to starboard (south), away from b.
+    assert rolled.sense()["a"].ranges["b"] == pytest.approx(10.0 + math.sin(0.1), abs=1e-12)
     pitched = world(TWO, {"uwb": uwb}, attitude=lambda t, x, y, heading: (0.0, 0.2) if x < 5 else (0.0, 0.0))
-    # Bow up 0.2 rad: the masthead goes aft (west) by sin 0.2.
+    # Bow up 0.2 rad: the masthead goes aft (west), away from b in the east.
     assert pitched.sense()["a"].ranges["b"] == pytest.approx(10.0 + math.sin(0.2), abs=1e-12)
     assert world(TWO, {"uwb": uwb}).sense()["a"].ranges["b"] == pytest.approx(10.0, abs=1e-12)
+
+
+def test_the_tilt_agrees_with_fossens_zyx_rotation_in_ned():
+    # Independently: Fossen's R = Rz(psi) Ry(theta) Rx(phi) in NED (x forward, y starboard, z down), via scipy;
+    # our frame is (forward, left, up), so y and z change sign on the way in and out.
+    rng = np.random.default_rng(2)
+    flip = np.array([1.0, -1.0, -1.0])
+    for _ in range(20):
+        roll, pitch = rng.uniform(-0.4, 0.4, 2)
+        rotation = Rotation.from_euler("ZYX", [0.0, pitch, roll])
+        arm = rng.uniform(-1, 1, 3)
+        np.testing.assert_allclose(tilt(arm, roll, pitch), rotation.apply(arm * flip) * flip, rtol=0, atol=1e-14)
+        azimuth, elevation = rng.uniform(-math.pi, math.pi), rng.uniform(-0.3, 0.3)
+        sight = np.array([math.cos(elevation) * math.cos(azimuth), math.cos(elevation) * math.sin(azimuth),
+                          math.sin(elevation)])
+        body = rotation.inv().apply(sight * flip)                # the sight line in the tilted camera, NED
+        measured = -math.atan2(body[1], body[0])                 # starboard-positive azimuth, turned to ours
+        assert abs(math.remainder(float(tilted_azimuth(azimuth, elevation, roll, pitch)) - measured, 2 * math.pi)
+                   ) < 1e-13
 
 
 def test_dropout_and_outlier_rates_follow_the_logistic_law_within_binomial_error():
