@@ -428,7 +428,6 @@ class World:
             occluded=occluded,
         )
 
-
     def _antennas(self, centres: np.ndarray) -> np.ndarray:
         """The live vessels' UWB antenna positions (N, 2), from their centres, headings and attitudes."""
         uwb, live = self._sensors.uwb, self._live
