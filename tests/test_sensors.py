@@ -472,3 +472,4 @@ def test_the_realistic_sensors_over_zenoh_in_lockstep_equal_the_in_process_runne
     received = [len(message["ranges"]) for topic, _, message in read_messages(folder / "agent-1.mcap")
                 if topic == "/1/inputs"]
     assert len(received) == 101 and min(received) < 3 and max(received) == 3
+    assert (folder / "metrics.json").exists() and (folder / "ranges.png").exists()   # the analysis took them
