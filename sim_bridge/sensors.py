@@ -26,6 +26,7 @@ from typing import Annotated, Literal, Union
 import numpy as np
 from pydantic import Field, model_validator
 
+from agent.angles import wrap_angle
 from agent.config import NonNegativeFloat, PositiveFloat, StrictModel, deep_merge
 
 FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
@@ -106,10 +107,6 @@ def tilted_azimuth(azimuth, elevation, roll, pitch):
     x1, z1 = cp * x + sp * z, -sp * x + cp * z                    # R_y(-theta)^T = R_y(theta)
     y2 = cr * y + sr * z1                                         # R_x(phi)^T
     return np.arctan2(y2, x1)
-
-
-def wrapped(angle):
-    return (np.asarray(angle) + math.pi) % (2 * math.pi) - math.pi
 
 
 # --- the models -------------------------------------------------------------------------------------------
@@ -281,7 +278,7 @@ def start_odometry(model: WaterLogCompass | DvlGyro, vessel: str, heading: float
         scale = model.scale_errors.get(vessel, rng.normal(0.0, model.scale_error_std))
         bias = model.compass_biases_deg.get(vessel, rng.normal(0.0, model.compass_bias_std_deg)) * DEG
         noise = rng.normal(0.0, model.compass_noise_deg * DEG)
-        return OdometryState((0.0, 0.0), _wrap(heading + bias + noise), float(scale), float(bias))
+        return OdometryState((0.0, 0.0), float(wrap_angle(heading + bias + noise)), float(scale), float(bias))
     gyro = model.gyro
     scale = model.scale_errors.get(vessel, rng.normal(0.0, model.scale_error_std))
     bias = gyro.turn_on_biases_deg_s.get(vessel, rng.normal(0.0, gyro.turn_on_bias_std_deg_s)) * DEG
@@ -307,7 +304,7 @@ def advance_odometry(model: WaterLogCompass | DvlGyro, state: OdometryState, gro
         speed = 0.0 if abs(surge) < model.dead_band else (1.0 + state.scale) * surge + noise
         x, y = x + math.cos(state.heading) * (speed * dt), y + math.sin(state.heading) * (speed * dt)
         reading = heading + turn + state.bias + model.compass_noise_deg * DEG * z_compass
-        return OdometryState((x, y), _wrap(reading), state.scale, state.bias)
+        return OdometryState((x, y), float(wrap_angle(reading)), state.scale, state.bias)
     gyro = model.gyro
     z_forward, z_left, z_rate, z_bias = rng.standard_normal(4).tolist()
     gx, gy = float(ground_velocity[0]), float(ground_velocity[1])
@@ -320,11 +317,7 @@ def advance_odometry(model: WaterLogCompass | DvlGyro, state: OdometryState, gro
     rate_noise = gyro.angle_random_walk_deg_rt_h * ARW_UNIT / math.sqrt(dt) * z_rate
     bias_step = gyro.rate_random_walk_deg_s_rt_s * DEG * math.sqrt(dt) * z_bias
     reading = state.heading + turn + (state.bias + rate_noise) * dt
-    return OdometryState((x, y), _wrap(reading), state.scale, state.bias + bias_step)
-
-
-def _wrap(angle: float) -> float:
-    return (angle + math.pi) % (2 * math.pi) - math.pi
+    return OdometryState((x, y), float(wrap_angle(reading)), state.scale, state.bias + bias_step)
 
 
 def white_displacement_variance(model: PaperOdometry | WaterLogCompass | DvlGyro, speed: float, dt: float,

@@ -181,8 +181,8 @@ def test_the_gyro_heading_error_and_bias_variances_match_their_closed_forms():
 
 
 def same_angle(reading: float, angle: float) -> bool:
-    """`reading` is wrapped into [-pi, pi) and is `angle` up to whole turns."""
-    return -math.pi <= reading < math.pi and abs(math.remainder(reading - angle, 2 * math.pi)) < 1e-14
+    """`reading` is wrapped into (-pi, pi] and is `angle` up to whole turns."""
+    return -math.pi < reading <= math.pi and abs(math.remainder(reading - angle, 2 * math.pi)) < 1e-14
 
 
 def test_one_odometry_step_is_the_kernels_applied_to_the_stated_draws():
