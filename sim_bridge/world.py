@@ -28,8 +28,8 @@ import hashlib
 import json
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass
-from typing import Annotated, Literal
+from dataclasses import dataclass, field
+from typing import Annotated, Any, Literal
 
 import numpy as np
 from pydantic import Field, field_validator, model_validator
@@ -38,11 +38,13 @@ from agent.angles import wrap_angle
 from agent.config import NonNegativeFloat, PositiveFloat, StrictModel
 from agent.contract import nanoseconds, seconds
 from agent.core.records import Command, OdometryReading
+from boat.presets import BoatPreset, preset
 from sim_bridge.geometry import (
     is_simple_polygon,
     sample_boundary,
     segment_intersects_polygon,
 )
+from sim_bridge.hull import HullFleet
 from sim_bridge.noise import GaussianMixtureNoise, IsotropicGaussianNoise, RangeNoise
 from sim_bridge.targets import FiniteFloat, Point, TargetSpec, make_target
 
@@ -115,6 +117,32 @@ class SeaConfig(StrictModel):
                           "within step_ms of its arrival (dt must be a whole number of them)")
 
 
+class DynamicsConfig(StrictModel):
+    """Hull dynamics (`sim_bridge/hull.py`: Fossen's 3-DOF model, thrusters, inner loop) for every vessel,
+    instead of the paper's kinematics (1), (2)."""
+
+    preset: str = Field(description="hull preset of boat/presets.py: otter, heron or wamv")
+    overrides: dict[str, Any] = Field(
+        default_factory=dict, description="changes deep-merged onto the preset, e.g. {thrusters: {time_constant: 0.2}}")
+    step_ms: PositiveFloat = Field(20.0, description="integration step (ms), dividing the world's step")
+    inner_loop_hz: PositiveFloat = Field(50.0, description="rate of the inner loop; its period a whole number of steps")
+
+    @model_validator(mode="after")
+    def _consistent(self) -> DynamicsConfig:
+        self.boat()   # a bad preset name or override is reported with the world config
+        every = 1e3 / (self.inner_loop_hz * self.step_ms)
+        if abs(every - round(every)) > 1e-9 or round(every) < 1:
+            raise ValueError(f"dynamics: the inner loop's period (1/{self.inner_loop_hz:g} s) must be a whole "
+                             f"number of steps of {self.step_ms:g} ms")
+        return self
+
+    def boat(self) -> BoatPreset:
+        return preset(self.preset, self.overrides)
+
+    def loop_every(self) -> int:
+        return round(1e3 / (self.inner_loop_hz * self.step_ms))
+
+
 class WorldConfig(StrictModel):
     dt: PositiveFloat = Field(0.1, description="sampling period (s)")
     vessels: list[VesselSpec] = Field(min_length=1)
@@ -137,6 +165,7 @@ class WorldConfig(StrictModel):
         math.pi / 3 + math.pi / 30, description="bound on the commanded yaw rate (rad/s)"
     )
     sea: SeaConfig | None = Field(None, description="the sea mode (sim bridge, real time); None: ideal sensors")
+    dynamics: DynamicsConfig | None = Field(None, description="hull dynamics; None: the paper's kinematics (1), (2)")
 
     @field_validator("islands")
     @classmethod
@@ -160,6 +189,12 @@ class WorldConfig(StrictModel):
             steps = self.dt / (self.sea.step_ms * 1e-3)
             if abs(steps - round(steps)) > 1e-9 or round(steps) < 1:
                 raise ValueError(f"sea: step_ms ({self.sea.step_ms}) must divide dt ({self.dt} s)")
+        if self.dynamics is not None:
+            period = self.dt if self.sea is None else self.sea.step_ms * 1e-3
+            steps = period / (self.dynamics.step_ms * 1e-3)
+            if abs(steps - round(steps)) > 1e-9 or round(steps) < 1:
+                raise ValueError(f"dynamics: step_ms ({self.dynamics.step_ms}) must divide the world's step "
+                                 f"({period} s)")
         return self
 
 
@@ -184,6 +219,11 @@ class Truth:
     velocities: dict[str, np.ndarray]     # velocity (2) used over the last step; zero before the first
     target_position: np.ndarray
     target_velocity: np.ndarray
+    # With hull dynamics only (empty otherwise): (u, v, r) over ground in the body frame now (the velocities
+    # above are then the velocity over ground now), and the seconds each vessel's thrust demand has spent
+    # beyond what its thrusters can give.
+    body_velocities: dict[str, np.ndarray] = field(default_factory=dict)
+    thrust_limit_time: dict[str, float] = field(default_factory=dict)
 
 
 def _frozen(array: np.ndarray) -> np.ndarray:
@@ -219,7 +259,9 @@ class World:
     """Vessels following (1), (2), a target (3), (4), islands, and sensors (5), (6), (7), (8), (9), stepped by
     `step(commands)`."""
 
-    def __init__(self, config: WorldConfig, rng: np.random.Generator) -> None:
+    def __init__(self, config: WorldConfig, rng: np.random.Generator, surroundings: Any = None) -> None:
+        """`surroundings`: the environment (current, wind and wave loads, attitude; `sim_bridge/hull.py`
+        `CalmWater` shows the interface) the hulls move in; None: calm water. Needs `config.dynamics`."""
         self.config = config
         self.time = 0.0
         self.time_ns = 0
@@ -235,6 +277,14 @@ class World:
         self._displacement_noise = IsotropicGaussianNoise(variance=config.displacement_variance)
         self._bearing_noise = IsotropicGaussianNoise(variance=config.bearing_variance)
         self._heading_std = math.sqrt(config.heading_variance)
+        self._hulls: HullFleet | None = None
+        if config.dynamics is not None:
+            dynamics = config.dynamics
+            self._hulls = HullFleet(dynamics.boat(), len(config.vessels), dynamics.step_ms * 1e-3,
+                                    dynamics.loop_every(), surroundings)
+            self._index = {spec.id: n for n, spec in enumerate(config.vessels)}
+        elif surroundings is not None:
+            raise ValueError("an environment needs hull dynamics (world.dynamics)")
         self._begin_tick()
 
     def live(self) -> list[str]:
@@ -250,10 +300,13 @@ class World:
         the kinematics (1), (2), the odometry (5) and the target's model ((3), (4) for the random walk).
 
         A missing or non-finite command stops that vessel for the period and is counted in `bad_commands`.
+        With hull dynamics (`config.dynamics`) the commands go to the hulls' inner loops instead (`_move_hulls`).
         """
         config = self.config
         dt = config.dt
-        for vessel_id in self._live:
+        if self._hulls is not None:
+            self._move_hulls(commands)
+        for vessel_id in self._live if self._hulls is None else ():
             vessel = self._vessels[vessel_id]
             surge, yaw_rate = self._checked(commands.get(vessel_id))
             surge = min(max(surge, -config.max_speed), config.max_speed)
@@ -280,6 +333,14 @@ class World:
 
     def truth(self) -> Truth:
         live = self.live()
+        body: dict[str, np.ndarray] = {}
+        limit: dict[str, float] = {}
+        if self._hulls is not None:
+            u, v, r = self._hulls.body_velocity()
+            for i in live:
+                n = self._index[i]
+                body[i] = _frozen((u[n], v[n], r[n]))
+                limit[i] = float(self._hulls.saturated_time[n])
         return Truth(
             time=self.time,
             positions={i: self._vessels[i].position for i in live},        # read-only (`_fixed`)
@@ -287,7 +348,35 @@ class World:
             velocities={i: self._vessels[i].velocity for i in live},
             target_position=_frozen(self._target.position),
             target_velocity=_frozen(self._target.velocity),
+            body_velocities=body,
+            thrust_limit_time=limit,
         )
+
+    def _move_hulls(self, commands: Mapping[str, Command]) -> None:
+        """Advance the hulls by dt under the live vessels' commands (a vessel not live, or a bad command:
+        a stop, (0, 0), for its inner loop), then read each live vessel's new state. Odometry (5) as in the
+        kinematic world: the true displacement over the period plus its noise, drawn in the same order."""
+        config, hulls = self.config, self._hulls
+        speed, rate = np.zeros(len(config.vessels)), np.zeros(len(config.vessels))
+        for vessel_id in self._live:
+            surge, yaw_rate = self._checked(commands.get(vessel_id))
+            n = self._index[vessel_id]
+            speed[n] = min(max(surge, -config.max_speed), config.max_speed)
+            rate[n] = min(max(yaw_rate, -config.max_yaw_rate), config.max_yaw_rate)
+        hulls.advance(self.time, config.dt, speed, rate, self.time)
+        hulls.state[2] = wrap_angle(hulls.state[2])
+        xs, ys, headings = (row.tolist() for row in hulls.state[:3])
+        vxs, vys = (row.tolist() for row in hulls.ground_velocity())
+        for vessel_id in self._live:
+            vessel, n = self._vessels[vessel_id], self._index[vessel_id]
+            (x, y), (ox, oy) = vessel.position.tolist(), vessel.odometry_position.tolist()
+            dx, dy = xs[n] - x, ys[n] - y
+            vessel.position = _fixed(xs[n], ys[n])
+            vessel.velocity = _fixed(vxs[n], vys[n])
+            vessel.heading = headings[n]
+            nx, ny = self._displacement_noise.sample(self._rng).tolist()
+            vessel.odometry_position = _fixed((ox + dx) + nx, (oy + dy) + ny)
+            vessel.odometry_heading = self._noisy_heading(vessel.heading)
 
     # --- inside a tick -----------------------------------------------------------------------------------
 
@@ -318,6 +407,9 @@ class World:
                 vessel = _Vessel(spec)
                 vessel.odometry_heading = self._noisy_heading(vessel.heading)
                 self._vessels[spec.id] = vessel
+                if self._hulls is not None:
+                    x, y = vessel.position.tolist()
+                    self._hulls.place(self._index[spec.id], x, y, vessel.heading)
         self._live = [spec.id for spec in self.config.vessels if spec.id in self._vessels]
         # Every true range of the tick at once: row i holds |p_j - p_i| for each j, the element-wise
         # operations of a norm along axis 1 (rounded as one vessel's row alone would be).
