@@ -94,7 +94,8 @@ class BoatPreset(StrictModel):
 
 def _otter() -> BoatPreset:
     # [S] otter.py: hull 55 kg + payload 25 kg; hull CG (0.2, 0, -0.2) m, payload at (0, 0, -0.35) m
-    hull_mass, payload, total = 55.0, 25.0, 80.0
+    hull_mass, payload = 55.0, 25.0
+    total = hull_mass + payload
     x_g = 0.2 * hull_mass / total                                  # [D] 0.1375 m
     iz_cg = hull_mass * (0.25 * 2.0) ** 2 + hull_mass * x_g ** 2   # [D] R66 = 0.25 L, as otter.py's Ig
     iz = iz_cg + total * x_g ** 2                                  # [D] about the origin: 16.30 kg m^2

@@ -10,14 +10,14 @@ tau = thrust + the environment's loads. With no tau and no current the kinetic e
 only fall: d/dt = -nu^T D nu.
 
 `HullFleet` holds n hulls of one preset as arrays of shape (n,) and advances them by substeps of h: each
-substep the environment moves to its time (`advance`), the inner loop runs (every `loop_every` substeps),
+substep the environment moves to its time (`advance`), the inner loop runs (every `loop_every` substeps, on
+the speed through the water u_r, as a speed log measures it, and the turn rate r),
 its (X, N) go through allocation and the thrusters' lag, then one RK4 step of the model with the thrust
 (its mean over the substep), the current and the loads held over the substep. docs/sea.md ("Hull dynamics") holds the derivation and figures.
 """
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -156,10 +156,10 @@ class HullFleet:
                 cx, cy = env.current(now, self.state[0], self.state[1])
                 self.current = np.array([cx, cy], dtype=float)
             if self.substeps % self.loop_every == 0:
-                u_g, _, r = self.body_velocity()
+                # The loop holds the speed through the water (a speed log's; no GNSS) and the turn rate.
                 self.loop, force, moment = inner_loop.step(
-                    boat.inner_loop, boat.thrusters, self.loop, speed, rate, now - commanded_at, u_g, r,
-                    h * self.loop_every)
+                    boat.inner_loop, boat.thrusters, self.loop, speed, rate, now - commanded_at,
+                    self.state[3], self.state[5], h * self.loop_every)
                 port, starboard, saturated = thrusters.allocate(boat.thrusters, force, moment)
                 self.demand = np.array([port, starboard])
                 self._saturated_step = saturated * h
