@@ -2,9 +2,9 @@
 
 One step of period dt, for arrays of shape (n,) (one entry per boat):
     speed:  u_d moves towards the command by at most accel_max dt (the command clipped to the speed bounds);
-            X = K_ff,u u_d + K_ff,uu |u_d| u_d + K_p,u (u_d - u) + I_u,    I_u += K_i,u (u_d - u) dt
+            X = K_ff,u u_d + K_ff,uu |u_d| u_d + K_a,u du_d/dt + K_p,u (u_d - u) + I_u,  I_u += K_i,u (u_d - u) dt
     rate:   r_d moves towards the command by at most rate_accel_max dt (clipped to +-rate_max);
-            N = K_ff,r r_d + K_ff,rr |r_d| r_d + K_p,r e_r + I_r + K_d,r de_r/dt,  e_r = r_d - r
+            N = K_ff,r r_d + K_ff,rr |r_d| r_d + K_a,r dr_d/dt + K_p,r e_r + I_r + K_d,r de_r/dt,  e_r = r_d - r
 Each integrator is bounded by its imax and frozen while the output is beyond what the thrusters can give in
 the error's direction (anti-windup); de_r/dt is low-passed at d_filter Hz. (X, N) are clipped to the pair's
 range: X in [-2R, 2F], N in +-b (F + R).
@@ -70,7 +70,8 @@ def step(loop: InnerLoop, thrusters: Thrusters, state: LoopState, speed_command:
     n_max = thrusters.half_beam * (thrusters.max_forward + thrusters.max_reverse)
 
     e_u = u_d - u
-    x = (loop.speed_ff + loop.speed_ff_quadratic * np.abs(u_d)) * u_d + loop.speed_p * e_u + state.speed_integral
+    x = ((loop.speed_ff + loop.speed_ff_quadratic * np.abs(u_d)) * u_d + loop.speed_p * e_u + state.speed_integral
+         + loop.speed_ff_accel / dt * (u_d - state.speed_demand))
     wind_u = ((x < x_max) | (e_u < 0)) & ((x > x_min) | (e_u > 0))
     i_u = np.where(wind_u, _clip(state.speed_integral + loop.speed_i * e_u * dt, loop.speed_imax),
                    state.speed_integral)
@@ -79,7 +80,7 @@ def step(loop: InnerLoop, thrusters: Thrusters, state: LoopState, speed_command:
     alpha = dt / (dt + 1.0 / (2 * math.pi * loop.d_filter))
     slope = state.rate_slope + alpha * ((e_r - state.rate_error) / dt - state.rate_slope)
     n = ((loop.rate_ff + loop.rate_ff_quadratic * np.abs(r_d)) * r_d + loop.rate_p * e_r + state.rate_integral
-         + loop.rate_d * slope)
+         + loop.rate_d * slope + loop.rate_ff_accel / dt * (r_d - state.rate_demand))
     wind_r = ((n < n_max) | (e_r < 0)) & ((n > -n_max) | (e_r > 0))
     i_r = np.where(wind_r, _clip(state.rate_integral + loop.rate_i * e_r * dt, loop.rate_imax),
                    state.rate_integral)

@@ -61,6 +61,7 @@ class InnerLoop(StrictModel):
     speed_imax: NonNegativeFloat = Field(description="bound on the speed integrator's force (N)")
     speed_ff: NonNegativeFloat = Field(description="feed-forward surge force per m/s of demanded speed (N s/m)")
     speed_ff_quadratic: NonNegativeFloat = Field(0.0, description="feed-forward force per (m/s)^2 (N s^2/m^2)")
+    speed_ff_accel: NonNegativeFloat = Field(0.0, description="feed-forward force per m/s^2 of demand ramp (kg)")
     accel_max: PositiveFloat = Field(description="largest change of the demanded speed (m/s^2)")
     max_speed: PositiveFloat = Field(description="demanded speed bound, forward (m/s)")
     max_reverse_speed: NonNegativeFloat = Field(description="demanded speed bound, astern (m/s)")
@@ -70,6 +71,7 @@ class InnerLoop(StrictModel):
     rate_imax: NonNegativeFloat = Field(description="bound on the rate integrator's moment (N m)")
     rate_ff: NonNegativeFloat = Field(description="feed-forward yaw moment per rad/s of demanded rate (N m s)")
     rate_ff_quadratic: NonNegativeFloat = Field(0.0, description="feed-forward moment per (rad/s)^2 (N m s^2)")
+    rate_ff_accel: NonNegativeFloat = Field(0.0, description="feed-forward moment per rad/s^2 of ramp (kg m^2)")
     rate_max: PositiveFloat = Field(description="demanded yaw-rate bound (rad/s)")
     rate_accel_max: PositiveFloat = Field(description="largest change of the demanded yaw rate (rad/s^2)")
     d_filter: PositiveFloat = Field(10.0, description="low-pass corner of the rate error's derivative (Hz)")
@@ -117,9 +119,9 @@ def _otter() -> BoatPreset:
         name="otter", hull=hull,
         windage=Windage(length=2.0, beam=1.08, mass=total,           # [S]
                         frontal_area=1.08 * 0.4, lateral_area=2.0 * 0.4),  # [C] 0.4 m of windage height
-        thrusters=Thrusters(half_beam=0.395, max_forward=forward, max_reverse=reverse,  # [S]
-                            time_constant=0.1),                     # [S] propeller T_n 0.1 s
-        inner_loop=_tuned(hull, 0.1, max_speed=3.0, max_reverse_speed=1.0, accel_max=1.0, rate_max=0.3,
+        thrusters=(thrusters := Thrusters(half_beam=0.395, max_forward=forward, max_reverse=reverse,  # [S]
+                                          time_constant=0.1)),      # [S] propeller T_n 0.1 s
+        inner_loop=_tuned(hull, thrusters, max_speed=3.0, max_reverse_speed=1.0, accel_max=1.0, rate_max=0.3,
                           rate_accel_max=2.09),  # [S] ArduPilot: ATC_ACCEL_MAX 1 m/s^2, 120 deg/s^2
     )
 
@@ -140,9 +142,9 @@ def _heron() -> BoatPreset:
         name="heron", hull=hull,
         windage=Windage(length=length, beam=0.98, mass=mass,        # [C] beam: Clearpath's 0.98 m
                         frontal_area=0.98 * 0.3, lateral_area=length * 0.3),  # [C] 0.3 m windage height
-        thrusters=Thrusters(half_beam=0.381 / 2, max_forward=forward, max_reverse=reverse,  # [S] 0.381 m apart
-                            time_constant=0.1),                     # [C] as the Otter's propellers
-        inner_loop=_tuned(hull, 0.1, max_speed=1.7, max_reverse_speed=0.5,
+        thrusters=(thrusters := Thrusters(half_beam=0.381 / 2, max_forward=forward,  # [S] 0.381 m apart
+                                          max_reverse=reverse, time_constant=0.1)),  # [C] as the Otter's
+        inner_loop=_tuned(hull, thrusters, max_speed=1.7, max_reverse_speed=0.5,
                           accel_max=1.0, rate_max=0.5, rate_accel_max=2.09),  # [S] 0.5 rad/s
     )
 
@@ -159,27 +161,30 @@ def _wamv() -> BoatPreset:
         name="wamv", hull=hull,
         windage=Windage(length=4.9, beam=2.4, mass=mass,            # [S] VRX hull 4.9 m; beam 2.4 m
                         frontal_area=2.4 * 0.8, lateral_area=4.9 * 0.8),  # [C] 0.8 m windage height
-        thrusters=Thrusters(half_beam=1.027, max_forward=thrust, max_reverse=thrust,  # [S] VRX, symmetric
-                            time_constant=0.2),                     # [C] within sea-physics' 0.1-1 s
-        inner_loop=_tuned(hull, 0.2, max_speed=7.5, max_reverse_speed=2.0,
+        thrusters=(thrusters := Thrusters(half_beam=1.027, max_forward=thrust,  # [S] VRX, symmetric
+                                          max_reverse=thrust, time_constant=0.2)),  # [C] in sea-physics' 0.1-1 s
+        inner_loop=_tuned(hull, thrusters, max_speed=7.5, max_reverse_speed=2.0,
                           accel_max=1.0, rate_max=1.0, rate_accel_max=2.09),
     )
 
 
-def _tuned(hull: Hull, lag: float, **limits: float) -> InnerLoop:
+def _tuned(hull: Hull, thrusters: Thrusters, **limits: float) -> InnerLoop:
     """Gains by one rule for every preset: the proportional gain that gives the linearised loop (hull
     M s + d behind the thruster lag T s + 1) a damping ratio of 0.8, k = (M + T d)^2 / (4 0.8^2 T M) - d; the
-    integrator's time 1 s; feed-forward the hull's own damping, linear and quadratic, as ArduPilot's
-    CRUISE_SPEED / CRUISE_THROTTLE calibrate it (docs/sea.md, "Inner loop")."""
+    integrator's time 1 s and its bound the thrusters' whole range (ArduPilot's IMAX 1); feed-forward the
+    hull's own damping, linear and quadratic, as ArduPilot's CRUISE_SPEED / CRUISE_THROTTLE calibrate it, and
+    its inertia times the demand's ramp (docs/sea.md, "Inner loop")."""
     def gain(m: float, d: float) -> float:
         return max((m + lag * d) ** 2 / (4 * 0.64 * lag * m) - d, 0.0)
 
+    lag = thrusters.time_constant
     m11, m33 = hull.mass + hull.added_mass_surge, hull.yaw_inertia + hull.added_mass_yaw
     speed_p, rate_p = gain(m11, hull.surge_damping), gain(m33, hull.yaw_damping)
-    return InnerLoop(speed_p=speed_p, speed_i=speed_p, speed_imax=0.2 * speed_p * limits["max_speed"],
-                     speed_ff=hull.surge_damping, speed_ff_quadratic=hull.surge_damping_quadratic,
-                     rate_p=rate_p, rate_i=rate_p, rate_imax=0.2 * rate_p * limits["rate_max"],
-                     rate_ff=hull.yaw_damping, rate_ff_quadratic=hull.yaw_damping_quadratic, **limits)
+    force, moment = 2 * thrusters.max_forward, thrusters.half_beam * (thrusters.max_forward + thrusters.max_reverse)
+    return InnerLoop(speed_p=speed_p, speed_i=speed_p, speed_imax=force, speed_ff=hull.surge_damping,
+                     speed_ff_quadratic=hull.surge_damping_quadratic, speed_ff_accel=m11,
+                     rate_p=rate_p, rate_i=rate_p, rate_imax=moment, rate_ff=hull.yaw_damping,
+                     rate_ff_quadratic=hull.yaw_damping_quadratic, rate_ff_accel=m33, **limits)
 
 
 PRESETS: dict[str, BoatPreset] = {p.name: p for p in (_otter(), _heron(), _wamv())}

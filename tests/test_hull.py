@@ -102,7 +102,6 @@ def _steady_turn(hull, force: float, moment: float) -> np.ndarray:
     m11 = hull.mass + hull.added_mass_surge
     m22 = hull.mass + hull.added_mass_sway
     m23 = hull.mass * hull.x_g
-    m33 = hull.yaw_inertia + hull.added_mass_yaw
 
     def residual(nu):
         u, v, r = nu
