@@ -148,6 +148,7 @@ class HullFleet:
         (speed, rate), given at time `commanded_at`."""
         boat, env, h = self.boat, self.environment, self.h
         calm = type(env) is CalmWater   # nothing to ask: skip the calls (the same numbers, fewer of them)
+        speed, rate = inner_loop.commands(boat.inner_loop, speed, rate)
         tau = np.zeros((3, self.state.shape[1]))
         for k in range(round(duration / h)):
             now = t + k * h
@@ -159,7 +160,7 @@ class HullFleet:
                 # The loop holds the speed through the water (a speed log's; no GNSS) and the turn rate.
                 self.loop, force, moment = inner_loop.step(
                     boat.inner_loop, boat.thrusters, self.loop, speed, rate, now - commanded_at,
-                    self.state[3], self.state[5], h * self.loop_every)
+                    self.state[3], self.state[5], h * self.loop_every, checked=True)
                 port, starboard, saturated = thrusters.allocate(boat.thrusters, force, moment)
                 self.demand = np.array([port, starboard])
                 self._saturated_step = saturated * h
