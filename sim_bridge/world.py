@@ -257,7 +257,9 @@ class _Vessel:
 
 class World:
     """Vessels following (1), (2), a target (3), (4), islands, and sensors (5), (6), (7), (8), (9), stepped by
-    `step(commands)`."""
+    `step(commands)`. With `config.dynamics` the vessels are hulls instead (`sim_bridge/hull.py`: Fossen's
+    3-DOF model behind thrusters and an inner loop), moving in the `surroundings` given (calm water if None);
+    the randomness is drawn in the same order, and without `dynamics` nothing here changes."""
 
     def __init__(self, config: WorldConfig, rng: np.random.Generator, surroundings: Any = None) -> None:
         """`surroundings`: the environment (current, wind and wave loads, attitude; `sim_bridge/hull.py`
