@@ -1,6 +1,6 @@
 """Fossen's 3-DOF manoeuvring model for a fleet of hulls, with its thrusters and inner loop, stepped in RK4.
 
-    M nu_r_dot + C(nu_r) nu_r + D(nu_r) nu_r = tau,   nu_r = nu - nu_c            (Fossen 2021, (10.138))
+    M nu_r_dot + C(nu_r) nu_r + D(nu_r) nu_r = tau,   nu_r = nu - nu_c      (Fossen 2021, 3-DOF with current)
     x_dot = cos(psi) u_r - sin(psi) v_r + c_x,  y_dot = sin(psi) u_r + cos(psi) v_r + c_y,  psi_dot = r
 with nu_r = (u_r, v_r, r) the velocity through the water in the body frame (x forward, y to port), c the
 current over ground, M = [[m11, 0, 0], [0, m22, m23], [0, m23, m33]] (rigid body plus added mass, m23 =
