@@ -30,8 +30,8 @@ import hashlib
 import json
 import math
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
-from typing import Annotated, Literal
+from dataclasses import dataclass, field
+from typing import Annotated, Any, Literal
 
 import numpy as np
 from pydantic import Field, field_validator, model_validator
@@ -41,11 +41,14 @@ from agent.config import NonNegativeFloat, PositiveFloat, StrictModel
 from agent.contract import nanoseconds, seconds
 from agent.core.range_noise import GaussianMixtureNoise, RangeNoise
 from agent.core.records import Command, OdometryReading
+from boat.presets import BoatPreset, preset
+from sim_bridge.environment import Environment, SeaState
 from sim_bridge.geometry import (
     is_simple_polygon,
     sample_boundary,
     segment_intersects_polygon,
 )
+from sim_bridge.hull import HullFleet
 from sim_bridge.noise import IsotropicGaussianNoise
 from sim_bridge.sensors import (
     SensorsConfig,
@@ -128,6 +131,32 @@ class SeaConfig(StrictModel):
                           "within step_ms of its arrival (dt must be a whole number of them)")
 
 
+class DynamicsConfig(StrictModel):
+    """Hull dynamics (`sim_bridge/hull.py`: Fossen's 3-DOF model, thrusters, inner loop) for every vessel,
+    instead of the paper's kinematics (1), (2)."""
+
+    preset: str = Field(description="hull preset of boat/presets.py: otter, heron or wamv")
+    overrides: dict[str, Any] = Field(
+        default_factory=dict, description="changes deep-merged onto the preset, e.g. {thrusters: {time_constant: 0.2}}")
+    step_ms: PositiveFloat = Field(20.0, description="integration step (ms), dividing the world's step")
+    inner_loop_hz: PositiveFloat = Field(50.0, description="rate of the inner loop; its period a whole number of steps")
+
+    @model_validator(mode="after")
+    def _consistent(self) -> DynamicsConfig:
+        self.boat()   # a bad preset name or override is reported with the world config
+        every = 1e3 / (self.inner_loop_hz * self.step_ms)
+        if abs(every - round(every)) > 1e-9 or round(every) < 1:
+            raise ValueError(f"dynamics: the inner loop's period (1/{self.inner_loop_hz:g} s) must be a whole "
+                             f"number of steps of {self.step_ms:g} ms")
+        return self
+
+    def boat(self) -> BoatPreset:
+        return preset(self.preset, self.overrides)
+
+    def loop_every(self) -> int:
+        return round(1e3 / (self.inner_loop_hz * self.step_ms))
+
+
 class WorldConfig(StrictModel):
     dt: PositiveFloat = Field(0.1, description="sampling period (s)")
     vessels: list[VesselSpec] = Field(min_length=1)
@@ -153,6 +182,9 @@ class WorldConfig(StrictModel):
     sensors: SensorsConfig = Field(
         SensorsConfig(), description="sensor error models (sim_bridge/sensors.py), or a preset: 'realistic'; "
                                      "default: the paper's (5)-(9)")
+    dynamics: DynamicsConfig | None = Field(None, description="hull dynamics; None: the paper's kinematics (1), (2)")
+    environment: SeaState | None = Field(
+        None, description="current, wind and waves: a sea state's name (moderate, ...) or its settings; needs dynamics")
 
     @field_validator("sensors", mode="before")
     @classmethod
@@ -186,6 +218,14 @@ class WorldConfig(StrictModel):
         unknown = sorted(self.sensors.named_vessels() - set(ids))
         if unknown:
             raise ValueError(f"sensors: values for unknown vessels {unknown}")
+        if self.environment is not None and self.dynamics is None:
+            raise ValueError("environment: the water and the wind act on hulls: give world.dynamics too")
+        if self.dynamics is not None:
+            period = self.dt if self.sea is None else self.sea.step_ms * 1e-3
+            steps = period / (self.dynamics.step_ms * 1e-3)
+            if abs(steps - round(steps)) > 1e-9 or round(steps) < 1:
+                raise ValueError(f"dynamics: step_ms ({self.dynamics.step_ms}) must divide the world's step "
+                                 f"({period} s)")
         return self
 
 
@@ -210,6 +250,11 @@ class Truth:
     velocities: dict[str, np.ndarray]     # velocity (2) used over the last step; zero before the first
     target_position: np.ndarray
     target_velocity: np.ndarray
+    # With hull dynamics only (empty otherwise): (u, v, r) over ground in the body frame now (the velocities
+    # above are then the velocity over ground now), and the seconds each vessel's thrust demand has spent
+    # beyond what its thrusters can give.
+    body_velocities: dict[str, np.ndarray] = field(default_factory=dict)
+    thrust_limit_time: dict[str, float] = field(default_factory=dict)
 
 
 def _frozen(array: np.ndarray) -> np.ndarray:
@@ -247,12 +292,16 @@ class _Vessel:
 
 class World:
     """Vessels following (1), (2), a target (3), (4), islands, and sensors (5), (6), (7), (8), (9), stepped by
-    `step(commands)`."""
+    `step(commands)`. With `config.dynamics` the vessels are hulls instead (`sim_bridge/hull.py`: Fossen's
+    3-DOF model behind thrusters and an inner loop), moving in the `surroundings` given (calm water if None);
+    the randomness is drawn in the same order, and without `dynamics` nothing here changes."""
 
-    def __init__(self, config: WorldConfig, rng: np.random.Generator,
+    def __init__(self, config: WorldConfig, rng: np.random.Generator, surroundings: Any = None,
                  attitude: Callable[[float, float, float, float], tuple[float, float]] | None = None) -> None:
-        """`attitude(t, x, y, heading) -> (roll, pitch)` (rad) tilts the UWB antennas and the camera of
-        `config.sensors`; None: level."""
+        """`surroundings`: the environment (current, wind and wave loads, attitude; `sim_bridge/hull.py`
+        `CalmWater` shows the interface) the hulls move in; None: calm water. Needs `config.dynamics`.
+        `attitude(t, x, y, heading) -> (roll, pitch)` (rad) tilts the UWB antennas and the camera of
+        `config.sensors`; None: the surroundings' attitude if they have one, else level."""
         self.config = config
         self.time = 0.0
         self.time_ns = 0
@@ -262,7 +311,6 @@ class World:
         self._vessels: dict[str, _Vessel] = {}
         self._live: list[str] = []         # ids of the live vessels in config order, set when a tick begins
         self._departed: set[str] = set()
-        self._target = make_target(config.target)
         self._islands = _islands(config)
         self._boundary = _boundary(config, self._islands)
         self._displacement_noise = IsotropicGaussianNoise(variance=config.displacement_variance)
@@ -270,11 +318,26 @@ class World:
         self._heading_std = math.sqrt(config.heading_variance)
         self._sensors = config.sensors
         self._odometry_model = None if config.sensors.odometry.kind == "paper" else config.sensors.odometry
-        self.attitude = attitude
         # The new sensor models draw from a stream of their own, spawned (the world's draws stay as they were)
-        # only when one is on: the paper's world takes nothing more from the generator.
+        # only when one is on: the paper's world takes nothing more from the generator. The environment's
+        # stream is spawned after it, so the sensors draw the same with or without one.
         self._sensor_rng = None if config.sensors.is_paper else rng.spawn(1)[0]
+        if surroundings is None and config.environment is not None:
+            surroundings = Environment(config.environment, rng.spawn(1)[0])
+        self.environment = surroundings
+        if attitude is None and surroundings is not None:
+            attitude = getattr(surroundings, "attitude", None)
+        self.attitude = attitude
+        self._target = make_target(config.target, current=None if surroundings is None else surroundings.current)
         self._attitudes: dict[str, tuple[float, float]] = {}
+        self._hulls: HullFleet | None = None
+        if config.dynamics is not None:
+            dynamics = config.dynamics
+            self._hulls = HullFleet(dynamics.boat(), len(config.vessels), dynamics.step_ms * 1e-3,
+                                    dynamics.loop_every(), surroundings)
+            self._index = {spec.id: n for n, spec in enumerate(config.vessels)}
+        elif surroundings is not None:
+            raise ValueError("an environment needs hull dynamics (world.dynamics)")
         self._begin_tick()
 
     def live(self) -> list[str]:
@@ -290,10 +353,13 @@ class World:
         the kinematics (1), (2), the odometry (5) and the target's model ((3), (4) for the random walk).
 
         A missing or non-finite command stops that vessel for the period and is counted in `bad_commands`.
+        With hull dynamics (`config.dynamics`) the commands go to the hulls' inner loops instead (`_move_hulls`).
         """
         config = self.config
         dt = config.dt
-        for vessel_id in self._live:
+        if self._hulls is not None:
+            self._move_hulls(commands)
+        for vessel_id in self._live if self._hulls is None else ():
             vessel = self._vessels[vessel_id]
             surge, yaw_rate = self._checked(commands.get(vessel_id))
             surge = min(max(surge, -config.max_speed), config.max_speed)
@@ -325,6 +391,14 @@ class World:
 
     def truth(self) -> Truth:
         live = self.live()
+        body: dict[str, np.ndarray] = {}
+        limit: dict[str, float] = {}
+        if self._hulls is not None:
+            u, v, r = self._hulls.body_velocity()
+            for i in live:
+                n = self._index[i]
+                body[i] = _frozen((u[n], v[n], r[n]))
+                limit[i] = float(self._hulls.saturated_time[n])
         return Truth(
             time=self.time,
             positions={i: self._vessels[i].position for i in live},        # read-only (`_fixed`)
@@ -332,7 +406,45 @@ class World:
             velocities={i: self._vessels[i].velocity for i in live},
             target_position=_frozen(self._target.position),
             target_velocity=_frozen(self._target.velocity),
+            body_velocities=body,
+            thrust_limit_time=limit,
         )
+
+    def _move_hulls(self, commands: Mapping[str, Command]) -> None:
+        """Advance the hulls by dt under the live vessels' commands (a vessel not live, or a bad command:
+        a stop, (0, 0), for its inner loop), then read each live vessel's new state. Odometry (5) as in the
+        kinematic world: the true displacement over the period plus its noise, drawn in the same order."""
+        config, hulls = self.config, self._hulls
+        speed, rate = np.zeros(len(config.vessels)), np.zeros(len(config.vessels))
+        for vessel_id in self._live:
+            surge, yaw_rate = self._checked(commands.get(vessel_id))
+            n = self._index[vessel_id]
+            speed[n] = min(max(surge, -config.max_speed), config.max_speed)
+            rate[n] = min(max(yaw_rate, -config.max_yaw_rate), config.max_yaw_rate)
+        hulls.advance(self.time, config.dt, speed, rate, self.time)
+        hulls.state[2] = wrap_angle(hulls.state[2])
+        xs, ys, headings = (row.tolist() for row in hulls.state[:3])
+        vxs, vys = (row.tolist() for row in hulls.ground_velocity())
+        cxs, cys = (row.tolist() for row in hulls.current)
+        dt = config.dt
+        for vessel_id in self._live:
+            vessel, n = self._vessels[vessel_id], self._index[vessel_id]
+            (x, y), (ox, oy) = vessel.position.tolist(), vessel.odometry_position.tolist()
+            dx, dy = xs[n] - x, ys[n] - y
+            held = vessel.heading
+            vessel.position = _fixed(xs[n], ys[n])
+            vessel.velocity = _fixed(vxs[n], vys[n])
+            vessel.heading = headings[n]
+            nx, ny = self._displacement_noise.sample(self._rng).tolist()
+            if self._odometry_model is None:
+                vessel.odometry_position = _fixed((ox + dx) + nx, (oy + dy) + ny)
+                vessel.odometry_heading = self._noisy_heading(vessel.heading)
+            else:
+                self._noisy_heading(vessel.heading)   # drawn and unused, as in the kinematic world
+                # Through the water: the step's mean velocity over ground less the current at its end.
+                ground = (dx / dt, dy / dt)
+                vessel.water_velocity = (ground[0] - cxs[n], ground[1] - cys[n])
+                self._sensed_odometry(vessel, ground, held, float(wrap_angle(headings[n] - held)))
 
     # --- inside a tick -----------------------------------------------------------------------------------
 
@@ -378,6 +490,9 @@ class World:
                                                            self._sensor_rng)
                     vessel.odometry_heading = vessel.odometry_state.heading
                 self._vessels[spec.id] = vessel
+                if self._hulls is not None:
+                    x, y = vessel.position.tolist()
+                    self._hulls.place(self._index[spec.id], x, y, vessel.heading)
         self._live = [spec.id for spec in self.config.vessels if spec.id in self._vessels]
         if self.attitude is not None and (self._sensors.uwb is not None or self._sensors.camera is not None):
             here = {v: self._vessels[v] for v in self._live}

@@ -12,6 +12,8 @@ function, under `if TYPE_CHECKING`, relative ones, and `importlib.import_module`
   (agent.core.params), the per-tick records (agent.core.records), the builder of a vessel's core and
   initial estimates (agent.core.build) and the range noise the world samples and the filters assume
   (agent.core.range_noise). Never the agent process (agent.shell).
+- `boat` (hull presets, thrusters, the inner loop), shared by the sim bridge and the driver bridge, imports
+  from the project only `agent.config` and `agent.angles` and itself; `agent` never imports it.
 - Layers: `mission_log` and `sim_bridge` never import `lab`; `mission_log` never imports `sim_bridge`;
   nothing outside `lab` imports `lab` (the tests may); `agent` imports none of sim_bridge, driver_bridge, lab,
   mission_log, usv_deploy.
@@ -32,11 +34,13 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-PACKAGES = ("agent", "sim_bridge", "driver_bridge", "lab", "mission_log", "usv_deploy", "usv_op")
+PACKAGES = ("agent", "boat", "sim_bridge", "driver_bridge", "lab", "mission_log", "usv_deploy", "usv_op")
 
 CORE_FORBIDDEN = ("zenoh", "mcap", "matplotlib", "threading", "socket", "subprocess",
                   "agent.shell", "agent.runtime", "agent.contract",
-                  "sim_bridge", "driver_bridge", "lab", "mission_log", "usv_deploy", "usv_op")
+                  "boat", "sim_bridge", "driver_bridge", "lab", "mission_log", "usv_deploy", "usv_op")
+OURS = PACKAGES
+BOAT_ALLOWED = ("agent.config", "agent.angles", "boat")
 SHARED_FROM_AGENT = ("agent.contract", "agent.config", "agent.angles", "agent.runtime")
 CORE_VOCABULARY = ("agent.core.params", "agent.core.records", "agent.core.build", "agent.core.range_noise")
 
@@ -214,10 +218,18 @@ def test_the_sim_bridge_takes_the_shared_modules_and_the_core_vocabulary_from_ag
            f"sim_bridge imports from agent only {', '.join(allowed)} (and never agent.shell)")
 
 
+def test_the_boat_takes_only_config_and_angles(imports):
+    broken(imports, "boat",
+           lambda target: not any(within(target, name) for name in OURS)
+           or any(within(target, name) for name in BOAT_ALLOWED),
+           f"boat imports from the project only {', '.join(BOAT_ALLOWED)}")
+
+
 @pytest.mark.parametrize("importer, forbidden", [
     ("mission_log", ("lab", "sim_bridge")),
     ("sim_bridge", ("lab",)),
-    ("agent", ("sim_bridge", "driver_bridge", "lab", "mission_log", "usv_deploy", "usv_op")),
+    ("boat", ("zenoh", "mcap", "matplotlib", "threading", "socket", "subprocess")),
+    ("agent", ("boat", "sim_bridge", "driver_bridge", "lab", "mission_log", "usv_deploy", "usv_op")),
 ])
 def test_the_layers(imports, importer, forbidden):
     broken(imports, importer, lambda target: not any(within(target, name) for name in forbidden),
@@ -246,6 +258,7 @@ def test_the_scan_reads_every_package(imports):
     assert ("sim_bridge.fleet", "mission_log.metrics") in seen        # the launcher computes the metrics
     assert ("usv_deploy.cli", "usv_deploy.certs") in seen             # inside a function (cryptography)
     assert ("usv_op.cli", "agent.contract") in seen                   # the operator speaks the contract
+    assert ("sim_bridge.hull", "boat.inner_loop") in seen             # the simulator runs the boat's loop
 
 
 def test_the_scan_sees_every_kind_of_import():

@@ -1,0 +1,178 @@
+"""Fossen's 3-DOF manoeuvring model for a fleet of hulls, with its thrusters and inner loop, stepped in RK4.
+
+    M nu_r_dot + C(nu_r) nu_r + D(nu_r) nu_r = tau,   nu_r = nu - nu_c      (Fossen 2021, 3-DOF with current)
+    x_dot = cos(psi) u_r - sin(psi) v_r + c_x,  y_dot = sin(psi) u_r + cos(psi) v_r + c_y,  psi_dot = r
+with nu_r = (u_r, v_r, r) the velocity through the water in the body frame (x forward, y to port), c the
+current over ground, M = [[m11, 0, 0], [0, m22, m23], [0, m23, m33]] (rigid body plus added mass, m23 =
+m x_g), C(nu) nu = [-(m22 v + m23 r) r, m11 u r, (m22 v + m23 r) u - m11 u v] (rigid-body and added-mass
+Coriolis, skew-symmetric: nu^T C(nu) nu = 0), D(nu) = diag(d + d2 |nu|) (linear plus quadratic damping).
+tau = thrust + the environment's loads. With no tau and no current the kinetic energy (1/2) nu^T M nu can
+only fall: d/dt = -nu^T D nu.
+
+`HullFleet` holds n hulls of one preset as arrays of shape (n,) and advances them by substeps of h: each
+substep the environment moves to its time (`advance`), the inner loop runs (every `loop_every` substeps, on
+the speed through the water u_r, as a speed log measures it, and the turn rate r),
+its (X, N) go through allocation and the thrusters' lag, then one RK4 step of the model with the thrust
+(its mean over the substep), the current and the loads held over the substep. docs/sea.md ("Hull dynamics") holds the derivation and figures.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from boat import inner_loop, thrusters
+from boat.presets import BoatPreset, Hull
+
+
+@dataclass(frozen=True)
+class Model:
+    """The constant coefficients of the model, from a `Hull`."""
+
+    m11: float
+    m22: float
+    m23: float
+    m33: float
+    inverse: np.ndarray   # (3, 3): M^-1
+    linear: np.ndarray    # (3, 1): -X_u, -Y_v, -N_r
+    quadratic: np.ndarray  # (3, 1): -X_|u|u, -Y_|v|v, -N_|r|r
+
+    @classmethod
+    def of(cls, hull: Hull) -> Model:
+        m11 = hull.mass + hull.added_mass_surge
+        m22 = hull.mass + hull.added_mass_sway
+        m23 = hull.mass * hull.x_g
+        m33 = hull.yaw_inertia + hull.added_mass_yaw
+        inverse = np.linalg.inv(np.array([[m11, 0.0, 0.0], [0.0, m22, m23], [0.0, m23, m33]]))
+        return cls(m11, m22, m23, m33, inverse,
+                   np.array([[hull.surge_damping], [hull.sway_damping], [hull.yaw_damping]]),
+                   np.array([[hull.surge_damping_quadratic], [hull.sway_damping_quadratic],
+                             [hull.yaw_damping_quadratic]]))
+
+    def energy(self, u: np.ndarray, v: np.ndarray, r: np.ndarray) -> np.ndarray:
+        """(1/2) nu^T M nu."""
+        return 0.5 * (self.m11 * u * u + self.m22 * v * v + 2 * self.m23 * v * r + self.m33 * r * r)
+
+
+def derivative(model: Model, state: np.ndarray, tau: np.ndarray, current: np.ndarray) -> np.ndarray:
+    """d/dt of state (6, n) = (x, y, psi, u_r, v_r, r) under tau (3, n) = (X, Y, N) and current (2, n).
+    Few numpy calls, not few flops: on a fleet's short arrays each call's overhead is the cost."""
+    psi, nu, u, v, r = state[2], state[3:], state[3], state[4], state[5]
+    c, s = np.cos(psi), np.sin(psi)
+    a = model.m22 * v + model.m23 * r
+    force = tau - (model.linear + model.quadratic * np.abs(nu)) * nu     # tau - D(nu) nu
+    force[0] += a * r                                                     # - C(nu) nu, row by row
+    force[1] -= model.m11 * u * r
+    force[2] += (model.m11 * v - a) * u
+    out = np.empty_like(state)
+    out[0] = c * u - s * v + current[0]
+    out[1] = s * u + c * v + current[1]
+    out[2] = r
+    out[3:] = model.inverse @ force
+    return out
+
+
+def rk4(model: Model, state: np.ndarray, tau: np.ndarray, current: np.ndarray, h: float) -> np.ndarray:
+    """One classical Runge-Kutta step of h with tau and the current held."""
+    k1 = derivative(model, state, tau, current)
+    k2 = derivative(model, state + (0.5 * h) * k1, tau, current)
+    k3 = derivative(model, state + (0.5 * h) * k2, tau, current)
+    k4 = derivative(model, state + h * k3, tau, current)
+    return state + (h / 6.0) * (k1 + 2.0 * (k2 + k3) + k4)
+
+
+class CalmWater:
+    """The environment of a world without one: no current, no loads, level water."""
+
+    def advance(self, t: float) -> None:
+        return None
+
+    def current(self, t: float, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        zero = np.zeros_like(x)
+        return zero, zero
+
+    def loads(self, t, x, y, heading, u, v, windage) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        zero = np.zeros_like(x)
+        return zero, zero, zero
+
+    def attitude(self, t: float, x: np.ndarray, y: np.ndarray, heading: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray]:
+        zero = np.zeros_like(x)
+        return zero, zero
+
+
+class HullFleet:
+    """n hulls of one preset: their state, thrusters and inner loops, advanced by `advance`."""
+
+    def __init__(self, boat: BoatPreset, n: int, step: float, loop_every: int, environment=None) -> None:
+        self.boat = boat
+        self.model = Model.of(boat.hull)
+        self.h = step
+        self.loop_every = loop_every
+        self.environment = CalmWater() if environment is None else environment
+        self.state = np.zeros((6, n))             # x, y, psi, u_r, v_r, r
+        self.thrust = np.zeros((2, n))            # port, starboard (N), after the lag
+        self.demand = np.zeros((2, n))            # what the thrusters are asked for (N), after saturation
+        self.loop = inner_loop.LoopState.zero(n)
+        self.current = np.zeros((2, n))           # the current at each hull, last substep (m/s over ground)
+        self.saturated_time = np.zeros(n)         # s spent with the demand beyond the thrusters' reach
+        self._saturated_step = np.zeros(n)       # h where the demand was cut at the last inner-loop step
+        self.substeps = 0                         # substeps taken, for the inner loop's period
+
+    def place(self, index: int, x: float, y: float, heading: float) -> None:
+        """Put hull `index` at rest in the water at (x, y, heading), its thrusters and loop idle."""
+        self.state[:, index] = (x, y, heading, 0.0, 0.0, 0.0)
+        self.thrust[:, index] = 0.0
+        self.demand[:, index] = 0.0
+        self.loop = inner_loop.LoopState(*(np.where(np.arange(self.state.shape[1]) == index, 0.0, field)
+                                           for field in (self.loop.speed_demand, self.loop.rate_demand,
+                                                         self.loop.speed_integral, self.loop.rate_integral,
+                                                         self.loop.rate_error, self.loop.rate_slope)))
+
+    def ground_velocity(self) -> tuple[np.ndarray, np.ndarray]:
+        """(vx, vy) over ground: R(psi) nu_r + c."""
+        _, _, psi, u, v, _ = self.state
+        c, s = np.cos(psi), np.sin(psi)
+        return c * u - s * v + self.current[0], s * u + c * v + self.current[1]
+
+    def body_velocity(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(u, v, r) over ground in the body frame: nu = nu_r + R(psi)^T c."""
+        _, _, psi, u, v, r = self.state
+        c, s = np.cos(psi), np.sin(psi)
+        return u + c * self.current[0] + s * self.current[1], v - s * self.current[0] + c * self.current[1], r
+
+    def advance(self, t: float, duration: float, speed: np.ndarray, rate: np.ndarray, commanded_at: float
+                ) -> None:
+        """Advance every hull from time t by `duration` (a whole number of substeps) under the command
+        (speed, rate), given at time `commanded_at`."""
+        boat, env, h = self.boat, self.environment, self.h
+        calm = type(env) is CalmWater   # nothing to ask: skip the calls (the same numbers, fewer of them)
+        speed, rate = inner_loop.commands(boat.inner_loop, speed, rate)
+        tau = np.zeros((3, self.state.shape[1]))
+        for k in range(round(duration / h)):
+            now = t + k * h
+            if not calm:
+                env.advance(now)
+                cx, cy = env.current(now, self.state[0], self.state[1])
+                self.current = np.array([cx, cy], dtype=float)
+            if self.substeps % self.loop_every == 0:
+                # The loop holds the speed through the water (a speed log's; no GNSS) and the turn rate.
+                self.loop, force, moment = inner_loop.step(
+                    boat.inner_loop, boat.thrusters, self.loop, speed, rate, now - commanded_at,
+                    self.state[3], self.state[5], h * self.loop_every, checked=True)
+                port, starboard, saturated = thrusters.allocate(boat.thrusters, force, moment)
+                self.demand = np.array([port, starboard])
+                self._saturated_step = saturated * h
+            self.saturated_time += self._saturated_step
+            mean = thrusters.mean_over(boat.thrusters, self.thrust, self.demand, h)
+            self.thrust = thrusters.lag(boat.thrusters, self.thrust, self.demand, h)
+            tau[0], tau[2] = thrusters.forces(boat.thrusters, mean[0], mean[1])
+            if not calm:
+                u_g, v_g, _ = self.body_velocity()
+                lx, ly, ln = env.loads(now, self.state[0], self.state[1], self.state[2], u_g, v_g, boat.windage)
+                tau[0] += lx
+                tau[1] = ly
+                tau[2] += ln
+            self.state = rk4(self.model, self.state, tau, self.current, h)
+            self.substeps += 1
