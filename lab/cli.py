@@ -9,6 +9,7 @@ Experiments (lab/experiments/):
     usv-lab uwb-page        every converted run replayed; the real-data result page
     usv-lab cold-start      a fleet that starts knowing nothing, seed by seed
     usv-lab observability   which pairs are observable, and from when, seed by seed
+    usv-lab hull            the hull presets' closed-form figures and inner-loop step responses
 Benchmarks (lab/benchmarks/):
     usv-lab bench, fleet-bench, runtime-bench, runtime-ab, cluster-bench, sea-bench, fuzz, serial-fuzz
 
@@ -39,6 +40,8 @@ SUBCOMMANDS = {
                    "a fleet that starts with nothing: settling and closest approach"),
     "observability": ("lab.experiments.observability",
                       "which pairs of a fleet are observable, and from when"),
+    "hull": ("lab.experiments.hull",
+             "the hull presets: steady speeds, time constants, turning circles, inner-loop step responses"),
     "bench": ("lab.benchmarks.estimators", "per-update cost of each estimator vs filterpy's KalmanFilter"),
     "fleet-bench": ("lab.benchmarks.fleet", "Table II Monte Carlo wall time, tick cost by fleet size"),
     "runtime-bench": ("lab.benchmarks.runtime",

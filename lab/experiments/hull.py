@@ -1,4 +1,4 @@
-"""The hull and inner-loop figures of docs/sea.md: `python -m lab.hull_plots [--out docs/results]`.
+"""The hull and inner-loop figures of docs/sea.md: `usv-lab hull [--out docs/results]`.
 
 Writes inner_loop_steps.png (each preset's speed and turn-rate step responses through its inner loop) and
 prints the figures the page quotes: steady speeds, time constants, turning diameters, step-response rise
@@ -94,10 +94,11 @@ def plot(out: Path) -> None:
     figure.savefig(out / "inner_loop_steps.png", dpi=110)
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out", type=Path, default=Path("docs/results"))
-    args = parser.parse_args()
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--out", type=Path, default=Path("docs/results"), help="folder for inner_loop_steps.png")
+
+
+def run(args: argparse.Namespace) -> int:
     for name, boat in PRESETS.items():
         model = Model.of(boat.hull)
         tr = boat.thrusters
@@ -116,7 +117,4 @@ def main() -> None:
         print(line)
     plot(args.out)
     print(f"wrote {args.out / 'inner_loop_steps.png'}")
-
-
-if __name__ == "__main__":
-    main()
+    return 0
