@@ -1,7 +1,7 @@
 """Sensor error models beyond the paper's (5)-(9): odometry, yaw-rate gyro, UWB antennas, a tilting camera.
 
 Each model is a frozen pydantic object chosen in the world config (`WorldConfig.sensors`), and pure numeric
-kernels below it that broadcast over vessels. docs/sea_sensors.md gives the equations, figures and sources.
+kernels below it that broadcast over vessels. docs/sea.md (Sensors): the equations, figures and sources.
 
 - Odometry `paper`: (5), kept in world.py as it was. `water_log_compass`: a speed log (scale error k, dead
   band) and a compass (per-vessel bias b, white noise): p += s dt [cos psi_c, sin psi_c], s = (1 + k) u_r + n.
@@ -226,7 +226,7 @@ class SensorsConfig(StrictModel):
 
 PRESETS: dict[str, dict] = {
     "paper": {},
-    # docs/sea_sensors.md gives each figure's source.
+    # docs/sea.md (Sensors) gives each figure's source.
     "realistic": {
         "odometry": {"kind": "water_log_compass", "scale_error_std": 0.02, "dead_band": 0.25,
                      "speed_noise_density": 0.01, "compass_bias_std_deg": 1.0, "compass_noise_deg": 0.2},

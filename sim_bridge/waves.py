@@ -8,7 +8,7 @@ component i sits at its bin's energy midpoint with a_i = sqrt(2 m0 / N), k_i = w
 a direction within +-spread of the mean:  eta(p, t) = sum_i a_i cos(k_i d_i . p - w_i t + phi_i).
 Loads: -m g grad(eta) spread over an L x B box (the water's acceleration on the displaced mass), averaged in
 closed form over the box; attitude: the tilt of the surface's normal at the point (SNAME signs: roll positive
-starboard down, pitch positive bow up). Equations in docs/sea_environment.md.
+starboard down, pitch positive bow up). Equations in docs/sea.md (Environment).
 """
 
 from __future__ import annotations
