@@ -19,8 +19,9 @@ from scipy.stats import chi2
 
 from agent.config import PositiveFloat, StrictModel, updated
 from agent.core.checks import valid_range
-from agent.core.estimators import make_relative_estimator
-from agent.core.params import ESTIMATOR_NAMES, AgentParams, LogNormalNoiseParams, RawRangeParams
+from agent.core.estimators import estimator_names, make_relative_estimator
+from agent.core.estimators.raw_range import LogNormalNoiseParams, RawRangeParams
+from agent.core.params import AgentParams
 from lab.bound import fisher_information, rms_bound
 from lab.errors import ErrorHistory, RunningMoments, moments_by_name
 from lab.mixture_fit import em_mixture
@@ -61,14 +62,16 @@ class ComparisonConfig(StrictModel):
     variance_scale: PositiveFloat = Field(
         1.0, description="multiplies the filters' range variance; 1 is the derivation, others diagnose"
     )
-    estimators: tuple[str, ...] = ESTIMATOR_NAMES
+    estimators: tuple[str, ...] = Field(default_factory=estimator_names,
+                                        description="the estimators compared (default: all)")
     raw_range_noise: Literal["model", "params"] = Field(
         "model",
         description=(
             "range-noise density the raw-range estimator assumes: the run's noise model ('model': a mixture "
             "exactly, otherwise a Gaussian mixture fitted to it for the batch fix and, for the log-normal, its "
             "exact density for tracking), as the Cramér–Rao bound does, or "
-            "agent.relative.raw_range.noise_components as configured ('params')"
+            "raw_range's noise_components as configured (agent.relative.estimator, else its defaults: "
+            "'params')"
         ),
     )
     agent: AgentParams = AgentParams()
@@ -223,13 +226,15 @@ def run_once(config: ComparisonConfig, noise: RangeNoise, seed_sequence: np.rand
     initial = truth[0] + rng.normal(0.0, math.sqrt(relative.initial_covariance), size=2)
 
     params = updated(relative, range_variance=filter_variance(noise, config))
+    raw_range = params.params_of("raw_range")
     if config.raw_range_noise == "model":
-        params = updated(params, raw_range=raw_range_density(params.raw_range, noise))
+        raw_range = raw_range_density(raw_range, noise)
     errors = np.empty((len(config.estimators), steps + 1))
     nees = np.empty((len(config.estimators), steps + 1))
     iterations = np.zeros(steps, dtype=np.int16)
     for e, name in enumerate(config.estimators):
-        estimator = make_relative_estimator(params, initial, dt=config.agent.dt, name=name)
+        own = params.selecting(raw_range) if name == "raw_range" else params
+        estimator = make_relative_estimator(own, initial, dt=config.agent.dt, name=name)
         errors[e, 0] = math.hypot(*(initial - truth[0]))
         nees[e, 0] = _nees(initial - truth[0], estimator.covariance)
         for k, outcome in run_estimator(estimator, displacement, ranges, params.max_range):

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from agent.config import updated
-from agent.core.estimators import ESTIMATORS, RawRange, make_relative_estimator
+from agent.core.estimators import RawRange, estimator_class, make_relative_estimator
 from agent.core.params import RelativeEstimationParams
 
 DT = 0.1
@@ -24,8 +24,7 @@ NO_PRIOR = 1e12 * np.eye(2)     # "position unknown": the prior carries no infor
 
 
 def params(components=TABLE_II, **raw) -> RelativeEstimationParams:
-    base = RelativeEstimationParams(estimator="raw_range")
-    return updated(base, raw_range=updated(base.raw_range, noise_components=components, **raw))
+    return RelativeEstimationParams(estimator={"name": "raw_range", "noise_components": components, **raw})
 
 
 def circle(seconds: float, radius: float = 10.0, rate: float = math.pi / 30, phase: float = 0.0) -> np.ndarray:
@@ -50,7 +49,7 @@ def run(estimator, path: np.ndarray, ranges: np.ndarray, start: int = 1, until: 
 
 
 def test_registered_and_made_by_name():
-    assert ESTIMATORS["raw_range"] is RawRange
+    assert estimator_class("raw_range") is RawRange
     estimator = make_relative_estimator(params(), (0.0, 0.0), NO_PRIOR)
     assert isinstance(estimator, RawRange) and estimator.ambiguous
 
@@ -403,7 +402,7 @@ def _first_solve(every: int, seconds: float = 30.0) -> float:
 
 
 def test_a_sensor_slower_than_the_tick_solves_first_when_one_at_the_tick_does():
-    raw = params().raw_range
+    raw = params().estimator
     stagger = int(np.linalg.norm(circle(0.0)[0]) * 1e3) % raw.solve_every
     at_tick = _first_solve(1)
     assert at_tick == pytest.approx((raw.min_ranges - 1 + stagger) * DT)
@@ -603,7 +602,7 @@ def test_with_the_exact_log_normal_a_saved_and_restored_estimator_continues_iden
 def test_a_bad_log_normal_is_refused_by_the_parameters(bad):
     from pydantic import ValidationError
 
-    from agent.core.params import RawRangeParams
+    from agent.core.estimators.raw_range import RawRangeParams
 
     with pytest.raises(ValidationError):
         RawRangeParams(tracking_lognormal=bad)

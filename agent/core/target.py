@@ -4,8 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from agent.core.estimators import PLKF
-from agent.core.estimators.plkf import BearingOutcome
+from agent.core.estimators.plkf import PLKF, BearingOutcome
 from agent.core.params import AgentParams
 from agent.core.state import VesselState
 

@@ -1,110 +1,83 @@
-"""Raw-range relative position estimator: the ranges r_k = |p_k| + mu_k themselves, not the pseudo-linear
-differences (12), (13).
+"""Raw-range relative position estimator: the ranges r_k = |p_k| + b + mu_k themselves, not the pseudo-linear
+differences (12), (13). docs/estimation.md §8 gives the design, the reasons and the measurements.
 
-Why. The pseudo-linear measurement z = delta^T p_k pairs consecutive ranges: with delta ~ 5 cm per epoch and
-noise on r_k^2 - r_(k-1)^2 of about 2 r sigma, each update carries almost no information, and the five
-pseudo-linear filters stay 40-280 times above the Cramér–Rao bound (lab/bound.py). A range r_k constrains p_k
-directly with the full Fisher information I_f of the noise, radially; the odometry carries every past range to
-the present (p_m = p_k - (D_k - D_m), D the cumulative relative displacement), so the ranges of a window are a
-multilateration of p_k from anchors on the relative path.
-
-Two phases.
-
-1. Fix (no usable linearisation point yet). Every range is kept with D at its epoch (at most `window`). Every
-   `solve_every` ranges, the negative log-likelihood of the window under the assumed noise density
-   (range_density.py: a Gaussian mixture, `noise_components`, plus a very wide gross-error component) plus the
-   prior (p_0, P_0)
-   carried by odometry (P grows by 2 R_delta per period, (15)) is minimised for p_k with step halving: EM
-   steps (each range's component responsibilities give it a precision) far from the minimum, Newton's near it.
-   Cold starting points: the anchors' principal line, along which the range model is linear in
-   (alpha, alpha^2 + beta^2), gives two points at +-beta from the line; the two points at the mean range
-   straight across the anchors' centroid; the prior's mean. Later solves are warm-started.
-   Mirror ambiguity: while the anchors lie on a straight line (the relative motion has not turned), p and its
-   reflection across that line (the line through the other vessel parallel to the relative motion) explain
-   the ranges equally well. The solver refines the best point, reflects it across the anchors' line and
-   refines the reflection: only if that lands back on the best point is the minimum unique; otherwise the fix
-   is unique once the other minimum's cost exceeds the best's by `ambiguity_threshold` nats (curvature of the
-   path, or an informative prior, decides). Until then `ambiguous` is True, `mirror` gives the other
-   candidate, the position is the better one and the covariance includes the spread towards the other,
-   weighted by its likelihood share. The fix also needs the covariance's largest eigenvalue
-   <= `fix_max_variance`, and the best point must pass a goodness-of-fit test (mean negative log-likelihood
-   per range against the density's entropy), which a point that explains the ranges as gross errors fails.
-   The covariance of the fix is (P^-1 + I sum_m u_m u_m^T)^-1, u_m the unit vector of range m: the
-   Cramér–Rao form, consistent for an efficient estimate (the EM weights would overstate the information of
-   the good ranges). I is the information per range: I_f of the assumed density when that density is the
-   noise's, less when it is only an approximation (a fitted mixture, an unmodelled bias). It is measured as
-   the sandwich (mean psi')^2 / mean psi^2 of the residuals' score psi = -(ln f)' (both means are I_f when the
-   density is right), shrunk towards I_f and kept within [I_f / 20, I_f]. Before the fix is declared, that
-   Gaussian is checked against the window's cost LAPLACE_REACH = 4 of its standard deviations out along each
-   principal axis: where the cost rises less on the flatter side than the Gaussian's 8 nats, the axis's variance
-   is widened by 8 / rise (`BatchWindow.widened`), and the fix waits if it no longer meets `fix_max_variance`.
-   The curvature at the minimum does not see a likelihood bent along the path or flat in its tails; in
-   Experiment 1's log-normal runs the fixes it let through 0.3-1 m off while claiming 0.2 m (a NEES of 12-39)
-   made the mean NEES 3 s later 2.5-4.1 on 4 of 14 seeds (docs/estimation.md, section 8).
-2. Tracking: each range updates the Gaussian N(p^-, P) by moment matching on the range linearised at p^-
-   (H = u^T = p^T/|p|): with f_h = f * N(0, h) the predictive density of the residual e = r - |p^-|
-   (h = H P H^T) and psi, psi' its score -(ln f_h)' and the score's derivative,
-       p^+ = p^- + P H^T psi(e),    P^+ = P - P H^T psi'(e) H P
-   (C. J. Masreliez, IEEE Trans. Automatic Control 20(1), 1975): the posterior's exact mean and covariance
-   for the linearised measurement, so the covariance stays consistent whatever the noise's shape. What the
-   linearisation leaves out is the range's curvature across it: |p| bends by (v^T P v) / (2 |p|) over the
-   prior's spread v^T P v across the range (v the unit vector normal to u), which the Gaussian second-order
-   filter counts as the extra variance (v^T P v / |p|)^2 / 2 in f_h (its mean shift is not taken: it would
-   pull p towards the origin, off the circle the range describes). Negligible once fixed; before the first
-   solve, from a prior as wide as the range itself, it keeps one range from claiming a radial precision the
-   unknown bearing does not allow. A range
-   far in the tails has psi ~ 0 and psi' ~ 0 and changes nothing; one between the mixture's components can
-   have psi' < 0 and widen P, as the true posterior does. psi' is scaled by I / I_f, the sandwich share
-   above, over the last ~200 ranges. A noise known to be the shifted log-normal (8) (`tracking_lognormal`)
-   is tracked with its exact density instead (range_density.LogNormalDensity, 13 us a range against 2): the
-   fitted mixture the batch needs misses the information at the density's steep left edge, which a narrow
-   tracking prior can use; being the noise's own density, it needs no sandwich share. Otherwise one pass of
-   plain-float arithmetic per range, no numpy. The fix waits
-   until the batch covariance is small (`fix_max_variance`), where the linearisation costs nothing: with a
-   broad prior the batch is the better estimator (docs/results/estimator_comparison.md).
-   The mean negative log-likelihood of the recent residuals is watched (`monitor`): if it leaves the
-   density's entropy by far, the fix is dropped and phase 1 starts again from no prior (a wrong fix, or a
-   jump in the relative position the odometry did not see).
-
-Time base. `min_ranges` and `solve_every` count ranges at one range per tick (dt); a sensor slower than the
-tick is counted by the ticks its ranges span (`_due`), so a 1 Hz sensor at dt = 0.1 s solves first after about
-2 s, as a 10 Hz one does, not after 20 s (and then at every range). `window` and `monitor_length` stay counts:
-they are amounts of information, not of time. Until the first solve each range updates the prior N(p_0, P_0),
-carried by odometry, as tracking does (the estimate would otherwise stand still until then; the batch itself
-still starts from the prior). Only the mean moves: the covariance stays the prior's until the first solve.
-Before it the posterior is a ring or an arc, which a Gaussian step would summarise as radially precise along
-whatever bearing the prior guessed; a fleet's joiner starts from the range along x with a spread of the range
-itself, and two such estimates, fused, met far off (with the covariance updated too, the cold-start fleet's
-whole-run e_ij rose from 0.46 to 0.83 m and its closest approach fell from 4.35 to 3.60 m).
-
-Range bias (`bias_variance` > 0, off by default). A UWB pair's antenna delays give it a constant bias of tens
-of cm, r = |p| + b + noise. b, with the prior N(0, bias_variance), is estimated with p in the batch (the
-unknowns (p, b); Newton's and EM's matrices gain b's row (sum c u^T, sum c + 1 / bias_variance)) and carried
-into tracking as a third state (H = (u^T, 1)). Without it the density's component means are the only bias
-model. It is observable only as far as the range along the path varies in a way |p| cannot explain (a curved
-relative path); on Experiment 1's circle it costs information: the log-normal's RMSE at 30 s rises from 1.2
-to 2.0 times the bound with bias_variance = 0.04 m^2 (seed 2024), hence off by default (docs/estimation.md §9).
-
-`range_prev` of `update` is used once, for the first range of the sequence (the one `mark_range_epoch`
-declared); after that each update uses only `range_now`, at the state already moved by `predict`.
-
-`assimilate` while not fixed replaces the prior the window is solved with (and the estimate); when fixed it
-replaces the state, as in the base.
+Contract (`RawRange`; prediction (15) in the base class, `update` here):
+- Fix: each range is kept with the relative displacement D summed to its epoch (at most `window`); every
+  `solve_every` ranges (counted in ticks for a sensor slower than dt) `BatchWindow` minimises the window's
+  negative log-likelihood under the assumed density (range_density.py) plus the prior carried by odometry.
+  The position is fixed once the mirror solution is `ambiguity_threshold` nats worse, the batch covariance
+  (P^-1 + I sum u u^T)^-1, widened where the cost is flatter than its Gaussian, is within `fix_max_variance`,
+  and the best point fits the ranges (mean negative log-likelihood against the density's entropy). Until
+  then `ambiguous` is True and `mirror` the other candidate; before the first solve a range moves the mean.
+- Tracking: each range updates N(p^-, P) by moment matching on the range linearised at p^- (Masreliez 1975),
+  p^+ = p^- + P H^T psi(e), P^+ = P - P H^T psi'(e) H P, psi the score of f_h = f * N(0, h); a monitor of the
+  residuals' fit drops a fix the ranges no longer support (phase 1 again, from no prior).
+- With `bias_variance` > 0 the range bias b is a state estimated with p (H = (u^T, 1)).
+- `range_prev` of `update` is used once, for the first range of a sequence; `assimilate` while not fixed
+  replaces the prior the window is solved with.
 """
 
 from __future__ import annotations
 
 import math
+from typing import Literal
 
 import numpy as np
+from pydantic import Field
 
+from agent.config import NonNegativeFloat, PositiveFloat, StrictModel
 from agent.core.estimators.base import (
     REJECTED_RANGE,
     RelativePositionEstimator,
     UpdateOutcome,
     _as_range,
 )
-from agent.core.estimators.range_density import RangeDensity, density_of, lognormal_density_of
+from agent.core.estimators.range_density import RangeDensity, lognormal_density, mixture_density
+from agent.core.estimators.registry import EstimatorParams, register
+
+
+class LogNormalNoiseParams(StrictModel):
+    """A range noise known to be the paper's shifted log-normal (8): ln(mu + r_s) ~ N(0, R)."""
+
+    log_variance: PositiveFloat = Field(description="R, variance of ln(mu + r_s)")
+    shift: NonNegativeFloat = Field(description="r_s (m): the noise is above -r_s")
+
+
+class RawRangeParams(EstimatorParams):
+    """Batch fix over a window of ranges, then a moment-matching update on each range r = |p| + noise."""
+
+    name: Literal["raw_range"] = "raw_range"
+    noise_components: tuple[tuple[PositiveFloat, float, PositiveFloat], ...] = Field(
+        ((0.8, 0.0, 0.4), (0.2, 0.0, 10.0)), min_length=1, max_length=8,
+        description="assumed range-noise mixture, (weight, mean m, variance m^2) per component (Table II's)")
+    gross_error_fraction: NonNegativeFloat = Field(
+        1e-3, lt=1, description="weight of one more, very wide, zero-mean component for gross errors")
+    gross_error_variance: PositiveFloat = Field(1e4, description="variance of that component (m^2)")
+    tracking_lognormal: LogNormalNoiseParams | None = Field(
+        None, description="a noise known to be the log-normal (8): tracking uses its exact density; None: "
+                          "noise_components")
+    window: int = Field(300, ge=5, le=100_000,
+                        description="most ranges kept for the batch fix while the position is not yet fixed")
+    min_ranges: int = Field(20, ge=3, le=100_000, description="ranges needed before the first batch solve")
+    solve_every: int = Field(5, ge=1, le=10_000,
+                             description="while not fixed, the batch is solved every this many ranges")
+    ambiguity_threshold: PositiveFloat = Field(
+        9.2, description="the fix is unique once the mirror's negative log-likelihood exceeds the best's by "
+                         "this (nats)")
+    fix_max_variance: PositiveFloat = Field(
+        0.05, description="and once the batch covariance's largest eigenvalue is at most this (m^2)")
+    batch_iterations: int = Field(20, ge=1, le=1000,
+                                  description="Gauss-Newton/EM iterations of a batch solve")
+    tolerance: PositiveFloat = Field(1e-6, description="stop iterating when the step is below this (m)")
+    monitor_length: int = Field(100, ge=10, le=100_000,
+                                description="ranges the tracking monitor averages the residuals' fit over")
+    monitor_sigmas: PositiveFloat = Field(
+        5.0, description="the fix is dropped once the monitor's mean NLL exceeds the entropy by this many "
+                         "standard errors")
+    bias_variance: NonNegativeFloat = Field(
+        0.0, description="prior variance (m^2) of a constant range bias b, r = |p| + b + noise; 0: no bias "
+                         "state")
+
 
 # Smallest distance from an anchor at which a range is used; closer, its direction is undefined.
 MIN_DISTANCE = 1e-9
@@ -390,11 +363,14 @@ class BatchWindow:
         return cx + 2 * along * tx - vx, cy + 2 * along * ty - vy
 
 
+@register
 class RawRange(RelativePositionEstimator):
     """Batch fix over a window of raw ranges, mirror ambiguity explicit, then moment-matching updates on
     r = |p| (module docstring)."""
 
     name = "raw_range"
+    Params = RawRangeParams
+    table_order = 6
 
     # ----- reading -----
     @property
@@ -425,11 +401,15 @@ class RawRange(RelativePositionEstimator):
 
     # ----- life cycle -----
     def _reset_extra(self) -> None:
-        self._density = density = density_of(self.params.raw_range)
+        p = self.params
+        self._density = density = mixture_density(p.noise_components, p.gross_error_fraction,
+                                                  p.gross_error_variance)
         self._fisher, self._entropy, self._nll_spread = density.fisher, density.entropy, density.spread
         # Tracking's exact density of a known log-normal noise (None: the mixture's): the noise's own, so no
         # sandwich share is needed once it takes over.
-        self._exact = lognormal_density_of(self.params.raw_range)
+        exact = p.tracking_lognormal
+        self._exact = None if exact is None else lognormal_density(
+            exact.log_variance, exact.shift, p.gross_error_fraction, p.gross_error_variance)
         # Sandwich: running means of psi^2 and psi' of the residuals (both I_f when the density is right), and
         # the information per range the covariance uses, (mean psi')^2 / mean psi^2 within [I_f / 20, I_f].
         self._psi2 = self._dpsi = self._info = self._fisher
@@ -452,7 +432,7 @@ class RawRange(RelativePositionEstimator):
         """The range bias b and its covariance with p (pxb, pyb) and its own (pbb): b's prior N(0, bias_variance);
         all 0, and b out of every equation, without one."""
         self._b = self._pxb = self._pyb = 0.0
-        self._pbb = self.params.raw_range.bias_variance
+        self._pbb = self.params.bias_variance
 
     def assimilate(self, position: np.ndarray, covariance: np.ndarray) -> bool:
         if not super().assimilate(position, covariance):
@@ -474,7 +454,7 @@ class RawRange(RelativePositionEstimator):
             self._cx += dx
             self._cy += dy
             qx, qy, q11, q12, q22 = self._prior
-            inflation = 2.0 * self.params.displacement_variance * (self._pair_steps - before_steps)
+            inflation = 2.0 * self.relative.displacement_variance * (self._pair_steps - before_steps)
             self._prior = (qx + dx, qy + dy, q11 + inflation, q12, q22 + inflation)
             if self._alt is not None:
                 self._alt = (self._alt[0] + dx, self._alt[1] + dy)
@@ -483,8 +463,8 @@ class RawRange(RelativePositionEstimator):
     # ----- correction -----
     def update(self, range_prev: float, range_now: float) -> UpdateOutcome:
         # Both ranges are checked, as in every estimator, though only the first pair uses range_prev.
-        r = _as_range(range_now, self.params.max_range)
-        if math.isnan(r) or math.isnan(_as_range(range_prev, self.params.max_range)):
+        r = _as_range(range_now, self.relative.max_range)
+        if math.isnan(r) or math.isnan(_as_range(range_prev, self.relative.max_range)):
             self._diag.rejected += 1
             return self._record(UpdateOutcome(accepted=False, reason=REJECTED_RANGE))
         saved = (self._px, self._py, self._p11, self._p12, self._p22)
@@ -494,14 +474,11 @@ class RawRange(RelativePositionEstimator):
             outcome = self._collect(range_prev, r)
         return self._settle(saved, outcome)
 
-    def _correct(self, z: float, dx: float, dy: float, rz: float) -> UpdateOutcome:  # pragma: no cover
-        raise NotImplementedError("RawRange uses the ranges themselves, not the pseudo-linear measurement")
-
     def _collect(self, range_prev: float, r: float) -> UpdateOutcome:
         """Phase 1: keep the range, and solve the window every `solve_every` ranges."""
-        p = self.params.raw_range
+        p = self.params
         if not self._window and self._solves == 0:
-            first = _as_range(range_prev, self.params.max_range)
+            first = _as_range(range_prev, self.relative.max_range)
             if not math.isnan(first) and self._pair_steps > 0:
                 # The range of the epoch `mark_range_epoch` declared, before this pair's displacement.
                 self._window.append((first, self._cx - self._pair_dx, self._cy - self._pair_dy))
@@ -528,7 +505,7 @@ class RawRange(RelativePositionEstimator):
         return self._solve()
 
     def _solve(self) -> UpdateOutcome:
-        p = self.params.raw_range
+        p = self.params
         data = np.array(self._window)
         anchors = np.column_stack([self._cx - data[:, 1], self._cy - data[:, 2]])
         batch = BatchWindow(data[:, 0], anchors, self._density, self._prior, p.bias_variance)
@@ -673,7 +650,7 @@ class RawRange(RelativePositionEstimator):
         negative log-likelihood; once it exceeds the density's entropy by `monitor_sigmas` of its standard
         error (plus 0.2 nats for a density that is only approximate), drop the fix and start phase 1 again
         from no prior at the current estimate. True if it did."""
-        p = self.params.raw_range
+        p = self.params
         length = p.monitor_length
         self._monitor += (nll - self._monitor) / length
         if self._tracked < length:
