@@ -69,7 +69,8 @@ def test_a_name_alone_selects_the_estimator_with_its_defaults(tmp_path):
 
 
 def test_an_estimators_own_fields_go_with_its_name(tmp_path):
-    params = load(tmp_path, "relative:\n  estimator:\n    name: raw_range\n    window: 100\n    bias_variance: 0.01\n")
+    params = load(tmp_path, "relative:\n  estimator:\n    name: raw_range\n    window: 100\n"
+                            "    bias_variance: 0.01\n")
     own = params.relative.estimator
     assert (own.name, own.window, own.bias_variance, own.min_ranges) == ("raw_range", 100, 0.01, 20)
     estimator = make_relative_estimator(params.relative, (3.0, 4.0))
@@ -81,14 +82,14 @@ def test_an_estimators_own_fields_go_with_its_name(tmp_path):
      "field 'relative.estimator': unknown estimator 'ukf'; the estimators are rls, huber_rls, kf, akf, mckf, "
      "raw_range (got 'ukf')"),
     ("relative:\n  estimator: {name: mckf, window: 100}\n",
-     "field 'relative.estimator': 'window' is not a parameter of mckf (it is raw_range's); mckf's parameters: "
-     "bandwidths, tolerance, max_iterations"),
+     "field 'relative.estimator': 'window' is not a parameter of mckf (it is raw_range's); mckf's "
+     "parameters: bandwidths, tolerance, max_iterations"),
     ("relative:\n  estimator: {name: kf, forgetting_factor: 0.9}\n",
      "field 'relative.estimator': 'forgetting_factor' is not a parameter of kf (it is rls and huber_rls's); "
      "kf's parameters: none"),
     ("relative:\n  estimator: {window: 100}\n",
-     "field 'relative.estimator': expected an estimator's name or {name: ..., its parameters}; the estimators "
-     "are rls, huber_rls, kf, akf, mckf, raw_range"),
+     "field 'relative.estimator': expected an estimator's name or {name: ..., its parameters}; the "
+     "estimators are rls, huber_rls, kf, akf, mckf, raw_range"),
     ("relative:\n  estimator: {name: akf, min_scale: 2.0, max_scale: 1.0}\n",
      "field 'relative.estimator': akf's parameters: min_scale must be below max_scale"),
     ("relative:\n  estimator: raw_range\n  raw_range: {window: 100}\n",
@@ -105,8 +106,9 @@ def test_a_wrong_estimator_or_field_is_one_line_listing_the_valid_ones(tmp_path,
 def test_usv_agent_meets_the_error_as_one_line(tmp_path):
     path = tmp_path / "node.yaml"
     path.write_text("agent:\n  relative:\n    estimator: {name: mckf, window: 100}\n")
-    shown = subprocess.run([sys.executable, "-m", "agent", "--vessel", "1", "--config", str(path), "--print-config"],
-                           capture_output=True, text=True, timeout=60, cwd=REPO)
+    shown = subprocess.run(
+        [sys.executable, "-m", "agent", "--vessel", "1", "--config", str(path), "--print-config"],
+        capture_output=True, text=True, timeout=60, cwd=REPO)
     assert shown.returncode == 2 and shown.stdout == ""
     assert shown.stderr.splitlines() == [
         f"usv-agent: {path}: field 'agent.relative.estimator': 'window' is not a parameter of mckf (it is "
@@ -137,7 +139,7 @@ def test_a_log_recorded_before_the_union_replays_with_its_estimators_block():
 # ----- a new estimator, added the documented way -----
 class RadialParams(EstimatorParams):
     name: Literal["radial"] = "radial"
-    gain: PositiveFloat = Field(1.0, le=1.0, description="share of the range residual taken along the bearing")
+    gain: PositiveFloat = Field(1.0, le=1.0, description="share of the range residual taken on the bearing")
 
 
 class Radial(RelativePositionEstimator):

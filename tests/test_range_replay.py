@@ -284,8 +284,8 @@ def test_noise_comes_from_the_config_by_default_not_from_the_truth():
     # both, whatever the residuals against the truth say.
     quiet = RangeLog("quiet", *circle_scenario(seed=5, range_std=0.05, duration=30.0))
     noisy = RangeLog("noisy", *circle_scenario(seed=5, range_std=0.7, duration=30.0))
-    params = with_relative(range_variance=0.3, estimator={"name": "raw_range",
-                                                          "noise_components": [(0.9, 0.05, 0.02), (0.1, 0.0, 1.0)]})
+    components = [(0.9, 0.05, 0.02), (0.1, 0.0, 1.0)]
+    params = with_relative(range_variance=0.3, estimator={"name": "raw_range", "noise_components": components})
     for log in (quiet, noisy):
         result = replay(log, params, runs=1, seed=3)
         assert result.noise_source == NOISE_CONFIG and not result.tuned_on_truth
@@ -300,8 +300,8 @@ def test_a_config_sets_the_noise_raw_range_assumes():
     # real data must reach it: a different density gives different raw_range estimates from the same draws.
     log = RangeLog("circle", *circle_scenario(seed=8, range_std=0.1, duration=40.0))
     table_two = replay(log, AgentParams(), runs=2, seed=6, names=("raw_range", "kf"))
-    narrow = replay(log, with_relative(estimator={"name": "raw_range", "noise_components": [(1.0, 0.0, 0.01)]}), runs=2, seed=6,
-                    names=("raw_range", "kf"))
+    narrow_density = {"name": "raw_range", "noise_components": [(1.0, 0.0, 0.01)]}
+    narrow = replay(log, with_relative(estimator=narrow_density), runs=2, seed=6, names=("raw_range", "kf"))
     other_variance = replay(log, with_relative(range_variance=0.01), runs=2, seed=6, names=("raw_range", "kf"))
     assert not np.array_equal(table_two.rmse("raw_range"), narrow.rmse("raw_range"))
     np.testing.assert_array_equal(table_two.rmse("kf"), narrow.rmse("kf"))

@@ -26,7 +26,8 @@ class PseudoLinearEstimator(RelativePositionEstimator):
         """Correct with the range pair (r~_{k-1}, r~_k) and the displacement accumulated since r~_{k-1}:
         z of (13), its noise variance R_z from (14), then `_correct` on the measurement model (12)."""
         relative = self.relative
-        range_prev, range_now = _as_range(range_prev, relative.max_range), _as_range(range_now, relative.max_range)
+        limit = relative.max_range
+        range_prev, range_now = _as_range(range_prev, limit), _as_range(range_now, limit)
         if math.isnan(range_prev) or math.isnan(range_now):
             self._diag.rejected += 1
             return self._record(UpdateOutcome(accepted=False, reason=REJECTED_RANGE))
@@ -34,7 +35,8 @@ class PseudoLinearEstimator(RelativePositionEstimator):
         z = pseudo_measurement(range_prev, range_now, dx, dy)
         displacement_variance = 2.0 * relative.displacement_variance * self._pair_steps
         if relative.noise_ranges == "measured":
-            rz = range_pair_noise_variance(range_now, range_prev, relative.range_variance, displacement_variance)
+            rz = range_pair_noise_variance(range_now, range_prev, relative.range_variance,
+                                           displacement_variance)
         else:
             rz = equivalent_noise_variance(self._px, self._py, dx, dy, relative.range_variance,
                                            displacement_variance)

@@ -35,7 +35,8 @@ def register(cls: type) -> type:
     name = cls.__dict__.get("name")
     params = cls.__dict__.get("Params")
     if not name or params is None or not issubclass(params, EstimatorParams):
-        raise TypeError(f"{cls.__name__}: an estimator declares its own `name` and `Params` (an EstimatorParams)")
+        raise TypeError(f"{cls.__name__}: an estimator declares its own `name` and `Params` "
+                        "(an EstimatorParams)")
     if params.model_fields["name"].default != name:
         raise TypeError(f"{cls.__name__}: {params.__name__}.name must default to {name!r}")
     if _classes.get(name, cls) is not cls:
@@ -102,7 +103,8 @@ def _explained(model: type[EstimatorParams], error: ValidationError) -> str:
     if first["type"] == "extra_forbidden":
         owners = [name for name in estimator_names() if field in estimator_class(name).Params.model_fields]
         whose = f" (it is {' and '.join(owners)}'s)" if owners else ""
-        return f"{field!r} is not a parameter of {estimator}{whose}; {estimator}'s parameters: {own or 'none'}"
+        return (f"{field!r} is not a parameter of {estimator}{whose}; {estimator}'s parameters: "
+                f"{own or 'none'}")
     problem = first["msg"].removeprefix("Value error, ")
     if not field:
         return f"{estimator}'s parameters: {problem}"
@@ -115,7 +117,7 @@ class RelativeEstimationParams(StrictModel):
     # raw_range: the ranges themselves, near the Cramér-Rao bound (docs/results/estimator_comparison.md);
     # the paper's five stay selectable, and its reproductions (configs/scenarios/) name the MCKF.
     estimator: SerializeAsAny[EstimatorParams] = Field(
-        "raw_range", description="the estimator and its own parameters: a name, or {name: ..., its parameters}")
+        "raw_range", description="the estimator and its parameters: a name, or {name: ..., its parameters}")
     initial_covariance: PositiveFloat = Field(25.0, description="P_ij,0 = value * I (Table I)")
     displacement_variance: PositiveFloat = Field(
         1e-6, description="R_delta_i per axis over one sampling period dt (Table I)"
@@ -124,8 +126,8 @@ class RelativeEstimationParams(StrictModel):
         2.32, description="variance of one range error, for R_z of (14); default: Table II's 0.8 N(0, 0.4) + "
                           "0.2 N(0, 10)")
     noise_ranges: Literal["predicted", "measured"] = Field(
-        "predicted", description="ranges R_z of (14) is evaluated at: predicted from the estimate (the paper's) "
-                                 "or measured (docs/estimation.md)")
+        "predicted", description="ranges R_z of (14) is evaluated at: predicted from the estimate (the "
+                                 "paper's) or measured (docs/estimation.md)")
     max_range: PositiveFloat = Field(1000.0, description="ranges beyond this are rejected as invalid")
     observability: ObservabilityParams = ObservabilityParams()
 
