@@ -1,1 +1,2 @@
-"""Offline experiments: estimator comparison, real-data replay, benchmarks (needs the lab extra)."""
+"""The lab behind `usv-lab` (needs the lab extra): `harness` (the in-process runner, parallel engines),
+`experiments`, `benchmarks` and `report` (tables and figures); `cli` lists every subcommand."""

@@ -1,10 +1,19 @@
-"""`usv-lab`: the offline experiments, one subcommand each.
+"""`usv-lab`: the lab's one front door (also `python -m lab`), one subcommand per experiment or benchmark.
 
-    usv-lab compare   the paper's Figs. 4-5 estimator comparison (Monte Carlo)
-    usv-lab replay    every estimator on a CSV of real ranges with ground truth (the analog of Fig. 6)
-    usv-lab bench     per-update cost of each estimator against filterpy's KalmanFilter
+Experiments (lab/experiments/):
+    usv-lab compare         the paper's Figs. 4-5 estimator comparison (Monte Carlo)
+    usv-lab scenario        scenario files' Monte Carlo against the paper's Tables II-IV
+    usv-lab replay          every estimator on a CSV of real ranges with ground truth (the analog of Fig. 6)
+    usv-lab uwb-convert     a public UWB data set's checkout to replay CSVs
+    usv-lab fit-noise       a UWB sensor's noise config from its calibration runs
+    usv-lab uwb-page        every converted run replayed; the real-data result page
+    usv-lab cold-start      a fleet that starts knowing nothing, seed by seed
+    usv-lab observability   which pairs are observable, and from when, seed by seed
+Benchmarks (lab/benchmarks/):
+    usv-lab bench, fleet-bench, runtime-bench, runtime-ab, cluster-bench, sea-bench, fuzz, serial-fuzz
 
-Each subcommand module offers `add_arguments(parser)` and `run(args) -> exit code`.
+A subcommand is a module with `add_arguments(parser)` and `run(args) -> exit code`, or, for a module of
+several, `add_<name>_arguments` and `run_<name>` (SUBCOMMANDS names them `module:name`).
 """
 
 from __future__ import annotations
@@ -16,33 +25,57 @@ import sys
 from agent.config import ConfigError
 
 SUBCOMMANDS = {
-    "compare": ("lab.compare_cmd", "estimator comparison of the paper's Figs. 4 and 5"),
-    "replay": ("lab.range_replay", "replay a CSV of real ranges with ground truth through every estimator"),
-    "bench": ("lab.bench", "per-update cost of each estimator vs filterpy's KalmanFilter"),
-    "scenario": ("lab.scenario_cmd", "scenario files' Monte Carlo vs the paper's Tables II-IV"),
-    "fleet-bench": ("lab.fleet_bench", "Table II Monte Carlo wall time, tick cost by fleet size"),
-    "runtime-bench": ("lab.runtime_bench",
+    "compare": ("lab.experiments.compare", "estimator comparison of the paper's Figs. 4 and 5"),
+    "scenario": ("lab.experiments.scenarios", "scenario files' Monte Carlo vs the paper's Tables II-IV"),
+    "replay": ("lab.experiments.replay",
+               "replay a CSV of real ranges with ground truth through every estimator"),
+    "uwb-convert": ("lab.experiments.uwb_datasets:convert",
+                    "a public UWB data set's checkout to replay CSVs and their manifest"),
+    "fit-noise": ("lab.experiments.uwb_datasets:fit_noise",
+                  "a UWB sensor's noise config from its calibration runs"),
+    "uwb-page": ("lab.experiments.uwb_datasets:page",
+                 "replay every converted run with config noise; write the real-data result page"),
+    "cold-start": ("lab.experiments.cold_start",
+                   "a fleet that starts with nothing: settling and closest approach"),
+    "observability": ("lab.experiments.observability",
+                      "which pairs of a fleet are observable, and from when"),
+    "bench": ("lab.benchmarks.estimators", "per-update cost of each estimator vs filterpy's KalmanFilter"),
+    "fleet-bench": ("lab.benchmarks.fleet", "Table II Monte Carlo wall time, tick cost by fleet size"),
+    "runtime-bench": ("lab.benchmarks.runtime",
                       "Zenoh runtime: sensor-to-command latency, lockstep real-time factor, memory"),
-    "cluster-bench": ("lab.cluster_bench", "the same Monte Carlo campaign on the process pool and a local Dask cluster"),
-    "runtime-ab": ("lab.runtime_ab", "what one change to the runtime bought: alternating runs before and after it"),
-    "fuzz": ("lab.fuzz_bench", "fuzz campaign over Zenoh: bad payloads on every key one agent reads"),
-    "sea-bench": ("lab.sea_bench", "the fleet in the sea mode against the ideal simulation, seed by seed"),
+    "cluster-bench": ("lab.benchmarks.cluster",
+                      "the same Monte Carlo campaign on the process pool and a local Dask cluster"),
+    "runtime-ab": ("lab.benchmarks.runtime_ab",
+                   "what one change to the runtime bought: alternating runs before and after it"),
+    "fuzz": ("lab.benchmarks.fuzz", "fuzz campaign over Zenoh: bad payloads on every key one agent reads"),
+    "serial-fuzz": ("lab.benchmarks.serial_fuzz",
+                    "the serial side of the fuzz campaign alone: bad lines per parser"),
+    "sea-bench": ("lab.benchmarks.sea",
+                  "the fleet in the sea mode against the ideal simulation, seed by seed"),
 }
+
+
+def entry_points(target: str):
+    """(add_arguments, run) of a SUBCOMMANDS target, `module` or `module:name`."""
+    module_name, _, name = target.partition(":")
+    module = importlib.import_module(module_name)
+    if not name:
+        return module.add_arguments, module.run
+    return getattr(module, f"add_{name}_arguments"), getattr(module, f"run_{name}")
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="usv-lab", description=__doc__.split("\n\n")[0])
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    modules = {}
-    for name, (module_name, help_text) in SUBCOMMANDS.items():
-        module = importlib.import_module(module_name)
-        module.add_arguments(commands.add_parser(name, help=help_text, description=help_text))
-        modules[name] = module
+    runs = {}
+    for name, (target, help_text) in SUBCOMMANDS.items():
+        add_arguments, runs[name] = entry_points(target)
+        add_arguments(commands.add_parser(name, help=help_text, description=help_text))
     argv = sys.argv[1:] if argv is None else list(argv)
     args = parser.parse_args(argv)
     args.argv = argv  # for report.invocation: the command that made each result
     try:
-        return modules[args.command].run(args)
+        return runs[args.command](args)
     except ConfigError as error:
         print(f"usv-lab {args.command}: {error}", file=sys.stderr)
         return 2

@@ -71,6 +71,17 @@ def plot_command(args) -> int:
     return 0
 
 
+def default_replay_path(log: Path) -> Path:
+    """`replays/<stem>.mcap` beside the log: a subfolder, so that the run folder's analysis does not read the
+    replay as another vessel; numbered rather than overwriting an earlier replay."""
+    folder = log.parent / "replays"
+    candidate, n = folder / log.name, 1
+    while candidate.exists():
+        n += 1
+        candidate = folder / f"{log.stem}-{n}{log.suffix}"
+    return candidate
+
+
 def replay_command(args) -> int:
     changes = {}
     if args.params is not None:
@@ -81,7 +92,7 @@ def replay_command(args) -> int:
     changes = deep_merge(changes, parse_assignments(args.set))
     if args.start is not None and args.start < 0:
         raise ConfigError(f"--start {args.start}: must be zero or more seconds")
-    result = replay(args.log, args.out, changes, args.start)
+    result = replay(args.log, args.out or default_replay_path(args.log), changes, args.start)
     same = result.commands_identical == result.commands_compared and result.estimates_identical == result.ticks
     began = "the start" if result.resumed_at is None else f"the state saved at {result.resumed_at:.1f} s"
     print(f"usv-log replay: vessel {result.vessel}, {result.ticks} ticks from {began} -> {result.out}")
@@ -114,7 +125,8 @@ def build_parser() -> argparse.ArgumentParser:
     plot.set_defaults(handler=plot_command)
     again = commands.add_parser("replay", help="a vessel's recorded inputs through the core, same or new settings")
     again.add_argument("log", type=Path, help="an agent's MCAP log")
-    again.add_argument("--out", type=Path, required=True, help="the new MCAP file")
+    again.add_argument("--out", type=Path, default=None,
+                       help="the new MCAP file (default: replays/<log's name> beside the log, never overwritten)")
     again.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                        help="change one agent parameter, e.g. relative.estimator=mckf or "
                             "'relative.estimator={name: mckf, bandwidths: [9999,9999,1.5]}' (repeatable)")

@@ -41,11 +41,13 @@ suspended by write errors, a console or a summary file could not be written in f
 from __future__ import annotations
 
 import argparse
+import atexit
 import contextlib
 import json
 import math
 import os
 import random
+import shutil
 import signal
 import socket
 import subprocess
@@ -783,7 +785,9 @@ def main(argv: list[str] | None = None) -> int:
         if args.duration is not None and not args.duration > 0:
             raise ConfigError(f"--duration {args.duration:g}: give the simulated seconds, more than 0")
         if args.duration is not None:    # a copy of the file with its base's duration changed, named as it is
-            path = with_duration(path, tempfile.mkdtemp(prefix="usv-fleet-"), args.duration)
+            scratch = tempfile.mkdtemp(prefix="usv-fleet-")
+            atexit.register(shutil.rmtree, scratch, True)    # the bridge reads the copy until the end
+            path = with_duration(path, scratch, args.duration)
         variant = args.variant if args.variant is not None else default_variant(path)
         fleet = Fleet(path, variant, args.out, args.seed, mode=args.mode)
     except ConfigError as error:

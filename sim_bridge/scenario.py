@@ -23,9 +23,11 @@ from agent.config import (
     deep_merge,
     parse_mapping,
     read_yaml,
+    updated,
 )
 from agent.core.build import InitialEstimates
 from agent.core.params import AgentParams
+from sim_bridge.noise import FILTER_NOISE_DESCRIPTION, FilterNoise, assumed_relative
 from sim_bridge.world import Truth, WorldConfig
 
 
@@ -57,10 +59,7 @@ class Scenario(StrictModel):
     duration: PositiveFloat = Field(60.0, description="simulated seconds")
     runs: int = Field(1, ge=1, le=10_000, description="Monte Carlo runs")
     seed: int = Field(0, ge=0)
-    filter_range_variance: Literal["from_noise", "configured"] = Field(
-        "from_noise",
-        description="'from_noise': the filters get the variance of the world's range noise model",
-    )
+    filter_noise: FilterNoise = Field("world", description=FILTER_NOISE_DESCRIPTION)
     world: WorldConfig
     agent: AgentParams = AgentParams()
     initial: InitialUncertainty = InitialUncertainty()
@@ -84,12 +83,11 @@ class Scenario(StrictModel):
         return self.initial.cold == "all" or vessel in self.initial.cold
 
     def agent_params(self) -> AgentParams:
-        """The agent parameters the vessels run with, R_z's range variance filled in from the world."""
-        if self.filter_range_variance == "configured":
+        """The agent parameters the vessels run with: the filters assume the world's range noise unless
+        `filter_noise` is 'configured' (the raw-range density only where the raw-range estimator runs)."""
+        if self.filter_noise == "configured":
             return self.agent
-        data = self.agent.model_dump()
-        data["relative"]["range_variance"] = self.world.range_noise.total_variance
-        return AgentParams.model_validate(data)
+        return updated(self.agent, relative=assumed_relative(self.agent.relative, self.world.range_noise))
 
 
 class ScenarioFile(StrictModel):

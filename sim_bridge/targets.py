@@ -1,13 +1,15 @@
 """How the simulated target moves: its configuration (a tagged union on `kind`) and one small class per model.
 
 Every model has `position` and `velocity` ((2,) arrays, the current state) and `step(dt, rng)`, which moves
-it on by one sampling period drawing any randomness from the caller's generator.
+it on by one sampling period drawing any randomness from the caller's generator. A drifting target moves
+with the water: `make_target(spec, current)` hands it the environment's `current(t, x, y)`; the other
+models ignore that argument.
 """
 
 from __future__ import annotations
 
 import math
-from typing import Annotated, Literal, Protocol
+from typing import Annotated, Callable, Literal, Protocol
 
 import numpy as np
 from pydantic import Field, model_validator
@@ -51,9 +53,31 @@ class RandomWalkSpec(StrictModel):
         return self
 
 
+class MooredSpec(StrictModel):
+    """A buoy swinging round its mooring: a circle of `radius` about the anchor, once every `period`."""
+
+    kind: Literal["moored"] = "moored"
+    anchor: Point = Field(description="the anchor, the circle's centre (m)")
+    radius: NonNegativeFloat = Field(2.0, description="the swing's radius (m; a few metres of slack chain)")
+    period: PositiveFloat = Field(120.0, description="time for one turn of the circle (s)")
+    phase: FiniteFloat = Field(0.0, description="start angle on the circle, from the x axis (rad)")
+    clockwise: bool = Field(False, description="turn clockwise instead of counter-clockwise")
+
+
+class DriftingSpec(StrictModel):
+    """A free-floating object carried by the current at its position (still when there is no current)."""
+
+    kind: Literal["drifting"] = "drifting"
+    position: Point = Field(description="start position (m)")
+
+
 TargetSpec = Annotated[
-    ConstantVelocitySpec | SinusoidSpec | RandomWalkSpec, Field(discriminator="kind")
+    ConstantVelocitySpec | SinusoidSpec | RandomWalkSpec | MooredSpec | DriftingSpec,
+    Field(discriminator="kind"),
 ]
+
+# The environment's current(t, x, y) -> (cx, cy): ground-frame velocity (m/s) at positions, arrays in and out.
+CurrentField = Callable[[float, np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
 
 
 class Target(Protocol):
@@ -143,8 +167,59 @@ class RandomWalkTarget:
         self.velocity = velocity
 
 
-def make_target(spec: ConstantVelocitySpec | SinusoidSpec | RandomWalkSpec) -> Target:
-    """The moving target a spec describes, at its start state."""
+class MooredTarget:
+    """p(t) = anchor + R (cos a(t), sin a(t)), a(t) = phase +- 2 pi t / T: on its circle at every step."""
+
+    def __init__(self, spec: MooredSpec) -> None:
+        self._anchor = np.array(spec.anchor, dtype=float)
+        self._radius = spec.radius
+        self._rate = (-1.0 if spec.clockwise else 1.0) * 2.0 * math.pi / spec.period
+        self._phase = spec.phase
+        self._time = 0.0
+        self._update_state()
+
+    def _update_state(self) -> None:
+        angle = self._phase + self._rate * self._time
+        c, s = math.cos(angle), math.sin(angle)
+        self.position = self._anchor + self._radius * np.array([c, s])
+        self.velocity = self._radius * self._rate * np.array([-s, c])
+
+    def step(self, dt: float, rng: np.random.Generator) -> None:
+        self._time += dt
+        self._update_state()
+
+
+class DriftingTarget:
+    """dp/dt = c(t, p): carried by the current, by the midpoint rule (exact for a uniform current and for a
+    shear across the flow, whose gradient squares to zero); velocity = c at the new position."""
+
+    def __init__(self, spec: DriftingSpec, current: CurrentField | None) -> None:
+        self._current = current
+        self._time = 0.0
+        self.position = np.array(spec.position, dtype=float)
+        self.velocity = self._water(self._time, self.position)
+
+    def _water(self, t: float, p: np.ndarray) -> np.ndarray:
+        if self._current is None:
+            return np.zeros(2)
+        cx, cy = self._current(t, p[:1], p[1:])
+        return np.array([float(cx[0]), float(cy[0])])
+
+    def step(self, dt: float, rng: np.random.Generator) -> None:
+        t = self._time
+        middle = self.position + 0.5 * dt * self._water(t, self.position)
+        self.position = self.position + dt * self._water(t + 0.5 * dt, middle)
+        self._time = t + dt
+        self.velocity = self._water(self._time, self.position)
+
+
+def make_target(spec: ConstantVelocitySpec | SinusoidSpec | RandomWalkSpec | MooredSpec | DriftingSpec,
+                current: CurrentField | None = None) -> Target:
+    """The moving target a spec describes, at its start state; `current` moves a drifting one."""
+    if isinstance(spec, MooredSpec):
+        return MooredTarget(spec)
+    if isinstance(spec, DriftingSpec):
+        return DriftingTarget(spec, current)
     if isinstance(spec, ConstantVelocitySpec):
         return ConstantVelocityTarget(spec)
     if isinstance(spec, SinusoidSpec):

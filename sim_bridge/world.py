@@ -1,7 +1,7 @@
 """The simulated world: vessels, target, islands and every sensor, advanced one sampling period at a time.
 
 The paper's world and sensor models (Sec. II): surge-yaw kinematics (1), (2); the target (3), (4) and its
-other motions in `targets.py`; odometry (5); ranges (6) with the noise of (7) or (8) (`noise.py`); bearings
+other motions in `targets.py`; odometry (5); ranges (6) with the noise of (7) or (8) (agent/core/range_noise.py); bearings
 (9). docs/equations.md says where the simulation departs from them (ranges clipped at 0, unit bearings).
 
 Pure code: no clock, no I/O. All randomness comes from the generator given to `World`, drawn in the same
@@ -12,6 +12,8 @@ order every tick whatever the caller does, so a run is reproducible bit for bit 
    noise, then the readings of the tick (for each live vessel in config order: its ranges to the others,
    then its bearing noise).
 
+The error models of `WorldConfig.sensors` (`sensors.py`; the paper's by default) draw from their own stream,
+spawned from that generator only when one is on, in the order `sensors.py` states, so the draws above stay.
 Readings are drawn eagerly when a tick begins and cached, so `sense()` is free of side effects: calling it
 twice, or not at all, changes nothing.
 
@@ -27,7 +29,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Annotated, Literal
 
@@ -37,13 +39,24 @@ from pydantic import Field, field_validator, model_validator
 from agent.angles import wrap_angle
 from agent.config import NonNegativeFloat, PositiveFloat, StrictModel
 from agent.contract import nanoseconds, seconds
+from agent.core.range_noise import GaussianMixtureNoise, RangeNoise
 from agent.core.records import Command, OdometryReading
 from sim_bridge.geometry import (
     is_simple_polygon,
     sample_boundary,
     segment_intersects_polygon,
 )
-from sim_bridge.noise import GaussianMixtureNoise, IsotropicGaussianNoise, RangeNoise
+from sim_bridge.noise import IsotropicGaussianNoise
+from sim_bridge.sensors import (
+    SensorsConfig,
+    advance_odometry,
+    antenna_positions,
+    expand_preset,
+    rotate,
+    start_odometry,
+    tilted_azimuth,
+    uwb_faults,
+)
 from sim_bridge.targets import FiniteFloat, Point, TargetSpec, make_target
 
 TIME_TOLERANCE = 1e-9   # s; join and leave times this close to a tick count as reached
@@ -137,6 +150,14 @@ class WorldConfig(StrictModel):
         math.pi / 3 + math.pi / 30, description="bound on the commanded yaw rate (rad/s)"
     )
     sea: SeaConfig | None = Field(None, description="the sea mode (sim bridge, real time); None: ideal sensors")
+    sensors: SensorsConfig = Field(
+        SensorsConfig(), description="sensor error models (sim_bridge/sensors.py), or a preset: 'realistic'; "
+                                     "default: the paper's (5)-(9)")
+
+    @field_validator("sensors", mode="before")
+    @classmethod
+    def _preset(cls, value):
+        return expand_preset(value)
 
     @field_validator("islands")
     @classmethod
@@ -160,6 +181,11 @@ class WorldConfig(StrictModel):
             steps = self.dt / (self.sea.step_ms * 1e-3)
             if abs(steps - round(steps)) > 1e-9 or round(steps) < 1:
                 raise ValueError(f"sea: step_ms ({self.sea.step_ms}) must divide dt ({self.dt} s)")
+            if self.sensors.uwb is not None or self.sensors.camera is not None:
+                raise ValueError("sensors: the sea mode's measurements lack the uwb and camera models")
+        unknown = sorted(self.sensors.named_vessels() - set(ids))
+        if unknown:
+            raise ValueError(f"sensors: values for unknown vessels {unknown}")
         return self
 
 
@@ -213,13 +239,20 @@ class _Vessel:
         self.velocity = _fixed(0.0, 0.0)
         self.odometry_position = _fixed(0.0, 0.0)
         self.odometry_heading = self.heading
+        # The velocity through water (2, world frame) over the last step, set by the motion where there is a
+        # current; None: the velocity over ground. Read by the water-referenced odometry.
+        self.water_velocity: np.ndarray | None = None
+        self.odometry_state = None      # sensors.OdometryState of a non-paper odometry model
 
 
 class World:
     """Vessels following (1), (2), a target (3), (4), islands, and sensors (5), (6), (7), (8), (9), stepped by
     `step(commands)`."""
 
-    def __init__(self, config: WorldConfig, rng: np.random.Generator) -> None:
+    def __init__(self, config: WorldConfig, rng: np.random.Generator,
+                 attitude: Callable[[float, float, float, float], tuple[float, float]] | None = None) -> None:
+        """`attitude(t, x, y, heading) -> (roll, pitch)` (rad) tilts the UWB antennas and the camera of
+        `config.sensors`; None: level."""
         self.config = config
         self.time = 0.0
         self.time_ns = 0
@@ -235,6 +268,13 @@ class World:
         self._displacement_noise = IsotropicGaussianNoise(variance=config.displacement_variance)
         self._bearing_noise = IsotropicGaussianNoise(variance=config.bearing_variance)
         self._heading_std = math.sqrt(config.heading_variance)
+        self._sensors = config.sensors
+        self._odometry_model = None if config.sensors.odometry.kind == "paper" else config.sensors.odometry
+        self.attitude = attitude
+        # The new sensor models draw from a stream of their own, spawned (the world's draws stay as they were)
+        # only when one is on: the paper's world takes nothing more from the generator.
+        self._sensor_rng = None if config.sensors.is_paper else rng.spawn(1)[0]
+        self._attitudes: dict[str, tuple[float, float]] = {}
         self._begin_tick()
 
     def live(self) -> list[str]:
@@ -264,12 +304,17 @@ class World:
             vessel.velocity = _fixed(vx, vy)
             dx, dy = vx * dt, vy * dt
             (x, y), (ox, oy) = vessel.position.tolist(), vessel.odometry_position.tolist()
+            held = vessel.heading
             vessel.position = _fixed(x + dx, y + dy)
             vessel.heading = float(wrap_angle(vessel.heading + yaw_rate * dt))
             # (5): odometry accumulates the true displacement plus its per-step noise.
             nx, ny = self._displacement_noise.sample(self._rng).tolist()
-            vessel.odometry_position = _fixed((ox + dx) + nx, (oy + dy) + ny)
-            vessel.odometry_heading = self._noisy_heading(vessel.heading)
+            if self._odometry_model is None:
+                vessel.odometry_position = _fixed((ox + dx) + nx, (oy + dy) + ny)
+                vessel.odometry_heading = self._noisy_heading(vessel.heading)
+            else:
+                self._noisy_heading(vessel.heading)   # drawn and unused: the world's stream stays the paper's
+                self._sensed_odometry(vessel, (dx / dt, dy / dt), held, yaw_rate * dt)
         self._target.step(dt, self._rng)
         self.tick += 1
         # The clock counts whole nanoseconds, as every stamp on the wire does, so the in-process runner and
@@ -304,6 +349,17 @@ class World:
     def _noisy_heading(self, heading: float) -> float:
         return float(wrap_angle(heading + self._rng.normal(0.0, self._heading_std)))
 
+    def _sensed_odometry(self, vessel: _Vessel, ground: tuple[float, float], held: float, turn: float
+                         ) -> None:
+        """A non-paper odometry over the step just made: `ground` the velocity over ground (m/s), `held` the
+        heading held over the step, `turn` the heading's change (rad); the water velocity is the vessel's."""
+        water = ground if vessel.water_velocity is None else vessel.water_velocity
+        state = advance_odometry(self._odometry_model, vessel.odometry_state, ground, water, held, turn,
+                                 self.config.dt, self._sensor_rng)
+        vessel.odometry_state = state
+        vessel.odometry_position = _fixed(*state.position)
+        vessel.odometry_heading = state.heading
+
     def _begin_tick(self) -> None:
         """Let vessels leave and join at the new time, then draw this tick's readings."""
         now = self.time + TIME_TOLERANCE
@@ -317,11 +373,21 @@ class World:
                     continue
                 vessel = _Vessel(spec)
                 vessel.odometry_heading = self._noisy_heading(vessel.heading)
+                if self._odometry_model is not None:
+                    vessel.odometry_state = start_odometry(self._odometry_model, spec.id, vessel.heading,
+                                                           self._sensor_rng)
+                    vessel.odometry_heading = vessel.odometry_state.heading
                 self._vessels[spec.id] = vessel
         self._live = [spec.id for spec in self.config.vessels if spec.id in self._vessels]
+        if self.attitude is not None and (self._sensors.uwb is not None or self._sensors.camera is not None):
+            here = {v: self._vessels[v] for v in self._live}
+            self._attitudes = {v: tuple(map(float, self.attitude(self.time, *h.position.tolist(), h.heading)))
+                               for v, h in here.items()}
         # Every true range of the tick at once: row i holds |p_j - p_i| for each j, the element-wise
         # operations of a norm along axis 1 (rounded as one vessel's row alone would be).
         positions = np.array([self._vessels[v].position for v in self._live]).reshape(-1, 2)
+        if self._sensors.uwb is not None:   # the ranges are between the antennas
+            positions = self._antennas(positions)
         differences = positions[None, :, :] - positions[:, None, :]
         distances = np.sqrt(np.add.reduce(differences * differences, axis=2))
         count = len(self._live)
@@ -341,10 +407,16 @@ class World:
         noise = self.config.range_noise.sample(self._rng, len(others))
         # A UWB module never reports a negative range.
         measured = np.maximum(true_ranges + noise, 0.0)
-        ranges = dict(zip(others, measured.tolist()))
+        if self._sensors.uwb is None:
+            ranges = dict(zip(others, measured.tolist()))
+        else:
+            measured, kept = uwb_faults(self._sensors.uwb, true_ranges, measured, self._sensor_rng)
+            ranges = {j: r for j, r, k in zip(others, measured.tolist(), kept.tolist()) if k}
         # (9): drawn even when unused, so the stream does not depend on the geometry.
         bearing_noise = self._bearing_noise.sample(self._rng)
         bearing, occluded = _bearing(here, self._target.position, bearing_noise, self._islands)
+        if bearing is not None and self._sensors.camera is not None:
+            bearing = self._camera(vessel_id, vessel, bearing)
         odometry = OdometryReading(
             stamp=self.time, position=vessel.odometry_position, heading=vessel.odometry_heading
         )
@@ -356,6 +428,27 @@ class World:
             else _NO_POINTS,
             occluded=occluded,
         )
+
+    def _antennas(self, centres: np.ndarray) -> np.ndarray:
+        """The live vessels' UWB antenna positions (N, 2), from their centres, headings and attitudes."""
+        uwb, live = self._sensors.uwb, self._live
+        levels = [self._attitudes.get(v, (0.0, 0.0)) for v in live]
+        return antenna_positions(centres, np.array([self._vessels[v].heading for v in live]),
+                                 np.array([uwb.lever_arm(v) for v in live]).reshape(-1, 3),
+                                 np.array([a[0] for a in levels]), np.array([a[1] for a in levels]))
+
+    def _camera(self, vessel_id: str, vessel: _Vessel, bearing: np.ndarray) -> np.ndarray:
+        """The bearing turned by the camera's tilt error and, if it is referred to the vessel's own heading
+        reading, by that reading's error (sensors.tilted_azimuth)."""
+        camera = self._sensors.camera
+        roll, pitch = self._attitudes.get(vessel_id, (0.0, 0.0))
+        sight = self._target.position - vessel.position
+        azimuth = math.atan2(-bearing[1], -bearing[0]) - vessel.heading
+        elevation = -math.atan2(camera.height, math.sqrt(sight.dot(sight)))
+        turn = float(tilted_azimuth(azimuth, elevation, roll, pitch)) - azimuth
+        if camera.heading_reference == "odometry":
+            turn += vessel.odometry_heading - vessel.heading
+        return _frozen(rotate(bearing, turn))
 
 
 def _islands(config: WorldConfig) -> list[np.ndarray]:

@@ -8,19 +8,24 @@ function, under `if TYPE_CHECKING`, relative ones, and `importlib.import_module`
   (agent.contract), typed configuration (agent.config), angles (agent.angles) and the runtime
   (agent.runtime: Zenoh session settings, the vessel-process command line, MCAP logs).
 - `sim_bridge` takes the same, plus the core's pure vocabulary that its scenario and world model share with
-  the in-process runner (lab.runner), so that both build a mission the same way: the parameters
-  (agent.core.params), the per-tick records (agent.core.records) and the builder of a vessel's core and
-  initial estimates (agent.core.build). Never the agent process (agent.shell).
+  the in-process runner (lab.harness.runner), so that both build a mission the same way: the parameters
+  (agent.core.params), the per-tick records (agent.core.records), the builder of a vessel's core and
+  initial estimates (agent.core.build) and the range noise the world samples and the filters assume
+  (agent.core.range_noise). Never the agent process (agent.shell).
 - Layers: `mission_log` and `sim_bridge` never import `lab`; `mission_log` never imports `sim_bridge`;
   nothing outside `lab` imports `lab` (the tests may); `agent` imports none of sim_bridge, driver_bridge, lab,
   mission_log, usv_deploy.
 
-A failure names each offending file, line and import statement.
+No import circles, inside a package or between packages: the graph of modules, from every import above,
+has no cycle (a function-level or TYPE_CHECKING import too: it is a dependency all the same).
+
+A failure names each offending file, line and import statement, or each circle's modules and lines.
 """
 
 from __future__ import annotations
 
 import ast
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -33,7 +38,7 @@ CORE_FORBIDDEN = ("zenoh", "mcap", "matplotlib", "threading", "socket", "subproc
                   "agent.shell", "agent.runtime", "agent.contract",
                   "sim_bridge", "driver_bridge", "lab", "mission_log", "usv_deploy", "usv_op")
 SHARED_FROM_AGENT = ("agent.contract", "agent.config", "agent.angles", "agent.runtime")
-CORE_VOCABULARY = ("agent.core.params", "agent.core.records", "agent.core.build")
+CORE_VOCABULARY = ("agent.core.params", "agent.core.records", "agent.core.build", "agent.core.range_noise")
 
 
 @dataclass(frozen=True)
@@ -53,8 +58,8 @@ def within(name: str, prefix: str) -> bool:
     return prefix == "" or name == prefix or name.startswith(prefix + ".")
 
 
-def module_name(path: Path) -> str:
-    parts = path.relative_to(ROOT).with_suffix("").parts
+def module_name(path: Path, root: Path = ROOT) -> str:
+    parts = path.relative_to(root).with_suffix("").parts
     return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
 
 
@@ -94,13 +99,87 @@ def _is_dynamic_import(func: ast.expr) -> bool:
     return name in ("import_module", "__import__")
 
 
-def scan() -> list[Import]:
-    files = sorted(path for package in PACKAGES for path in (ROOT / package).rglob("*.py")
+def scan(root: Path = ROOT, packages: Iterable[str] = PACKAGES) -> list[Import]:
+    files = sorted(path for package in packages for path in (root / package).rglob("*.py")
                    if "__pycache__" not in path.parts)
-    known = {module_name(path) for path in files}
+    known = {module_name(path, root) for path in files}
     return [found for path in files
-            for found in imports_of(path.read_text(encoding="utf-8"), module_name(path),
-                                    path.name == "__init__.py", known, path.relative_to(ROOT))]
+            for found in imports_of(path.read_text(encoding="utf-8"), module_name(path, root),
+                                    path.name == "__init__.py", known, path.relative_to(root))]
+
+
+def circles(imports: list[Import]) -> list[list[Import]]:
+    """One cycle of imports (as the imports that close it, in order) for each strongly connected set of
+    modules of more than one; the graph's nodes are the modules that import, its edges one import each."""
+    edges: dict[str, dict[str, Import]] = {}
+    for found in imports:
+        edges.setdefault(found.module, {})
+    for found in imports:
+        if found.target in edges and found.target != found.module:
+            edges[found.module].setdefault(found.target, found)
+    # Tarjan's strongly connected components, iteratively (no recursion limit on a long chain).
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    components: list[set[str]] = []
+    for start in sorted(edges):
+        if start in index:
+            continue
+        work = [(start, iter(sorted(edges[start])))]
+        index[start] = low[start] = len(index)
+        stack.append(start)
+        on_stack.add(start)
+        while work:
+            node, successors = work[-1]
+            successor = next(successors, None)
+            if successor is None:
+                work.pop()
+                if work:
+                    low[work[-1][0]] = min(low[work[-1][0]], low[node])
+                if low[node] == index[node]:
+                    component = set()
+                    while True:
+                        member = stack.pop()
+                        on_stack.discard(member)
+                        component.add(member)
+                        if member == node:
+                            break
+                    if len(component) > 1:
+                        components.append(component)
+            elif successor not in index:
+                index[successor] = low[successor] = len(index)
+                stack.append(successor)
+                on_stack.add(successor)
+                work.append((successor, iter(sorted(edges[successor]))))
+            elif successor in on_stack:
+                low[node] = min(low[node], index[successor])
+    return [_cycle_through(min(component), component, edges) for component in components]
+
+
+def _cycle_through(start: str, component: set[str], edges: dict[str, dict[str, Import]]) -> list[Import]:
+    """The shortest cycle from `start` back to itself inside `component` (breadth first)."""
+    came_from: dict[str, Import] = {}
+    frontier = [start]
+    while frontier:
+        following = []
+        for node in frontier:
+            for target, found in sorted(edges[node].items()):
+                if target == start:
+                    path = [found]
+                    while path[0].module != start:
+                        path.insert(0, came_from[path[0].module])
+                    return path
+                if target in component and target not in came_from:
+                    came_from[target] = found
+                    following.append(target)
+        frontier = following
+    raise AssertionError(f"{start} is in a strongly connected set but on no cycle")
+
+
+def describe(cycle: list[Import]) -> str:
+    names = " -> ".join([cycle[0].module, *(found.target for found in cycle)])
+    return names + "\n" + "\n".join(f"    {found}" for found in cycle)
 
 
 @pytest.fixture(scope="module")
@@ -150,6 +229,13 @@ def test_only_the_lab_imports_the_lab(imports):
     broken(outside, "", lambda target: not within(target, "lab"), "nothing outside lab imports lab")
 
 
+def test_no_import_circles(imports):
+    found = circles(imports)
+    if found:
+        pytest.fail("no module imports itself through others, but:\n" + "\n".join(map(describe, found)),
+                    pytrace=False)
+
+
 # ----- the scan itself -----
 def test_the_scan_reads_every_package(imports):
     """Every package has modules with imports, and the imports the tree is known to have are seen: the
@@ -188,3 +274,36 @@ def later():
     with pytest.raises(pytest.fail.Exception, match=offender):
         broken(found, "agent.core", lambda target: not any(within(target, n) for n in CORE_FORBIDDEN),
                f"agent.core imports none of {', '.join(CORE_FORBIDDEN)}")
+
+
+def test_the_circle_check_finds_a_made_up_circle(tmp_path):
+    """Three modules of two packages in a circle, one link inside a function, beside a module outside it:
+    the check names the three and the lines that close it; without the inner import there is none."""
+    (tmp_path / "alpha").mkdir()
+    (tmp_path / "beta").mkdir()
+    (tmp_path / "alpha" / "__init__.py").write_text("")
+    (tmp_path / "beta" / "__init__.py").write_text("")
+    (tmp_path / "alpha" / "first.py").write_text("import os\nfrom beta import second\n")
+    (tmp_path / "beta" / "second.py").write_text("from . import third\n")
+    (tmp_path / "beta" / "third.py").write_text("def late():\n    from alpha.first import thing\n")
+    (tmp_path / "beta" / "apart.py").write_text("from alpha import first\n")   # into the circle, not on it
+    found = circles(scan(tmp_path, ("alpha", "beta")))
+    assert len(found) == 1
+    assert [(f.module, f.target, f.line) for f in found[0]] == [
+        ("alpha.first", "beta.second", 2), ("beta.second", "beta.third", 1), ("beta.third", "alpha.first", 2)]
+    message = describe(found[0])
+    assert message.startswith("alpha.first -> beta.second -> beta.third -> alpha.first\n")
+    assert "beta/third.py:2 imports alpha.first (`from alpha.first import thing`)" in message
+    (tmp_path / "beta" / "third.py").write_text("def late():\n    import os\n")
+    assert circles(scan(tmp_path, ("alpha", "beta"))) == []
+
+
+def test_the_circle_check_finds_a_circle_of_two_and_of_a_package_and_its_module(tmp_path):
+    (tmp_path / "gamma").mkdir()
+    (tmp_path / "gamma" / "__init__.py").write_text("from gamma.core import Thing\n")
+    (tmp_path / "gamma" / "core.py").write_text("import gamma\n")
+    (tmp_path / "gamma" / "left.py").write_text("from gamma import right\n")
+    (tmp_path / "gamma" / "right.py").write_text("from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n"
+                                                 "    from gamma.left import Other\n")
+    found = sorted([f.module for f in cycle] for cycle in circles(scan(tmp_path, ("gamma",))))
+    assert found == [["gamma", "gamma.core"], ["gamma.left", "gamma.right"]]

@@ -1,5 +1,5 @@
 """Attacks on the mission keys and on liveliness, over real processes: one agent process and usv-op, the world
-played by Zenoh sessions (lab/fuzz_bench.py AttackHarness, the cases `usv-lab fuzz` runs too). After each
+played by Zenoh sessions (lab/benchmarks/fuzz.py AttackHarness, the cases `usv-lab fuzz` runs too). After each
 attack the operator's own `usv-op hold` and `usv-op resume` must be applied, and no command of the agent may
 be non-finite or beyond its limits."""
 
@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import pytest
 
-from lab.fuzz_bench import LIVELINESS_ATTACKS, MISSION_ATTACKS, run_attacks
+from lab.benchmarks.fuzz import LIVELINESS_ATTACKS, MISSION_ATTACKS, run_attacks
 
 pytestmark = pytest.mark.slow   # an agent process and usv-op over Zenoh at the pace of real time
 

@@ -14,7 +14,7 @@ import pytest
 pytest.importorskip("filterpy")
 
 from agent.core.estimators import estimator_names
-from lab import bench
+from lab.benchmarks import estimators as bench
 from lab.cli import main
 
 

@@ -1,4 +1,4 @@
-"""lab/bound.py: Fisher information of the range-noise models and the posterior Cramér–Rao bound, each against
+"""lab/experiments/bound.py: Fisher information of the range-noise models and the posterior Cramér–Rao bound, each against
 values worked out another way (closed forms, a direct grid integration, the joint information matrix)."""
 
 from __future__ import annotations
@@ -8,9 +8,9 @@ import math
 import numpy as np
 import pytest
 
-from lab.bound import fisher_information, pcrlb, rms_bound
-from lab.comparison import ComparisonConfig, nees_band, relative_trajectory, run_comparison
-from sim_bridge.noise import GaussianMixtureNoise, GaussianNoise, LogNormalNoise
+from agent.core.range_noise import GaussianMixtureNoise, GaussianNoise, LogNormalNoise, MixtureNoise
+from lab.experiments.bound import fisher_information, pcrlb, rms_bound
+from lab.experiments.comparison import ComparisonConfig, nees_band, relative_trajectory, run_comparison
 
 TABLE_II_GMM = GaussianMixtureNoise(outlier_fraction=0.2, variance=0.4, outlier_variance=10.0)
 TABLE_II_LOGNORMAL = LogNormalNoise(log_variance=0.7, shift=0.75)
@@ -66,6 +66,22 @@ def test_table_ii_mixture_against_a_direct_grid_integration():
     assert value == pytest.approx(1.6253, abs=1e-4)          # the issue's ~1.63 m^-2
     # Between the Gaussian of the same variance (the least informative) and the convexity bound.
     assert 1 / TABLE_II_GMM.total_variance < value < 0.8 / 0.4 + 0.2 / 10.0
+
+
+def test_a_calibrated_mixture_against_closed_forms_and_a_grid():
+    # One shifted component: 1 / v, wherever it sits. Two far apart with one variance: each alone, 1 / v.
+    assert fisher_information(MixtureNoise(components=((1.0, 3.0, 0.25),))) == pytest.approx(4.0, rel=1e-9)
+    apart = MixtureNoise(components=((0.3, -5.0, 0.01), (0.7, 5.0, 0.01)))
+    assert fisher_information(apart) == pytest.approx(100.0, rel=1e-9)
+    # Zero means: the Table II mixture written as a calibration gives its value.
+    assert fisher_information(MixtureNoise(components=TABLE_II_GMM.mixture())) == pytest.approx(
+        fisher_information(TABLE_II_GMM), rel=1e-9)
+    skewed = MixtureNoise(components=((0.9, 0.1, 0.02), (0.1, -0.4, 0.5)))
+
+    def density(x):
+        return 0.9 * _normal_pdf(x - 0.1, 0.02) + 0.1 * _normal_pdf(x + 0.4, 0.5)
+
+    assert fisher_information(skewed) == pytest.approx(_grid_fisher(density, -30.0, 30.0), rel=1e-5)
 
 
 @pytest.mark.parametrize(("log_variance", "shift"), [(0.7, 0.75), (0.2, 0.2), (0.05, 0.0), (1.5, 3.0)])

@@ -1,4 +1,4 @@
-"""Monte Carlo on a real local Dask cluster (lab/parallel.py): the same results bit for bit as this machine's
+"""Monte Carlo on a real local Dask cluster (lab/harness/parallel.py): the same results bit for bit as this machine's
 process pool, a worker killed mid-campaign, a run that raises."""
 
 from __future__ import annotations
@@ -12,10 +12,10 @@ from test_range_replay import circle_scenario, write_csv
 from test_scenario_cmd import TINY
 
 from agent.core.params import AgentParams
-from lab import scenario_cmd
-from lab.comparison import ComparisonConfig, run_comparison
-from lab.parallel import Engine
-from lab.range_replay import RangeLog, replay
+from lab.experiments import scenarios as scenario_cmd
+from lab.experiments.comparison import ComparisonConfig, run_comparison
+from lab.experiments.replay import RangeLog, replay
+from lab.harness.parallel import Engine
 
 pytest.importorskip("dask.distributed")
 pytestmark = pytest.mark.slow   # worker processes of a Dask cluster

@@ -1,5 +1,5 @@
 """A `--cluster` address that accepts the connection and never answers (not a Dask scheduler, or one stuck):
-the command says so in one line within its deadline instead of hanging without a word (lab/parallel.py)."""
+the command says so in one line within its deadline instead of hanging without a word (lab/harness/parallel.py)."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ import pytest
 
 pytest.importorskip("distributed", reason="the lab-cluster extra (Dask) is not installed")
 
-from lab.parallel import FIRST_ANSWER_SECONDS  # noqa: E402
+from lab.harness.parallel import FIRST_ANSWER_SECONDS  # noqa: E402
 
 
 @pytest.fixture

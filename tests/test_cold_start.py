@@ -11,7 +11,7 @@ import pytest
 from agent.config import ConfigError, updated
 from agent.core.build import InitialEstimates
 from agent.core.estimators import estimator_names
-from lab import runner
+from lab.harness import runner
 from sim_bridge.fleet import agent_configs
 from sim_bridge.scenario import Scenario, initial_estimates, load_scenarios, select_scenario
 from sim_bridge.world import World, streams

@@ -1,4 +1,4 @@
-"""Experiment 1's feeding of an estimator (lab/comparison.py `run_estimator`) against the agent's rules."""
+"""Experiment 1's feeding of an estimator (lab/experiments/comparison.py `run_estimator`) against the agent's rules."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import pytest
 
 from agent.core.estimators import make_relative_estimator
 from agent.core.params import RelativeEstimationParams
-from lab.comparison import run_estimator
+from lab.experiments.comparison import run_estimator
 
 
 def pair_data(steps: int = 60):

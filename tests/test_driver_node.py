@@ -329,7 +329,7 @@ def test_a_driver_stopped_under_way_leaves_the_thrusters_stopped(tmp_path):
 
 def test_a_storm_of_bad_serial_lines_leaves_the_driver_alive_its_watchdog_working_and_its_odometry_flowing(
         tmp_path):
-    """A few hundred bad sentences on the speed log's port (lab/serial_fuzz.py's classes, seed 5, and bursts),
+    """A few hundred bad sentences on the speed log's port (lab/benchmarks/serial_fuzz.py's classes, seed 5, and bursts),
     with VHW lines of +-1e30 and +-1e308 knots and km/h under valid checksums among them: before, the first
     1e30 line ended usv-driver and its watchdog with it. Now the driver stays up, the thrusters follow the
     agent through the storm, good sentences after it are published as odometry within the contract, and the
@@ -337,7 +337,7 @@ def test_a_storm_of_bad_serial_lines_leaves_the_driver_alive_its_watchdog_workin
     import numpy as np
 
     from driver_bridge.serial_port import write_all
-    from lab.serial_fuzz import SerialLines, classes_for, sentence
+    from lab.benchmarks.serial_fuzz import SerialLines, classes_for, sentence
 
     log_master, log_slave = os.openpty()
     os.set_blocking(log_master, False)

@@ -1,4 +1,4 @@
-"""Monte Carlo results reduced as the runs arrive (lab/errors.py): the same figures as numpy over every run's
+"""Monte Carlo results reduced as the runs arrive (lab/harness/errors.py): the same figures as numpy over every run's
 curve held at once, in state whose size does not grow with the number of runs."""
 
 from __future__ import annotations
@@ -10,9 +10,16 @@ import pytest
 from test_range_replay import circle_scenario
 
 from agent.core.params import AgentParams
-from lab.comparison import LS_TIMES, WORST_RUN_FROM, ComparisonConfig, _stable_id, run_comparison, run_once
-from lab.errors import RunningMoments
-from lab.range_replay import RangeLog, ReplayJob, noise_params, replay, replay_run
+from lab.experiments.comparison import (
+    LS_TIMES,
+    WORST_RUN_FROM,
+    ComparisonConfig,
+    _stable_id,
+    run_comparison,
+    run_once,
+)
+from lab.experiments.replay import RangeLog, ReplayJob, noise_params, replay, replay_run
+from lab.harness.errors import RunningMoments
 
 
 def test_running_moments_equal_numpy_over_the_stacked_runs_leaving_nans_out():

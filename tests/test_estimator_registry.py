@@ -13,7 +13,6 @@ import numpy as np
 import pytest
 from pydantic import Field
 
-import lab.runner as runner
 from agent.config import ConfigError, PositiveFloat, deep_merge, load_yaml
 from agent.core.estimators import (
     KF,
@@ -29,6 +28,7 @@ from agent.core.estimators import (
 )
 from agent.core.estimators.pseudolinear_estimator import PseudoLinearEstimator
 from agent.core.params import AgentParams
+from lab.harness import runner
 from mission_log.replay import parse_assignments, recorded_agent
 from sim_bridge.scenario import load_scenarios
 

@@ -16,7 +16,7 @@ from agent.core.fusion import covariance_intersection, covariance_intersection_m
 from agent.core.params import AgentParams, RelativeEstimationParams, TargetEstimationParams
 from agent.core.records import OdometryReading, Share, TickInputs
 from agent.core.step import step
-from lab.runner import run
+from lab.harness.runner import run
 from sim_bridge.scenario import Scenario, load_scenarios
 
 DT = AgentParams().dt

@@ -1,4 +1,4 @@
-"""A fuzz storm over real Zenoh against one real agent process (lab/fuzz_bench.py describes the campaign).
+"""A fuzz storm over real Zenoh against one real agent process (lab/benchmarks/fuzz.py describes the campaign).
 
 5,000 bad payloads on each key the agent subscribes to (its four sensor keys, every vessel's share,
 sim/clock and the operator's mission keys), from a seeded Generator, in the classes of the issue: random bytes, wrong types, extremes (1e308,
@@ -24,7 +24,7 @@ import numpy as np
 import pytest
 
 from agent.contract import TOPICS, Clock, MissionCommand, decode
-from lab.fuzz_bench import CLASSES, KEYS, Fuzzer, World, run_campaign
+from lab.benchmarks.fuzz import CLASSES, KEYS, Fuzzer, World, run_campaign
 
 PER_KEY = 5000
 SEED = 7

@@ -11,7 +11,7 @@ import pytest
 from conftest import bridge_counts
 
 from agent.runtime.mcap_log import read_messages
-from lab.runner import run
+from lab.harness.runner import run
 from mission_log.metrics import spacing_error
 from sim_bridge.fleet import Fleet, launch
 from sim_bridge.scenario import select_scenario, with_duration

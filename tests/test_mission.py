@@ -96,7 +96,7 @@ def test_a_fleet_with_a_negative_yaw_rate_circles_clockwise_as_well_as_the_other
     import numpy as np
 
     from agent.config import updated
-    from lab.runner import run
+    from lab.harness.runner import run
     from sim_bridge.scenario import select_scenario
 
     _, scenario = select_scenario(Path(__file__).resolve().parents[1] / "configs" / "scenarios"
@@ -361,13 +361,13 @@ def test_the_fleet_obeys_hold_resume_and_a_new_radius_and_refuses_bad_commands(t
 
 
 def test_in_lockstep_a_hold_received_during_tick_k_stops_every_vessel_from_tick_k_plus_1_until_resume(tmp_path):
-    """The agent processes' own nodes in lockstep (lab/shell_bench.py): the hold and the resume arrive
+    """The agent processes' own nodes in lockstep (lab/benchmarks/shell.py): the hold and the resume arrive
     between two ticks, exactly as a lockstep fleet would get them."""
     from pathlib import Path
 
     import numpy as np
 
-    from lab.shell_bench import _Sample, run_shells
+    from lab.benchmarks.shell import _Sample, run_shells
     from sim_bridge.scenario import select_scenario, with_duration
 
     scenarios = Path(__file__).resolve().parents[1] / "configs" / "scenarios"

@@ -196,7 +196,7 @@ def _stop(process: subprocess.Popen) -> int | None:
 
 def test_router_bridge_and_agents_in_separate_namespaces_complete_a_mission(tmp_path, net):
     from agent.runtime.mcap_log import read_messages
-    from lab.runner import run
+    from lab.harness.runner import run
     from mission_log.reader import read_log
     from sim_bridge.fleet import agent_configs
     from sim_bridge.scenario import select_scenario

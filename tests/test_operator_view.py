@@ -32,6 +32,23 @@ def test_the_committed_layout_is_the_one_usv_op_makes():
     assert '"followTf": "world"' in text and '\\"usv/3/status\\".health.rejected_stale' in text
 
 
+def plot_paths(node: dict) -> list[str]:
+    """Every message path the layout's Plot panels read, walking its split tree as the app does."""
+    content = node.get("content", node)
+    if content.get("type") == "split":
+        return [path for item in content["items"] for path in plot_paths(item)]
+    assert content.get("type") == "panel" and content["panelType"] in ("ThreeDee", "Plot"), content
+    return [series["value"] for series in content["config"].get("paths", [])]
+
+
+def resolve(message: dict, path: str):
+    """A Foxglove message path's value in `message` (the part after the quoted topic: `.a.b[0]`)."""
+    value = message
+    for name, index in re.findall(r"\.(\w+)|\[(\d+)\]", path):
+        value = value[name] if name else value[int(index)]
+    return value
+
+
 @pytest.mark.slow   # a fleet of processes and the view over Zenoh, in real time
 def test_a_foxglove_client_gets_every_live_vessels_frames_from_the_live_view(tmp_path):
     from sim_bridge.fleet import Fleet, Interrupted
@@ -61,7 +78,10 @@ def test_a_foxglove_client_gets_every_live_vessels_frames_from_the_live_view(tmp
                     {"id": subscriptions[channel], "channelId": channel}]}))
 
             deadline = time.monotonic() + 30
-            wanted = {f"/{v}/tf" for v in "1234"} | {"/tf"}
+            # The committed layout's plots, read as the app reads them: the quoted topic, then the field.
+            paths = plot_paths(json.loads((ROOT / "docs" / "foxglove_layout.json").read_text()))
+            plotted = [re.fullmatch(r'"([^"]+)"(.+)', path).groups() for path in paths]
+            wanted = {f"/{v}/tf" for v in "1234"} | {"/tf"} | {topic for topic, _ in plotted}
             while not wanted <= set(received) and time.monotonic() < deadline:
                 try:
                     frame = client.recv(timeout=1.0)
@@ -91,10 +111,17 @@ def test_a_foxglove_client_gets_every_live_vessels_frames_from_the_live_view(tmp
         runner.join(timeout=60)
     assert view.returncode == 0, err
     assert re.search(r"stopped; \d+ messages on \d+ topics, 0 payloads skipped", out), out
+    # Every plotted field is in the live messages, a number the plot can draw.
+    assert len(plotted) == 4 + 4 * 5
+    for topic, fields in plotted:
+        value = resolve(received[topic][-1], fields)
+        assert isinstance(value, (int, float)) and not isinstance(value, bool), (topic, fields, value)
     # The same schemas and the same checks as the logs' Foxglove messages.
     schema = published("FrameTransforms")
     validator = jsonschema.Draft7Validator(schema)
     for topic, messages in received.items():
+        if not topic.endswith("tf"):
+            continue
         advertised = schemas[topic]
         assert advertised["schemaName"] == "foxglove.FrameTransforms" and advertised["encoding"] == "json"
         assert json.loads(advertised["schema"]) == frames.FrameTransforms.model_json_schema()

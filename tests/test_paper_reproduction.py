@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from agent.config import updated
-from lab import runner
+from lab.harness import runner
 from sim_bridge.scenario import select_scenario
 
 REPO = Path(__file__).resolve().parents[1]

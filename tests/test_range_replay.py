@@ -13,8 +13,7 @@ from agent.config import ConfigError
 from agent.core.estimators import estimator_names
 from agent.core.params import AgentParams
 from lab import cli
-from lab.errors import RunningMoments, moments_by_name
-from lab.range_replay import (
+from lab.experiments.replay import (
     NOISE_CONFIG,
     NOISE_GIVEN,
     NOISE_TRUTH,
@@ -25,6 +24,7 @@ from lab.range_replay import (
     replay,
     synthesise_displacements,
 )
+from lab.harness.errors import RunningMoments, moments_by_name
 
 HEADER = "t,range,ax,ay,bx,by"
 GAP_START, GAP_LENGTH = 25.0, 3.0
@@ -225,7 +225,7 @@ def test_a_refused_range_keeps_the_last_accepted_one_for_the_next_pair():
 def test_estimators_are_driven_epoch_by_epoch_with_the_interval_lengths(monkeypatch):
     # Record the calls replay makes: one epoch mark, then per epoch one predict by that interval's
     # displacement with intervals = h / dt, and one update pairing the previous range with the current one.
-    from lab import range_replay as module
+    from lab.experiments import replay as module
 
     calls: list[tuple] = []
     real_make = module.make_relative_estimator

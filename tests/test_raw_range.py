@@ -18,7 +18,7 @@ from agent.core.params import RelativeEstimationParams
 
 DT = 0.1
 TABLE_II = ((0.8, 0.0, 0.4), (0.2, 0.0, 10.0))
-# Fisher information of 0.8 N(0, 0.4) + 0.2 N(0, 10) as a location family (lab/bound.py: 1.625 m^-2).
+# Fisher information of 0.8 N(0, 0.4) + 0.2 N(0, 10) as a location family (lab/experiments/bound.py: 1.625 m^-2).
 TABLE_II_FISHER = 1.625
 NO_PRIOR = 1e12 * np.eye(2)     # "position unknown": the prior carries no information
 
@@ -338,7 +338,7 @@ def test_in_the_agent_a_saved_and_restored_fleet_runs_on_bit_for_bit(monkeypatch
 
     from agent.core.snapshot import state_from_json, state_to_json
     from agent.core.step import step
-    from lab import runner
+    from lab.harness import runner
     from sim_bridge.scenario import select_scenario
 
     scenarios = Path(__file__).resolve().parents[1] / "configs" / "scenarios"
@@ -562,8 +562,14 @@ def test_with_the_exact_log_normal_in_tracking_experiment_1_is_consistent_and_no
     # were checked against the window's cost: every run's RMSE from 30 s on within 3 times the bound, and the
     # mean NEES at 10, 30 and 60 s inside the 95 % band of 100 runs (chi-square, 200 degrees of freedom).
     from agent.config import load_yaml
-    from lab.compare_cmd import DEFAULT_CONFIG
-    from lab.comparison import ComparisonConfig, _stable_id, position_bound, relative_trajectory, run_once
+    from lab.experiments.compare import DEFAULT_CONFIG
+    from lab.experiments.comparison import (
+        ComparisonConfig,
+        _stable_id,
+        position_bound,
+        relative_trajectory,
+        run_once,
+    )
 
     config = updated(load_yaml(ComparisonConfig, DEFAULT_CONFIG), seed=seed, estimators=("raw_range",))
     noise = config.noise_models["lognormal"]

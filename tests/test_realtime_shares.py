@@ -113,7 +113,7 @@ def test_in_real_time_the_gate_takes_each_senders_newest_share_whether_late_or_o
     assert g.offer("usv/2/share", share_message(4, "2", 4 * TICK_NS), now + 0.1)   # early: held for later
     g.deliver_shares(3 * TICK_NS, set(), lost=set())
     assert round(g.snapshot(now + 0.1).shares["2"].odometry.stamp, 6) == 0.3
-    assert g.rejected == {}
+    assert +g.rejected == {}   # nothing refused (the counters an operator watches are present at 0)
     assert list(g._held) == [("2", 4 * TICK_NS)]     # only what is newer than the tick is still held
 
 

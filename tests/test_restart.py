@@ -35,9 +35,9 @@ from agent.core.params import AgentParams
 from agent.core.records import STOP, OdometryReading, Share, TickInputs
 from agent.core.step import step
 from agent.core.target import track_target
+from agent.shell.settings import NodeSettings
 from mission_log.reader import read_log
 from mission_log.series import truth_of
-from agent.shell.settings import NodeSettings
 from sim_bridge import fleet as fleet_module
 from sim_bridge.fleet import Fleet
 from sim_bridge.scenario import initial_estimates, select_scenario, with_duration
@@ -171,7 +171,7 @@ RESTART_OUTAGES = (0.6, 3.0)   # s: shorter than the neighbours' timeout (they k
 
 
 def _restarted_in_process(seed: int, down: float, back: float, duration: float, vessel: str = "2"):
-    """Table II (MCKF) run in process as lab/runner.py runs it, with `vessel`'s core dropped at `down` (it
+    """Table II (MCKF) run in process as lab/harness/runner.py runs it, with `vessel`'s core dropped at `down` (it
     sends nothing and is stopped, as the driver's watchdog stops it) and started again without initial
     estimates at `back`. Returns the times, `vessel`'s distance to the target and the closest approach of
     any two vessels at each tick."""

@@ -14,7 +14,7 @@ from agent.core.build import InitialEstimates, initial_state
 from agent.core.params import AgentParams
 from agent.core.records import TickInputs
 from agent.core.step import step
-from lab.runner import run
+from lab.harness.runner import run
 from mission_log.metrics import spacing_error
 from sim_bridge.scenario import Scenario, load_scenarios
 from sim_bridge.world import World, WorldConfig

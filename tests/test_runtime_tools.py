@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from lab.runtime_ab import FIGURES, page
-from lab.transport_floor import transport_floor
+from lab.benchmarks.runtime_ab import FIGURES, page
+from lab.benchmarks.transport_floor import transport_floor
 
 
 @pytest.mark.slow   # five processes over Zenoh
@@ -37,7 +37,7 @@ def test_the_share_decoding_rows_time_what_the_gate_keeps():
     """The benchmark's share decodes both ways to the same estimate of the receiver's pair, and its rows say
     how many vessels, bytes and microseconds, with the ratio and a tick's n - 1 shares worked out from them."""
     from agent.contract import ShareMessage, decode
-    from lab.runtime_bench import receive_share, share_decode_rows, share_payload
+    from lab.benchmarks.runtime import receive_share, share_decode_rows, share_payload
 
     payload = share_payload(5)
     whole, _ = decode(ShareMessage, payload)

@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 from agent.config import updated
-from lab import scenario_cmd
 from lab.cli import main
+from lab.experiments import scenarios as scenario_cmd
 from mission_log.metrics import RunMetrics, nan_mean
 from sim_bridge.scenario import Scenario, ScenarioFile
 
@@ -181,7 +181,7 @@ def test_fleet_bench_smoke(tiny, tmp_path):
 
 
 def test_fleet_bench_puts_every_vessel_on_the_estimator_asked_for(tiny):
-    from lab.fleet_bench import fleet_scenarios
+    from lab.benchmarks.fleet import fleet_scenarios
 
     spec, variants = scenario_cmd.load(SCENARIOS_DIR / "table4_scale.yaml")
     for name in ("kf", "raw_range"):

@@ -30,9 +30,9 @@ from agent.core.mission_limits import (
 from agent.core.params import AgentParams, ControlParams
 from agent.core.records import OdometryReading, Share, TickInputs
 from agent.core.step import step
-from lab.mission_plan import MissionPlan
-from lab.runner import run
-from lab.scenario_cmd import closest_approach
+from lab.experiments.scenarios import closest_approach
+from lab.harness.mission_plan import MissionPlan
+from lab.harness.runner import run
 from sim_bridge.scenario import Scenario, load_scenarios
 
 SCENARIOS = Path(__file__).resolve().parents[1] / "configs" / "scenarios"

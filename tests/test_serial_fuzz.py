@@ -1,5 +1,5 @@
 """The serial side's fuzz campaign in CI: 2,000 bad lines or frames through each of the driver bridge's
-parsers (lab/serial_fuzz.py describes the classes). What must hold: no exception escapes a handler, the
+parsers (lab/benchmarks/serial_fuzz.py describes the classes). What must hold: no exception escapes a handler, the
 last-resort guard catches nothing (every refusal has its own reason), nothing that reaches the contract lies
 beyond it, good lines are published again after the storm and the thruster watchdog still stops the
 thrusters."""
@@ -10,7 +10,14 @@ import numpy as np
 
 from agent.contract import MAX_POSITION
 from driver_bridge.serial_port import LineReader
-from lab.serial_fuzz import AFTER_STORM, PARSERS, SerialLines, classes_for, run_serial_campaign, sound
+from lab.benchmarks.serial_fuzz import (
+    AFTER_STORM,
+    PARSERS,
+    SerialLines,
+    classes_for,
+    run_serial_campaign,
+    sound,
+)
 
 PER_PARSER = 2000
 SEED = 11

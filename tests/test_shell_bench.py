@@ -1,4 +1,4 @@
-"""The shells in process (lab/shell_bench.py): the sim bridge and agent nodes are the processes' own, handing
+"""The shells in process (lab/benchmarks/shell.py): the sim bridge and agent nodes are the processes' own, handing
 each other the bytes a lockstep fleet sends, so what they command must be what the cores command in the
 in-process runner."""
 
@@ -8,8 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
-from lab.runner import run
-from lab.shell_bench import AGENT_SECTIONS, run_shells
+from lab.benchmarks.shell import AGENT_SECTIONS, run_shells
+from lab.harness.runner import run
 from sim_bridge.scenario import select_scenario, with_duration
 
 SCENARIOS = Path(__file__).resolve().parents[1] / "configs" / "scenarios"

@@ -8,7 +8,7 @@ import numpy as np
 import orjson
 import pytest
 
-import lab.runner as runner
+import lab.harness.runner as runner
 from agent.config import updated
 from agent.core.build import InitialEstimates, initial_state
 from agent.core.params import AgentParams

@@ -261,7 +261,7 @@ def test_the_phase_advances_by_the_time_between_ticks_not_by_their_count():
 
 
 def test_the_cold_start_table_measures_the_closest_approach_of_any_two_vessels():
-    from lab.scenario_cmd import closest_approach
+    from lab.experiments.scenarios import closest_approach
 
     positions = np.array([[[0.0, 0.0], [3.0, 4.0], [np.nan, np.nan]],
                           [[0.0, 0.0], [0.6, 0.8], [10.0, 0.0]],     # vessels 1 and 2 come within 1 m

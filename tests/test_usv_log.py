@@ -93,7 +93,7 @@ def test_metrics_from_the_logs_equal_the_in_process_runner(fleet_run):
     # The fleet over Zenoh in lockstep computes what the in-process runner computes, so the paper's metrics
     # worked out from the logs must equal the runner's, which come from its own arrays by another route.
     folder, scenario_path = fleet_run
-    from lab.runner import run
+    from lab.harness.runner import run
     from sim_bridge.scenario import select_scenario
 
     _, scenario = select_scenario(scenario_path)

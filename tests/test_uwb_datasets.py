@@ -1,4 +1,4 @@
-"""lab/uwb_datasets.py: the converters on tiny hand-made checkouts, the noise fit, and the page."""
+"""lab/experiments/uwb_datasets.py: the converters on tiny hand-made checkouts, the noise fit, and the page."""
 
 from __future__ import annotations
 
@@ -11,8 +11,9 @@ import pytest
 
 from agent.config import ConfigError, load_yaml, read_yaml
 from agent.core.params import AgentParams
-from lab import uwb_datasets as uwb
-from lab.range_replay import parse_csv
+from lab.cli import main as lab_main
+from lab.experiments import uwb_datasets as uwb
+from lab.experiments.replay import parse_csv
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -213,7 +214,7 @@ def test_fit_noise_from_your_own_csvs(tmp_path, capsys):
         run = _calibration_run(f"cal{j}", bias + rng.normal(0.0, 0.03, 600))
         files.append(str(uwb.write_run(run, tmp_path)))
     out = tmp_path / "mine.yaml"
-    assert uwb.main(["fit-noise", "csv", *files, "--components", "1", "--out", str(out)]) == 0
+    assert lab_main(["fit-noise", "csv", *files, "--components", "1", "--out", str(out)]) == 0
     # What was fitted, in one line: sd of the biases sqrt(0.0025) = 0.05 m, of the rest 0.03 m.
     printed = capsys.readouterr().out
     assert f"wrote {out}: 3 calibration runs, 1800 ranges; the runs' biases spread 0.05" in printed
@@ -226,10 +227,10 @@ def test_fit_noise_from_your_own_csvs(tmp_path, capsys):
     assert mean == pytest.approx(0.10, abs=0.005) and variance == pytest.approx(0.0009, rel=0.15)
     assert "the replay CSVs cal0.csv, cal1.csv, cal2.csv (3 runs, 1800 ranges)" in out.read_text(encoding="utf-8")
     # A data set takes one checkout; a bad CSV is a clear error.
-    assert uwb.main(["fit-noise", "murp", str(tmp_path), str(tmp_path)]) == 2
+    assert lab_main(["fit-noise", "murp", str(tmp_path), str(tmp_path)]) == 2
     assert "takes one checkout" in capsys.readouterr().err
     (tmp_path / "bad.csv").write_text("t,range\n0,1\n", encoding="utf-8")
-    assert uwb.main(["fit-noise", "csv", str(tmp_path / "bad.csv")]) == 2
+    assert lab_main(["fit-noise", "csv", str(tmp_path / "bad.csv")]) == 2
     assert "bad.csv" in capsys.readouterr().err
 
 
@@ -250,7 +251,7 @@ def test_sensor_config_text_is_a_valid_agent_config(tmp_path):
     assert raw.bias_variance == pytest.approx(0.004)
     # 0.75 (0.01 + 0.01) + 0.25 (0.00002 + 0.0025) - 0.0625^2, plus the biases' variance
     assert params.relative.range_variance == pytest.approx(0.015 + 0.000630 - 0.00390625 + 0.004, rel=1e-3)
-    assert "# Regenerate with: python -m lab.uwb_datasets fit-noise murp src" in text
+    assert "# Regenerate with: usv-lab fit-noise murp src" in text
     assert uwb.CALIBRATION["murp"] in text and "(5 runs, 800 ranges)" in text
 
 
@@ -282,10 +283,10 @@ def test_page_scores_config_noise_and_counts_wins(tmp_path):
         csv.writer(handle).writerows([("dataset", *uwb.MANIFEST_COLUMNS), *rows])
     out = tmp_path / "page.md"
     uwb.write_page([uwb.read_manifest(tmp_path)], [(None, AgentParams())], runs=1, seed=2, out=out,
-                   argv=["page", str(tmp_path)])
+                   argv=["uwb-page", str(tmp_path)])
     text = out.read_text(encoding="utf-8")
     assert text.startswith("# Real UWB ranges")
-    assert f"python -m lab.uwb_datasets page {tmp_path}" in text
+    assert f"usv-lab uwb-page {tmp_path}" in text
     assert "never from the runs' ground truth" in text and "TRUTH" not in text
     assert "| one |" in text and "| two |" in text
     assert "- Noise from the default config (configs/agent.yaml): **raw_range lowest on" in text
@@ -308,7 +309,7 @@ def test_page_with_each_data_sets_sensor_config(tmp_path, capsys):
     (configs / "cuhksz.yaml").write_text(uwb.sensor_config_text("a sensor", "hand-made", noise, ["fit-noise"]),
                                          encoding="utf-8")
     out = tmp_path / "page.md"
-    assert uwb.main(["page", str(tmp_path), "--sensor-configs", str(configs), "--runs", "1", "--out",
+    assert lab_main(["uwb-page", str(tmp_path), "--sensor-configs", str(configs), "--runs", "1", "--out",
                      str(out)]) == 0
     text = out.read_text(encoding="utf-8")
     # Only the sensor section: no --config given.
@@ -319,13 +320,13 @@ def test_page_with_each_data_sets_sensor_config(tmp_path, capsys):
     # A data set without its config: a clear error, nothing written.
     (configs / "cuhksz.yaml").rename(configs / "hanyang.yaml")
     out.unlink()
-    assert uwb.main(["page", str(tmp_path), "--sensor-configs", str(configs), "--out", str(out)]) == 2
+    assert lab_main(["uwb-page", str(tmp_path), "--sensor-configs", str(configs), "--out", str(out)]) == 2
     assert "cuhksz.yaml" in capsys.readouterr().err and not out.exists()
     with pytest.raises(ConfigError, match="no sensor config for cuhksz"):
-        uwb.write_page([uwb.read_manifest(tmp_path)], [], runs=1, seed=1, out=out, argv=["page"],
+        uwb.write_page([uwb.read_manifest(tmp_path)], [], runs=1, seed=1, out=out, argv=["uwb-page"],
                        sensor_configs={"hanyang": (None, AgentParams())})
     with pytest.raises(ConfigError, match="no config to replay with"):
-        uwb.write_page([uwb.read_manifest(tmp_path)], [], runs=1, seed=1, out=out, argv=["page"])
+        uwb.write_page([uwb.read_manifest(tmp_path)], [], runs=1, seed=1, out=out, argv=["uwb-page"])
 
 
 def test_the_data_sets_are_described_where_users_look_for_them():

@@ -12,12 +12,8 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
 
 import numpy as np
-
-if TYPE_CHECKING:   # an annotation only; the filter's module needs the checks, which need these records
-    from agent.core.estimators.plkf import BearingOutcome
 
 
 @dataclass(frozen=True)
@@ -94,6 +90,17 @@ class NeighbourRecord:
     # and what they make of the pair: observable, mirror-ambiguous or unobservable.
     excitation: tuple[float, float] = (0.0, 0.0)
     observability: str = "unobservable"
+
+
+@dataclass(frozen=True, slots=True)
+class BearingOutcome:
+    """What one bearing update did; `innovation` is the cross-bearing component q^T p^- (metres) and
+    `innovation_variance` its predicted variance q^T (P^-_pp + R_z) q."""
+
+    accepted: bool
+    reason: str = ""
+    innovation: float = 0.0
+    innovation_variance: float = 0.0
 
 
 @dataclass(frozen=True)

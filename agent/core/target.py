@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from agent.core.estimators.plkf import PLKF, BearingOutcome
+from agent.core.estimators.plkf import PLKF
 from agent.core.params import AgentParams
+from agent.core.records import BearingOutcome
 from agent.core.state import VesselState
 
 

@@ -66,6 +66,7 @@ from agent.contract import (
 from agent.core.records import Share, TickInputs
 
 OWN_TOPICS = ("sensor/odom", "sensor/uwb", "sensor/bearing", "sensor/sonar")
+ALWAYS_COUNTED = ("stale", "malformed", "shares_missing")   # refusals an operator watches (usv_op.layout)
 DETAIL_CHARS = 200   # of a refusal's detail kept in `recent_reasons` (a key or a reason may be long)
 MAX_RANGE_SETS = 32  # UWB range sets kept between two ticks (a module ranging at up to 300 Hz), the oldest dropped
 OFFSET_WINDOW = 64   # messages judging a source's clock (1.6 s of own sensors, 6 s of a neighbour's shares)
@@ -178,7 +179,8 @@ class InputGate:
         self.burst = burst if burst is not None else (max_rate if max_rate is not None else None)
         self.max_held = max_held
         self._monotonic = monotonic
-        self.rejected: Counter[str] = Counter()
+        # Present from the start at 0: the status's health carries them, and a plot of an absent field is empty.
+        self.rejected: Counter[str] = Counter(dict.fromkeys(ALWAYS_COUNTED, 0))
         self.accepted: Counter[str] = Counter()
         self.recent_reasons: deque[str] = deque(maxlen=keep_reasons)
         self._lock = threading.Lock()

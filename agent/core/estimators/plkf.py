@@ -7,26 +7,15 @@ bearing is the b~_io of (9).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import numpy as np
 
 from agent.core.checks import cholesky_succeeds, finite_floats
 from agent.core.params import TargetEstimationParams
+from agent.core.records import BearingOutcome
 
 # A measured bearing whose norm is this far from 1 is not a direction: a sensor fault, not noise.
 BEARING_NORM_TOLERANCE = 0.5
-
-
-@dataclass(frozen=True, slots=True)
-class BearingOutcome:
-    """What one bearing update did; `innovation` is the cross-bearing component q^T p^- (metres) and
-    `innovation_variance` its predicted variance q^T (P^-_pp + R_z) q."""
-
-    accepted: bool
-    reason: str = ""
-    innovation: float = 0.0
-    innovation_variance: float = 0.0
 
 
 _I4 = np.eye(4)

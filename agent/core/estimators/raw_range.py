@@ -27,7 +27,7 @@ from typing import Literal, NamedTuple
 import numpy as np
 from pydantic import Field, TypeAdapter
 
-from agent.config import NonNegativeFloat, PositiveFloat, StrictModel
+from agent.config import NonNegativeFloat, PositiveFloat
 from agent.core.estimators.base import (
     REJECTED_RANGE,
     RelativePositionEstimator,
@@ -42,13 +42,7 @@ from agent.core.estimators.range_density import (
 )
 from agent.core.estimators.raw_range_batch import MIN_DISTANCE, BatchWindow, _largest_eigenvalue
 from agent.core.estimators.registry import EstimatorParams, register
-
-
-class LogNormalNoiseParams(StrictModel):
-    """A range noise known to be the paper's shifted log-normal (8): ln(mu + r_s) ~ N(0, R)."""
-
-    log_variance: PositiveFloat = Field(description="R, variance of ln(mu + r_s)")
-    shift: NonNegativeFloat = Field(description="r_s (m): the noise is above -r_s")
+from agent.core.range_noise import LogNormalNoise
 
 
 class RawRangeParams(EstimatorParams):
@@ -61,7 +55,7 @@ class RawRangeParams(EstimatorParams):
     gross_error_fraction: NonNegativeFloat = Field(
         1e-3, lt=1, description="weight of one more, very wide, zero-mean component for gross errors")
     gross_error_variance: PositiveFloat = Field(1e4, description="variance of that component (m^2)")
-    tracking_lognormal: LogNormalNoiseParams | None = Field(
+    tracking_lognormal: LogNormalNoise | None = Field(
         None, description="a noise known to be the log-normal (8): tracking uses its exact density; None: "
                           "noise_components")
     window: int = Field(300, ge=5, le=100_000,

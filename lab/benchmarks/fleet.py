@@ -1,0 +1,190 @@
+"""`usv-lab fleet-bench`: what the fleet simulation costs. A benchmark, not a test: it asserts no time.
+
+(a) The wall time of the whole Table II Monte Carlo, through the same process pool as `usv-lab scenario`.
+(b) The compute time of one vessel's tick (`RunTrace.tick_seconds`) for fleets of n vessels on each pair
+    estimator asked for (the paper's MCKF and the agent's default by default), built from the
+    Table IV base (constant-velocity target, U_v = 10, U_vf = 3) with r* = 20 m for every n, so that the rows
+    differ in n only and 50 vessels fit on the circle. These runs are sequential, in this process, after the
+    pool has shut down, so nothing else competes for the CPU while they are timed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import numpy as np
+
+from agent.config import ConfigError, deep_merge, parse_mapping
+from agent.core.estimators import estimator_names
+from lab import arguments
+from lab.experiments.scenarios import DEFAULT_DIR, load, resolve, run_monte_carlo
+from lab.harness.parallel import add_engine_arguments, campaign_notes, engine_from, report_failures
+from lab.harness.runner import run as run_scenario
+from lab.report.markdown import invocation, machine, markdown_table
+from sim_bridge.scenario import Scenario
+
+RADIUS = 20.0          # r* (m) of every fleet-size run
+HALF_WIDTH = 25.0      # drawn start positions lie in [-25, 25]^2 (m)
+SPACING = 2.0          # drawn vessels start at least this far apart (m)
+TARGET_CLEARANCE = 3.0  # and this far from the target, as the Table IV file's drawn positions (m)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--runs", type=arguments.positive_int, default=None,
+                        help="Monte Carlo runs per estimator (default: the Table II file's own)")
+    add_engine_arguments(parser)   # for the Monte Carlo part; the tick-time part runs here
+    parser.add_argument("--out", type=Path, default=Path("docs/results"),
+                        help="where fleet_benchmark.md goes")
+    parser.add_argument("--sizes", type=arguments.positive_int, nargs="+", default=[4, 12, 50],
+                        help="fleet sizes n of the tick-time part")
+    parser.add_argument("--duration", type=arguments.positive_float, default=20.0,
+                        help="simulated seconds of each fleet-size run")
+    parser.add_argument("--seed", type=arguments.seed, default=50,
+                        help="seed of the drawn start positions (fleet sizes the Table IV file lacks)")
+    parser.add_argument("--monte-carlo", default="table2_estimators", metavar="NAME",
+                        help="scenario file of part (a), as for `usv-lab scenario`")
+    parser.add_argument("--scale", default="table4_scale", metavar="NAME",
+                        help="scenario file whose base and positions part (b) starts from")
+    parser.add_argument("--scenarios-dir", type=Path, default=DEFAULT_DIR, help="where NAMEs are looked up")
+    parser.add_argument("--estimators", nargs="+", choices=estimator_names(), default=["mckf", "raw_range"],
+                        help="pair estimators of the tick-time part (default: the paper's and the agent's)")
+
+
+def spread_positions(count: int, seed: int, avoid: tuple[float, float]) -> list[tuple[float, float]]:
+    """`count` points uniform in [-HALF_WIDTH, HALF_WIDTH]^2, SPACING apart and TARGET_CLEARANCE from `avoid`,
+    by rejection with `numpy.random.default_rng(seed)`."""
+    rng = np.random.default_rng(seed)
+    points: list[np.ndarray] = []
+    for _ in range(1000 * count):
+        if len(points) == count:
+            break
+        p = rng.uniform(-HALF_WIDTH, HALF_WIDTH, 2)
+        if np.hypot(*(p - avoid)) >= TARGET_CLEARANCE and all(np.hypot(*(p - q)) >= SPACING for q in points):
+            points.append(p)
+    if len(points) < count:
+        raise ConfigError(f"cannot place {count} vessels {SPACING} m apart "
+                          f"in [-{HALF_WIDTH:g}, {HALF_WIDTH:g}]^2")
+    return [(round(float(x), 2), round(float(y), 2)) for x, y in points]
+
+
+def fleet_scenarios(base: dict, variants: dict[str, Scenario], sizes: list[int], duration: float, seed: int,
+                    estimator: str | None = None) -> list[tuple[int, Scenario, str, float | None]]:
+    """(n, scenario, where its start positions come from, the paper's run time for that n and r*); every
+    vessel on `estimator` if given, else the file's own."""
+    target = next(iter(variants.values())).world.target.position
+    built = []
+    for n in sizes:
+        known = variants.get(f"n{n}_r{RADIUS:g}")
+        if known is not None:
+            vessels = [v.model_dump() for v in known.world.vessels]
+            source, paper = f"Table IV file, variant {known.name}", known.paper.run_time_ms
+        else:
+            points = spread_positions(n, seed, target)
+            vessels = [{"id": str(i + 1), "position": p} for i, p in enumerate(points)]
+            source, paper = f"drawn (seed {seed})", None
+        agent = {"control": {"radius": RADIUS}}
+        if estimator is not None:
+            agent["relative"] = {"estimator": estimator}
+        merged = deep_merge(base, {"name": f"n{n}_r{RADIUS:g}", "duration": duration, "runs": 1,
+                                   "world": {"vessels": vessels}, "agent": agent})
+        built.append((n, parse_mapping(Scenario, merged, f"fleet-bench n = {n}"), source, paper))
+    return built
+
+
+
+
+def run(args: argparse.Namespace) -> int:
+    # tqdm (the optional 'lab' extra) is imported by the command that shows a bar, not by `usv-lab --help`.
+    from tqdm import tqdm
+
+    (mc_path,) = resolve([args.monte_carlo], args.scenarios_dir)
+    (scale_path,) = resolve([args.scale], args.scenarios_dir)
+    _, mc_variants = load(mc_path, args.runs)
+    scale_spec, scale_variants = load(scale_path)
+    fleets = [(name, *fleet) for name in args.estimators
+              for fleet in fleet_scenarios(scale_spec.base, scale_variants, args.sizes, args.duration, args.seed,
+                                           name)]
+
+    jobs = sum(s.runs for s in mc_variants.values())
+    with engine_from(args) as engine, tqdm(total=jobs, unit="run", desc="Monte Carlo", dynamic_ncols=True) as bar:
+        engine.prepare("lab.experiments.scenarios")   # a cluster's workers import before the clock runs, as a fork has
+        started = time.perf_counter()
+        run_monte_carlo({mc_path.stem: mc_variants}, engine, bar.update)
+        mc_seconds = time.perf_counter() - started
+        where = engine.where()
+    runs = sorted({s.runs for s in mc_variants.values()})
+    mc_table = markdown_table(
+        ["scenario file", "variants", "runs per variant", "runs", "simulated s per run", "ran on",
+         "wall time (s)", "wall time per run (s)"],
+        [[mc_path.name, len(mc_variants), "/".join(map(str, runs)), jobs,
+          "/".join(f"{d:g}" for d in sorted({s.duration for s in mc_variants.values()})), where,
+          f"{mc_seconds:.1f}", f"{mc_seconds / jobs:.2f}"]])
+    mc_table = "\n".join([mc_table, *campaign_notes(engine)])
+
+    rows = []
+    for name, n, scenario, source, paper in fleets:
+        print(f"fleet of {n}, {name}: {args.duration:g} s simulated ...", flush=True)
+        started = time.perf_counter()
+        trace = run_scenario(scenario)
+        wall = time.perf_counter() - started
+        ticks = trace.tick_seconds
+        step_ms = np.nansum(ticks, axis=1) * 1e3   # all vessels of one sampling period, as one computer would
+        rows.append([name, n, f"{RADIUS:g}", source, int(np.isfinite(ticks).sum()),
+                     f"{trace.metrics.mean_tick_ms:.3f}", f"{trace.metrics.p99_tick_ms:.3f}",
+                     f"{step_ms.mean():.2f}",
+                     "-" if paper is None else f"{paper:g}", f"{wall:.1f}"])
+    tick_table = markdown_table(
+        ["estimator", "n", "r* (m)", "start positions", "vessel ticks", "mean tick (ms)", "p99 tick (ms)",
+         "mean fleet step (ms)", "paper Avg. Run Time (ms)", "run wall time (s)"], rows)
+
+    document = render(invocation(args), mc_table, tick_table, args, scale_path)
+    args.out.mkdir(parents=True, exist_ok=True)
+    path = args.out / "fleet_benchmark.md"
+    path.write_text(document, encoding="utf-8")
+    print(f"\n{mc_table}\n\n{tick_table}\n\nwrote {path}")
+    return report_failures(engine)
+
+
+def render(command: str, mc_table: str, tick_table: str, args: argparse.Namespace, scale_path: Path) -> str:
+    return "\n".join([
+        "# Fleet benchmark: Monte Carlo wall time and tick cost by fleet size",
+        "",
+        "Generated by the command below; do not edit by hand. Times depend on the machine and its load.",
+        "",
+        "```",
+        command,
+        "```",
+        "",
+        "## Machine",
+        "",
+        *(f"- {line}" for line in machine()),
+        "",
+        "## Table II Monte Carlo",
+        "",
+        "Every run of every estimator variant through the engine of `usv-lab scenario` (the same job "
+        "list, seeds and chunking; this machine's process pool unless --cluster), timed from the first job to "
+        "the last result; no pages or figures.",
+        "",
+        mc_table,
+        "",
+        "## Tick compute time by fleet size",
+        "",
+        f"One run per pair estimator and fleet size, {args.duration:g} s simulated, built from the base of "
+        f"`{scale_path}` "
+        f"(constant-velocity target, U_v = 10 m/s, U_vf = 3 m/s) with r* = {RADIUS:g} m for every n. Start "
+        f"positions of the sizes the file has are its own; the others are drawn with "
+        f"numpy.random.default_rng({args.seed}) uniformly in [-{HALF_WIDTH:g}, {HALF_WIDTH:g}]^2 m, at "
+        f"least {SPACING:g} m apart and {TARGET_CLEARANCE:g} m from the target's start. The runs are "
+        "sequential, in the main process, after the Monte Carlo pool has shut down.",
+        "",
+        "A vessel tick is one core `step` (its n - 1 inter-vessel estimators, the target tracker, "
+        "the controller) timed by the runner as the CPU time of its thread (time.thread_time, so that other processes on the machine do not inflate it); mean and p99 are over all vessel ticks "
+        "of the run. A fleet step is the sum over the vessels of one sampling period (what one computer "
+        "simulating the whole fleet pays per 0.1 s). The paper's Avg. Run Time (Table IV, same n and r*) is "
+        "per iteration on its own machine and language; compare how it grows with n, not its level.",
+        "",
+        tick_table,
+        "",
+    ])

@@ -1,0 +1,72 @@
+"""`usv-lab` is the lab's one front door: every subcommand's help works, `lab/cli.py` names every subcommand,
+and every `usv-lab COMMAND` the README and docs/ tell a user to run is one of them."""
+
+from __future__ import annotations
+
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from lab import cli
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.mark.parametrize("name", sorted(cli.SUBCOMMANDS))
+def test_every_subcommand_shows_its_help(name, capsys):
+    with pytest.raises(SystemExit) as done:
+        cli.main([name, "--help"])
+    assert done.value.code == 0
+    out = capsys.readouterr().out
+    assert out.startswith(f"usage: usv-lab {name}")
+    assert cli.SUBCOMMANDS[name][1] in " ".join(out.split())   # the description is the one in SUBCOMMANDS
+
+
+def test_the_help_and_the_docstring_name_every_subcommand(capsys):
+    with pytest.raises(SystemExit):
+        cli.main(["--help"])
+    out = capsys.readouterr().out
+    for name in cli.SUBCOMMANDS:
+        assert re.search(rf"^\s+{re.escape(name)}\b", out, re.MULTILINE), name
+        assert re.search(rf"\b{re.escape(name)}\b", cli.__doc__), name
+
+
+def test_an_unknown_subcommand_is_refused_in_one_line(capsys):
+    with pytest.raises(SystemExit) as done:
+        cli.main(["no-such-command"])
+    assert done.value.code == 2
+    assert "invalid choice: 'no-such-command'" in capsys.readouterr().err
+
+
+def documented_commands() -> set[tuple[str, str]]:
+    """(file, subcommand) of each `usv-lab WORD` in the README, docs/ and the configs' comments."""
+    files = [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md")),
+             *sorted((ROOT / "configs").rglob("*.yaml"))]
+    return {(str(path.relative_to(ROOT)), match) for path in files
+            for match in re.findall(r"usv-lab ([a-z][a-z-]*)", path.read_text(encoding="utf-8"))}
+
+
+def test_every_documented_usv_lab_command_exists():
+    documented = documented_commands()
+    assert len({name for _, name in documented}) >= 8       # the scan reads the docs
+    unknown = sorted((path, name) for path, name in documented if name not in cli.SUBCOMMANDS)
+    assert not unknown, f"documented but not a subcommand: {unknown}"
+
+
+def test_no_document_runs_a_lab_module_directly():
+    """`python -m lab.x` was the second front door; only `python -m lab` (= usv-lab) remains."""
+    files = [ROOT / "README.md", ROOT / "Makefile", *sorted((ROOT / "docs").rglob("*.md")),
+             *sorted((ROOT / "configs").rglob("*.yaml"))]
+    found = [(str(path.relative_to(ROOT)), m) for path in files
+             for m in re.findall(r"python -m lab\.[\w.]+", path.read_text(encoding="utf-8"))]
+    assert not found
+
+
+def test_python_dash_m_lab_is_usv_lab():
+    done = subprocess.run([sys.executable, "-m", "lab", "fit-noise", "--help"], cwd=ROOT, capture_output=True,
+                          text=True, timeout=120, check=False)
+    assert done.returncode == 0, done.stderr
+    assert "usage: usv-lab fit-noise" in done.stdout
