@@ -201,11 +201,12 @@ def commented_yaml(model: BaseModel, indent: int = 0) -> str:
 
 def deep_merge(base: dict, override: dict) -> dict:
     """`override` onto `base`, recursing into mappings; lists and values replace, and so does a tagged
-    mapping whose `kind` changes (a log-normal noise model shares no field with a mixture)."""
+    mapping whose tag, `kind` or `name`, changes (a log-normal noise model shares no field with a mixture, nor
+    the MCKF's parameters with raw_range's)."""
     merged = dict(base)
     for key, value in override.items():
-        if isinstance(value, dict) and isinstance(merged.get(key), dict) and value.get(
-                "kind", merged[key].get("kind")) == merged[key].get("kind"):
+        if isinstance(value, dict) and isinstance(merged.get(key), dict) and all(
+                value.get(tag, merged[key].get(tag)) == merged[key].get(tag) for tag in ("kind", "name")):
             merged[key] = deep_merge(merged[key], value)
         else:
             merged[key] = value

@@ -129,7 +129,7 @@ def build_parser() -> argparse.ArgumentParser:
                        help="the new MCAP file (default: replays/<log's name> beside the log, never overwritten)")
     again.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                        help="change one agent parameter, e.g. relative.estimator=mckf or "
-                            "relative.mckf.bandwidths=[9999,9999,1.5] (repeatable)")
+                            "'relative.estimator={name: mckf, bandwidths: [9999,9999,1.5]}' (repeatable)")
     again.add_argument("--params", type=Path, default=None, help="YAML of agent parameters to change")
     again.add_argument("--start", type=float, default=None, metavar="SECONDS",
                        help="start from the last state the agent saved before this time (s after its first "

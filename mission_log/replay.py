@@ -17,7 +17,6 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
-
 from agent.config import ConfigError, deep_merge, parse_mapping, parse_yaml
 from agent.contract import Cmd
 from agent.core.build import initial_state
@@ -62,6 +61,28 @@ def parse_assignments(assignments: list[str]) -> dict:
     return changes
 
 
+# The per-estimator blocks of `relative` in logs recorded before the estimator's own parameters moved under
+# `relative.estimator` (a tagged union): every block was recorded, the named estimator used only its own.
+OLD_ESTIMATOR_BLOCKS = ("mckf", "akf", "rls", "huber_rls", "raw_range")
+
+
+def recorded_agent(agent: dict) -> dict:
+    """A log's recorded agent settings in today's shape: an older log's `relative.estimator` name and its
+    block become `relative.estimator: {name: ..., its block}` (Huber-RLS took RLS's forgetting factor)."""
+    relative = agent.get("relative")
+    if not isinstance(relative, dict) or not isinstance(relative.get("estimator"), str):
+        return agent
+    blocks = {key: relative[key] for key in OLD_ESTIMATOR_BLOCKS if isinstance(relative.get(key), dict)}
+    if not blocks:
+        return agent
+    name = relative["estimator"]
+    own = dict(blocks.get(name, {}))
+    if name == "huber_rls" and "forgetting_factor" in blocks.get("rls", {}):
+        own["forgetting_factor"] = blocks["rls"]["forgetting_factor"]
+    rest = {key: value for key, value in relative.items() if key not in blocks}
+    return {**agent, "relative": {**rest, "estimator": {"name": name, **own}}}
+
+
 def replay(path: Path, out: Path, changes: dict | None = None, start: float | None = None) -> ReplayResult:
     """Replay the agent log at `path` into `out` with the agent parameters changed by `changes` (a nested
     mapping merged into the recorded `agent` settings). With `start` (seconds after the log's first tick),
@@ -76,7 +97,7 @@ def replay(path: Path, out: Path, changes: dict | None = None, start: float | No
     if not inputs:
         raise LogError(f"{path}: no /{log.vessel}/inputs messages to replay")
     changes = changes or {}
-    recorded = log.settings
+    recorded = {**log.settings, "agent": recorded_agent(log.settings["agent"])}
     settings = parse_mapping(NodeSettings, {**recorded, "agent": deep_merge(recorded["agent"], changes)},
                              f"{path} settings with the changes")
     params = settings.agent

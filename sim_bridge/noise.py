@@ -36,13 +36,14 @@ class IsotropicGaussianNoise(StrictModel):
 
 
 def assumed_relative(relative: RelativeEstimationParams, noise: RangeNoise, variance_scale: float = 1.0,
-                     raw_range: bool = True) -> RelativeEstimationParams:
+                     estimator: str | None = None) -> RelativeEstimationParams:
     """`relative` for filters that assume `noise`: R_z's range variance its total variance (x variance_scale)
-    and, if `raw_range` (the raw-range estimator is run), raw_range's density: the noise's mixture for the
-    batch fix and, for the log-normal (8), its exact density for tracking."""
+    and, if `estimator` (default: the configured one) is raw_range, raw_range's density: the noise's mixture
+    for the batch fix and, for the log-normal (8), its exact density for tracking. Another estimator keeps
+    its parameters."""
     params = updated(relative, range_variance=noise.total_variance * variance_scale)
-    if not raw_range:
+    if (estimator or params.estimator.name) != "raw_range":
         return params
     exact = noise if isinstance(noise, LogNormalNoise) else None
-    return updated(params, raw_range=updated(params.raw_range, noise_components=noise.mixture(),
-                                             tracking_lognormal=exact))
+    return params.selecting(updated(params.params_of("raw_range"), noise_components=noise.mixture(),
+                                    tracking_lognormal=exact))

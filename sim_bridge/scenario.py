@@ -87,9 +87,7 @@ class Scenario(StrictModel):
         `filter_noise` is 'configured' (the raw-range density only where the raw-range estimator runs)."""
         if self.filter_noise == "configured":
             return self.agent
-        relative = self.agent.relative
-        return updated(self.agent, relative=assumed_relative(relative, self.world.range_noise,
-                                                             raw_range=relative.estimator == "raw_range"))
+        return updated(self.agent, relative=assumed_relative(self.agent.relative, self.world.range_noise))
 
 
 class ScenarioFile(StrictModel):
@@ -150,9 +148,9 @@ def default_variant(path: str | Path) -> str:
     """The variant a user gets when naming none: the first that runs the product's default estimator, else
     the file's first (a file without variants: its one scenario)."""
     _, variants = load_scenarios(path)
-    product = AgentParams().relative.estimator
-    return next((name for name, scenario in variants.items() if scenario.agent.relative.estimator == product),
-                next(iter(variants)))
+    product = AgentParams().relative.estimator.name
+    return next((name for name, scenario in variants.items()
+                 if scenario.agent.relative.estimator.name == product), next(iter(variants)))
 
 
 def select_scenario(path: str | Path, variant: str | None = None) -> tuple[str, Scenario]:

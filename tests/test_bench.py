@@ -13,7 +13,7 @@ import pytest
 
 pytest.importorskip("filterpy")
 
-from agent.core.params import ESTIMATOR_NAMES
+from agent.core.estimators import estimator_names
 from lab.benchmarks import estimators as bench
 from lab.cli import main
 
@@ -34,7 +34,7 @@ def test_bench_writes_every_row_with_finite_positive_numbers(tmp_path, capsys):
     rows = _table_rows(document)
     cold = bench.Setup(bench.DEFAULT, cold=True).label
     phased = [bench.DEFAULT, cold, bench.bank_label(bench.DEFAULT), bench.bank_label(cold)]
-    expected = [*ESTIMATOR_NAMES, cold, bench.FILTERPY, bench.PLKF_LABEL,
+    expected = [*estimator_names(), cold, bench.FILTERPY, bench.PLKF_LABEL,
                 *(bench.bank_label(name) for name in (bench.PAPER, bench.DEFAULT, cold, bench.FILTERPY)),
                 *(f"{label}: {phase}" for label in phased for phase in ("fix phase", "tracking")),
                 f"one {bench.DEFAULT}", f"bank of {bench.BANK_SIZE} {bench.DEFAULT}"]

@@ -10,7 +10,7 @@ import pytest
 
 from agent.config import ConfigError, updated
 from agent.core.build import InitialEstimates
-from agent.core.params import ESTIMATOR_NAMES
+from agent.core.estimators import estimator_names
 from lab.harness import runner
 from sim_bridge.fleet import agent_configs
 from sim_bridge.scenario import Scenario, initial_estimates, load_scenarios, select_scenario
@@ -88,13 +88,13 @@ def test_a_cold_vessel_the_world_does_not_have_is_refused(tmp_path):
 def test_the_cold_start_file_is_table_two_cold_with_one_variant_per_estimator():
     _, cold = load_scenarios(SCENARIOS / "cold_start.yaml")
     _, table2 = load_scenarios(SCENARIOS / "table2_estimators.yaml")
-    assert list(cold) == list(ESTIMATOR_NAMES)
+    assert list(cold) == list(estimator_names())
     for name, scenario in cold.items():
         assert scenario.initial.cold == "all"
         assert (scenario.runs, scenario.duration, scenario.seed) == (20, 90.0, 2)
         assert scenario.world == table2[name].world
         assert scenario.agent == table2[name].agent
-        assert scenario.agent.relative.estimator == name
+        assert scenario.agent.relative.estimator.name == name
         assert not scenario.paper.table
 
 

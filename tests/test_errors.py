@@ -89,9 +89,9 @@ def test_a_replay_reduced_run_by_run_equals_its_runs_stacked():
     log = RangeLog("walk", *circle_scenario(seed=5, range_std=0.1, duration=15.0))
     params = AgentParams()
     result = replay(log, params, runs=4, seed=8)
-    relative, _ = noise_params(log, params, None, False)
+    relative, raw_range, _ = noise_params(log, params, None, False)
     names = tuple(result.moments)
-    runs = [replay_run(ReplayJob(log, relative, params.dt, names, child))
+    runs = [replay_run(ReplayJob(log, relative, params.dt, names, child, raw_range))
             for child in np.random.SeedSequence(8).spawn(4)]
     errors = np.stack([r[0] for r in runs])
     rejected = np.stack([r[1] for r in runs])

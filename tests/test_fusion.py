@@ -10,7 +10,8 @@ import pytest
 
 from agent.config import deep_merge
 from agent.core.build import InitialEstimates, initial_state
-from agent.core.estimators import PLKF, make_relative_estimator
+from agent.core.estimators import make_relative_estimator
+from agent.core.estimators.plkf import PLKF
 from agent.core.fusion import covariance_intersection, covariance_intersection_many
 from agent.core.params import AgentParams, RelativeEstimationParams, TargetEstimationParams
 from agent.core.records import OdometryReading, Share, TickInputs

@@ -111,9 +111,9 @@ def test_each_kind_gives_the_mixture_the_raw_range_estimator_assumes():
     assert GaussianNoise(variance=0.0).mixture() == ((1.0, 0.0, 1e-8),)
     gmm = GaussianMixtureNoise(outlier_fraction=0.2, variance=0.4, outlier_variance=10.0)
     assert gmm.mixture() == ((0.8, 0.0, 0.4), (0.2, 0.0, 10.0))
-    assert gmm.mixture() == AgentParams().relative.raw_range.noise_components   # the default is Table II's
+    assert gmm.mixture() == AgentParams().relative.estimator.noise_components   # the default is Table II's
     calibration = load_yaml(AgentParams, ROOT / "configs" / "uwb" / "murp.yaml")
-    calibrated = calibration.relative.raw_range.noise_components
+    calibrated = calibration.relative.estimator.noise_components
     assert MixtureNoise(components=calibrated).mixture() == calibrated
     lognormal = LogNormalNoise(log_variance=0.7, shift=0.75)
     fitted = lognormal.mixture()
@@ -147,9 +147,13 @@ def test_filters_that_assume_a_noise_are_told_its_variance_and_density(noise):
     relative = AgentParams().relative
     assumed = assumed_relative(relative, noise, variance_scale=2.0)
     assert assumed.range_variance == 2.0 * noise.total_variance
-    assert assumed.raw_range.noise_components == noise.mixture()
-    assert assumed.raw_range.tracking_lognormal == (noise if isinstance(noise, LogNormalNoise) else None)
-    assert assumed_relative(relative, noise, raw_range=False).raw_range == relative.raw_range
+    assert assumed.estimator.name == "raw_range" and assumed.estimator.noise_components == noise.mixture()
+    assert assumed.estimator.tracking_lognormal == (noise if isinstance(noise, LogNormalNoise) else None)
+    assert assumed_relative(relative, noise, estimator="kf").estimator == relative.estimator
+    # Another configured estimator keeps its own parameters; asked for raw_range, its density is raw_range's.
+    mckf = updated(relative, estimator={"name": "mckf", "max_iterations": 3})
+    assert assumed_relative(mckf, noise).estimator == mckf.estimator
+    assert assumed_relative(mckf, noise, estimator="raw_range").estimator.noise_components == noise.mixture()
 
 
 def test_each_harness_says_once_whether_its_filters_assume_the_worlds_noise():
@@ -158,14 +162,17 @@ def test_each_harness_says_once_whether_its_filters_assume_the_worlds_noise():
     raw = updated(base, agent=updated(base.agent, relative=relative))
     world = raw.world.range_noise
     told = raw.agent_params().relative
-    assert told.range_variance == world.total_variance and told.raw_range.tracking_lognormal == world
+    assert told.range_variance == world.total_variance and told.estimator.tracking_lognormal == world
     configured = updated(raw, filter_noise="configured").agent_params()
     assert configured == raw.agent
-    # A scenario running the MCKF is told the variance; raw_range's density is left as it is (no fit for it).
-    assert base.agent_params().relative.raw_range == base.agent.relative.raw_range
+    # A scenario running the MCKF is told the variance; its own parameters are left as they are.
+    assert base.agent.relative.estimator.name == "mckf"
+    assert base.agent_params().relative.estimator == base.agent.relative.estimator
     comparison = ComparisonConfig(estimators=("kf", "raw_range"), variance_scale=3.0)
     gmm = comparison.noise_models["gmm"]
     assert filter_relative(gmm, comparison).range_variance == 3.0 * gmm.total_variance
+    assert filter_relative(gmm, comparison, "raw_range").estimator.noise_components == gmm.mixture()
+    assert filter_relative(gmm, comparison, "kf").estimator == comparison.agent.relative.estimator
     mine = updated(comparison, filter_noise="configured")
     assert filter_relative(gmm, mine) == updated(AgentParams().relative, range_variance=3.0 * 2.32)
     with pytest.raises(ValidationError):

@@ -27,8 +27,9 @@ def test_defaults_are_table_one():
     assert t.process_noise == 1e-5 and t.gain_bearing == "predicted"
     r = p.relative
     assert (r.displacement_variance, r.initial_covariance) == (1e-6, 25.0)
-    assert r.mckf.bandwidths == (9999, 9999, 0.8)
-    assert (r.mckf.tolerance, r.mckf.max_iterations) == (1e-6, 10)
+    mckf = r.params_of("mckf")
+    assert mckf.bandwidths == (9999, 9999, 0.8)
+    assert (mckf.tolerance, mckf.max_iterations) == (1e-6, 10)
 
 
 def test_shipped_agent_config_is_table_one():
@@ -37,18 +38,21 @@ def test_shipped_agent_config_is_table_one():
 
 def test_partial_yaml_overrides_only_what_it_names(tmp_path):
     path = tmp_path / "a.yaml"
-    path.write_text("relative:\n  estimator: kf\n  mckf:\n    max_iterations: 4\n")
+    path.write_text("relative:\n  estimator: {name: mckf, max_iterations: 4}\n")
     p = load_yaml(AgentParams, path)
-    assert p.relative.estimator == "kf" and p.relative.mckf.max_iterations == 4
-    assert p.relative.mckf.tolerance == 1e-6 and p.control == AgentParams().control
+    assert p.relative.estimator.name == "mckf" and p.relative.estimator.max_iterations == 4
+    assert p.relative.estimator.tolerance == 1e-6 and p.control == AgentParams().control
 
 
 @pytest.mark.parametrize("text, field, words", [
-    ("relative:\n  mckf:\n    max_iteration: 4\n", "relative.mckf.max_iteration", "unknown key"),
+    ("relative:\n  estimator: {name: mckf, max_iteration: 4}\n", "relative.estimator",
+     "'max_iteration' is not a parameter of mckf; mckf's parameters: bandwidths, tolerance, max_iterations"),
     ("control:\n  radius: -5\n", "control.radius", "greater than 0"),
-    ("relative:\n  estimator: ukf\n", "relative.estimator", "'mckf'"),
+    ("relative:\n  estimator: ukf\n", "relative.estimator",
+     "unknown estimator 'ukf'; the estimators are rls, huber_rls, kf, akf, mckf, raw_range"),
     ("target:\n  process_noise: .nan\n", "target.process_noise", "finite"),
-    ("relative:\n  mckf:\n    bandwidths: [1, 2]\n", "relative.mckf.bandwidths", ""),
+    ("relative:\n  estimator: {name: mckf, bandwidths: [1, 2]}\n", "relative.estimator",
+     "mckf parameter 'bandwidths.2': Field required"),
 ])
 def test_bad_values_name_the_field_and_the_file(tmp_path, text, field, words):
     path = tmp_path / "bad.yaml"

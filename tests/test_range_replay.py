@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from agent.config import ConfigError
-from agent.core.params import ESTIMATOR_NAMES, AgentParams
+from agent.core.estimators import estimator_names
+from agent.core.params import AgentParams
 from lab import cli
 from lab.experiments.replay import (
     NOISE_CONFIG,
@@ -163,8 +164,8 @@ def test_estimators_converge_on_a_noisy_irregular_log_with_a_gap():
     # The filters are tuned on the truth here (explicitly), so that the KF's consistency can be checked.
     result = replay(log, params, runs=5, seed=4, truth_variance=True)
 
-    assert set(result.moments) == set(ESTIMATOR_NAMES) and result.runs == 5
-    for name in ESTIMATOR_NAMES:
+    assert set(result.moments) == set(estimator_names()) and result.runs == 5
+    for name in estimator_names():
         assert result.moments[name].count.tolist() == [5] * len(t), name
         assert np.isfinite(result.rmse(name)).all() and math.isfinite(result.largest_error(name)), name
         assert result.rejected.maximum[list(result.moments).index(name)] == 0, name
@@ -190,7 +191,7 @@ def test_estimators_converge_on_a_noisy_irregular_log_with_a_gap():
     assert result.final_rmse("mckf") < 0.5 * initial
     assert result.time_averaged_rmse("mckf", 60.0) < 0.5 * initial
     # ... and given a bandwidth suited to Gaussian noise it does as well as the KF.
-    wide = with_relative(mckf={"bandwidths": (1e4, 1e4, 5.0)})
+    wide = with_relative(estimator={"name": "mckf", "bandwidths": (1e4, 1e4, 5.0)})
     assert replay(log, wide, runs=5, seed=4, names=("mckf",), truth_variance=True).final_rmse("mckf") < 1.0
 
 
@@ -203,7 +204,7 @@ def test_exact_data_keeps_every_estimator_on_the_truth_across_the_gap():
     params = with_relative(displacement_variance=1e-24, initial_covariance=1e-14)
     result = replay(log, params, runs=2, seed=5, range_variance=1e-4)
     assert result.noise_source == NOISE_GIVEN and result.range_variance == 1e-4
-    for name in ESTIMATOR_NAMES:
+    for name in estimator_names():
         assert result.largest_error(name) < 1e-5, name
 
 
@@ -215,7 +216,7 @@ def test_a_refused_range_keeps_the_last_accepted_one_for_the_next_pair():
     log = RangeLog("refused", t, ranges, a, b)
     params = with_relative(displacement_variance=1e-24, initial_covariance=1e-14)
     result = replay(log, params, runs=1, seed=5, range_variance=1e-4)
-    for name in ESTIMATOR_NAMES:
+    for name in estimator_names():
         # Exactly the two bad ranges are refused; pairing the next range with a refused one would refuse more.
         assert result.rejected_per_run(name) == 2, name
         assert result.largest_error(name) < 1e-5, name
@@ -283,7 +284,8 @@ def test_noise_comes_from_the_config_by_default_not_from_the_truth():
     # both, whatever the residuals against the truth say.
     quiet = RangeLog("quiet", *circle_scenario(seed=5, range_std=0.05, duration=30.0))
     noisy = RangeLog("noisy", *circle_scenario(seed=5, range_std=0.7, duration=30.0))
-    params = with_relative(range_variance=0.3, raw_range={"noise_components": [(0.9, 0.05, 0.02), (0.1, 0.0, 1.0)]})
+    components = [(0.9, 0.05, 0.02), (0.1, 0.0, 1.0)]
+    params = with_relative(range_variance=0.3, estimator={"name": "raw_range", "noise_components": components})
     for log in (quiet, noisy):
         result = replay(log, params, runs=1, seed=3)
         assert result.noise_source == NOISE_CONFIG and not result.tuned_on_truth
@@ -294,12 +296,12 @@ def test_noise_comes_from_the_config_by_default_not_from_the_truth():
 
 
 def test_a_config_sets_the_noise_raw_range_assumes():
-    # raw_range ignores range_variance; its density is relative.raw_range.noise_components, so a config for
+    # raw_range ignores range_variance; its density is its noise_components, so a config for
     # real data must reach it: a different density gives different raw_range estimates from the same draws.
     log = RangeLog("circle", *circle_scenario(seed=8, range_std=0.1, duration=40.0))
     table_two = replay(log, AgentParams(), runs=2, seed=6, names=("raw_range", "kf"))
-    narrow = replay(log, with_relative(raw_range={"noise_components": [(1.0, 0.0, 0.01)]}), runs=2, seed=6,
-                    names=("raw_range", "kf"))
+    narrow_density = {"name": "raw_range", "noise_components": [(1.0, 0.0, 0.01)]}
+    narrow = replay(log, with_relative(estimator=narrow_density), runs=2, seed=6, names=("raw_range", "kf"))
     other_variance = replay(log, with_relative(range_variance=0.01), runs=2, seed=6, names=("raw_range", "kf"))
     assert not np.array_equal(table_two.rmse("raw_range"), narrow.rmse("raw_range"))
     np.testing.assert_array_equal(table_two.rmse("kf"), narrow.rmse("kf"))
@@ -330,7 +332,7 @@ def test_same_seed_same_errors_and_another_seed_differs():
     first = replay(log, AgentParams(), runs=3, seed=11)
     again = replay(log, AgentParams(), runs=3, seed=11)
     other = replay(log, AgentParams(), runs=3, seed=12)
-    for name in ESTIMATOR_NAMES:
+    for name in estimator_names():
         for summary in ("rmse", "spread"):
             np.testing.assert_array_equal(getattr(first, summary)(name), getattr(again, summary)(name))
             assert not np.array_equal(getattr(first, summary)(name), getattr(other, summary)(name))
@@ -384,8 +386,8 @@ def test_cli_config_sets_the_noise_and_the_truth_variance_is_labelled(tmp_path, 
     t, ranges, a, b = circle_scenario(seed=3, range_std=0.1, duration=12.0)
     csv_path = write_csv(tmp_path / "walk.csv", t, ranges, a, b)
     config = tmp_path / "real.yaml"
-    config.write_text("relative:\n  range_variance: 0.04\n  raw_range:\n    noise_components: [[1.0, 0.1, 0.02]]\n"
-                      "    bias_variance: 0.01\n", encoding="utf-8")
+    config.write_text("relative:\n  range_variance: 0.04\n  estimator:\n    name: raw_range\n"
+                      "    noise_components: [[1.0, 0.1, 0.02]]\n    bias_variance: 0.01\n", encoding="utf-8")
     assert cli.main(["replay", str(csv_path), "--runs", "1", "--out", str(tmp_path), "--params", str(config)]) == 0
     printed = capsys.readouterr().out
     assert f"range noise: from the config {config}, not from the ground truth" in printed

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from agent.config import updated
-from agent.core.estimators import ESTIMATORS, RawRange, make_relative_estimator
+from agent.core.estimators import RawRange, estimator_class, make_relative_estimator
 from agent.core.params import RelativeEstimationParams
 
 DT = 0.1
@@ -24,8 +24,7 @@ NO_PRIOR = 1e12 * np.eye(2)     # "position unknown": the prior carries no infor
 
 
 def params(components=TABLE_II, **raw) -> RelativeEstimationParams:
-    base = RelativeEstimationParams(estimator="raw_range")
-    return updated(base, raw_range=updated(base.raw_range, noise_components=components, **raw))
+    return RelativeEstimationParams(estimator={"name": "raw_range", "noise_components": components, **raw})
 
 
 def circle(seconds: float, radius: float = 10.0, rate: float = math.pi / 30, phase: float = 0.0) -> np.ndarray:
@@ -50,7 +49,7 @@ def run(estimator, path: np.ndarray, ranges: np.ndarray, start: int = 1, until: 
 
 
 def test_registered_and_made_by_name():
-    assert ESTIMATORS["raw_range"] is RawRange
+    assert estimator_class("raw_range") is RawRange
     estimator = make_relative_estimator(params(), (0.0, 0.0), NO_PRIOR)
     assert isinstance(estimator, RawRange) and estimator.ambiguous
 
@@ -160,7 +159,7 @@ def test_a_batch_solve_reaches_the_minimum_an_independent_minimiser_finds(start_
     from scipy.optimize import minimize
 
     from agent.core.estimators.range_density import RangeDensity
-    from agent.core.estimators.raw_range import BatchWindow
+    from agent.core.estimators.raw_range_batch import BatchWindow
 
     rng = np.random.default_rng(11)
     path = circle(12.0)
@@ -180,7 +179,7 @@ def test_a_batch_solve_reaches_the_minimum_an_independent_minimiser_finds(start_
 @pytest.mark.parametrize("a11, a12, a22", [(3.0, 1.0, 2.0), (1.0, 0.0, 4.0), (4.0, 0.0, 1.0), (2.0, -1.5, 2.0),
                                            (1.0, 1e-12, 1.0 + 1e-9), (5e-3, 2e-3, 1e-3)])
 def test_principal_axes_against_numpy(a11, a12, a22):
-    from agent.core.estimators.raw_range import _axes
+    from agent.core.estimators.raw_range_batch import _axes
 
     values, vectors = np.linalg.eigh([[a11, a12], [a12, a22]])
     for (value, vx, vy), k in zip(_axes(a11, a12, a22), (1, 0)):
@@ -206,7 +205,7 @@ class _QuadraticCost:
 def test_the_fix_covariance_is_widened_to_the_cost_and_never_narrowed(scales, expected):
     # The claimed covariance C and a cost that is Gaussian with each principal variance of C scaled: the
     # check reads the scale off the cost 4 standard deviations out, widens by it, and never narrows.
-    from agent.core.estimators.raw_range import BatchWindow
+    from agent.core.estimators.raw_range_batch import BatchWindow
 
     angle = 0.4
     axes = np.array([[math.cos(angle), -math.sin(angle)], [math.sin(angle), math.cos(angle)]])
@@ -223,7 +222,7 @@ def test_a_skewed_noise_fix_is_widened_by_its_cost_written_out():
     # numpy's axes, the cost written out (_window_cost) 4 standard deviations out on each side,
     # lam * 8 / (the smaller rise) where that exceeds lam.
     from agent.core.estimators.range_density import RangeDensity
-    from agent.core.estimators.raw_range import BatchWindow
+    from agent.core.estimators.raw_range_batch import BatchWindow
 
     skewed = ((0.5, -0.1, 0.01), (0.3, 0.2, 0.04), (0.2, 0.9, 0.5))
     rng = np.random.default_rng(4)
@@ -403,7 +402,7 @@ def _first_solve(every: int, seconds: float = 30.0) -> float:
 
 
 def test_a_sensor_slower_than_the_tick_solves_first_when_one_at_the_tick_does():
-    raw = params().raw_range
+    raw = params().estimator
     stagger = int(np.linalg.norm(circle(0.0)[0]) * 1e3) % raw.solve_every
     at_tick = _first_solve(1)
     assert at_tick == pytest.approx((raw.min_ranges - 1 + stagger) * DT)
@@ -455,7 +454,7 @@ def test_once_fixed_a_range_updates_mean_and_covariance_as_a_second_order_ekf_st
                                rtol=0, atol=1e-12)
     # The covariance shrinks by the EKF step times the sandwich share I / I_f (I_f = 1 / s2), with I as this
     # update left it.
-    share = estimator._info * s2
+    share = estimator.state.sandwich[2] * s2
     assert 0.5 < share <= 1.0
     np.testing.assert_allclose(estimator.covariance, covariance - share * np.outer(gain, covariance @ u),
                                rtol=0, atol=1e-12)
@@ -609,7 +608,45 @@ def test_with_the_exact_log_normal_a_saved_and_restored_estimator_continues_iden
 def test_a_bad_log_normal_is_refused_by_the_parameters(bad):
     from pydantic import ValidationError
 
-    from agent.core.params import RawRangeParams
+    from agent.core.estimators.raw_range import RawRangeParams
 
     with pytest.raises(ValidationError):
         RawRangeParams(tracking_lognormal=bad)
+
+
+@pytest.mark.parametrize("epochs", [30, 250])
+def test_the_state_is_frozen_and_saved_field_by_field(epochs):
+    """The snapshot's extra data is RawRangeState's fields by name, and reads back to an equal state; the
+    update leaves the state it was given as it was (a new state each time)."""
+    from agent.core.estimators.raw_range import RawRangeState
+
+    path = circle(30.0)
+    ranges = np.linalg.norm(path, axis=1) + gmm(np.random.default_rng(5), len(path))
+    estimator = run(RawRange(params(), (0.0, 0.0), NO_PRIOR), path, ranges, until=epochs)
+    state = estimator.state
+    saved = json.loads(json.dumps(estimator.export_state()))["extra"]
+    assert tuple(saved) == RawRangeState._fields
+    with pytest.raises(AttributeError):
+        state.fixed = not state.fixed
+    copy = RawRange(params(), (1.0, 2.0), np.eye(2))
+    copy.restore_state(json.loads(json.dumps(estimator.export_state())))
+    assert copy.state == state and copy.state.window == state.window
+    assert (state.fixed, len(state.window) > 0) == ((True, False) if epochs == 250 else (False, True))
+    estimator.predict(path[epochs] - path[epochs - 1])
+    estimator.update(ranges[epochs - 1], ranges[epochs])
+    assert estimator.state is not state and copy.state == state
+
+
+def test_a_snapshot_of_the_hand_written_format_before_the_bias_state_restores():
+    """A snapshot saved before `unsolved_ticks` and `bias` were kept: the ticks are the range count, b its
+    prior."""
+    estimator = RawRange(params(bias_variance=0.04), (3.0, 4.0), np.eye(2))
+    data = json.loads(json.dumps(estimator.export_state()))
+    extra = data["extra"]
+    extra.update(unsolved=7, window=[[5.0, 0.1, 0.2]], evidence=None, mirror=[1.0, -2.0])
+    del extra["unsolved_ticks"], extra["bias"]
+    estimator.restore_state(data)
+    state = estimator.state
+    assert (state.unsolved, state.unsolved_ticks, state.window, state.mirror) == (7, 7.0, ((5.0, 0.1, 0.2),),
+                                                                                   (1.0, -2.0))
+    assert state.evidence == math.inf and state.bias == (0.0, 0.0, 0.0, 0.04)

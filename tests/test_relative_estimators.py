@@ -9,16 +9,16 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from agent.core.estimators import ESTIMATORS, make_relative_estimator
+from agent.core.estimators import estimator_names, make_relative_estimator
 from agent.core.estimators.akf import sage_husa_scale
 from agent.core.estimators.huber_rls import huber_weight
 from agent.core.estimators.kf import kf_correct
 from agent.core.estimators.mckf import mckf_correct
 from agent.core.estimators.pseudolinear import equivalent_noise_variance, pseudo_measurement
 from agent.core.estimators.rls import rls_correct
-from agent.core.params import MckfParams, RelativeEstimationParams
+from agent.core.params import RelativeEstimationParams
 
-ALL = sorted(ESTIMATORS)
+ALL = sorted(estimator_names())
 
 
 def circling_pair(steps: int, dt: float = 0.1, radius: float = 5.0, omega: float = math.pi / 30):
@@ -161,7 +161,7 @@ def test_mckf_ignores_a_gross_outlier():
 @given(seed=st.integers(0, 2**32 - 1))
 def test_mckf_with_huge_bandwidths_equals_kf(seed):
     rng = np.random.default_rng(seed)
-    huge = RelativeEstimationParams(mckf=MckfParams(bandwidths=(1e12, 1e12, 1e12)))
+    huge = RelativeEstimationParams(estimator={"name": "mckf", "bandwidths": (1e12, 1e12, 1e12)})
     start = rng.normal(0, 10, 2)
     mckf = make_relative_estimator(huge, start, name="mckf")
     kf = make_relative_estimator(huge, start, name="kf")
@@ -207,7 +207,7 @@ def test_rls_without_forgetting_on_exact_data_leaves_only_the_prior_error():
     """lambda = 1 and exact ranges: RLS is least squares with a prior, so the final error is exactly
     (P0^-1 + sum delta delta^T)^-1 P0^-1 e0."""
     truth, displacement = circling_pair(200)
-    params = RelativeEstimationParams(rls={"forgetting_factor": 1.0})
+    params = RelativeEstimationParams(estimator={"name": "rls", "forgetting_factor": 1.0})
     initial_error = np.array([4.0, -3.0])
     est = make_relative_estimator(params, truth[0] + initial_error, name="rls")
     est.mark_range_epoch()

@@ -187,4 +187,4 @@ def test_fleet_bench_puts_every_vessel_on_the_estimator_asked_for(tiny):
     for name in ("kf", "raw_range"):
         built = fleet_scenarios(spec.base, variants, [4, 5], 1.0, 50, name)
         assert [n for n, *_ in built] == [4, 5]
-        assert {s.agent_params().relative.estimator for _, s, _, _ in built} == {name}
+        assert {s.agent_params().relative.estimator.name for _, s, _, _ in built} == {name}

@@ -208,7 +208,7 @@ def test_replay_with_other_settings_changes_the_outputs(fleet_run, tmp_path):
     result = run_summary(load_run(tmp_path / "kf.mcap"))["vessels"]["1"]
     assert result["ticks"] == TICKS
     log = read_log(tmp_path / "kf.mcap")
-    assert json.loads(log.metadata["settings"])["agent"]["relative"]["estimator"] == "kf"
+    assert json.loads(log.metadata["settings"])["agent"]["relative"]["estimator"] == {"name": "kf"}
     changed = replay(folder / "agent-1.mcap", tmp_path / "kf2.mcap", {"relative": {"estimator": "kf"}})
     assert changed.estimates_identical < TICKS
 

@@ -222,8 +222,8 @@ def test_fit_noise_from_your_own_csvs(tmp_path, capsys):
     params = load_yaml(AgentParams, out)
     # The three runs' means (0.05, 0.15, 0.10 up to the noise's 0.03 / sqrt(600) and the CSV's millimetres):
     # sample variance 0.0025.
-    assert params.relative.raw_range.bias_variance == pytest.approx(0.0025, rel=0.1)
-    ((_, mean, variance),) = params.relative.raw_range.noise_components
+    assert params.relative.params_of("raw_range").bias_variance == pytest.approx(0.0025, rel=0.1)
+    ((_, mean, variance),) = params.relative.params_of("raw_range").noise_components
     assert mean == pytest.approx(0.10, abs=0.005) and variance == pytest.approx(0.0009, rel=0.15)
     assert "the replay CSVs cal0.csv, cal1.csv, cal2.csv (3 runs, 1800 ranges)" in out.read_text(encoding="utf-8")
     # A data set takes one checkout; a bad CSV is a clear error.
@@ -246,7 +246,7 @@ def test_sensor_config_text_is_a_valid_agent_config(tmp_path):
     path = tmp_path / "murp.yaml"
     path.write_text(text, encoding="utf-8")
     params = load_yaml(AgentParams, path)
-    raw = params.relative.raw_range
+    raw = params.relative.params_of("raw_range")
     assert raw.noise_components == ((0.75, 0.1, 0.01), (0.25, -0.05, 2e-05))   # 2e-05 read as a number
     assert raw.bias_variance == pytest.approx(0.004)
     # 0.75 (0.01 + 0.01) + 0.25 (0.00002 + 0.0025) - 0.0625^2, plus the biases' variance
@@ -259,10 +259,12 @@ def test_sensor_config_text_is_a_valid_agent_config(tmp_path):
 def test_committed_sensor_configs_set_the_noise_and_nothing_else(dataset):
     path = REPO / "configs" / "uwb" / f"{dataset}.yaml"
     params = load_yaml(AgentParams, path)
-    raw = params.relative.raw_range
-    assert raw.bias_variance > 0.0 and raw.noise_components != AgentParams().relative.raw_range.noise_components
-    assert read_yaml(path) == {"relative": {"range_variance": params.relative.range_variance, "raw_range": {
-        "noise_components": [list(c) for c in raw.noise_components], "bias_variance": raw.bias_variance}}}
+    raw = params.relative.params_of("raw_range")
+    assert raw.bias_variance > 0.0
+    assert raw.noise_components != AgentParams().relative.params_of("raw_range").noise_components
+    assert read_yaml(path) == {"relative": {"range_variance": params.relative.range_variance, "estimator": {
+        "name": "raw_range", "noise_components": [list(c) for c in raw.noise_components],
+        "bias_variance": raw.bias_variance}}}
     assert uwb.CALIBRATION[dataset] in path.read_text(encoding="utf-8")
 
 

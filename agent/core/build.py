@@ -7,7 +7,7 @@ import numpy as np
 from pydantic import Field
 
 from agent.config import PositiveFloat, StrictModel
-from agent.core.estimators import PLKF
+from agent.core.estimators.plkf import PLKF
 from agent.core.neighbours import History, NeighbourPrior
 from agent.core.params import AgentParams
 from agent.core.state import Health, OwnMotion, VesselState

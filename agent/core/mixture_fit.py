@@ -1,5 +1,5 @@
 """A Gaussian mixture fitted by EM to weighted samples: the raw-range estimator's noise density
-(`relative.raw_range.noise_components`) from samples of a noise model (agent/core/range_noise.py) or from
+(raw_range's `noise_components`) from samples of a noise model (agent/core/range_noise.py) or from
 calibration ranges (lab/experiments/uwb_datasets.py)."""
 
 from __future__ import annotations

@@ -3,7 +3,7 @@
 - `GaussianNoise`: N(0, R), for tests and baselines ((7) with eps = 0).
 - `GaussianMixtureNoise`, (7): (1 - eps) N(0, R) + eps N(0, R_outlier).
 - `MixtureNoise`: sum_k w_k N(m_k, v_k), what a calibration writes (`usv-lab fit-noise`, configs/uwb/) and the
-  raw-range estimator's density (`relative.raw_range.noise_components` are its components).
+  raw-range estimator's density (raw_range's `noise_components` are its components).
 - `LogNormalNoise`, (8): ln(mu + r_s) ~ N(0, R), as written, so with mean exp(R / 2) - r_s.
 
 Each is a frozen pydantic model with a `kind` tag (YAML), its `mean` and `total_variance`,

@@ -15,7 +15,8 @@ from __future__ import annotations
 import numpy as np
 
 from agent.core.checks import checked_share
-from agent.core.estimators import PLKF, make_relative_estimator
+from agent.core.estimators import make_relative_estimator
+from agent.core.estimators.plkf import PLKF
 from agent.core.neighbours import History, NeighbourPrior, NeighbourTrack, PairTiming
 from agent.core.params import AgentParams
 from agent.core.records import floats, share_from_json, share_to_json

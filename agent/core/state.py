@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from agent.core.estimators import PLKF
+from agent.core.estimators.plkf import PLKF
 from agent.core.neighbours import History, NeighbourPrior, NeighbourTrack
 
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from agent.core.estimators import PLKF
+from agent.core.estimators.plkf import PLKF
 from agent.core.params import AgentParams
 from agent.core.records import BearingOutcome
 from agent.core.state import VesselState

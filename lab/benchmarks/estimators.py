@@ -56,10 +56,11 @@ from pathlib import Path
 import numpy as np
 
 from agent.config import updated
-from agent.core.estimators import PLKF, make_relative_estimator
+from agent.core.estimators import estimator_names, make_relative_estimator
+from agent.core.estimators.plkf import PLKF
 from agent.core.estimators.pseudolinear import equivalent_noise_variance, pseudo_measurement
 from agent.core.estimators.raw_range import NO_PRIOR_VARIANCE
-from agent.core.params import ESTIMATOR_NAMES, AgentParams, RelativeEstimationParams
+from agent.core.params import AgentParams, RelativeEstimationParams
 from agent.core.range_noise import GaussianMixtureNoise
 from lab import arguments
 from lab.experiments.comparison import ComparisonConfig, relative_trajectory
@@ -225,7 +226,7 @@ class Setup:
         return f"{self.name}, cold start" if self.cold else self.name
 
 
-SINGLE_SETUPS = (*(Setup(name) for name in ESTIMATOR_NAMES), Setup(DEFAULT, cold=True))
+SINGLE_SETUPS = (*(Setup(name) for name in estimator_names()), Setup(DEFAULT, cold=True))
 BANK_SETUPS = (Setup(PAPER), Setup(DEFAULT), Setup(DEFAULT, cold=True))
 
 

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from agent.config import ConfigError, deep_merge, parse_mapping
-from agent.core.params import ESTIMATOR_NAMES
+from agent.core.estimators import estimator_names
 from lab import arguments
 from lab.experiments.scenarios import DEFAULT_DIR, load, resolve, run_monte_carlo
 from lab.harness.parallel import add_engine_arguments, campaign_notes, engine_from, report_failures
@@ -48,7 +48,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scale", default="table4_scale", metavar="NAME",
                         help="scenario file whose base and positions part (b) starts from")
     parser.add_argument("--scenarios-dir", type=Path, default=DEFAULT_DIR, help="where NAMEs are looked up")
-    parser.add_argument("--estimators", nargs="+", choices=ESTIMATOR_NAMES, default=["mckf", "raw_range"],
+    parser.add_argument("--estimators", nargs="+", choices=estimator_names(), default=["mckf", "raw_range"],
                         help="pair estimators of the tick-time part (default: the paper's and the agent's)")
 
 

@@ -7,7 +7,7 @@ import time
 from pathlib import Path
 
 from agent.config import load_yaml, updated
-from agent.core.params import ESTIMATOR_NAMES
+from agent.core.estimators import estimator_names
 from lab import arguments
 from lab.experiments.comparison import (
     LS_TIMES,
@@ -195,7 +195,7 @@ def _nees_cell(value: float, low: float, high: float) -> str:
 def _noise_section(config: ComparisonConfig, result: ComparisonResult, figure: str) -> str:
     averages = {n: result.time_averaged_rmse(n) for n in config.estimators}
     # The paper's claim is about its five pseudo-linear estimators; the raw-range one is not in it.
-    paper = {n: v for n, v in averages.items() if n in ESTIMATOR_NAMES} or averages
+    paper = {n: v for n, v in averages.items() if n in estimator_names()} or averages
     lowest, highest = min(paper, key=paper.get), max(paper, key=paper.get)
     overall = min(averages, key=averages.get)
     model = config.noise_models[result.noise_name]
@@ -216,7 +216,7 @@ def _noise_section(config: ComparisonConfig, result: ComparisonResult, figure: s
         f"{'holds' if (lowest, highest) == ('mckf', 'rls') else 'does not hold'} here.",
         "",
         f"MCKF fixed-point iterations per update: mean {result.mean_iterations:.2f}, max {result.iteration_max} "
-        f"(L_max = {config.agent.relative.mckf.max_iterations}).",
+        f"(L_max = {config.agent.relative.params_of('mckf').max_iterations}).",
         "",
         f"Offline reference, unweighted batch least squares of all equations (12) so far (RMSE over runs): "
         f"{ls_rmse}.",

@@ -17,8 +17,8 @@ from scipy.stats import chi2
 
 from agent.config import PositiveFloat, StrictModel, updated
 from agent.core.checks import valid_range
-from agent.core.estimators import make_relative_estimator
-from agent.core.params import ESTIMATOR_NAMES, AgentParams, RelativeEstimationParams
+from agent.core.estimators import estimator_names, make_relative_estimator
+from agent.core.params import AgentParams, RelativeEstimationParams
 from agent.core.range_noise import GaussianMixtureNoise, LogNormalNoise, RangeNoise
 from lab.experiments.bound import fisher_information, rms_bound
 from lab.harness.errors import ErrorHistory, RunningMoments, moments_by_name
@@ -45,7 +45,8 @@ class ComparisonConfig(StrictModel):
     variance_scale: PositiveFloat = Field(
         1.0, description="multiplies the filters' range variance; 1 is the derivation, others diagnose"
     )
-    estimators: tuple[str, ...] = ESTIMATOR_NAMES
+    estimators: tuple[str, ...] = Field(default_factory=estimator_names,
+                                        description="the estimators compared (default: all)")
     agent: AgentParams = AgentParams()
 
 
@@ -146,13 +147,15 @@ def filter_range_variance(noise: RangeNoise, config: ComparisonConfig) -> float:
     return base * config.variance_scale
 
 
-def filter_relative(noise: RangeNoise, config: ComparisonConfig) -> RelativeEstimationParams:
-    """The relative-estimation parameters every estimator of a run is given, as `config.filter_noise` says:
-    assuming the run's noise model, or as configured with R_z's range variance x variance_scale."""
+def filter_relative(noise: RangeNoise, config: ComparisonConfig, name: str | None = None
+                    ) -> RelativeEstimationParams:
+    """The relative-estimation parameters estimator `name` (default: the configured one) is given in a run, as
+    `config.filter_noise` says: assuming the run's noise model, or as configured with R_z's range variance
+    x variance_scale."""
     relative = config.agent.relative
     if config.filter_noise == "configured":
         return updated(relative, range_variance=filter_range_variance(noise, config))
-    return assumed_relative(relative, noise, config.variance_scale, raw_range="raw_range" in config.estimators)
+    return assumed_relative(relative, noise, config.variance_scale, estimator=name)
 
 
 def run_once(config: ComparisonConfig, noise: RangeNoise, seed_sequence: np.random.SeedSequence
@@ -171,11 +174,11 @@ def run_once(config: ComparisonConfig, noise: RangeNoise, seed_sequence: np.rand
     displacement = measured_own - measured_other
     initial = truth[0] + rng.normal(0.0, math.sqrt(relative.initial_covariance), size=2)
 
-    params = filter_relative(noise, config)
     errors = np.empty((len(config.estimators), steps + 1))
     nees = np.empty((len(config.estimators), steps + 1))
     iterations = np.zeros(steps, dtype=np.int16)
     for e, name in enumerate(config.estimators):
+        params = filter_relative(noise, config, name)
         estimator = make_relative_estimator(params, initial, dt=config.agent.dt, name=name)
         errors[e, 0] = math.hypot(*(initial - truth[0]))
         nees[e, 0] = _nees(initial - truth[0], estimator.covariance)

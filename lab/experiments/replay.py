@@ -15,7 +15,7 @@ Each Monte Carlo run draws its own displacement noise and its own initial estima
 p0 ~ N(p(t0), P0) from one child of `SeedSequence(seed)`; every estimator of a run sees the same numbers.
 
 The filters' range noise comes from the agent parameters (`--config`), as on a boat: the pseudo-linear filters'
-variance `relative.range_variance` and raw_range's density `relative.raw_range.noise_components`.
+variance `relative.range_variance` and raw_range's density, `noise_components` of its parameters.
 `--range-variance` overrides the pseudo-linear variance only. `--truth-variance` instead gives every filter
 the sample variance of this file's residuals against its ground truth, range - |a - b| (raw_range: one
 zero-mean Gaussian of that variance, its gross-error component kept): that tunes the filters on the truth
@@ -39,8 +39,8 @@ from pathlib import Path
 import numpy as np
 
 from agent.config import ConfigError, load_yaml, updated
-from agent.core.estimators import make_relative_estimator
-from agent.core.params import ESTIMATOR_NAMES, AgentParams, RelativeEstimationParams
+from agent.core.estimators import EstimatorParams, estimator_names, make_relative_estimator
+from agent.core.params import AgentParams, RelativeEstimationParams
 from lab import arguments
 from lab.harness.errors import ErrorHistory, RunningMoments, moments_by_name
 from lab.harness.parallel import Engine, add_engine_arguments, campaign_notes, engine_from, report_failures
@@ -238,18 +238,18 @@ def filter_params(params: AgentParams, range_variance: float) -> RelativeEstimat
             f"range variance must be a positive finite number, got {range_variance!r}") from None
 
 
-def truth_params(params: AgentParams, variance: float) -> RelativeEstimationParams:
+def truth_params(params: AgentParams, variance: float) -> tuple[RelativeEstimationParams, EstimatorParams]:
     """Every filter given `variance`: the pseudo-linear range variance, and raw_range's density as one
     zero-mean Gaussian of it (its gross-error component, a model of faults, kept from the config)."""
     relative = filter_params(params, variance)
-    raw = updated(relative.raw_range, noise_components=((1.0, 0.0, variance),))
-    return updated(relative, raw_range=raw)
+    return relative, updated(relative.params_of("raw_range"), noise_components=((1.0, 0.0, variance),))
 
 
 def noise_params(
     log: RangeLog, params: AgentParams, range_variance: float | None, truth_variance: bool
-) -> tuple[RelativeEstimationParams, str]:
-    """The relative-estimation parameters the filters run with, and where their noise came from."""
+) -> tuple[RelativeEstimationParams, EstimatorParams, str]:
+    """The relative-estimation parameters the filters run with, raw_range's own, and where their noise came
+    from."""
     if truth_variance and range_variance is not None:
         raise ConfigError("give either a range variance or the truth-derived variance, not both")
     if truth_variance:
@@ -258,15 +258,16 @@ def noise_params(
             raise ConfigError(
                 f"{log.source}: the ranges match the ground truth exactly (residual variance "
                 f"{residual_variance:g} m^2), so no range variance can be derived from the truth")
-        return truth_params(params, residual_variance), NOISE_TRUTH
+        return (*truth_params(params, residual_variance), NOISE_TRUTH)
     if range_variance is not None:
-        return filter_params(params, range_variance), NOISE_GIVEN
-    return params.relative, NOISE_CONFIG
+        relative = filter_params(params, range_variance)
+        return relative, relative.params_of("raw_range"), NOISE_GIVEN
+    return params.relative, params.relative.params_of("raw_range"), NOISE_CONFIG
 
 
 def run_estimators(
     log: RangeLog, relative: RelativeEstimationParams, dt: float, displacement: np.ndarray,
-    initial: np.ndarray, names: Sequence[str],
+    initial: np.ndarray, names: Sequence[str], raw_range: EstimatorParams | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Every estimator of `names` through the log once: errors (estimators, N) and rejections (estimators,).
 
@@ -274,6 +275,7 @@ def run_estimators(
     update is refused the last accepted range stays the earlier range of the next pair, and the estimator
     keeps accumulating displacement since that epoch, so the pair still covers exactly its interval. Should
     the first ranges themselves be unusable (beyond max_range), the first usable one opens the sequence.
+    raw_range runs with `raw_range` as its parameters if given.
     """
     truth = log.truth
     intervals = np.diff(log.t) / dt
@@ -281,7 +283,8 @@ def run_estimators(
     errors = np.empty((len(names), len(log)))
     rejected = np.zeros(len(names), dtype=np.int64)
     for e, name in enumerate(names):
-        estimator = make_relative_estimator(relative, initial, dt=dt, name=name)
+        own = relative.selecting(raw_range) if name == "raw_range" and raw_range is not None else relative
+        estimator = make_relative_estimator(own, initial, dt=dt, name=name)
         last_range: float | None = None
         for k in range(len(log)):
             if k > 0:
@@ -311,6 +314,7 @@ class ReplayJob:
     dt: float
     names: tuple[str, ...]
     seed: np.random.SeedSequence
+    raw_range: EstimatorParams | None = None
 
 
 def replay_run(job: ReplayJob) -> tuple[np.ndarray, np.ndarray]:
@@ -318,7 +322,7 @@ def replay_run(job: ReplayJob) -> tuple[np.ndarray, np.ndarray]:
     rng = np.random.default_rng(job.seed)
     initial = job.log.truth[0] + rng.normal(0.0, math.sqrt(job.relative.initial_covariance), size=2)
     displacement = synthesise_displacements(job.log, job.relative.displacement_variance, job.dt, rng)
-    return run_estimators(job.log, job.relative, job.dt, displacement, initial, job.names)
+    return run_estimators(job.log, job.relative, job.dt, displacement, initial, job.names, job.raw_range)
 
 
 def replay(
@@ -327,7 +331,7 @@ def replay(
     runs: int = DEFAULT_RUNS,
     seed: int = DEFAULT_SEED,
     range_variance: float | None = None,
-    names: Sequence[str] = ESTIMATOR_NAMES,
+    names: Sequence[str] | None = None,
     progress: Callable[[int], None] | None = None,
     truth_variance: bool = False,
     engine: Engine | None = None,
@@ -347,16 +351,15 @@ def replay(
             raise RuntimeError(f"{here.failures[0].run} raised {here.failures[0].error}")
         return result
     bias, residual_variance = range_residual_stats(log)
-    relative, source = noise_params(log, params, range_variance, truth_variance)
-    names = tuple(names)
+    relative, raw, source = noise_params(log, params, range_variance, truth_variance)
+    names = tuple(names or estimator_names())
     result = RangeReplayResult(
         time=log.elapsed, moments=moments_by_name(names, len(log)), rejected=RunningMoments(len(names)),
         range_variance=float(relative.range_variance), noise_source=source, range_bias=bias,
         residual_variance=residual_variance,
-        raw_range_components=tuple(tuple(float(v) for v in c) for c in relative.raw_range.noise_components),
-        raw_range_gross=(float(relative.raw_range.gross_error_fraction),
-                         float(relative.raw_range.gross_error_variance)),
-        raw_range_bias_variance=float(relative.raw_range.bias_variance),
+        raw_range_components=tuple(tuple(float(v) for v in c) for c in raw.noise_components),
+        raw_range_gross=(float(raw.gross_error_fraction), float(raw.gross_error_variance)),
+        raw_range_bias_variance=float(raw.bias_variance),
     )
 
     def consume(_: int, output) -> None:
@@ -365,7 +368,8 @@ def replay(
             result.add_errors(errors)
             result.rejected.add(rejected)
 
-    jobs = [ReplayJob(log, relative, params.dt, names, child) for child in np.random.SeedSequence(seed).spawn(runs)]
+    jobs = [ReplayJob(log, relative, params.dt, names, child, raw)
+            for child in np.random.SeedSequence(seed).spawn(runs)]
     engine.map(replay_run, jobs, progress, lambda n: f"{log.source} run {n} (child {n} of seed {seed})",
                consume=consume)
     if engine.failures and result.runs == 0:

@@ -45,15 +45,16 @@ from pathlib import Path
 import numpy as np
 
 from agent.config import ConfigError, load_yaml, yaml_scalar
+from agent.core.estimators import estimator_names
 from agent.core.mixture_fit import em_mixture
-from agent.core.params import ESTIMATOR_NAMES, AgentParams
+from agent.core.params import AgentParams
 from lab import arguments
 from lab.experiments.replay import RangeLog, parse_csv, range_residuals, replay
 from lab.harness.parallel import Engine, add_engine_arguments, campaign_notes, engine_from, report_failures
 from lab.report.estimator_plots import LABELS
 from lab.report.markdown import markdown_table
 
-DEFAULT_ESTIMATOR = AgentParams().relative.estimator
+DEFAULT_ESTIMATOR = AgentParams().relative.estimator.name
 MANIFEST = "runs.csv"
 MANIFEST_COLUMNS = ("file", "condition", "kind", "source")
 # The agent takes at most one range per neighbour per tick: faster logs are thinned to one range per tick.
@@ -508,7 +509,8 @@ def sensor_config_text(sensor: str, calibration: str, noise: SensorNoise, argv: 
         "relative:",
         (f"  range_variance: {yaml_scalar(range_variance)}  # the residuals' variance, the runs' biases included "
          "(pseudo-linear filters)"),
-        "  raw_range:",
+        "  estimator:",
+        "    name: raw_range",
         (f"    noise_components: [{components}]  # (weight, mean m, variance m^2): EM fit to the residuals about "
          "each run's mean, each run weighted alike"),
         (f"    bias_variance: {yaml_scalar(bias_variance)}  # variance of the runs' mean residuals: a pair's "
@@ -547,8 +549,8 @@ def score(entry: Entry, params: AgentParams, runs: int, seed: int) -> Outcome:
     engine spreads the entries)."""
     log = parse_csv(entry.path)
     result = replay(log, params, runs=runs, seed=seed)
-    rmse = {name: result.time_averaged_rmse(name) for name in ESTIMATOR_NAMES}
-    late = {name: result.time_averaged_rmse(name, LATE) for name in ESTIMATOR_NAMES}
+    rmse = {name: result.time_averaged_rmse(name) for name in estimator_names()}
+    late = {name: result.time_averaged_rmse(name, LATE) for name in estimator_names()}
     interval = float(np.median(np.diff(log.t)))
     residual = range_residuals(log)
     spread = 1.4826 * float(np.median(np.abs(residual - np.median(residual))))
@@ -571,7 +573,7 @@ def _label(name: str) -> str:
 
 
 def _wins(outcomes: Sequence[Outcome]) -> dict[str, int]:
-    counts = dict.fromkeys(ESTIMATOR_NAMES, 0)
+    counts = dict.fromkeys(estimator_names(), 0)
     for outcome in outcomes:
         counts[outcome.winner] += 1
     return counts
@@ -598,19 +600,19 @@ def _summary(outcomes: Sequence[Outcome]) -> list[str]:
                 if group:
                     wins = _wins(group)
                     rows.append([dataset, condition, kind, len(group), *_residuals(group),
-                                 *(wins[n] for n in ESTIMATOR_NAMES)])
+                                 *(wins[n] for n in estimator_names())])
     wins = _wins(outcomes)
-    rows.append(["all", "", "", len(outcomes), *_residuals(outcomes), *(wins[n] for n in ESTIMATOR_NAMES)])
+    rows.append(["all", "", "", len(outcomes), *_residuals(outcomes), *(wins[n] for n in estimator_names())])
     header = ["data set", "condition", "kind", "runs", "median bias (m)*", "median spread (m)*",
-              *(f"{_label(n)} lowest" for n in ESTIMATOR_NAMES)]
+              *(f"{_label(n)} lowest" for n in estimator_names())]
     return [markdown_table(header, rows)]
 
 
 def _per_run(outcomes: Sequence[Outcome]) -> str:
     header = ["data set", "run", "cond.", "kind", "s", "ranges", "bias (m)*", "spread (m)*",
-              *(_label(n) for n in ESTIMATOR_NAMES), "lowest"]
+              *(_label(n) for n in estimator_names()), "lowest"]
     rows = [[o.entry.dataset, o.entry.path.stem, o.entry.condition, o.entry.kind, f"{o.duration:.0f}", o.ranges,
-             f"{o.bias:+.3f}", f"{o.spread:.3f}", *(o.rmse[n] for n in ESTIMATOR_NAMES), _label(o.winner)]
+             f"{o.bias:+.3f}", f"{o.spread:.3f}", *(o.rmse[n] for n in estimator_names()), _label(o.winner)]
             for o in outcomes]
     return markdown_table(header, rows)
 
@@ -675,7 +677,7 @@ def _config_comment(path: Path | None) -> list[str]:
 
 def _noise_words(params: AgentParams) -> str:
     """What a config tells the filters about the range noise, in one sentence."""
-    raw = params.relative.raw_range
+    raw = params.relative.params_of("raw_range")
     noise = " + ".join(f"{w:g} N({m:g}, {v:g})" for w, m, v in raw.noise_components)
     bias = (f", and a constant pair bias of prior variance {raw.bias_variance:g} m^2 estimated with the position"
             if raw.bias_variance > 0.0 else "")

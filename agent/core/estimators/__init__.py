@@ -1,4 +1,8 @@
-"""Relative position estimators between vessels (Sec. III-A) and the target tracker (Sec. III-B)."""
+"""Relative position estimators between vessels (Sec. III-A); the target tracker (Sec. III-B) is plkf.py.
+
+Every module of this package that defines an estimator registers it (registry.py); `estimator_names()` lists
+them and `make_relative_estimator` builds one by name.
+"""
 
 from __future__ import annotations
 
@@ -9,14 +13,15 @@ from agent.core.estimators.base import Diagnostics, RelativePositionEstimator, U
 from agent.core.estimators.huber_rls import HuberRLS
 from agent.core.estimators.kf import KF
 from agent.core.estimators.mckf import MCKF
-from agent.core.estimators.plkf import PLKF, BearingOutcome
 from agent.core.estimators.raw_range import RawRange
+from agent.core.estimators.registry import (
+    EstimatorParams,
+    RelativeEstimationParams,
+    estimator_class,
+    estimator_names,
+    register,
+)
 from agent.core.estimators.rls import RLS
-from agent.core.params import RelativeEstimationParams
-
-ESTIMATORS: dict[str, type[RelativePositionEstimator]] = {
-    cls.name: cls for cls in (RLS, HuberRLS, KF, AKF, MCKF, RawRange)
-}
 
 
 def make_relative_estimator(
@@ -26,22 +31,25 @@ def make_relative_estimator(
     dt: float = 0.1,
     name: str | None = None,
 ) -> RelativePositionEstimator:
-    """The estimator named by `name` (default: params.estimator), started at `position`."""
-    return ESTIMATORS[name or params.estimator](params, position, covariance, dt)
+    """The estimator named by `name` (default: the configured one, params.estimator), started at `position`;
+    it takes its own parameters from `params` if they are configured there, else its defaults."""
+    return estimator_class(name or params.estimator.name)(params, position, covariance, dt)
 
 
 __all__ = [
     "AKF",
-    "ESTIMATORS",
     "KF",
     "MCKF",
-    "PLKF",
     "RLS",
-    "BearingOutcome",
     "Diagnostics",
+    "EstimatorParams",
     "HuberRLS",
     "RawRange",
+    "RelativeEstimationParams",
     "RelativePositionEstimator",
     "UpdateOutcome",
+    "estimator_class",
+    "estimator_names",
     "make_relative_estimator",
+    "register",
 ]

@@ -14,8 +14,30 @@ because the raw Sage-Husa estimate can go negative (the usual 'modified Sage-Hus
 
 from __future__ import annotations
 
-from agent.core.estimators.base import RelativePositionEstimator, UpdateOutcome
+from typing import Literal
+
+from pydantic import Field, model_validator
+
+from agent.config import PositiveFloat
+from agent.core.estimators.base import UpdateOutcome
 from agent.core.estimators.kf import kf_correct
+from agent.core.estimators.pseudolinear_estimator import PseudoLinearEstimator
+from agent.core.estimators.registry import EstimatorParams, register
+
+
+class AkfParams(EstimatorParams):
+    """Sage-Husa noise estimation with a fading memory."""
+
+    name: Literal["akf"] = "akf"
+    fading_factor: float = Field(0.98, gt=0, lt=1, description="b: weight of the past in the noise estimate")
+    min_scale: PositiveFloat = Field(0.05, description="lower bound of the estimated noise scale")
+    max_scale: PositiveFloat = Field(1e3, description="upper bound of the estimated noise scale")
+
+    @model_validator(mode="after")
+    def _ordered(self) -> AkfParams:
+        if self.min_scale >= self.max_scale:
+            raise ValueError("min_scale must be below max_scale")
+        return self
 
 
 def sage_husa_scale(previous: float, count: int, fading: float, innovation: float, prior_spread: float,
@@ -26,11 +48,14 @@ def sage_husa_scale(previous: float, count: int, fading: float, innovation: floa
     return min(max((1.0 - d) * previous + d * raw, lower), upper)
 
 
-class AKF(RelativePositionEstimator):
+@register
+class AKF(PseudoLinearEstimator):
     """Kalman filter on (12) whose measurement-noise level (the scale on R_z of (14)) is estimated online
     (Sage-Husa, fading memory); prediction (15) in the base class."""
 
     name = "akf"
+    Params = AkfParams
+    table_order = 4
 
     def _reset_extra(self) -> None:
         self._scale = 1.0
@@ -43,7 +68,7 @@ class AKF(RelativePositionEstimator):
         self._scale, self._count = float(extra["scale"]), int(extra["count"])
 
     def _correct(self, z: float, dx: float, dy: float, rz: float) -> UpdateOutcome:
-        p = self.params.akf
+        p = self.params
         px, py, p11, p12, p22 = self._px, self._py, self._p11, self._p12, self._p22
         innovation = z - (dx * px + dy * py)
         prior_spread = dx * (p11 * dx + p12 * dy) + dy * (p12 * dx + p22 * dy)

@@ -1,16 +1,11 @@
-"""The one interface every inter-vessel relative position estimator offers.
+"""The interface every inter-vessel relative position estimator offers, and the prediction they share.
 
-Life of an estimator for the pair (i, j), state p_ij = p_i - p_j in R^2, (10):
-
-- `predict(displacement)` each time the relative displacement delta~_ij = delta~_i - delta~_j of (13) over
-  one odometry interval is known; the state moves by it, (15).
-- `update(range_prev, range_now)` at a range epoch: z of (13), R_z from (14), and the subclass's correction
-  with the measurement model (12). `range_prev` is the range measured at the previous range
-  epoch (the last accepted update, or `mark_range_epoch`), and the displacement used in (12) is the sum of
-  every displacement predicted since then, so it covers exactly the interval between the two range epochs
-  even when epochs are missed or irregular.
-- `position`, `covariance`, `diagnostics` to read; `reset` to start again.
-
+For the pair (i, j), state p_ij = p_i - p_j in R^2, (10):
+- `predict(displacement)` moves the state by the relative displacement delta~_ij of (13) over one odometry
+  interval, (15), and accumulates it since the last range epoch;
+- `update(range_prev, range_now)` corrects with a range pair (the subclass's measurement model);
+- `position`, `covariance`, `moments`, `diagnostics` read; `reset`, `assimilate`, `mark_range_epoch`,
+  `export_state` / `restore_state` (agent/core/snapshot.py) manage it.
 Inputs are checked before they touch the state: a non-finite displacement, or a range that is non-finite,
 negative or beyond `max_range`, is refused, counted, and leaves the state as it was.
 """
@@ -20,16 +15,12 @@ from __future__ import annotations
 import math
 from abc import ABC, abstractmethod
 from dataclasses import asdict, dataclass, field
+from typing import ClassVar
 
 import numpy as np
 
-from agent.core.estimators.pseudolinear import (
-    equivalent_noise_variance,
-    is_positive_definite,
-    pseudo_measurement,
-    range_pair_noise_variance,
-)
-from agent.core.params import RelativeEstimationParams
+from agent.core.estimators.pseudolinear import is_positive_definite
+from agent.core.estimators.registry import EstimatorParams, RelativeEstimationParams
 
 
 @dataclass(frozen=True, slots=True)
@@ -74,19 +65,23 @@ class Diagnostics:
 
 
 class RelativePositionEstimator(ABC):
-    """Base of the five estimators of p_ij (10): the prediction (15) is shared, subclasses provide the
-    correction step on (12)."""
+    """Base of every estimator of p_ij (10): the prediction (15) and the reading are shared, subclasses
+    provide `update`. A subclass declares `name` and its own `Params` and is made selectable by `@register`
+    (registry.py); `self.params` are its own parameters, `self.relative` those every estimator shares."""
 
-    name: str = ""
+    name: ClassVar[str] = ""
+    Params: ClassVar[type[EstimatorParams]]
+    table_order: ClassVar[float] = math.inf   # where it stands in lists and tables (the paper's Table II)
 
     def __init__(
         self,
-        params: RelativeEstimationParams,
+        relative: RelativeEstimationParams,
         position: np.ndarray | tuple[float, float],
         covariance: np.ndarray | None = None,
         dt: float = 0.1,
     ) -> None:
-        self.params = params
+        self.relative = relative
+        self.params = relative.params_of(self.name)
         self.dt = dt
         self.reset(position, covariance)
 
@@ -113,7 +108,7 @@ class RelativePositionEstimator(ABC):
         """Start again from `position` with `covariance` (default: initial_covariance * I)."""
         px, py = (float(v) for v in np.asarray(position, dtype=float).reshape(2))
         if covariance is None:
-            p11 = p22 = self.params.initial_covariance
+            p11 = p22 = self.relative.initial_covariance
             p12 = 0.0
         else:
             c = np.asarray(covariance, dtype=float).reshape(2, 2)
@@ -170,7 +165,7 @@ class RelativePositionEstimator(ABC):
         self._pair_dx += dx
         self._pair_dy += dy
         self._pair_steps += intervals
-        self._inflate(2.0 * self.params.displacement_variance * intervals)
+        self._inflate(2.0 * self.relative.displacement_variance * intervals)
         self._diag.predictions += 1
         return True
 
@@ -180,26 +175,10 @@ class RelativePositionEstimator(ABC):
         self._p22 += variance
 
     # ----- correction -----
+    @abstractmethod
     def update(self, range_prev: float, range_now: float) -> UpdateOutcome:
-        """Correct with the range pair (r~_{k-1}, r~_k) and the displacement accumulated since r~_{k-1}:
-        z of (13), its noise variance R_z from (14), then `_correct` on the measurement model (12)."""
-        range_prev, range_now = _as_range(range_prev, self.params.max_range), _as_range(
-            range_now, self.params.max_range)
-        if math.isnan(range_prev) or math.isnan(range_now):
-            self._diag.rejected += 1
-            return self._record(UpdateOutcome(accepted=False, reason=REJECTED_RANGE))
-        dx, dy = self._pair_dx, self._pair_dy
-        z = pseudo_measurement(range_prev, range_now, dx, dy)
-        displacement_variance = 2.0 * self.params.displacement_variance * self._pair_steps
-        if self.params.noise_ranges == "measured":
-            rz = range_pair_noise_variance(range_now, range_prev, self.params.range_variance,
-                                           displacement_variance)
-        else:
-            rz = equivalent_noise_variance(self._px, self._py, dx, dy, self.params.range_variance,
-                                           displacement_variance)
-        saved = (self._px, self._py, self._p11, self._p12, self._p22)
-        outcome = self._correct(z, dx, dy, rz)
-        return self._settle(saved, outcome)
+        """Correct with the range pair (r~_{k-1}, r~_k) and the displacement accumulated since r~_{k-1}
+        (the range of the last accepted update, or of `mark_range_epoch`)."""
 
     def _settle(self, saved: tuple[float, ...], outcome: UpdateOutcome) -> UpdateOutcome:
         """After a correction: keep it if the state is finite and its covariance SPD, else put `saved` back
@@ -217,12 +196,8 @@ class RelativePositionEstimator(ABC):
         self._diag.last = outcome
         return outcome
 
-    @abstractmethod
-    def _correct(self, z: float, dx: float, dy: float, rz: float) -> UpdateOutcome:
-        """Apply the measurement (12), z = (dx, dy)^T p + mu_z, Var mu_z = rz, to the state in place."""
-
     def _reset_extra(self) -> None:
-        """Subclasses with extra state (AKF, Huber-RLS) clear it here."""
+        """Subclasses with extra state (AKF, Huber-RLS, RawRange) clear it here."""
 
     # ----- saving and restoring (agent/core/snapshot.py) -----
     def export_state(self) -> dict:

@@ -11,12 +11,24 @@ from __future__ import annotations
 
 import statistics
 from collections import deque
+from typing import Literal
 
+from pydantic import Field
+
+from agent.config import PositiveFloat
 from agent.core.estimators.base import UpdateOutcome
+from agent.core.estimators.registry import EstimatorParams, register
 from agent.core.estimators.rls import RLS, rls_correct
 
 MAD_TO_SIGMA = 1.4826
 MIN_RESIDUALS_FOR_SCALE = 5
+
+
+class HuberRlsParams(EstimatorParams):
+    name: Literal["huber_rls"] = "huber_rls"
+    forgetting_factor: float = Field(0.99, gt=0, le=1, description="lambda of exponentially weighted RLS")
+    threshold: PositiveFloat = Field(1.345, description="Huber constant c, in robust standard deviations")
+    scale_window: int = Field(50, ge=5, le=10_000, description="residuals kept for the MAD scale estimate")
 
 
 def huber_weight(residual: float, scale: float, threshold: float) -> float:
@@ -26,13 +38,16 @@ def huber_weight(residual: float, scale: float, threshold: float) -> float:
     return 1.0 if magnitude <= bound else bound / magnitude
 
 
+@register
 class HuberRLS(RLS):
     """RLS whose every equation is down-weighted by the Huber weight of its residual."""
 
     name = "huber_rls"
+    Params = HuberRlsParams
+    table_order = 2
 
     def _reset_extra(self) -> None:
-        self._residuals: deque[float] = deque(maxlen=self.params.huber_rls.scale_window)
+        self._residuals: deque[float] = deque(maxlen=self.params.scale_window)
 
     def _export_extra(self) -> dict:
         return {"residuals": list(self._residuals)}
@@ -48,11 +63,11 @@ class HuberRLS(RLS):
         if len(self._residuals) >= MIN_RESIDUALS_FOR_SCALE:
             scale = MAD_TO_SIGMA * statistics.median(abs(e) for e in self._residuals)
             if scale > 0.0:
-                weight = huber_weight(residual, scale, self.params.huber_rls.threshold)
+                weight = huber_weight(residual, scale, self.params.threshold)
         self._residuals.append(residual)
         (self._px, self._py, self._p11, self._p12, self._p22, innovation, s) = rls_correct(
             self._px, self._py, self._p11, self._p12, self._p22, dx, dy, z,
-            self.params.rls.forgetting_factor, weight,
+            self.params.forgetting_factor, weight,
         )
         return UpdateOutcome(accepted=True, iterations=1, innovation=innovation, innovation_variance=s,
                              weight=weight)

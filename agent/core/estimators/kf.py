@@ -2,8 +2,18 @@
 
 from __future__ import annotations
 
-from agent.core.estimators.base import RelativePositionEstimator, UpdateOutcome
+from typing import Literal
+
+from agent.core.estimators.base import UpdateOutcome
 from agent.core.estimators.pseudolinear import gain, joseph
+from agent.core.estimators.pseudolinear_estimator import PseudoLinearEstimator
+from agent.core.estimators.registry import EstimatorParams, register
+
+
+class KfParams(EstimatorParams):
+    """The KF has no parameters of its own: R_z (14) from relative.range_variance."""
+
+    name: Literal["kf"] = "kf"
 
 
 def kf_correct(
@@ -20,10 +30,13 @@ def kf_correct(
     return px + kx * innovation, py + ky * innovation, q11, q12, q22, innovation, s
 
 
-class KF(RelativePositionEstimator):
+@register
+class KF(PseudoLinearEstimator):
     """Kalman filter on (12) with the same R_z (14) as the MCKF; prediction (15) in the base class."""
 
     name = "kf"
+    Params = KfParams
+    table_order = 3
 
     def _correct(self, z: float, dx: float, dy: float, rz: float) -> UpdateOutcome:
         (self._px, self._py, self._p11, self._p12, self._p22, innovation, s) = kf_correct(

@@ -7,13 +7,30 @@ scalar pseudo-linear measurement (12).
 from __future__ import annotations
 
 import math
+from typing import Literal
 
-from agent.core.estimators.base import RelativePositionEstimator, UpdateOutcome
+from pydantic import Field
+
+from agent.config import PositiveFloat
+from agent.core.estimators.base import UpdateOutcome
 from agent.core.estimators.pseudolinear import joseph
+from agent.core.estimators.pseudolinear_estimator import PseudoLinearEstimator
+from agent.core.estimators.registry import EstimatorParams, register
 
 # Lower bound on the prior kernel weights: a weight of 0 would make P-bar infinite. 1e-12 caps the prior
 # inflation at 1e12, which already means "ignore the prior in that direction".
 MIN_PRIOR_WEIGHT = 1e-12
+
+
+class MckfParams(EstimatorParams):
+    """Maximum-correntropy update, Sec. III-A steps 3-5."""
+
+    name: Literal["mckf"] = "mckf"
+    bandwidths: tuple[PositiveFloat, PositiveFloat, PositiveFloat] = Field(
+        (9999.0, 9999.0, 0.8), description="Gaussian kernel bandwidths [sigma1, sigma2, sigma3] (Table I)"
+    )
+    tolerance: PositiveFloat = Field(1e-6, description="stopping threshold iota of (20) (Table I)")
+    max_iterations: int = Field(10, ge=1, le=1000, description="L_max (Table I)")
 
 
 def mckf_correct(
@@ -76,14 +93,17 @@ def mckf_correct(
     return qx, qy, q11, q12, q22, iterations, c3
 
 
-class MCKF(RelativePositionEstimator):
+@register
+class MCKF(PseudoLinearEstimator):
     """Maximum-correntropy Kalman filter on the pseudo-linear range measurement (12); the paper's method:
     prediction (15) in the base class, correction (16), (17), (18), (19), (20), (21) in `mckf_correct`."""
 
     name = "mckf"
+    Params = MckfParams
+    table_order = 5
 
     def _correct(self, z: float, dx: float, dy: float, rz: float) -> UpdateOutcome:
-        p = self.params.mckf
+        p = self.params
         px, py, p11, p12, p22 = self._px, self._py, self._p11, self._p12, self._p22
         innovation = z - (dx * px + dy * py)
         innovation_variance = dx * (p11 * dx + p12 * dy) + dy * (p12 * dx + p22 * dy) + rz

@@ -24,8 +24,6 @@ from functools import lru_cache
 
 import numpy as np
 
-from agent.core.params import RawRangeParams
-
 LOG_2PI = math.log(2.0 * math.pi)
 _trapezoid = getattr(np, "trapezoid", None) or np.trapz
 # ndarray.sum and .max without their Python wrappers (the same reductions): called some 40 times per solve
@@ -171,17 +169,10 @@ def _shifted_lognormal(x: np.ndarray, log_variance: float, shift: float
     return f, f * g, f * (g * g + (1.0 + (log_y - 1.0) / log_variance) / (y * y))
 
 
-def lognormal_density_of(params: RawRangeParams) -> LogNormalDensity | None:
-    """Tracking's exact density when `tracking_lognormal` names one, built once per noise model; else None."""
-    noise = params.tracking_lognormal
-    if noise is None:
-        return None
-    return _cached_lognormal(noise.log_variance, noise.shift, params.gross_error_fraction,
-                             params.gross_error_variance)
-
-
 @lru_cache(maxsize=16)
-def _cached_lognormal(log_variance: float, shift: float, fraction: float, variance: float) -> LogNormalDensity:
+def lognormal_density(log_variance: float, shift: float, fraction: float,
+                      variance: float) -> LogNormalDensity:
+    """The shifted log-normal (8) with a gross-error component of weight `fraction`, built once per model."""
     return LogNormalDensity(log_variance, shift, fraction, variance)
 
 
@@ -205,14 +196,16 @@ def _cached(components: tuple[tuple[float, float, float], ...]) -> RangeDensity:
     return RangeDensity(components)
 
 
-def density_of(params: RawRangeParams) -> RangeDensity:
-    """The density `params` describe, built once per noise model: `noise_components` share what the
-    gross-error component leaves, the gross-error component last."""
-    total = sum(c[0] for c in params.noise_components)
-    scale = (1.0 - params.gross_error_fraction) / total
-    components = tuple((float(w) * scale, float(m), float(v)) for w, m, v in params.noise_components)
-    if params.gross_error_fraction > 0.0:
-        components += ((float(params.gross_error_fraction), 0.0, float(params.gross_error_variance)),)
+def mixture_density(noise_components: tuple[tuple[float, float, float], ...], gross_error_fraction: float,
+                    gross_error_variance: float) -> RangeDensity:
+    """The mixture of `noise_components` (weight, mean, variance), built once per noise model: they share
+    what the gross-error component N(0, gross_error_variance), of weight gross_error_fraction and last,
+    leaves."""
+    total = sum(c[0] for c in noise_components)
+    scale = (1.0 - gross_error_fraction) / total
+    components = tuple((float(w) * scale, float(m), float(v)) for w, m, v in noise_components)
+    if gross_error_fraction > 0.0:
+        components += ((float(gross_error_fraction), 0.0, float(gross_error_variance)),)
     return _cached(components)
 
 

@@ -9,7 +9,18 @@ weighted information (not a covariance in m^2); it starts from the same P_ij,0 a
 
 from __future__ import annotations
 
-from agent.core.estimators.base import RelativePositionEstimator, UpdateOutcome
+from typing import Literal
+
+from pydantic import Field
+
+from agent.core.estimators.base import UpdateOutcome
+from agent.core.estimators.pseudolinear_estimator import PseudoLinearEstimator
+from agent.core.estimators.registry import EstimatorParams, register
+
+
+class RlsParams(EstimatorParams):
+    name: Literal["rls"] = "rls"
+    forgetting_factor: float = Field(0.99, gt=0, le=1, description="lambda of exponentially weighted RLS")
 
 
 def rls_correct(
@@ -39,10 +50,13 @@ def rls_correct(
     )
 
 
-class RLS(RelativePositionEstimator):
+@register
+class RLS(PseudoLinearEstimator):
     """Exponentially weighted recursive least squares (Nguyen et al. 2020)."""
 
     name = "rls"
+    Params = RlsParams
+    table_order = 1
 
     def _inflate(self, variance: float) -> None:
         """RLS has no process-noise model: its P only changes through forgetting (the state still moves by
@@ -54,6 +68,6 @@ class RLS(RelativePositionEstimator):
             return UpdateOutcome(accepted=True, innovation=z, innovation_variance=1.0)
         (self._px, self._py, self._p11, self._p12, self._p22, innovation, s) = rls_correct(
             self._px, self._py, self._p11, self._p12, self._p22, dx, dy, z,
-            self.params.rls.forgetting_factor,
+            self.params.forgetting_factor,
         )
         return UpdateOutcome(accepted=True, iterations=1, innovation=innovation, innovation_variance=s)
