@@ -37,9 +37,12 @@ def logged(folder: Path, vessels: list[str]) -> dict:
     return out
 
 
-@pytest.mark.parametrize("variant", ["mckf", "raw_range"])   # the paper's estimator, and the default
-def test_table_two_over_zenoh_equals_the_in_process_runner(tmp_path, variant):
-    path = with_duration(CONFIGS / "table2_estimators.yaml", tmp_path, 20.0)
+# The paper's estimator, the default, and the default on the Otter's hull in the moderate sea (current, wind,
+# waves, realistic sensors: the world's dynamics and environment run in the sim bridge as in the runner).
+@pytest.mark.parametrize("file, variant", [("table2_estimators", "mckf"), ("table2_estimators", "raw_range"),
+                                           ("sea_states", "moderate")])
+def test_table_two_over_zenoh_equals_the_in_process_runner(tmp_path, file, variant):
+    path = with_duration(CONFIGS / f"{file}.yaml", tmp_path, 20.0)
     _, scenario = select_scenario(path, variant)
     trace = run(scenario)
     folder = launch(path, variant, tmp_path / "runs", seed=None)

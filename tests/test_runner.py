@@ -30,7 +30,7 @@ def scenario(file: str, variant: str, **override) -> Scenario:
 def test_every_shipped_scenario_file_loads():
     names = sorted(p.name for p in SCENARIOS.glob("*.yaml"))
     assert names == ["cold_start.yaml", "dropout_join.yaml", "islands.yaml", "maneuvering_target.yaml",
-                     "sea_trial.yaml", "table2_estimators.yaml",
+                     "sea_states.yaml", "sea_trial.yaml", "table2_estimators.yaml",
                      "table3_noise.yaml", "table4_scale.yaml"]
     for path in SCENARIOS.glob("*.yaml"):
         _, variants = load_scenarios(path)
