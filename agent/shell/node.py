@@ -259,7 +259,7 @@ class AgentNode:
 def main(argv: list[str] | None = None) -> int:
     started = vessel_process("usv-agent", "The onboard agent of one vessel.", NodeSettings, argv, lambda parser:
                              parser.add_argument("--ticks", type=int, default=None,
-                                                 help="stop after this many ticks (tests)"))
+                                                 help="stop after this many ticks (tests)"), params_key="agent")
     if isinstance(started, int):
         return started
     args, settings = started
