@@ -22,7 +22,7 @@ class NodeSettings(StrictModel):
     zenoh: ZenohSettings = ZenohSettings()
     max_input_age: PositiveFloat = Field(1.0, description="inputs older than this (s) are ignored")
     share_wait: PositiveFloat = Field(2.0, description="sim lockstep: wall seconds to wait for neighbours' shares")
-    # ----- robustness: what arrives is bounded, a failed tick is survived (agent/shell/gate.py, node.py) -----
+    # ----- robustness: what arrives is bounded, a failed tick is survived (agent/shell/gate.py, failures.py) -----
     max_input_future: PositiveFloat = Field(0.5, description="inputs stamped further ahead of the clock (s) are "
                                             "refused")
     max_input_rate: PositiveFloat = Field(
