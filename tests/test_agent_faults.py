@@ -183,8 +183,9 @@ def test_a_sim_restart_rebuilds_the_core_and_starts_a_new_log(tmp_path):
     assert agent.ticker.input_time() is None     # ... stamps are not judged meanwhile
     agent._on_clock(FakeSample("sim/clock", encode(Clock(stamp_ns=0, seq=0))))   # ... and back from 0
     assert agent.ticker.restart_pending and agent.gate._delivered_through is None
+    assert agent.ticker.restarted() and not agent.ticker.restarted()   # once
     agent._restart()
-    assert agent.sim_restarts == 1 and agent.state.phase is None and agent.state.tracker is not None
+    assert agent.ticker.restarts == 1 and agent.state.phase is None and agent.state.tracker is not None
     assert agent.recorder.log.path.name == "agent-1-mission2.mcap"
     agent.recorder.close()
     assert (tmp_path / "agent-1.mcap").exists()

@@ -70,6 +70,9 @@ class TickFailures:
         self.rebuilds = 0
         self.kinds: dict[str, list] = {}   # kind -> [count, monotonic time last told]
 
+    def counts(self) -> dict[str, int]:
+        return {"tick_errors": self.total, "core_rebuilds": self.rebuilds}
+
     def succeeded(self) -> None:
         self.in_a_row = 0
 

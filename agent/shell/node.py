@@ -12,8 +12,6 @@ the core is rebuilt from the initial estimates, the log goes on in a new file. S
 
 from __future__ import annotations
 
-import contextlib
-import math
 import sys
 import threading
 import time
@@ -38,17 +36,15 @@ from agent.core.state import VesselState
 from agent.core.step import step
 from agent.runtime.process import startup_error, stop_on_signals, vessel_process
 from agent.runtime.zenoh_session import SessionError, open_session
-from agent.shell.failures import ERROR_REPEAT, TickFailures, check_command
+from agent.shell.failures import TickFailures, check_command
 from agent.shell.gate import InputGate
 from agent.shell.mission import MissionOrders
 from agent.shell.peers import RANGED_WITHIN, PeerTable
-from agent.shell.publish import Outbox, health
-from agent.shell.reaction import ReactionTimes
+from agent.shell.publish import Outbox, declare_publishers, health
 from agent.shell.recorder import Recorder
 from agent.shell.settings import NodeSettings
-from agent.shell.startup import StartupError, check_id_free, no_sensor_words
+from agent.shell.startup import StartupError, check_id_free, tell_if_no_sensors
 from agent.shell.ticker import HEARTBEAT, Ticker
-from agent.shell.wall_clock import ClockAlarms
 
 
 class AgentNode:
@@ -62,16 +58,12 @@ class AgentNode:
                               max_rate=settings.max_input_rate)
         self.stopping = threading.Event()
         self.ticker = Ticker(settings, self.gate, self.stopping, self._say)
-        self.alarms = ClockAlarms(self._say)
         self.orders = MissionOrders(vessel_id, settings.max_input_age, settings.max_input_future, self.gate.count)
         self.outbox, self.recorder = Outbox(vessel_id), Recorder(vessel_id, settings)
         self.failures = TickFailures(vessel_id, settings.rebuild_after)
-        self.ticks = self.sim_restarts = 0
+        self.ticks = 0
         self.core_seconds = 0.0   # tick thread CPU inside the core's step since the first tick
-        # From a tick's trigger (clock or timer) to its command's put: wall time, and the tick thread's CPU.
-        self.reaction, self.reaction_cpu = ReactionTimes(), ReactionTimes()
         self._id_seen = False     # another agent's token with our id, seen before we declared ours
-        self._restarts_told = -math.inf
 
     def _say(self, line: str) -> None:
         print(f"usv-agent {self.id}: {line}", file=sys.stderr)
@@ -120,26 +112,15 @@ class AgentNode:
                            session.declare_subscriber(f"{MISSION_PREFIX}/*", self._on_mission),
                            *([session.declare_subscriber(CLOCK_KEY, self._on_clock)] if sim else [])]
             token = session.liveliness().declare_token(key(self.id, LIVELINESS))
-            # On sim time nothing may be dropped by Zenoh (the simulated radio decides what is lost, and
-            # lockstep waits for every message); at sea a late command or share is worth less than a new one.
-            congestion = zenoh.CongestionControl.BLOCK if sim else zenoh.CongestionControl.DROP
-            publishers = {
-                "cmd": session.declare_publisher(key(self.id, "cmd"), express=True, priority=zenoh.Priority.REAL_TIME,
-                                                 congestion_control=congestion),
-                # Our own subscription to every vessel's share would hand ours straight back to us.
-                "share": session.declare_publisher(key(self.id, "share"), congestion_control=congestion,
-                                                   allowed_destination=zenoh.Locality.REMOTE),
-                "status": session.declare_publisher(key(self.id, "status"), congestion_control=congestion)}
+            publishers = declare_publishers(session, self.id, sim)
             started = opened = time.monotonic()
             cpu_started, sensors_told = time.process_time(), False
             while not self.stopping.is_set() and (max_ticks is None or self.ticks < max_ticks):
                 try:
                     if not sensors_told and time.monotonic() - opened >= self.settings.no_sensor_warning:
                         sensors_told = True
-                        with contextlib.suppress(Exception):   # a word to the operator is not worth the vessel
-                            if words := no_sensor_words(self.id, self.gate, sim, self.ticker.clock.latest,
-                                                        self.settings.no_sensor_warning):
-                                self._say(words)
+                        tell_if_no_sensors(self._say, self.id, self.gate, sim, self.ticker.clock.latest,
+                                           self.settings.no_sensor_warning)
                     clock = self._next_sim_tick(publishers) if sim else self.ticker.next_timer()
                     if sim and clock is None:
                         continue
@@ -161,7 +142,7 @@ class AgentNode:
         clock = self.ticker.next_clock()
         if clock is None and (self.ticks == 0 or self.ticker.clock.silent()):
             self._heartbeat(publishers)
-        if clock is not None and self.ticker.restart_pending:
+        if clock is not None and self.ticker.restarted():
             self._restart()
         if clock is not None and clock.vessels is not None and self.id not in clock.vessels:
             self.gate.deliver_shares(clock.previous_ns, set())
@@ -194,9 +175,7 @@ class AgentNode:
         # plus the correction its sensors' stamps need; the same unless the driver's clock is off or ours stepped).
         driver_stamp = stamp if clock is not None else nanoseconds(now + self.gate.offsets.applied)
         command, wire = self.outbox.command(publishers, driver_stamp, output.command)
-        self.reaction_cpu.add(time.thread_time() - tick_cpu)
-        if self.ticker.triggered is not None:
-            self.reaction.add(time.monotonic() - self.ticker.triggered)
+        self.ticker.answered(tick_cpu)
         self.outbox.share(publishers, output.share)
         status, status_wire = self._status(publishers, stamp, (command.surge, command.yaw_rate), output.record)
         self.recorder.tick(stamp, inputs if inputs is not None else TickInputs(time=now, odometry=None), output,
@@ -206,16 +185,12 @@ class AgentNode:
 
     def _status(self, publishers, stamp, command, record, ticked=True):
         view = {"held": self.orders.held, "radius": self.params.control.radius, "mission": self.orders.acks(),
-                "clocks": self.alarms(self.gate.clock_alarms())}
+                "clocks": self.ticker.alarms(self.gate.clock_alarms())}
         return self.outbox.status(publishers, stamp, command, record, sorted(self._live_view), self._health,
                                   view, ticked)
 
     def _health(self, record) -> dict[str, int]:
-        return health(record, self.gate, self.peers, self.recorder.log, overruns=self.ticker.overruns,
-                      log_errors=self.recorder.failures(), tick_errors=self.failures.total,
-                      core_rebuilds=self.failures.rebuilds, sim_restarts=self.sim_restarts,
-                      shares_unsent=self.outbox.shares_unsent, clock_steps=self.ticker.timeline.steps,
-                      clock_stepped_ms=round(self.ticker.timeline.stepped * 1e3), clock_corrected=self.gate.offsets.corrected)
+        return health(record, self.gate, self.peers, self.ticker, self.recorder, self.failures, self.outbox)
 
     def _heartbeat(self, publishers) -> None:
         """While there is no clock: a status that says this agent is up and whom it sees, so that a sim bridge
@@ -233,27 +208,20 @@ class AgentNode:
             self.state = initial_state(self.id, self.params, InitialEstimates())
 
     def _restart(self) -> None:
-        """The simulation restarted (a new timeline of sim/clock): a new mission, from the configured circle
-        and the initial estimates, in a new log file."""
-        self.ticker.restart_pending = False
-        self.sim_restarts += 1
+        """The simulation restarted: a new mission, from the configured circle and the initial estimates, in a
+        new log file."""
         self.orders.reset()
         self.params = self.settings.agent
         self.state = initial_state(self.id, self.params, self.settings.initial)
         self.failures.succeeded()
-        if self.sim_restarts <= 3 or time.monotonic() - self._restarts_told >= ERROR_REPEAT:
-            self._restarts_told = time.monotonic()
-            self._say(f"the simulation restarted (sim/clock began a new timeline at "
-                      f"{seconds(self.ticker.clock.latest.stamp_ns):.3f} s; {self.sim_restarts} restarts so far): "
-                      "starting the mission again")
         self.recorder.next_mission(lambda: self._log_summary(0.0, 0.0))
 
     def _log_summary(self, wall_seconds: float, cpu_seconds: float) -> None:
         """The run as a whole: what the process cost (all its threads, Zenoh's included) and what it refused."""
         self.recorder.summary(nanoseconds(self.ticker.now()), ticks=self.ticks, overruns=self.ticker.overruns,
                               refused=self.gate.rejected, loop_seconds=wall_seconds, cpu_seconds=cpu_seconds,
-                              core_cpu_seconds=self.core_seconds, reaction_ms=self.reaction.summary(),
-                              reaction_cpu_ms=self.reaction_cpu.summary())
+                              core_cpu_seconds=self.core_seconds, reaction_ms=self.ticker.reaction.summary(),
+                              reaction_cpu_ms=self.ticker.reaction_cpu.summary())
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -12,12 +12,28 @@ from __future__ import annotations
 import sys
 from collections.abc import Callable
 
-from agent.contract import Cmd, Status, WeakestPair, encode
+import zenoh
+
+from agent.contract import Cmd, Status, WeakestPair, encode, key
 from agent.core.observability import MIRROR_AMBIGUOUS, UNOBSERVABLE
 from agent.core.records import Command, Share, TickRecord
 from agent.shell.translate import message_from_share
 
 Health = Callable[[TickRecord | None], dict[str, int]]
+
+
+def declare_publishers(session, vessel: str, sim: bool) -> dict:
+    """The agent's three publishers on `session`. On sim time nothing may be dropped by Zenoh (the simulated
+    radio decides what is lost, and lockstep waits for every message); at sea a late command or share is worth
+    less than a new one. The command goes express, at real-time priority."""
+    congestion = zenoh.CongestionControl.BLOCK if sim else zenoh.CongestionControl.DROP
+    return {
+        "cmd": session.declare_publisher(key(vessel, "cmd"), express=True, priority=zenoh.Priority.REAL_TIME,
+                                         congestion_control=congestion),
+        # Our own subscription to every vessel's share would hand ours straight back to us.
+        "share": session.declare_publisher(key(vessel, "share"), congestion_control=congestion,
+                                           allowed_destination=zenoh.Locality.REMOTE),
+        "status": session.declare_publisher(key(vessel, "status"), congestion_control=congestion)}
 
 
 class Outbox:
@@ -76,16 +92,19 @@ class Outbox:
             else tuple(float(v) for v in record.target_state),
             health=health(record), weakest_pair=weakest_pair(record), **view)
 
+    def counts(self) -> dict[str, int]:
+        return {"shares_unsent": self.shares_unsent}
+
     def _next(self, stream: str) -> int:
         value = self.seq[stream]
         self.seq[stream] += 1
         return value
 
 
-def health(record: TickRecord | None, gate, peers, log, **counts: int) -> dict[str, int]:
+def health(record: TickRecord | None, gate, peers, *parts) -> dict[str, int]:
     """The status's counters: the core's of this tick (and its pairs whose relative motion leaves them short of
-    observable: gauges, not counts), the input gate's refusals by reason, the peer table's, the process's
-    `counts`, and the log's (`log_suspended` 1 while its disk is full: what it drops is `log_dropped`)."""
+    observable: gauges, not counts), the input gate's refusals by reason, the peer table's, and each of the
+    shell's `parts`' `counts()`."""
     health = dict(record.health if record is not None else {})
     if record is not None:
         verdicts = [n.observability for n in record.neighbours.values()]
@@ -93,8 +112,9 @@ def health(record: TickRecord | None, gate, peers, log, **counts: int) -> dict[s
                       pairs_unobservable=verdicts.count(UNOBSERVABLE))
     health.update({f"rejected_{k}": v for k, v in gate.rejected.items()})
     health.update(peers.counted(), peers_withheld=len(peers.withheld()), peers_unproven=len(peers.unproven()))
-    health.update(counts)
-    health.update(log_suspended=int(log is not None and log.suspended), log_dropped=log.dropped if log is not None else 0)
+    for part in parts:
+        health.update(part.counts())
+    health.update(clock_corrected=gate.offsets.corrected)
     return health
 
 

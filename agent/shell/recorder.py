@@ -108,9 +108,13 @@ class Recorder:
         except Exception:  # noqa: BLE001
             self.errors += 1
 
-    def failures(self) -> int:
-        """For the status: the writes that failed, here and in the file (`McapLog.errors`)."""
-        return self.errors + (self.log.errors if self.log is not None else 0)
+    def counts(self) -> dict[str, int]:
+        """For the status: the writes that failed, here and in the file (`McapLog.errors`); 1 while the log is
+        suspended (its disk full), and the messages it dropped meanwhile."""
+        log = self.log
+        return {"log_errors": self.errors + (log.errors if log is not None else 0),
+                "log_suspended": int(log is not None and log.suspended),
+                "log_dropped": log.dropped if log is not None else 0}
 
     def close(self) -> None:
         """Finish the file (again: a no-op)."""

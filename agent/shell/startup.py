@@ -9,6 +9,7 @@ simulation, or sensor stamps refused and how far their clock runs from the agent
 
 from __future__ import annotations
 
+import contextlib
 import threading
 import time
 from collections.abc import Callable
@@ -35,6 +36,14 @@ def check_id_free(session, vessel: str, seconds: float, seen: Callable[[], bool]
         if time.monotonic() >= deadline:
             return
         stopping.wait(min(0.1, max(0.0, deadline - time.monotonic())))
+
+
+def tell_if_no_sensors(say: Callable[[str], None], *args) -> None:
+    """`no_sensor_words(*args)` said, if there is anything to say; a word to the operator is not worth the
+    vessel: whatever fails here is let go."""
+    with contextlib.suppress(Exception):
+        if words := no_sensor_words(*args):
+            say(words)
 
 
 def no_sensor_words(vessel: str, gate: InputGate, sim: bool, clock: Clock | None, waited: float) -> str | None:

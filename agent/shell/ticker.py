@@ -8,21 +8,25 @@
 - Wall clock (`clock: wall`): the system clock held continuous across a step (`WallTimeline`); a tick every
   `dt` on the monotonic clock, an overrun counted and no backlog caught up.
 `triggered` is the monotonic time the tick to come was triggered (the clock's arrival or the timer's), from
-which the agent's reaction time is measured.
+which the agent's reaction times are measured (`answered`: to the command's put, reaction.py).
 """
 
 from __future__ import annotations
 
+import math
 import threading
 import time
 from collections.abc import Callable
 
 from agent.contract import Clock, decode, seconds
 from agent.shell.gate import InputGate, SimClock
+from agent.shell.reaction import ReactionTimes
 from agent.shell.settings import NodeSettings
-from agent.shell.wall_clock import WallTimeline, step_words
+from agent.shell.wall_clock import ClockAlarms, WallTimeline, step_words
 
 HEARTBEAT = 0.1   # s: the longest wait for a sim clock (a heartbeat status goes out between, while there is none)
+RESTARTS_TOLD = 3   # restarts of the simulation told each; after these, at most one every RESTART_REPEAT s
+RESTART_REPEAT = 10.0
 
 
 class Ticker:
@@ -35,9 +39,14 @@ class Ticker:
         own = settings.vessel_clock
         self.timeline = WallTimeline(time.time if own is None else lambda: own.read(time.time_ns()),
                                      on_step=self._stepped)
+        self.alarms = ClockAlarms(say)   # the clocks that disagree with ours, for the status
         self.overruns = 0
         self.triggered: float | None = None
+        # From a tick's trigger to its command's put: wall time, and the tick thread's CPU.
+        self.reaction, self.reaction_cpu = ReactionTimes(), ReactionTimes()
         self.restart_pending = False
+        self.restarts = 0
+        self._restarts_told = -math.inf
         self.clocked = threading.Event()   # a clock came for the tick thread
         self._deadline: float | None = None
 
@@ -76,6 +85,31 @@ class Ticker:
             self.clocked.set()
         except Exception as error:  # noqa: BLE001  (a callback must never raise into Zenoh)
             self.gate.count("internal", f"sim/clock: {type(error).__name__}: {error}")
+
+    def answered(self, tick_cpu: float) -> None:
+        """The tick's command went out; the tick thread's CPU time at its start was `tick_cpu`."""
+        self.reaction_cpu.add(time.thread_time() - tick_cpu)
+        if self.triggered is not None:
+            self.reaction.add(time.monotonic() - self.triggered)
+
+    def restarted(self) -> bool:
+        """Whether the simulation restarted since the last tick (counted, and told: the first RESTARTS_TOLD,
+        then at most one every RESTART_REPEAT s)."""
+        if not self.restart_pending:
+            return False
+        self.restart_pending = False
+        self.restarts += 1
+        if self.restarts <= RESTARTS_TOLD or time.monotonic() - self._restarts_told >= RESTART_REPEAT:
+            self._restarts_told = time.monotonic()
+            self.say(f"the simulation restarted (sim/clock began a new timeline at "
+                     f"{seconds(self.clock.latest.stamp_ns):.3f} s; {self.restarts} restarts so far): starting "
+                     "the mission again")
+        return True
+
+    def counts(self) -> dict[str, int]:
+        """For the status: timer overruns, steps of the system clock, simulation restarts."""
+        return {"overruns": self.overruns, "sim_restarts": self.restarts, "clock_steps": self.timeline.steps,
+                "clock_stepped_ms": round(self.timeline.stepped * 1e3)}
 
     def next_clock(self) -> Clock | None:
         """Sim time: the clock of the next tick, or None if none came within HEARTBEAT."""
