@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Annotated, TypeVar
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, ValidationError, ValidationInfo
 
 MAX_YAML_BYTES = 1_000_000     # a YAML file larger than this is refused before it is read
 MAX_YAML_NODES = 200_000       # nor may its aliases expand it beyond this many nodes (scalars, lists, maps)
@@ -50,6 +50,9 @@ def updated(model: M, **changes: object) -> M:
 def describe_validation_error(error: ValidationError, source: str) -> str:
     """One line naming the source, the dotted field path and what is wrong with it."""
     first = error.errors()[0]
+    named = first.get("ctx", {}).get("error")
+    if isinstance(named, ConfigError):
+        return str(named)   # a file named inside this one (InlineOrFile): its own line says where
     field = ".".join(str(part) for part in first["loc"]) or "<top level>"
     if first["type"] == "extra_forbidden":
         problem = "unknown key"
@@ -62,16 +65,34 @@ def describe_validation_error(error: ValidationError, source: str) -> str:
     return f"{source}: field '{field}': {problem}{value}{suffix}"
 
 
-def parse_mapping(model: type[M], data: object, source: str) -> M:
-    """Validate an already-loaded mapping; `source` names where it came from in error messages."""
+def parse_mapping(model: type[M], data: object, source: str, folder: str | Path | None = None) -> M:
+    """Validate an already-loaded mapping; `source` names where it came from in error messages, and a file
+    it names (`InlineOrFile`) is found relative to `folder` (None: the working directory)."""
     if data is None:
         data = {}
     if not isinstance(data, dict):
         raise ConfigError(f"{source}: expected a mapping of keys to values, got {type(data).__name__}")
     try:
-        return model.model_validate(data)
+        return model.model_validate(data, context={"folder": folder})
     except ValidationError as error:
         raise ConfigError(describe_validation_error(error, source)) from None
+
+
+def named_file(value: str | Path, folder: str | Path | None) -> Path:
+    """The file a configuration names: as given if absolute, else relative to `folder` (the folder of the file
+    that names it; None: the working directory)."""
+    path = Path(value).expanduser()
+    return path if path.is_absolute() or folder is None else Path(folder) / path
+
+
+def InlineOrFile(model: type[BaseModel]) -> BeforeValidator:  # noqa: N802  (used as a type annotation)
+    """For a field of type `model` (`Annotated[model, InlineOrFile(model)]`): the value is `model` inline, or the
+    name of a YAML file of the same shape, read and checked as `model` (a fault in it is told in its own name)."""
+    def read(value: object, info: ValidationInfo) -> object:
+        if not isinstance(value, (str, Path)):
+            return value
+        return load_yaml(model, named_file(value, (info.context or {}).get("folder")))
+    return BeforeValidator(read)
 
 
 class _BoundedLoader(yaml.SafeLoader):
@@ -164,8 +185,9 @@ def read_yaml(path: str | Path, max_bytes: int = MAX_YAML_BYTES) -> object:
 
 
 def load_yaml(model: type[M], path: str | Path) -> M:
-    """Read a YAML file into `model`, raising ConfigError with the file and field on any problem."""
-    return parse_mapping(model, read_yaml(path), str(path))
+    """Read a YAML file into `model`, raising ConfigError with the file and field on any problem; a file it
+    names is found relative to its folder."""
+    return parse_mapping(model, read_yaml(path), str(path), Path(path).parent)
 
 
 def yaml_scalar(value: object) -> str:

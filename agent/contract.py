@@ -28,10 +28,8 @@ from typing import Annotated, Any, ClassVar, Literal
 import numpy as np
 from pydantic import Field, ValidationError, field_validator, model_validator
 
+from agent.cholesky import cholesky_succeeds
 from agent.config import StrictModel
-from agent.core.checks import cholesky_succeeds
-from agent.core.observability import VERDICTS
-from agent.core.records import OdometryReading, Share
 
 FLEET_PREFIX = "usv"
 CLOCK_KEY = "sim/clock"
@@ -41,6 +39,9 @@ MISSION_ALL = "all"      # mission/all: every vessel; mission/<id>: one
 MAX_RADIUS = 1e4         # m: the largest circle a mission command may ask for
 MAX_YAW_RATE = math.pi   # rad/s: the fastest circling a mission command may ask for (a lap in 2 s)
 LIVELINESS = "alive"
+# A pair's observability verdicts as the status states them; the core computes them (agent/core/observability.py,
+# whose VERDICTS a test holds equal to these).
+VERDICTS = ("observable", "mirror-ambiguous", "unobservable")
 
 VESSEL_ID_PATTERN = r"^[A-Za-z0-9_-]{1,32}$"
 VesselId = Annotated[str, Field(pattern=VESSEL_ID_PATTERN)]
@@ -437,59 +438,10 @@ def encode(message: StrictModel) -> bytes:
     return message.model_dump_json().encode("utf-8")
 
 
-# ----- between the wire and the tick's records -----
+# ----- time on the wire: whole nanoseconds -----
 def seconds(stamp_ns: int) -> float:
     return stamp_ns * 1e-9
 
 
 def nanoseconds(time_s: float) -> int:
     return round(time_s * 1e9)
-
-
-def odometry_reading(message: Odometry) -> OdometryReading:
-    return OdometryReading(seconds(message.stamp_ns), np.array(message.position, dtype=float), message.heading)
-
-
-def share_from_message(message: ShareMessage | ReceivedShare,
-                       neighbours: dict[str, PairEstimate] | None = None) -> Share:
-    """The core's Share of a message; its pair estimates are `neighbours` if given (a `ReceivedShare`'s are
-    not checked), else the message's."""
-    neighbours = message.neighbours if neighbours is None else neighbours
-    return Share(
-        sender=message.sender,
-        odometry=OdometryReading(seconds(message.stamp_ns), np.array(message.position, dtype=float),
-                                 message.heading),
-        velocity=np.array(message.velocity, dtype=float),
-        phase=message.phase,
-        target=None if message.target is None else np.array(message.target, dtype=float),
-        target_covariance=None if message.target_covariance is None
-        else np.array(message.target_covariance, dtype=float).reshape(4, 4),
-        neighbours={j: (np.array(e.position, dtype=float), _unpack2(e.covariance),
-                        seconds(message.stamp_ns if e.stamp_ns is None else e.stamp_ns))
-                    for j, e in neighbours.items()},
-    )
-
-
-def message_from_share(share: Share, seq: int) -> ShareMessage:
-    # Validated from plain values in one call: building the nested models one by one costs half as much again.
-    odometry, covariance = share.odometry, share.target_covariance
-    return ShareMessage.model_validate({
-        "stamp_ns": nanoseconds(odometry.stamp), "seq": seq, "sender": share.sender,
-        "position": np.asarray(odometry.position, dtype=float).tolist(), "heading": float(odometry.heading),
-        "velocity": np.asarray(share.velocity, dtype=float).tolist(), "phase": float(share.phase),
-        "target": None if share.target is None else np.asarray(share.target, dtype=float).tolist(),
-        "target_covariance": None if covariance is None else np.asarray(covariance, dtype=float).ravel().tolist(),
-        "neighbours": {j: {"position": np.asarray(p, dtype=float).tolist(), "covariance": _pack2(c),
-                           "stamp_ns": nanoseconds(t)}
-                       for j, (p, c, t) in share.neighbours.items()},
-    })
-
-
-def _pack2(matrix) -> tuple[float, float, float]:
-    m = np.asarray(matrix, dtype=float)
-    return float(m[0, 0]), float(m[0, 1]), float(m[1, 1])
-
-
-def _unpack2(values) -> np.ndarray:
-    p11, p12, p22 = values
-    return np.array([[p11, p12], [p12, p22]])

@@ -18,7 +18,8 @@ import json
 import sys
 from pathlib import Path
 
-from agent.config import ConfigError, deep_merge, read_yaml
+from agent.config import ConfigError, deep_merge, load_yaml
+from agent.core.params import AgentParams
 from mission_log.metrics import metrics_markdown, run_metrics
 from mission_log.plots import plot_run
 from mission_log.reader import LogError, load_run
@@ -85,10 +86,8 @@ def default_replay_path(log: Path) -> Path:
 def replay_command(args) -> int:
     changes = {}
     if args.params is not None:
-        loaded = read_yaml(args.params)
-        if not isinstance(loaded, dict):
-            raise ConfigError(f"{args.params}: expected a mapping of agent parameters")
-        changes = loaded
+        # An AgentParams file, checked as one: only the keys it names change the recorded settings.
+        changes = load_yaml(AgentParams, args.params).model_dump(mode="json", exclude_unset=True)
     changes = deep_merge(changes, parse_assignments(args.set))
     if args.start is not None and args.start < 0:
         raise ConfigError(f"--start {args.start}: must be zero or more seconds")
@@ -130,7 +129,8 @@ def build_parser() -> argparse.ArgumentParser:
     again.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                        help="change one agent parameter, e.g. relative.estimator=mckf or "
                             "'relative.estimator={name: mckf, bandwidths: [9999,9999,1.5]}' (repeatable)")
-    again.add_argument("--params", type=Path, default=None, help="YAML of agent parameters to change")
+    again.add_argument("--params", type=Path, default=None,
+                       help="an AgentParams file (as configs/agent.yaml): the parameters it names change")
     again.add_argument("--start", type=float, default=None, metavar="SECONDS",
                        help="start from the last state the agent saved before this time (s after its first "
                             "tick) instead of the beginning")

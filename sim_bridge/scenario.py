@@ -3,13 +3,15 @@
 A file holds a `base` scenario and optional `variants`, each a partial scenario deep-merged onto the base
 (Table II: one variant per estimator; Table III: per noise model; Table IV: per fleet size and radius).
 Every merged variant is validated like a whole scenario, so a typo in a variant is reported with its path.
+`base.agent` holds the agent's parameters inline or names an AgentParams file (relative to the scenario's
+folder, the shape of configs/agent.yaml); the variants' `agent` sections go over it.
 """
 
 from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
 import numpy as np
 import yaml
@@ -17,10 +19,12 @@ from pydantic import Field, model_validator
 
 from agent.config import (
     ConfigError,
+    InlineOrFile,
     NonNegativeFloat,
     PositiveFloat,
     StrictModel,
     deep_merge,
+    named_file,
     parse_mapping,
     read_yaml,
     updated,
@@ -61,7 +65,7 @@ class Scenario(StrictModel):
     seed: int = Field(0, ge=0)
     filter_noise: FilterNoise = Field("world", description=FILTER_NOISE_DESCRIPTION)
     world: WorldConfig
-    agent: AgentParams = AgentParams()
+    agent: Annotated[AgentParams, InlineOrFile(AgentParams)] = AgentParams()
     initial: InitialUncertainty = InitialUncertainty()
     paper: PaperRow = PaperRow()
 
@@ -101,13 +105,19 @@ def load_scenarios(path: str | Path) -> tuple[ScenarioFile, dict[str, Scenario]]
     """Every scenario of a file: the base alone when there are no variants, else one per variant."""
     data = read_yaml(path)
     spec = parse_mapping(ScenarioFile, data, str(path))
+    base = spec.base
+    if isinstance(base.get("agent"), str):   # an AgentParams file: what it names, for the variants to go over
+        named = named_file(base["agent"], Path(path).parent)
+        given = read_yaml(named)
+        parse_mapping(AgentParams, given, str(named))   # a fault in it is told in its own name
+        base = {**base, "agent": given or {}}
     variants = spec.variants or {spec.name: {}}
     scenarios = {}
     for name, override in variants.items():
-        merged = deep_merge(spec.base, override)
+        merged = deep_merge(base, override)
         merged["name"] = name if spec.variants else spec.name
         where = f"{path} (variant '{name}')" if spec.variants else str(path)
-        scenarios[name] = parse_mapping(Scenario, merged, where)
+        scenarios[name] = parse_mapping(Scenario, merged, where, Path(path).parent)
     return spec, scenarios
 
 
@@ -116,6 +126,8 @@ def with_duration(path: str | Path, folder: str | Path, duration: float) -> Path
     benchmark runs of a shipped scenario)."""
     data = read_yaml(path)
     data["base"]["duration"] = duration
+    if isinstance(data["base"].get("agent"), str):   # the parameters file stays where it is
+        data["base"]["agent"] = str(named_file(data["base"]["agent"], Path(path).parent).resolve())
     copy = Path(folder) / Path(path).name
     copy.write_text(yaml.safe_dump(data))
     return copy

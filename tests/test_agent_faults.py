@@ -31,7 +31,8 @@ from agent.core.build import InitialEstimates, initial_state
 from agent.core.params import AgentParams
 from agent.core.records import Command, OdometryReading, Share, TickInputs, TickOutput
 from agent.runtime.mcap_log import read_messages
-from agent.shell.node import AgentNode, CommandOutOfLimits, error_kind
+from agent.shell.failures import CommandOutOfLimits, check_command, error_kind
+from agent.shell.node import AgentNode
 from agent.shell.settings import NodeSettings
 
 PARAMS = AgentParams()
@@ -63,7 +64,7 @@ def node(tmp_path=None, **settings) -> AgentNode:
     log = str(tmp_path / "agent-{vessel}.mcap") if tmp_path is not None else None
     agent = AgentNode("1", NodeSettings(clock="wall", id_check=0, log=log, **settings),
                       initial_state("1", PARAMS, InitialEstimates(target=(5.0, 0.0, 0.0, 0.0))))
-    agent.open_log()
+    agent.recorder.open()
     return agent
 
 
@@ -83,7 +84,7 @@ def test_a_failing_tick_commands_stop_and_the_next_one_runs(monkeypatch, capsys)
     for _ in range(4):
         agent._tick(sinks)
     assert commands(sinks) == [(1.0, 0.1), (0.0, 0.0), (1.0, 0.1), (1.0, 0.1)]
-    assert agent.tick_errors == 1 and agent.ticks == 4 and len(sinks["status"].payloads) == 4
+    assert agent.failures.total == 1 and agent.ticks == 4 and len(sinks["status"].payloads) == 4
     assert decode(Status, sinks["status"].payloads[1])[0].health["tick_errors"] == 1
     assert "ZeroDivisionError@" in capsys.readouterr().err
 
@@ -100,7 +101,7 @@ def test_the_same_failure_tick_after_tick_rebuilds_the_core(monkeypatch, capsys)
     agent.state.phase = 1.0
     for _ in range(7):
         agent._tick(sinks)
-    assert agent.tick_errors == 7 and agent.core_rebuilds == 2
+    assert agent.failures.total == 7 and agent.failures.rebuilds == 2
     assert agent.state is not before and agent.state.phase is None and agent.state.tracker is None  # no initial estimates
     assert set(commands(sinks)) == {(0.0, 0.0)}
     err = capsys.readouterr().err
@@ -116,8 +117,8 @@ def test_a_command_beyond_the_limits_never_leaves(monkeypatch, command):
     monkeypatch.setattr(node_module, "step", lambda params, state, inputs: (state, TickOutput(command, None, None)))
     agent, sinks = node(), publishers()
     agent._tick(sinks)
-    assert commands(sinks) == [(0.0, 0.0)] and agent.tick_errors == 1
-    assert "CommandOutOfLimits" in next(iter(agent._error_kinds))
+    assert commands(sinks) == [(0.0, 0.0)] and agent.failures.total == 1
+    assert "CommandOutOfLimits" in next(iter(agent.failures.kinds))
 
 
 def test_a_command_at_the_limits_goes_out(monkeypatch):
@@ -127,7 +128,7 @@ def test_a_command_at_the_limits_goes_out(monkeypatch):
     monkeypatch.setattr(node_module, "step", lambda params, state, inputs: (state, TickOutput(command, None, None)))
     agent, sinks = node(), publishers()
     agent._tick(sinks)
-    assert commands(sinks) == [(-MAX_SURGE, MAX_YAW_RATE)] and agent.tick_errors == 0
+    assert commands(sinks) == [(-MAX_SURGE, MAX_YAW_RATE)] and agent.failures.total == 0
 
 
 def test_the_real_core_failure_of_the_issue_is_survived(tmp_path):
@@ -148,19 +149,19 @@ def test_the_real_core_failure_of_the_issue_is_survived(tmp_path):
     assert agent.ticks == 15
     for surge, yaw_rate in commands(sinks):
         assert math.isfinite(surge) and abs(surge) <= MAX_SURGE and abs(yaw_rate) <= MAX_YAW_RATE * (1 + 1e-9)
-    agent.log.close()
+    agent.recorder.close()
     errors = [m for topic, _, m in read_messages(tmp_path / "agent-1.mcap") if topic == "/1/errors"]
-    assert len(errors) == min(agent.tick_errors, 1)
+    assert len(errors) == min(agent.failures.total, 1)
     if errors:
         assert errors[0]["inputs"]["shares"]["9"]["target_covariance"][0] == -5.0
 
 
 def test_an_error_kind_names_the_place_in_our_code():
     try:
-        AgentNode._check_command(SimpleNamespace(limits=(1.0, 1.0)), Command(2.0, 0.0))
+        check_command(Command(2.0, 0.0), SimpleNamespace(max_speed=1.0, max_correction_yaw_rate=0.5, yaw_rate=-0.5))
     except CommandOutOfLimits as error:
         kind = error_kind(error)
-    assert kind.startswith("CommandOutOfLimits@agent/shell/node.py:")
+    assert kind.startswith("CommandOutOfLimits@agent/shell/failures.py:")
 
 
 class FakeSample:
@@ -173,19 +174,20 @@ def test_a_sim_restart_rebuilds_the_core_and_starts_a_new_log(tmp_path):
     settings = NodeSettings(clock="sim", id_check=0, log=str(tmp_path / "agent-{vessel}.mcap"),
                             initial=InitialEstimates(target=(5.0, 0.0, 0.0, 0.0)))
     agent = AgentNode("1", settings)
-    agent.open_log()
-    agent.clock.silence = 0.05
+    agent.recorder.open()
+    agent.ticker.clock.silence = 0.05
     agent._on_clock(FakeSample("sim/clock", encode(Clock(stamp_ns=30 * 10**9, seq=300))))
     agent.state.phase = 2.0
     agent.state.tracker = None
     time.sleep(0.1)                        # the sim bridge is gone ...
-    assert agent._input_time() is None     # ... stamps are not judged meanwhile
+    assert agent.ticker.input_time() is None     # ... stamps are not judged meanwhile
     agent._on_clock(FakeSample("sim/clock", encode(Clock(stamp_ns=0, seq=0))))   # ... and back from 0
-    assert agent._restart_pending and agent.gate._delivered_through is None
+    assert agent.ticker.restart_pending and agent.gate._delivered_through is None
+    assert agent.ticker.restarted() and not agent.ticker.restarted()   # once
     agent._restart()
-    assert agent.sim_restarts == 1 and agent.state.phase is None and agent.state.tracker is not None
-    assert agent.log.path.name == "agent-1-mission2.mcap"
-    agent.log.close()
+    assert agent.ticker.restarts == 1 and agent.state.phase is None and agent.state.tracker is not None
+    assert agent.recorder.log.path.name == "agent-1-mission2.mcap"
+    agent.recorder.close()
     assert (tmp_path / "agent-1.mcap").exists()
 
 

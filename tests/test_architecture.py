@@ -4,6 +4,8 @@ function, under `if TYPE_CHECKING`, relative ones, and `importlib.import_module`
 - `agent.core` is the pure per-vessel core: no transport, log format, plotting, threads, sockets or
   processes (zenoh, mcap, matplotlib, threading, socket, subprocess), none of the agent process around it
   (agent.shell, agent.runtime, agent.contract), and nothing of the packages built on it.
+- The contract, configuration, angles and the covariance check they share (agent.cholesky) take nothing of
+  the core or the shell: a bridge that loads them loads no part of the agent's computation.
 - `driver_bridge` and `usv_op` (the operator's station) take from `agent` only what every process of the fleet shares: the wire contract
   (agent.contract), typed configuration (agent.config), angles (agent.angles) and the runtime
   (agent.runtime: Zenoh session settings, the vessel-process command line, MCAP logs).
@@ -202,6 +204,12 @@ def broken(imports: list[Import], importer: str, allowed, rule: str) -> None:
 def test_the_core_is_pure(imports):
     broken(imports, "agent.core", lambda target: not any(within(target, name) for name in CORE_FORBIDDEN),
            f"agent.core imports none of {', '.join(CORE_FORBIDDEN)}")
+
+
+@pytest.mark.parametrize("importer", ["agent.contract", "agent.cholesky", "agent.config", "agent.angles"])
+def test_what_a_bridge_takes_from_agent_takes_nothing_of_the_core_or_the_shell(imports, importer):
+    broken(imports, importer, lambda target: not (within(target, "agent.core") or within(target, "agent.shell")),
+           f"{importer} imports nothing of agent.core or agent.shell (a bridge loads it alone)")
 
 
 @pytest.mark.parametrize("importer", ["driver_bridge", "usv_op"])

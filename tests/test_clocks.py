@@ -22,6 +22,7 @@ from agent.contract import CLOCK_SOURCE_SENSORS, Odometry, ShareMessage, encode
 from agent.shell.gate import OFFSET_MIN, OFFSET_WINDOW, InputGate, StampOffsets
 from agent.shell.node import AgentNode
 from agent.shell.settings import NodeSettings
+from agent.shell.startup import no_sensor_words
 from agent.shell.wall_clock import SimulatedVesselClock, WallTimeline
 from mission_log.reader import read_log
 from mission_log.series import truth_of
@@ -312,12 +313,11 @@ def test_the_launchers_verdict_names_the_vessel_whose_clock_is_off():
         "vessel 2's clock 2.00 s behind that of vessel 1")
 
 
-def test_sensors_that_arrive_refused_are_not_blamed_on_a_missing_bridge(capsys):
+def test_sensors_that_arrive_refused_are_not_blamed_on_a_missing_bridge():
     """Before: a vessel whose every sensor message was refused for its stamp said 'no bridge publishes'."""
     node = AgentNode("1", NodeSettings())
     for k in range(OFFSET_MIN - 1):    # too few for a correction yet: every one refused as 'future'
         node.gate.offer("usv/1/sensor/odom", odometry(T0 + 0.1 * k + 5.0, 0.0, k), T0 + 0.1 * k)
-    node._tell_if_no_sensors()
-    said = capsys.readouterr().err
+    said = no_sensor_words("1", node.gate, False, None, node.settings.no_sensor_warning)
     assert "sensor messages arrive but none was taken" in said and "'future': 15" in said
     assert "no bridge publishes" not in said

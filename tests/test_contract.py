@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 import math
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -14,6 +16,7 @@ from agent.contract import (
     MAX_PAYLOAD_BYTES,
     MAX_PEERS,
     TOPICS,
+    VERDICTS,
     Bearing,
     Clock,
     Cmd,
@@ -26,15 +29,14 @@ from agent.contract import (
     encode,
     every,
     key,
-    message_from_share,
     pair_covariance_problem,
-    share_from_message,
     vessel_of,
 )
 from agent.core.build import InitialEstimates, initial_state
 from agent.core.params import AgentParams
 from agent.core.step import step
 from agent.shell.gate import InputGate, SimClock
+from agent.shell.translate import message_from_share, share_from_message
 
 NOW = 100.0
 NS = int(NOW * 1e9)
@@ -55,6 +57,24 @@ def test_keys():
     assert vessel_of("usv/12/cmd") == "12" and vessel_of("sim/clock") is None
     with pytest.raises(ValueError):
         key("1", "sensor/lidar")
+
+
+def test_a_bridge_that_imports_the_contract_loads_no_part_of_the_core():
+    """In a fresh interpreter, as a bridge starts: the contract alone brings in none of agent.core (the
+    translation to the core's records is the shell's, agent/shell/translate.py)."""
+    probe = ("import sys, agent.contract; "
+             "print(sorted(m for m in sys.modules if m == 'agent.core' or m.startswith(('agent.core.', 'agent.shell'))))")
+    loaded = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True).stdout
+    assert loaded.strip() == "[]", loaded
+    # The probe can fail: the shell's translation does load the core's records.
+    probe = probe.replace("agent.contract", "agent.shell.translate")
+    loaded = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True).stdout
+    assert "agent.core.records" in loaded
+
+
+def test_the_verdicts_on_the_wire_are_the_cores():
+    from agent.core.observability import VERDICTS as CORE_VERDICTS
+    assert VERDICTS == CORE_VERDICTS
 
 
 def test_round_trip_of_every_message_and_of_a_share():

@@ -104,7 +104,7 @@ def test_a_bad_vessel_id_or_config_is_a_clear_error(tmp_path):
 def test_a_failing_log_does_not_stop_the_ticks(tmp_path):
     settings = NodeSettings(clock="sim", log=str(tmp_path / "x.mcap"))
     node = AgentNode("1", settings, initial_state("1", settings.agent, InitialEstimates(target=(5.0, 0.0, 0.0, 0.0))))
-    node.open_log()
+    node.recorder.open()
 
     class Sink:
         def __init__(self):
@@ -116,11 +116,11 @@ def test_a_failing_log_does_not_stop_the_ticks(tmp_path):
     def broken(*args, **kwargs):
         raise OSError("disk full")
 
-    node.log.log = broken
+    node.recorder.log.log = broken
     publishers = {"cmd": Sink(), "share": Sink(), "status": Sink()}
     for _ in range(3):
         node._tick(publishers)
-    assert node.ticks == 3 and node.log_errors == 3 and len(publishers["cmd"].payloads) == 3
+    assert node.ticks == 3 and node.recorder.errors == 3 and len(publishers["cmd"].payloads) == 3
     status = decode(Status, publishers["status"].payloads[-1])[0]
     assert status.health["log_errors"] == 2  # counted before this tick's own attempt
 
@@ -142,7 +142,7 @@ def test_an_exception_in_the_core_is_survived_and_logged_with_its_inputs(tmp_pat
     monkeypatch.setattr(node_module, "step", failing_step)
     node = AgentNode("1", NodeSettings(clock="wall", id_check=0, log=str(tmp_path / "agent-{vessel}.mcap")))
     node.run(max_ticks=10)
-    assert len(calls) == 10 and node.ticks == 10 and node.tick_errors == 1 and node.core_rebuilds == 0
+    assert len(calls) == 10 and node.ticks == 10 and node.failures.total == 1 and node.failures.rebuilds == 0
     err = capsys.readouterr().err
     assert err.count("failed (RuntimeError@") == 1 and "commanding STOP" in err
     with warnings.catch_warnings():

@@ -213,12 +213,12 @@ def test_the_status_and_the_log_carry_each_pairs_observability(tmp_path):
     params = AgentParams()
     agent = AgentNode("1", NodeSettings(clock="wall", id_check=0, log=str(tmp_path / "agent-{vessel}.mcap")),
                       start(params))
-    agent.open_log()
+    agent.recorder.open()
     sinks = {"cmd": Sink(), "share": Sink(), "status": Sink()}
     for inputs in inputs_of("straight", 60):
         agent.gate.snapshot = lambda now, inputs=inputs: inputs
         agent._tick(sinks)
-    agent.log.close()
+    agent.recorder.close()
     status = decode(Status, sinks["status"][-1])[0]
     assert status.health["pairs_mirror_ambiguous"] == 1 and status.health["pairs_unobservable"] == 0
     assert status.weakest_pair.neighbour == "2" and status.weakest_pair.observability == MIRROR_AMBIGUOUS

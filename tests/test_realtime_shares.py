@@ -167,7 +167,7 @@ def late_answering_fleet(seconds: float, late_ticks: int, resume: dict[str, floa
             node._on_clock(sample("sim/clock", clock))
             if 0 < k < round((resume or {}).get(vessel, 0.0) / scenario.world.dt):
                 continue
-            node._tick(publishers[vessel], node._latest_clock())
+            node._tick(publishers[vessel], node.ticker.clock.latest)
             for key_expr, payload in outboxes[vessel]:
                 if key_expr.endswith("/share"):
                     in_flight.append((k + late_ticks, key_expr, payload))

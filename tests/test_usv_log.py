@@ -220,6 +220,10 @@ def test_bad_input_gets_a_clear_error(fleet_run, tmp_path):
     assert wrong.returncode == 2 and "relative.estimator" in wrong.stderr and "Traceback" not in wrong.stderr
     wrong = usv_log("replay", str(folder / "agent-1.mcap"), "--out", str(tmp_path / "x.mcap"), "--set", "novalue")
     assert wrong.returncode == 2 and "key.path=value" in wrong.stderr
+    (tmp_path / "bad.yaml").write_text("relative: {estimatr: kf}\n", encoding="utf-8")   # an AgentParams file
+    wrong = usv_log("replay", str(folder / "agent-1.mcap"), "--out", str(tmp_path / "x.mcap"), "--params",
+                    str(tmp_path / "bad.yaml"))
+    assert wrong.returncode == 2 and f"{tmp_path / 'bad.yaml'}: field 'relative.estimatr': unknown key" in wrong.stderr
     with pytest.raises(LogError, match="not an agent's log"):
         replay(folder / "sim.mcap", tmp_path / "y.mcap")
     (tmp_path / "junk.mcap").write_bytes(b"not a log at all")

@@ -234,6 +234,31 @@ def test_fit_noise_from_your_own_csvs(tmp_path, capsys):
     assert "bad.csv" in capsys.readouterr().err
 
 
+@pytest.mark.slow   # runs usv-agent in a process of its own
+def test_a_fit_noise_output_drops_into_the_agent_as_it_is(tmp_path):
+    """What `fit-noise` writes is an AgentParams file: `usv-agent --params` runs with it, unedited, and so does
+    a boat's settings naming it (`agent: my_uwb.yaml`); before, its `relative:` section had to be moved under
+    the settings' `agent:` by hand."""
+    import subprocess
+    import sys
+
+    import yaml
+
+    rng = np.random.default_rng(4)
+    files = [str(uwb.write_run(_calibration_run(f"cal{j}", bias + rng.normal(0.0, 0.03, 300)), tmp_path))
+             for j, bias in enumerate((0.05, 0.15, 0.10))]
+    out = tmp_path / "my_uwb.yaml"
+    assert uwb.main(["fit-noise", "csv", *files, "--components", "1", "--out", str(out)]) == 0
+    fitted = load_yaml(AgentParams, out)
+    assert fitted.relative.raw_range != AgentParams().relative.raw_range
+    (tmp_path / "boat.yaml").write_text("clock: wall\nagent: my_uwb.yaml\n", encoding="utf-8")
+    for arguments in (["--params", str(out)], ["--config", str(tmp_path / "boat.yaml")]):
+        result = subprocess.run([sys.executable, "-m", "agent", "--vessel", "1", *arguments, "--print-config"],
+                                capture_output=True, text=True, timeout=120)
+        assert result.returncode == 0, result.stderr
+        assert AgentParams.model_validate(yaml.safe_load(result.stdout)["agent"]) == fitted
+
+
 def test_fit_sensor_noise_needs_two_runs():
     with pytest.raises(ConfigError, match="at least two"):
         uwb.fit_sensor_noise([_calibration_run("one", np.zeros(10))])

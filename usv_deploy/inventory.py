@@ -19,16 +19,21 @@ import json
 import os
 import shutil
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
 import yaml
 from pydantic import Field, model_validator
 
-from agent.config import StrictModel, deep_merge, load_yaml, parse_mapping
+from agent.config import InlineOrFile, StrictModel, deep_merge, load_yaml, parse_mapping
 from agent.contract import VesselId
+from agent.core.params import AgentParams
 from agent.shell.settings import NodeSettings
 from driver_bridge.node import DriverSettings
 from usv_deploy.security import secure_config
+
+# Agent parameters as an overlay: inline or an AgentParams file (relative to the inventory's folder), checked
+# as AgentParams when the inventory is read; only the keys it names go over what is beneath it.
+AgentOverlay = Annotated[AgentParams, InlineOrFile(AgentParams)]
 
 CONFIG_ROOT = "/etc/usv"          # where the units look for a vessel's files: /etc/usv/<id>/
 LOG_ROOT = "/var/log/usv"         # where the agents write their MCAP logs (the units' LogsDirectory)
@@ -52,7 +57,7 @@ class Vessel(Endpoint):
     id: VesselId
     devices: Devices = Devices()
     uwb_node: int | None = Field(None, ge=0, le=255, description="this vessel's LinkTrack node id")
-    agent: dict = Field(default_factory=dict, description="agent parameters of this vessel, over the fleet's")
+    agent: AgentOverlay = Field(AgentParams(), description="agent parameters of this vessel, over the fleet's")
     driver: dict = Field(default_factory=dict, description="driver settings of this vessel, over the fleet's")
 
 
@@ -64,7 +69,7 @@ class Inventory(StrictModel):
     tls: str | None = Field(None, description="folder of the fleet's certificates (usv-deploy certs), relative to "
                             "the inventory's folder; on a boat they are installed in /etc/usv/<id>/certs")
     vessels: list[Vessel] = Field(min_length=1)
-    agent: dict = Field(default_factory=dict, description="agent parameters (AgentParams) of every vessel")
+    agent: AgentOverlay = Field(AgentParams(), description="agent parameters (AgentParams) of every vessel")
     driver: dict = Field(default_factory=dict, description="driver settings (DriverSettings) of every vessel")
 
     @model_validator(mode="after")
@@ -127,7 +132,7 @@ def agent_settings(inventory: Inventory, vessel: Vessel) -> NodeSettings:
         "clock": "wall",
         "zenoh": _zenoh(inventory, vessel, 0),
         "log": f"{LOG_ROOT}/agent-{{vessel}}-{{start}}.mcap",
-        "agent": deep_merge(inventory.agent, vessel.agent),
+        "agent": deep_merge(inventory.agent.model_dump(exclude_unset=True), vessel.agent.model_dump(exclude_unset=True)),
     }
     return parse_mapping(NodeSettings, data, f"inventory {inventory.fleet}, vessel {vessel.id}, agent")
 

@@ -10,11 +10,12 @@ import faulthandler
 import signal
 import sys
 import threading
+from pathlib import Path
 
 import yaml
 from pydantic import TypeAdapter, ValidationError
 
-from agent.config import ConfigError, StrictModel, load_yaml, parse_mapping
+from agent.config import ConfigError, StrictModel, parse_mapping, read_yaml
 from agent.contract import VesselId
 from agent.runtime.zenoh_session import config_layers, zenoh_config
 
@@ -83,10 +84,11 @@ def print_config(what: str, settings: StrictModel) -> None:
 
 
 def vessel_process(prog: str, description: str, model: type[StrictModel], argv: list[str] | None,
-                   add_arguments=None, config_required: bool = False):
-    """The command line of a vessel's process: --vessel, --config, --print-config (and what `add_arguments`
-    adds). Returns (arguments, settings) to run with, or an exit code once it has said why not (a bad id, a
-    bad file) or printed the configuration."""
+                   add_arguments=None, config_required: bool = False, params_key: str | None = None):
+    """The command line of a vessel's process: --vessel, --config, --print-config, with `params_key` --params
+    (a file that becomes that field of the settings), and what `add_arguments` adds. Returns (arguments,
+    settings) to run with, or an exit code once it has said why not (a bad id, a bad file) or printed the
+    configuration."""
     guard_stderr()
     parser = argparse.ArgumentParser(prog=prog, description=description)
     parser.add_argument("--vessel", required=True, help="this vessel's id (1-32 of A-Z a-z 0-9 _ -)")
@@ -94,6 +96,10 @@ def vessel_process(prog: str, description: str, model: type[StrictModel], argv: 
                         help=f"settings YAML ({model.__name__})" + ("" if config_required else "; default: defaults"))
     parser.add_argument("--print-config", action="store_true",
                         help="print the effective settings (defaults filled in) and exit without starting")
+    if params_key is not None:
+        parser.add_argument("--params", default=None,
+                            help=f"an AgentParams file (as configs/agent.yaml, or what `fit-noise` writes): the "
+                                 f"settings' `{params_key}`, in place of theirs")
     if add_arguments is not None:
         add_arguments(parser)
     args = parser.parse_args(argv)
@@ -103,7 +109,11 @@ def vessel_process(prog: str, description: str, model: type[StrictModel], argv: 
         print(f"{prog}: invalid --vessel {args.vessel!r}: {error.errors()[0]['msg']}", file=sys.stderr)
         return 2
     try:
-        settings = load_yaml(model, args.config) if args.config else parse_mapping(model, {}, "<defaults>")
+        data = read_yaml(args.config) if args.config else {}
+        if params_key is not None and args.params and isinstance(data, (dict, type(None))):
+            data = {**(data or {}), params_key: str(Path(args.params).resolve())}
+        settings = parse_mapping(model, data, args.config or "<defaults>",
+                                 Path(args.config).parent if args.config else None)
         zenoh_config(settings.zenoh)   # a bad ZENOH_CONFIG file or override: one line now, not a traceback later
     except ConfigError as error:
         print(f"{prog}: {error}", file=sys.stderr)

@@ -52,18 +52,18 @@ from agent.contract import (
     MAX_SPEED,
     TOPICS,
     Bearing,
+    Clock,
     Odometry,
     Ranges,
     ReceivedShare,
     Sonar,
     decode,
     nanoseconds,
-    odometry_reading,
     seconds,
-    share_from_message,
     vessel_of,
 )
 from agent.core.records import Share, TickInputs
+from agent.shell.translate import odometry_reading, share_from_message
 
 OWN_TOPICS = ("sensor/odom", "sensor/uwb", "sensor/bearing", "sensor/sonar")
 ALWAYS_COUNTED = ("stale", "malformed", "shares_missing")   # refusals an operator watches (usv_op.layout)
@@ -412,6 +412,18 @@ class InputGate:
             self._arrival.notify_all()
 
     # ----- the tick side -----
+    def deliver_for(self, clock: Clock, share_wait: float, dt: float) -> None:
+        """Sim time: take the shares of the tick before that `clock` (the sim's radio) delivers to this vessel,
+        once this tick's own sensors are in; in lockstep first wait (up to `share_wait`) for those shares too.
+        In real time only the own sensors are worth a short wait (a quarter of `dt`: they were published just
+        before the clock), and each neighbour's newest share that has come is taken, late or not, unless the
+        radio lost it: at sea a late share is still the neighbour's latest word."""
+        wait = share_wait if clock.lockstep else 0.25 * dt
+        sensed = clock.vessels is not None and self.id in clock.vessels
+        lost = None if clock.lockstep else {sender for sender, to in clock.lost if to == self.id}
+        self.deliver_shares(clock.previous_ns, clock.delivered_to(self.id), wait, clock.stamp_ns if sensed else None,
+                            wait_for_shares=clock.lockstep, lost=lost)
+
     def deliver_shares(self, stamp_ns: int | None, senders: set[str] | None, wait: float = 0.0,
                        sensors_ns: int | None = None, wait_for_shares: bool = True,
                        lost: set[str] | None = None) -> set[str]:

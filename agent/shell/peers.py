@@ -122,6 +122,24 @@ class PeerTable:
             self._update()
             return True, evicted
 
+    def token(self, peer: str, alive: bool, gate) -> bool:
+        """`peer`'s token came (`alive`) or went; the input `gate` forgets what it holds of the ids that leave
+        the table and of `peer`'s earlier session (nothing of it counts). Whether the live ids changed."""
+        if not alive:
+            self.undeclare(peer)
+            gate.forget(peer)
+            return True
+        if peer in self._entries:
+            return False
+        admitted, evicted = self.declare(peer)
+        for other in evicted:
+            gate.forget(other)
+        if not admitted:
+            gate.count("too_many_peers", f"liveliness: {peer}")
+            return False
+        gate.forget(peer)
+        return True
+
     def undeclare(self, peer: str) -> None:
         with self._lock:
             self._entries.pop(peer, None)

@@ -2,11 +2,11 @@
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Annotated, Literal
 
 from pydantic import Field
 
-from agent.config import NonNegativeFloat, PositiveFloat, StrictModel
+from agent.config import InlineOrFile, NonNegativeFloat, PositiveFloat, StrictModel
 from agent.core.build import InitialEstimates
 from agent.core.params import AgentParams
 from agent.runtime.mcap_log import LogRotation
@@ -15,13 +15,14 @@ from agent.shell.wall_clock import SimulatedVesselClock
 
 
 class NodeSettings(StrictModel):
-    """How one agent process runs; `agent` holds the algorithm's parameters (Table I by default)."""
+    """How one agent process runs; `agent` holds the algorithm's parameters (Table I by default), inline or as
+    the name of an AgentParams file (relative to this file's folder), the shape of configs/agent.yaml."""
 
     clock: Literal["wall", "sim"] = Field("wall", description="monotonic 10 Hz timer, or sim/clock ticks")
     zenoh: ZenohSettings = ZenohSettings()
     max_input_age: PositiveFloat = Field(1.0, description="inputs older than this (s) are ignored")
     share_wait: PositiveFloat = Field(2.0, description="sim lockstep: wall seconds to wait for neighbours' shares")
-    # ----- robustness: what arrives is bounded, a failed tick is survived (agent/shell/gate.py, node.py) -----
+    # ----- robustness: what arrives is bounded, a failed tick is survived (agent/shell/gate.py, failures.py) -----
     max_input_future: PositiveFloat = Field(0.5, description="inputs stamped further ahead of the clock (s) are "
                                             "refused")
     max_input_rate: PositiveFloat = Field(
@@ -55,4 +56,5 @@ class NodeSettings(StrictModel):
                           "simulated clock, the one the sim bridge stamps its sensors with (on a boat the "
                           "agent and the driver share the computer's clock); null: the system clock")
     initial: InitialEstimates = InitialEstimates()
-    agent: AgentParams = AgentParams()
+    agent: Annotated[AgentParams, InlineOrFile(AgentParams)] = Field(
+        AgentParams(), description="the algorithm's parameters: an AgentParams file's content, or its name")

@@ -36,7 +36,7 @@ from agent.runtime.log_schema import AgentSummary, Estimates, Inputs
 
 
 class TickError(StrictModel):
-    """A tick that failed (agent/shell/node.py), on `/<id>/errors`: the exception and the tick's inputs."""
+    """A tick that failed (agent/shell/failures.py), on `/<id>/errors`: the exception and the tick's inputs."""
 
     model_config = ConfigDict(title="usv.TickError")
 

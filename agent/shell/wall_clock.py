@@ -25,7 +25,7 @@ from collections.abc import Callable
 from pydantic import Field
 
 from agent.config import StrictModel
-from agent.contract import MAX_STAMP_NS
+from agent.contract import CLOCK_SOURCE_SENSORS, MAX_STAMP_NS, ClockOffset
 
 MAX_STEP = 0.2   # s: a change of the system clock against the monotonic clock beyond this is a step
 
@@ -82,3 +82,44 @@ class WallTimeline:
     def stepped(self) -> float:
         """How far the system clock runs from the timeline now (s; 0 unless it stepped and stays stepped)."""
         return self._seen - self.anchor
+
+
+def clock_alarm_words(source: str, offset: float) -> str:
+    """One line on a clock that disagrees with the agent's: 'sensor clock 1.02 s ahead of this computer's'."""
+    way = "ahead of" if offset > 0 else "behind"
+    if source == CLOCK_SOURCE_SENSORS:
+        back = "back" if offset > 0 else "forward"
+        return (f"sensor clock {abs(offset):.2f} s {way} this computer's: beyond the input window, so the "
+                f"sensors' stamps are taken {abs(offset):.2f} s {back} once consistent")
+    return (f"vessel {source}'s clock {abs(offset):.2f} s {way} this computer's: its shares are refused as "
+            f"{'future' if offset > 0 else 'stale'}")
+
+
+def step_words(delta: float, steps: int) -> str:
+    """One line on a step of this computer's clock (`WallTimeline`) and what the agent does about it."""
+    return (f"this computer's clock stepped {'back' if delta < 0 else 'forward'} {abs(delta):.3f} s (against the "
+            f"monotonic clock; {steps} steps so far): the agent keeps its time continuous with the fleet's and "
+            f"takes its sensors' stamps {abs(delta):.3f} s {'forward' if delta < 0 else 'back'}")
+
+
+class ClockAlarms:
+    """The clocks that disagree with the agent's (the gate's `clock_alarms`), each told by `say` once, again
+    when it moves by more than a tenth of a second, and when it is over."""
+
+    def __init__(self, say: Callable[[str], None]) -> None:
+        self.say = say
+        self.told: dict[str, float] = {}   # source -> the offset last told
+
+    def __call__(self, offsets: list[tuple[str, float]]) -> list[ClockOffset]:
+        alarms = [ClockOffset(source=source, offset=offset) for source, offset in offsets]
+        now = {alarm.source: alarm.offset for alarm in alarms}
+        for source, offset in now.items():
+            told = self.told.get(source)
+            if told is None or abs(told - offset) > 0.1:
+                self.told[source] = offset
+                self.say(clock_alarm_words(source, offset))
+        for source in [s for s in self.told if s not in now]:
+            del self.told[source]
+            self.say(f"the {'sensor' if source == CLOCK_SOURCE_SENSORS else f'vessel {source}'} clock agrees "
+                     "with this computer's again")
+        return alarms

@@ -132,8 +132,8 @@ def _run(scenario: Scenario, folder: Path, between_ticks) -> ShellRun:
     node_module.step = _Timed(core_step, run, "core")
     try:
         for vessel, node in nodes.items():
-            node.open_log()
-            node.tick_log.tick = _Timed(node.tick_log.tick, run, "logging")
+            node.recorder.open()
+            node.recorder.tick_log.tick = _Timed(node.recorder.tick_log.tick, run, "logging")
             node.live_peers = set(ids) - {vessel}
             node._live_view = frozenset(node.live_peers)
         bridge.alive = set(ids)
@@ -158,11 +158,11 @@ def _run(scenario: Scenario, folder: Path, between_ticks) -> ShellRun:
                     if not key_expr.startswith(f"usv/{vessel}/"):
                         node._on_input(_Sample(key_expr, payload))
                 node._on_clock(_Sample(CLOCK_KEY, published[-1][1]))
-                node._sim_tick.clear()
+                node.ticker.clocked.clear()
                 ticking = time.thread_time()
                 run.seconds["inputs"] += ticking - started
                 inner = run.seconds["core"] + run.seconds["logging"]
-                node._tick(publishers[vessel], node.clock.latest)
+                node._tick(publishers[vessel], node.ticker.clock.latest)
                 inner = run.seconds["core"] + run.seconds["logging"] - inner
                 run.seconds["publishing"] += time.thread_time() - ticking - inner
                 answers += wire[vessel].take()
@@ -188,8 +188,7 @@ def _run(scenario: Scenario, folder: Path, between_ticks) -> ShellRun:
     finally:
         node_module.step = core_step
         for node in nodes.values():
-            if node.log is not None:
-                node.log.close()
+            node.recorder.close()
         if bridge.log is not None:
             bridge.log.close()
     return run
