@@ -68,7 +68,7 @@ def test_the_settings_agent_may_name_the_file_relative_to_the_settings(tmp_path)
 @pytest.mark.parametrize("how", ["--params", "settings"])
 def test_a_fault_in_a_parameter_file_is_one_line_naming_that_file(tmp_path, how):
     bad = tmp_path / "bad.yaml"
-    bad.write_text("relative:\n  raw_range:\n    bias_varianc: 0.01\n", encoding="utf-8")
+    bad.write_text("control:\n  radiuss: 6.0\n", encoding="utf-8")
     if how == "--params":
         result = run([*AGENT, "--vessel", "1", "--params", str(bad), "--print-config"], tmp_path)
     else:
@@ -76,7 +76,7 @@ def test_a_fault_in_a_parameter_file_is_one_line_naming_that_file(tmp_path, how)
         result = run([*AGENT, "--vessel", "1", "--config", "node.yaml", "--print-config"], tmp_path)
     assert result.returncode == 2 and result.stdout == ""
     assert result.stderr.strip().splitlines() == [
-        f"usv-agent: {bad if how == '--params' else 'bad.yaml'}: field 'relative.raw_range.bias_varianc': "
+        f"usv-agent: {bad if how == '--params' else 'bad.yaml'}: field 'control.radiuss': "
         "unknown key"]
 
 
@@ -91,8 +91,10 @@ def test_a_scenario_base_may_name_the_file_and_its_variants_go_over_it(tmp_path)
     _, variants = load_scenarios(scenario)
     expected = load_yaml(AgentParams, CALIBRATED)
     assert variants["as_calibrated"].agent == expected
-    assert variants["mckf"].agent.relative.estimator == "mckf"
-    assert variants["mckf"].agent.relative.raw_range == expected.relative.raw_range   # the file beneath it
+    assert variants["mckf"].agent.relative.estimator.name == "mckf"
+    # The file beneath it: what the variant does not name stays the calibrated file's.
+    assert variants["mckf"].agent.relative.range_variance == expected.relative.range_variance
+    assert variants["mckf"].agent.model_dump(exclude={"relative"}) == expected.model_dump(exclude={"relative"})
     # The same shape inline gives the same scenario.
     inline = tmp_path / "inline.yaml"
     inline.write_text(yaml.safe_dump({"name": "inline", "base": {"world": WORLD,
