@@ -98,7 +98,9 @@ def step(params: AgentParams, state: VesselState, inputs: TickInputs) -> tuple[V
         if is_localised or track.best_trace() <= guard_trace:
             estimated.append(p_ij)
         records[j] = _neighbour_record(track, estimate, is_localised)
-        shared[j] = _shared_estimate(track)
+        carried = _shared_estimate(track)
+        if np.all(np.abs(carried[1]) <= MAX_SHARED_VARIANCE):
+            shared[j] = carried
     health.ranges_unpaired += unusable["unpaired"]
     health.ranges_gap += unusable["gap"]
 
@@ -238,6 +240,11 @@ def _phase_of(params: AgentParams, track: NeighbourTrack, now: float) -> float:
     """j's phase carried from its share's stamp to now at the nominal rate omega* of (28)."""
     share = track.share
     return share.phase + params.control.yaw_rate * (now - share.odometry.stamp)
+
+
+# A pair estimate wider than this says nothing (a fix dropped starts again from 1e12 m^2, raw_range.py); the
+# share leaves it out, as the wire contract cannot carry it (agent/contract.py MAX_VARIANCE, the same bound).
+MAX_SHARED_VARIANCE = 1e10
 
 
 def _to_shared(state: np.ndarray, own_velocity: np.ndarray) -> np.ndarray:
