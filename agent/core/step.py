@@ -118,13 +118,17 @@ def step(params: AgentParams, state: VesselState, inputs: TickInputs) -> tuple[V
         health.bad_obstacles += 1
     command, terms, saturated = control_command(
         control, params.dt, state.phase, next_phase, odometry.heading, target_state, state.motion.velocity,
-        localised, neighbour_phases, obstacles)
+        localised, neighbour_phases, obstacles, state.motion.yaw_rate)
     command = _keep_apart(params, state, inputs.ranges, localised, medians, distances, estimated,
                           odometry.heading, command)
     if not (math.isfinite(command.surge) and math.isfinite(command.yaw_rate)):
         # Never publish a non-finite command, whatever went wrong upstream.
         health.non_finite_commands += 1
         command = STOP
+    if control.yaw_lag > 0.0:
+        # The boat's rate over the coming period, as the first-order lag makes it of this command.
+        rate = state.motion.yaw_rate
+        state.motion.yaw_rate = rate + (1.0 - math.exp(-elapsed / control.yaw_lag)) * (command.yaw_rate - rate)
     surge = command.surge
     share = Share(
         sender=state.vessel, odometry=odometry,
