@@ -27,6 +27,8 @@ SUBCOMMANDS = {
     "runtime-ab": ("lab.runtime_ab", "what one change to the runtime bought: alternating runs before and after it"),
     "fuzz": ("lab.fuzz_bench", "fuzz campaign over Zenoh: bad payloads on every key one agent reads"),
     "sea-bench": ("lab.sea_bench", "the fleet in the sea mode against the ideal simulation, seed by seed"),
+    "sea-agent-ab": ("lab.sea_agent_ab", "the agent's measures for lags, limits, compass bias and current, with and "
+                                         "without"),
 }
 
 

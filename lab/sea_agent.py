@@ -21,6 +21,11 @@ from sim_bridge.scenario import Scenario, select_scenario
 
 ROOT = Path(__file__).resolve().parents[1]
 TABLE2 = ROOT / "configs" / "scenarios" / "table2_estimators.yaml"
+# The agent's measures for a boat with 1 s lags in surge and yaw (docs/sea_agent.md): the lag-compensated
+# heading loop (w_n 2 rad/s), the formation gains cut so that the fastest formation mode (kappa_io + n kappa_ij,
+# 0.9 /s for n = 4) keeps a phase margin of 54 deg through the heading loop, and the guard's coasting distance.
+COPING = {"control": {"yaw_lag": 1.0, "surge_lag": 1.0, "heading_bandwidth": 2.0, "gain_target": 0.3,
+                      "gain_neighbour": 0.15, "neighbour_gain_cap": 0.45}}
 TAIL = 10.0     # s: |r - r*| is averaged over the run's last this many seconds
 
 

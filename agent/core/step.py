@@ -23,7 +23,7 @@ import numpy as np
 from agent.core.checks import finite_vector, obstacle_array, valid_range
 from agent.core.command import control_command
 from agent.core.control.oscillator import oscillator_step
-from agent.core.control.separation import guarded_surge
+from agent.core.control.separation import coasting_distance, guarded_surge
 from agent.core.cooperation import fuse_reciprocal, fuse_targets, swap_velocity
 from agent.core.membership import forget_silent, receive_shares, start_track, store_ranges
 from agent.core.neighbours import NeighbourTrack, stamp_key
@@ -220,9 +220,12 @@ def _keep_apart(params: AgentParams, state: VesselState, ranges, localised: dict
             too_close = True    # short ranges the estimate does not explain: its direction is not to be trusted
     if command.surge == 0.0:
         return command
+    guard = limit + control.separation_margin
+    if control.surge_lag > 0.0:
+        # A boat whose surge lags the command by tau_u coasts |u| tau_u after a stop: keep that much further.
+        guard += coasting_distance(math.hypot(*state.motion.velocity.tolist()), control.surge_lag)
     surge = 0.0 if too_close else guarded_surge(command.surge, heading, command.yaw_rate, params.dt,
-                                                estimated, limit + control.separation_margin,
-                                                control.separation_rate)
+                                                estimated, guard, control.separation_rate)
     if surge == command.surge:
         return command
     state.health.separation_stops += 1
