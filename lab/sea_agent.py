@@ -9,12 +9,14 @@ current (ground-fixed, as the issue measured), the agent's parameters overridden
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from agent.config import deep_merge
+from agent.core.odometry_noise import displacement_variance
 from lab.plant_effects import PlantEffects, world_factory
 from lab.runner import run
 from sim_bridge.scenario import Scenario, select_scenario
@@ -24,8 +26,11 @@ TABLE2 = ROOT / "configs" / "scenarios" / "table2_estimators.yaml"
 # The agent's measures for a boat with 1 s lags in surge and yaw (docs/sea_agent.md): the lag-compensated
 # heading loop (w_n 2 rad/s), the formation gains cut so that the fastest formation mode (kappa_io + n kappa_ij,
 # 0.9 /s for n = 4) keeps a phase margin of 54 deg through the heading loop, and the guard's coasting distance.
+# And (e): the pair filters' odometry noise from a speed log of 0.1 m/s and a compass of 1 deg (bias included)
+# at 1 m/s: 1e-4 m^2 per period instead of Table I's 1e-6.
+ODOMETRY = {"relative": {"displacement_variance": displacement_variance(0.1, math.radians(1.0), 1.0, 0.1)}}
 COPING = {"control": {"yaw_lag": 1.0, "surge_lag": 1.0, "heading_bandwidth": 2.0, "gain_target": 0.3,
-                      "gain_neighbour": 0.15, "neighbour_gain_cap": 0.45}}
+                      "gain_neighbour": 0.15, "neighbour_gain_cap": 0.45}, **ODOMETRY}
 TAIL = 10.0     # s: |r - r*| is averaged over the run's last this many seconds
 
 
@@ -67,6 +72,7 @@ def measure(scenario: Scenario, effects: PlantEffects, seed: int) -> RunFigures:
     n = positions.shape[1]
     gaps = [np.nanmin(np.hypot(*(positions[:, i] - positions[:, j]).T)) for i in range(n) for j in range(i + 1, n)]
     tail = trace.time >= trace.time[-1] - TAIL
+
     return RunFigures(
         seed=seed, settled=settling is not None, settling_time=settling,
         e_c=float(np.nanmean(trace.e_c[after])) if after.any() else float("nan"),
@@ -84,6 +90,7 @@ def summary(figures: list[RunFigures]) -> dict:
         "settled": len(settled), "runs": len(figures),
         "e_c": float(np.mean([f.e_c for f in settled])) if settled else float("nan"),
         "e_ij": float(np.mean([f.e_ij for f in settled])) if settled else float("nan"),
+
         "radius_error": float(np.mean([f.radius_error for f in figures])),
         "closest": float(min(f.closest for f in figures)),
         "max_surge": float(max(f.max_surge for f in figures)),

@@ -20,7 +20,7 @@ from pathlib import Path
 from lab.arguments import seed as seed_type
 from lab.plant_effects import PlantEffects
 from lab.report import invocation, markdown_table
-from lab.sea_agent import COPING, effect_scenario, measure, summary
+from lab.sea_agent import COPING, ODOMETRY, effect_scenario, measure, summary
 
 ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_PAGE = ROOT / "docs" / "results" / "sea_agent_ab.md"
@@ -53,7 +53,8 @@ AGENTS = {
     "heading": ("(a) lag-compensated heading loop", HEADING),
     "gains": ("(a) formation gains cut (kappa_io 0.3, kappa_ij 0.15)", GAINS),
     "heading+gains": ("(a) both", {"control": {**HEADING["control"], **GAINS["control"]}}),
-    "coping": ("(a) both + (d) guard's coasting distance", COPING),
+    "coping": ("(a) both + (d) guard's coasting distance + (e) odometry noise from the sensors' spec", COPING),
+    "odometry": ("(e) odometry noise from the sensors' spec alone", ODOMETRY),
     "coping+limits": ("coping + the boat's r and u limits in the command", {
         "control": {**COPING["control"], **LIMITS["control"]}}),
 }
@@ -64,7 +65,7 @@ PLAN = {
     "lags": ["today", "heading+gains", "coping"],
     "otter": ["today", "coping", "coping+limits"],
     "otter_moving": ["today", "coping+limits"],
-    "bias": ["today", "coping"],
+    "bias": ["today", "odometry", "coping"],
     "current": ["today", "coping"],
     "moderate": ["today", "coping+limits"],
 }
@@ -72,6 +73,8 @@ PLAN = {
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seeds", type=seed_type, nargs="+", default=list(range(20)))
+    parser.add_argument("--agents", nargs="+", choices=list(AGENTS), default=None,
+                        help="run only these of each condition's agents (default: the condition's plan)")
     parser.add_argument("--conditions", nargs="+", choices=list(CONDITIONS), default=list(CONDITIONS))
     parser.add_argument("--out", type=Path, default=DEFAULT_PAGE, help="the page to write")
 
@@ -81,7 +84,7 @@ def run(args: argparse.Namespace) -> int:
     started = time.monotonic()
     for condition in args.conditions:
         _, effects, still = CONDITIONS[condition]
-        for agent in PLAN[condition]:
+        for agent in [a for a in PLAN[condition] if args.agents is None or a in args.agents]:
             scenario = effect_scenario(effects, AGENTS[agent][1], still_target=still)
             figures = [measure(scenario, effects, seed) for seed in args.seeds]
             s = summary(figures)

@@ -12,6 +12,7 @@ import pytest
 from agent.config import updated
 from agent.core.control.formation import lag_compensated_rate
 from agent.core.control.separation import coasting_distance
+from agent.core.odometry_noise import displacement_variance
 from agent.core.records import Command
 from lab import runner
 from lab.plant_effects import PlantEffects, lag_step, with_effects, world_factory
@@ -121,3 +122,17 @@ def test_the_coping_agent_settles_and_keeps_apart_under_one_second_lags(seed):
     figures = measure(effect_scenario(effects, COPING), effects, seed)
     assert figures.settled
     assert figures.closest >= 3.0
+
+
+def test_the_odometry_variance_from_the_spec_covers_the_displacement_error():
+    # Monte Carlo of one period's dead-reckoned displacement with a speed log of 0.1 m/s and a compass of
+    # 3 deg at 2 m/s: its error covariance's largest eigenvalue is the variance the filters get per axis.
+    rng = np.random.default_rng(7)
+    speed, dt, sigma_s, sigma_psi, heading = 2.0, 0.1, 0.1, math.radians(3.0), 0.7
+    for s_std, psi_std in ((sigma_s, sigma_psi), (0.01, sigma_psi)):    # along the track, then across it
+        ds = rng.normal(0.0, s_std, 200_000)
+        dpsi = rng.normal(0.0, psi_std, 200_000)
+        measured = (speed + ds)[:, None] * dt * np.stack([np.cos(heading + dpsi), np.sin(heading + dpsi)], axis=1)
+        error = measured - speed * dt * np.array([math.cos(heading), math.sin(heading)])
+        largest = np.linalg.eigvalsh(np.cov(error.T))[-1]
+        assert displacement_variance(s_std, psi_std, speed, dt) == pytest.approx(largest, rel=0.05)

@@ -215,7 +215,7 @@ class ControlParams(StrictModel):
     yaw_lag: NonNegativeFloat = Field(
         0.0, description="the boat's yaw-rate time constant tau_r (s) the heading loop compensates; 0: none")
     heading_bandwidth: PositiveFloat = Field(
-        1.0, description="w_n of the lag-compensated heading loop (rad/s), with yaw_lag > 0")
+        2.0, description="w_n of the lag-compensated heading loop (rad/s), with yaw_lag > 0")
     heading_damping: PositiveFloat = Field(0.8, description="zeta of the lag-compensated heading loop")
     boat_max_yaw_rate: PositiveFloat | None = Field(
         None, description="the boat's turn-rate limit (rad/s): no command exceeds it; None: no limit")
