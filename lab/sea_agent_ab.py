@@ -2,6 +2,9 @@
 
     usv-lab sea-agent-ab [--seeds S ...] [--conditions NAME ...] [--out PAGE]
 
+The issue's figures of today's agent: `usv-lab sea-agent-ab --conditions yaw_lag surge_lag lags_0.3 bias_0.5
+bias bias_2 current_0.3 limits --agents today --seeds 0 1 2 3 4 --out docs/results/sea_agent_issue.md`.
+
 Each condition wraps today's kinematic world with plant effects (lab/plant_effects.py); each agent is the
 Table II raw_range agent with some of the measures of docs/sea_agent.md switched on. Every (condition, agent)
 runs the same seeds in process; the page gives the runs settled, e_c and e_ij after settling (means over the
@@ -43,6 +46,14 @@ CONDITIONS = {
                 PlantEffects(current=(0.5, 0.0)), True),
     "moderate": ("otter + compass bias N(0, 1 deg) + current 0.5 m/s; ground-fixed target",
                  PlantEffects(**OTTER, compass_bias_std=BIAS, current=(0.5, 0.0)), True),
+    # The issue's single effects (issue 30), for `--conditions ... --agents today --seeds 0 1 2 3 4`.
+    "surge_lag": ("surge lag 1 s", PlantEffects(surge_lag=1.0), False),
+    "lags_0.3": ("lags 0.3 s in surge and yaw", PlantEffects(surge_lag=0.3, yaw_lag=0.3), False),
+    "bias_0.5": ("compass bias N(0, 0.5 deg) per vessel", PlantEffects(compass_bias_std=BIAS / 2), False),
+    "bias_2": ("compass bias N(0, 2 deg) per vessel", PlantEffects(compass_bias_std=BIAS * 2), False),
+    "current_0.3": ("current 0.3 m/s, water-referenced odometry, ground-fixed target",
+                    PlantEffects(current=(0.3, 0.0)), True),
+    "limits": ("u <= 3 m/s, r <= 0.5 rad/s", PlantEffects(max_surge=3.0, max_yaw_rate=0.5), False),
 }
 HEADING = {"control": {"yaw_lag": 1.0, "heading_bandwidth": 2.0}}
 GAINS = {"control": {"gain_target": 0.3, "gain_neighbour": 0.15, "neighbour_gain_cap": 0.45}}
@@ -56,26 +67,32 @@ AGENTS = {
     "coping": ("(a) both + (d) guard's coasting distance + (e) odometry noise from the sensors' spec", COPING),
     "odometry": ("(e) odometry noise from the sensors' spec alone", ODOMETRY),
     "coping+limits": ("coping + the boat's r and u limits in the command", {
-        "control": {**COPING["control"], **LIMITS["control"]}}),
+        **COPING, "control": {**COPING["control"], **LIMITS["control"]}}),
+    "gains+limits": ("formation gains cut + the boat's r and u limits in the command", {
+        "control": {**GAINS["control"], **LIMITS["control"]}}),
 }
 # The agents each condition is run with.
 PLAN = {
-    "calm": ["today", "coping"],
+    "calm": ["today", "gains", "coping"],
     "yaw_lag": ["today", "heading", "gains", "heading+gains"],
-    "lags": ["today", "heading+gains", "coping"],
-    "otter": ["today", "coping", "coping+limits"],
+    "lags": ["today", "gains", "heading+gains", "coping"],
+    "otter": ["today", "gains+limits", "coping", "coping+limits"],
     "otter_moving": ["today", "coping+limits"],
     "bias": ["today", "odometry", "coping"],
     "current": ["today", "coping"],
-    "moderate": ["today", "coping+limits"],
+    "moderate": ["today", "gains+limits", "coping+limits"],
+    "surge_lag": ["today"], "lags_0.3": ["today"], "bias_0.5": ["today"], "bias_2": ["today"],
+    "current_0.3": ["today"], "limits": ["today"],
 }
+ISSUE = ["yaw_lag", "surge_lag", "lags_0.3", "bias_0.5", "bias", "bias_2", "current_0.3", "limits"]
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seeds", type=seed_type, nargs="+", default=list(range(20)))
     parser.add_argument("--agents", nargs="+", choices=list(AGENTS), default=None,
                         help="run only these of each condition's agents (default: the condition's plan)")
-    parser.add_argument("--conditions", nargs="+", choices=list(CONDITIONS), default=list(CONDITIONS))
+    parser.add_argument("--conditions", nargs="+", choices=list(CONDITIONS), default=[
+        c for c in CONDITIONS if c not in ISSUE or c in ("yaw_lag", "bias")])
     parser.add_argument("--out", type=Path, default=DEFAULT_PAGE, help="the page to write")
 
 

@@ -15,6 +15,7 @@ from agent.core.control.separation import coasting_distance
 from agent.core.odometry_noise import displacement_variance
 from agent.core.records import Command
 from lab import runner
+from lab.loop_margins import _frequencies, margins, plant
 from lab.plant_effects import PlantEffects, lag_step, with_effects, world_factory
 from lab.sea_agent import COPING, effect_scenario, measure
 from sim_bridge.world import World
@@ -136,3 +137,13 @@ def test_the_odometry_variance_from_the_spec_covers_the_displacement_error():
         error = measured - speed * dt * np.array([math.cos(heading), math.sin(heading)])
         largest = np.linalg.eigvalsh(np.cov(error.T))[-1]
         assert displacement_variance(s_std, psi_std, speed, dt) == pytest.approx(largest, rel=0.05)
+
+
+def test_the_margins_of_a_sampled_integrator_are_the_closed_form():
+    # L(z) = K dt / (z - 1): |L| = 1 where 2 sin(w dt / 2) = K dt, and there the phase is -(90 + w dt / 2) deg.
+    w, z = _frequencies(0.1)
+    for gain in (10.0, 2.0):
+        crossover, margin, _ = margins(gain * plant(z, 0.0, 0.1), w)
+        expected = 2.0 / 0.1 * math.asin(gain * 0.1 / 2.0)
+        assert crossover == pytest.approx(expected, rel=1e-3)
+        assert margin == pytest.approx(90.0 - math.degrees(expected * 0.1 / 2.0), abs=0.05)
