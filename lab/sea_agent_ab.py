@@ -46,6 +46,9 @@ CONDITIONS = {
                 PlantEffects(current=(0.5, 0.0)), True),
     "moderate": ("otter + compass bias N(0, 1 deg) + current 0.5 m/s; ground-fixed target",
                  PlantEffects(**OTTER, compass_bias_std=BIAS, current=(0.5, 0.0)), True),
+    "moderate_0.15": ("moderate with a current of 0.15 m/s, which a 5 m circle at pi/30 rad/s allows with "
+                      "r <= 10 deg/s (docs/sea_agent.md)",
+                      PlantEffects(**OTTER, compass_bias_std=BIAS, current=(0.15, 0.0)), True),
     # The issue's single effects (issue 30), for `--conditions ... --agents today --seeds 0 1 2 3 4`.
     "surge_lag": ("surge lag 1 s", PlantEffects(surge_lag=1.0), False),
     "lags_0.3": ("lags 0.3 s in surge and yaw", PlantEffects(surge_lag=0.3, yaw_lag=0.3), False),
@@ -81,6 +84,7 @@ PLAN = {
     "bias": ["today", "odometry", "coping"],
     "current": ["today", "coping"],
     "moderate": ["today", "gains+limits", "coping+limits"],
+    "moderate_0.15": ["today", "coping+limits"],
     "surge_lag": ["today"], "lags_0.3": ["today"], "bias_0.5": ["today"], "bias_2": ["today"],
     "current_0.3": ["today"], "limits": ["today"],
 }

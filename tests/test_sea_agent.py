@@ -117,12 +117,24 @@ def test_the_coasting_distance_is_what_a_lagged_boat_runs_after_a_stop():
     assert coasting_distance(1.5, 0.0) == 0.0
 
 
-@pytest.mark.parametrize("seed", [11, 12])
+@pytest.mark.parametrize("seed", [11, 12, 13])
 def test_the_coping_agent_settles_and_keeps_apart_under_one_second_lags(seed):
     effects = PlantEffects(surge_lag=1.0, yaw_lag=1.0)
     figures = measure(effect_scenario(effects, COPING), effects, seed)
     assert figures.settled
     assert figures.closest >= 3.0
+
+
+@pytest.mark.parametrize("seed", [21, 22])
+def test_the_coping_agent_with_the_otters_limits_settles_and_commands_within_them(seed):
+    limits = {"control": {"boat_max_yaw_rate": math.radians(10.0), "max_speed": 3.0}}
+    effects = PlantEffects(surge_lag=1.0, yaw_lag=1.0, max_yaw_rate=math.radians(10.0), max_surge=3.0,
+                           max_acceleration=1.0)
+    agent = {**COPING, "control": {**COPING["control"], **limits["control"]}}
+    figures = measure(effect_scenario(effects, agent, still_target=True), effects, seed)
+    assert figures.settled
+    assert figures.closest >= 3.0
+    assert figures.max_yaw_rate <= math.radians(10.0) and figures.max_surge <= 3.0
 
 
 def test_the_odometry_variance_from_the_spec_covers_the_displacement_error():
