@@ -30,27 +30,37 @@ from sim_bridge.world import World, WorldConfig
 
 @dataclass(frozen=True)
 class PlantEffects:
-    surge_lag: float = 0.0                 # tau_u (s); 0: none
-    yaw_lag: float = 0.0                   # tau_r (s); 0: none
-    max_surge: float | None = None         # |u| at most this (m/s)
-    max_yaw_rate: float | None = None      # |r| at most this (rad/s)
+    surge_lag: float = 0.0  # tau_u (s); 0: none
+    yaw_lag: float = 0.0  # tau_r (s); 0: none
+    max_surge: float | None = None  # |u| at most this (m/s)
+    max_yaw_rate: float | None = None  # |r| at most this (rad/s)
     max_acceleration: float | None = None  # |du/dt| at most this (m/s^2)
-    max_yaw_acceleration: float | None = None   # |dr/dt| at most this (rad/s^2)
-    compass_bias_std: float = 0.0          # each vessel's bias b_i ~ N(0, this^2) (rad)
-    compass_biases: tuple[float, ...] | None = None   # the biases themselves, in config order (rad)
-    bias_bearings: bool = True             # the camera's bearing turns with the compass bias
-    current: tuple[float, float] = (0.0, 0.0)   # c over ground (m/s)
+    max_yaw_acceleration: float | None = None  # |dr/dt| at most this (rad/s^2)
+    compass_bias_std: float = 0.0  # each vessel's bias b_i ~ N(0, this^2) (rad)
+    compass_biases: tuple[float, ...] | None = None  # the biases themselves, in config order (rad)
+    bias_bearings: bool = True  # the camera's bearing turns with the compass bias
+    current: tuple[float, float] = (0.0, 0.0)  # c over ground (m/s)
 
     @property
     def boat(self) -> bool:
-        return any((self.surge_lag, self.yaw_lag, self.max_surge, self.max_yaw_rate, self.max_acceleration,
-                    self.max_yaw_acceleration))
+        return any(
+            (
+                self.surge_lag,
+                self.yaw_lag,
+                self.max_surge,
+                self.max_yaw_rate,
+                self.max_acceleration,
+                self.max_yaw_acceleration,
+            )
+        )
 
 
-def lag_step(state: float, command: float, dt: float, tau: float, limit: float | None,
-             acceleration: float | None) -> float:
+def lag_step(
+    state: float, command: float, dt: float, tau: float, limit: float | None, acceleration: float | None
+) -> float:
     """One step of the boat's response: the command clipped to +-limit, a first-order lag of time constant
-    tau (exact for a command held over dt; tau 0: the command itself), the change clipped to acceleration dt."""
+    tau (exact for a command held over dt; tau 0: the command itself), the change clipped to
+    acceleration dt."""
     if limit is not None:
         command = min(max(command, -limit), limit)
     target = command if tau <= 0.0 else state + (1.0 - math.exp(-dt / tau)) * (command - state)
@@ -82,9 +92,9 @@ def with_effects(world: World, effects: PlantEffects, rng: np.random.Generator) 
     config = world.config
     dt = config.dt
     biases = draw_biases(effects, config, rng)
-    world.biases = biases          # for the lab's figures
+    world.biases = biases  # for the lab's figures
     if effects.boat:
-        response: dict[str, tuple[float, float]] = {}     # each vessel's (u, r) as it moves now
+        response: dict[str, tuple[float, float]] = {}  # each vessel's (u, r) as it moves now
         world.responses = response
         inner_step = world.step
 
@@ -93,16 +103,18 @@ def with_effects(world: World, effects: PlantEffects, rng: np.random.Generator) 
             for vessel in world.live():
                 command = commands.get(vessel)
                 try:
-                    surge, yaw_rate = float(command.surge), float(command.yaw_rate)   # type: ignore[union-attr]
+                    surge, yaw_rate = float(command.surge), float(command.yaw_rate)  # type: ignore[union-attr]
                 except (AttributeError, TypeError, ValueError):
-                    moved[vessel] = command      # the world counts it and stops the vessel
+                    moved[vessel] = command  # the world counts it and stops the vessel
                     continue
                 if not (math.isfinite(surge) and math.isfinite(yaw_rate)):
                     moved[vessel] = command
                     continue
                 u, r = response.get(vessel, (0.0, 0.0))
                 u = lag_step(u, surge, dt, effects.surge_lag, effects.max_surge, effects.max_acceleration)
-                r = lag_step(r, yaw_rate, dt, effects.yaw_lag, effects.max_yaw_rate, effects.max_yaw_acceleration)
+                r = lag_step(
+                    r, yaw_rate, dt, effects.yaw_lag, effects.max_yaw_rate, effects.max_yaw_acceleration
+                )
                 response[vessel] = (u, r)
                 moved[vessel] = Command(u, r)
             inner_step(moved)
@@ -126,7 +138,10 @@ def with_effects(world: World, effects: PlantEffects, rng: np.random.Generator) 
 
         def sense():
             readings = inner_sense()
-            return {i: _biased(reading, biases.get(i, 0.0), effects.bias_bearings) for i, reading in readings.items()}
+            return {
+                i: _biased(reading, biases.get(i, 0.0), effects.bias_bearings)
+                for i, reading in readings.items()
+            }
 
         world.sense = sense
     return world
@@ -143,8 +158,9 @@ def _biased(reading, bias: float, bearings: bool):
         return reading
     odometry = reading.odometry
     x, y = np.asarray(odometry.position, dtype=float).tolist()
-    odometry = dataclasses.replace(odometry, position=_fixed(*rotate(x, y, bias)),
-                                   heading=float(wrap_angle(odometry.heading + bias)))
+    odometry = dataclasses.replace(
+        odometry, position=_fixed(*rotate(x, y, bias)), heading=float(wrap_angle(odometry.heading + bias))
+    )
     bearing = reading.bearing
     if bearings and bearing is not None:
         bearing = _fixed(*rotate(*np.asarray(bearing, dtype=float).tolist(), bias))
@@ -154,6 +170,8 @@ def _biased(reading, bias: float, bearings: bool):
 def world_factory(effects: PlantEffects, seed: int):
     """A `make_world` for lab/runner.py's `run`: the kinematic world with `effects`, the biases drawn from a
     generator of its own seeded by (seed, 30), so the world's stream is the kinematic run's."""
+
     def make(config: WorldConfig, rng: np.random.Generator) -> World:
         return with_effects(World(config, rng), effects, np.random.default_rng([seed, 30]))
+
     return make

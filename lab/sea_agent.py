@@ -24,14 +24,24 @@ from sim_bridge.scenario import Scenario, select_scenario
 ROOT = Path(__file__).resolve().parents[1]
 TABLE2 = ROOT / "configs" / "scenarios" / "table2_estimators.yaml"
 # The agent's measures for a boat with 1 s lags in surge and yaw (docs/sea_agent.md): the lag-compensated
-# heading loop (w_n 2 rad/s), the formation gains cut so that the fastest formation mode (kappa_io + n kappa_ij,
-# 0.9 /s for n = 4) keeps a phase margin of 54 deg through the heading loop, and the guard's coasting distance.
+# heading loop (w_n 2 rad/s), the formation gains cut so that the fastest formation mode
+# (kappa_io + n kappa_ij, 0.9 /s for n = 4) keeps a phase margin of 54 deg through the heading loop, and the
+# guard's coasting distance.
 # And (e): the pair filters' odometry noise from a speed log of 0.1 m/s and a compass of 1 deg (bias included)
 # at 1 m/s: 1e-4 m^2 per period instead of Table I's 1e-6.
 ODOMETRY = {"relative": {"displacement_variance": displacement_variance(0.1, math.radians(1.0), 1.0, 0.1)}}
-COPING = {"control": {"yaw_lag": 1.0, "surge_lag": 1.0, "heading_bandwidth": 2.0, "gain_target": 0.3,
-                      "gain_neighbour": 0.15, "neighbour_gain_cap": 0.45}, **ODOMETRY}
-TAIL = 10.0     # s: |r - r*| is averaged over the run's last this many seconds
+COPING = {
+    "control": {
+        "yaw_lag": 1.0,
+        "surge_lag": 1.0,
+        "heading_bandwidth": 2.0,
+        "gain_target": 0.3,
+        "gain_neighbour": 0.15,
+        "neighbour_gain_cap": 0.45,
+    },
+    **ODOMETRY,
+}
+TAIL = 10.0  # s: |r - r*| is averaged over the run's last this many seconds
 
 
 @dataclass(frozen=True)
@@ -39,23 +49,31 @@ class RunFigures:
     seed: int
     settled: bool
     settling_time: float | None
-    e_c: float           # mean after settling; NaN when it never settled
+    e_c: float  # mean after settling; NaN when it never settled
     e_ij: float
     radius_error: float  # mean |r - r*| over the last TAIL s
-    closest: float       # closest approach of any pair over the run (m)
-    max_surge: float     # largest |commanded surge| (m/s)
+    closest: float  # closest approach of any pair over the run (m)
+    max_surge: float  # largest |commanded surge| (m/s)
     max_yaw_rate: float  # largest |commanded yaw rate| (rad/s)
 
 
-def effect_scenario(effects: PlantEffects, agent: dict | None = None, variant: str = "raw_range",
-                    duration: float | None = None, still_target: bool | None = None) -> Scenario:
-    """Table II's `variant` with `agent` merged into its agent parameters; the target held still with a current
-    (ground-fixed, as the issue measured it) or when `still_target` says so."""
+def effect_scenario(
+    effects: PlantEffects,
+    agent: dict | None = None,
+    variant: str = "raw_range",
+    duration: float | None = None,
+    still_target: bool | None = None,
+) -> Scenario:
+    """Table II's `variant` with `agent` merged into its agent parameters; the target held still with a
+    current (ground-fixed, as the issue measured it) or when `still_target` says so."""
     _, scenario = select_scenario(TABLE2, variant)
     data = scenario.model_dump()
     if still_target or (still_target is None and effects.current != (0.0, 0.0)):
-        data["world"]["target"] = {"kind": "constant_velocity", "position": list(scenario.world.target.position),
-                                   "velocity": [0.0, 0.0]}
+        data["world"]["target"] = {
+            "kind": "constant_velocity",
+            "position": list(scenario.world.target.position),
+            "velocity": [0.0, 0.0],
+        }
     if agent:
         data["agent"] = deep_merge(data["agent"], agent)
     if duration is not None:
@@ -70,11 +88,15 @@ def measure(scenario: Scenario, effects: PlantEffects, seed: int) -> RunFigures:
     after = trace.time >= (settling if settling is not None else np.inf)
     positions = trace.positions
     n = positions.shape[1]
-    gaps = [np.nanmin(np.hypot(*(positions[:, i] - positions[:, j]).T)) for i in range(n) for j in range(i + 1, n)]
+    gaps = [
+        np.nanmin(np.hypot(*(positions[:, i] - positions[:, j]).T)) for i in range(n) for j in range(i + 1, n)
+    ]
     tail = trace.time >= trace.time[-1] - TAIL
 
     return RunFigures(
-        seed=seed, settled=settling is not None, settling_time=settling,
+        seed=seed,
+        settled=settling is not None,
+        settling_time=settling,
         e_c=float(np.nanmean(trace.e_c[after])) if after.any() else float("nan"),
         e_ij=float(np.nanmean(trace.e_ij[after])) if after.any() else float("nan"),
         radius_error=float(np.nanmean(np.abs(trace.radii[tail] - radius))),
@@ -87,10 +109,10 @@ def measure(scenario: Scenario, effects: PlantEffects, seed: int) -> RunFigures:
 def summary(figures: list[RunFigures]) -> dict:
     settled = [f for f in figures if f.settled]
     return {
-        "settled": len(settled), "runs": len(figures),
+        "settled": len(settled),
+        "runs": len(figures),
         "e_c": float(np.mean([f.e_c for f in settled])) if settled else float("nan"),
         "e_ij": float(np.mean([f.e_ij for f in settled])) if settled else float("nan"),
-
         "radius_error": float(np.mean([f.radius_error for f in figures])),
         "closest": float(min(f.closest for f in figures)),
         "max_surge": float(max(f.max_surge for f in figures)),

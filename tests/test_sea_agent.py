@@ -36,9 +36,9 @@ def test_a_lag_step_response_is_one_minus_exp():
 
 
 def test_rate_and_acceleration_limits_clip_the_response():
-    assert lag_step(0.0, 5.0, 0.1, 0.0, 0.2, None) == 0.2        # the command clipped to the rate limit
-    assert lag_step(0.0, 5.0, 0.1, 0.0, None, 1.0) == pytest.approx(0.1)   # 1 m/s^2 over 0.1 s
-    assert lag_step(0.3, -5.0, 0.1, 0.0, 0.2, 1.0) == pytest.approx(0.2)   # down by at most 0.1
+    assert lag_step(0.0, 5.0, 0.1, 0.0, 0.2, None) == 0.2  # the command clipped to the rate limit
+    assert lag_step(0.0, 5.0, 0.1, 0.0, None, 1.0) == pytest.approx(0.1)  # 1 m/s^2 over 0.1 s
+    assert lag_step(0.3, -5.0, 0.1, 0.0, 0.2, 1.0) == pytest.approx(0.2)  # down by at most 0.1
 
 
 def test_the_world_moves_with_the_lagged_yaw_rate():
@@ -65,8 +65,9 @@ def test_a_compass_bias_rotates_the_odometry_and_the_bearing():
     assert b.odometry.position[0] == pytest.approx(math.cos(bias) * x - math.sin(bias) * y, abs=1e-12)
     assert b.odometry.position[1] == pytest.approx(math.sin(bias) * x + math.cos(bias) * y, abs=1e-12)
     assert b.odometry.heading == pytest.approx(a.odometry.heading + bias, abs=1e-12)
-    assert math.atan2(b.bearing[1], b.bearing[0]) - math.atan2(a.bearing[1], a.bearing[0]) == \
-        pytest.approx(bias, abs=1e-12)
+    assert math.atan2(b.bearing[1], b.bearing[0]) - math.atan2(a.bearing[1], a.bearing[0]) == pytest.approx(
+        bias, abs=1e-12
+    )
     np.testing.assert_array_equal(plain.sense()["2"].odometry.position, biased.sense()["2"].odometry.position)
 
 
@@ -80,8 +81,10 @@ def test_a_current_carries_the_vessel_over_ground_and_not_its_odometry():
         drifted.step(commands)
     moved = drifted.truth().positions["1"] - start
     own = plain.truth().positions["1"] - start
-    np.testing.assert_allclose(moved - own, [0.3 * 5.0, -0.2 * 5.0], atol=1e-9)   # c t, t = 50 dt
-    np.testing.assert_array_equal(plain.sense()["1"].odometry.position, drifted.sense()["1"].odometry.position)
+    np.testing.assert_allclose(moved - own, [0.3 * 5.0, -0.2 * 5.0], atol=1e-9)  # c t, t = 50 dt
+    np.testing.assert_array_equal(
+        plain.sense()["1"].odometry.position, drifted.sense()["1"].odometry.position
+    )
 
 
 def test_no_effect_is_the_kinematic_world_bit_for_bit():
@@ -128,8 +131,9 @@ def test_the_coping_agent_settles_and_keeps_apart_under_one_second_lags(seed):
 @pytest.mark.parametrize("seed", [21, 22])
 def test_the_coping_agent_with_the_otters_limits_settles_and_commands_within_them(seed):
     limits = {"control": {"boat_max_yaw_rate": math.radians(10.0), "max_speed": 3.0}}
-    effects = PlantEffects(surge_lag=1.0, yaw_lag=1.0, max_yaw_rate=math.radians(10.0), max_surge=3.0,
-                           max_acceleration=1.0)
+    effects = PlantEffects(
+        surge_lag=1.0, yaw_lag=1.0, max_yaw_rate=math.radians(10.0), max_surge=3.0, max_acceleration=1.0
+    )
     agent = {**COPING, "control": {**COPING["control"], **limits["control"]}}
     figures = measure(effect_scenario(effects, agent, still_target=True), effects, seed)
     assert figures.settled
@@ -142,17 +146,20 @@ def test_the_odometry_variance_from_the_spec_covers_the_displacement_error():
     # 3 deg at 2 m/s: its error covariance's largest eigenvalue is the variance the filters get per axis.
     rng = np.random.default_rng(7)
     speed, dt, sigma_s, sigma_psi, heading = 2.0, 0.1, 0.1, math.radians(3.0), 0.7
-    for s_std, psi_std in ((sigma_s, sigma_psi), (0.01, sigma_psi)):    # along the track, then across it
+    for s_std, psi_std in ((sigma_s, sigma_psi), (0.01, sigma_psi)):  # along the track, then across it
         ds = rng.normal(0.0, s_std, 200_000)
         dpsi = rng.normal(0.0, psi_std, 200_000)
-        measured = (speed + ds)[:, None] * dt * np.stack([np.cos(heading + dpsi), np.sin(heading + dpsi)], axis=1)
+        measured = (
+            (speed + ds)[:, None] * dt * np.stack([np.cos(heading + dpsi), np.sin(heading + dpsi)], axis=1)
+        )
         error = measured - speed * dt * np.array([math.cos(heading), math.sin(heading)])
         largest = np.linalg.eigvalsh(np.cov(error.T))[-1]
         assert displacement_variance(s_std, psi_std, speed, dt) == pytest.approx(largest, rel=0.05)
 
 
 def test_the_margins_of_a_sampled_integrator_are_the_closed_form():
-    # L(z) = K dt / (z - 1): |L| = 1 where 2 sin(w dt / 2) = K dt, and there the phase is -(90 + w dt / 2) deg.
+    # L(z) = K dt / (z - 1): |L| = 1 where 2 sin(w dt / 2) = K dt, and there the phase is
+    # -(90 + w dt / 2) deg.
     w, z = _frequencies(0.1)
     for gain in (10.0, 2.0):
         crossover, margin, _ = margins(gain * plant(z, 0.0, 0.1), w)
