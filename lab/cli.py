@@ -10,6 +10,8 @@ Experiments (lab/experiments/):
     usv-lab cold-start      a fleet that starts knowing nothing, seed by seed
     usv-lab observability   which pairs are observable, and from when, seed by seed
     usv-lab hull            the hull presets' closed-form figures and inner-loop step responses
+    usv-lab sea-agent-ab    the agent's measures for the boat's lags and limits, with and without
+    usv-lab loop-margins    the heading loop's and the formation modes' margins under 1 s lags
 Benchmarks (lab/benchmarks/):
     usv-lab bench, fleet-bench, runtime-bench, runtime-ab, cluster-bench, sea-bench, fuzz, serial-fuzz
 
@@ -55,6 +57,10 @@ SUBCOMMANDS = {
                     "the serial side of the fuzz campaign alone: bad lines per parser"),
     "sea-bench": ("lab.benchmarks.sea",
                   "the fleet in the sea mode against the ideal simulation, seed by seed"),
+    "sea-agent-ab": ("lab.experiments.sea_agent_ab",
+                     "the agent's measures for lags, limits, compass bias and current, with and without"),
+    "loop-margins": ("lab.experiments.loop_margins",
+                     "phase and gain margins of the heading loop and the formation's modes under hull lags"),
 }
 
 

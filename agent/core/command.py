@@ -3,16 +3,19 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 
+from agent.angles import wrap_angle
 from agent.core.control.avoidance import avoidance_velocity, safety_filter
 from agent.core.control.formation import (
     desired_offset,
     desired_offsets,
     desired_velocity,
     formation_velocity,
+    lag_compensated_rate,
     neighbour_gain,
     saturate,
     surge_and_yaw_rate,
@@ -36,11 +39,14 @@ class VelocityTerms:
 def control_command(c: ControlParams, dt: float, phase: float, next_phase: float, heading: float,
                     target_state: np.ndarray | None, own_velocity: np.ndarray,
                     estimates: dict[str, np.ndarray | None], neighbour_phases: dict[str, float],
-                    obstacles: np.ndarray | None) -> tuple[Command, VelocityTerms, dict[str, bool]]:
+                    obstacles: np.ndarray | None, yaw_rate_estimate: float = 0.0
+                    ) -> tuple[Command, VelocityTerms, dict[str, bool]]:
     """The command for this tick: the desired offsets (27), (29) and their errors (30), (31), (32) pull
     towards the neighbours and the target, (33) adds the target's estimated velocity, (34) the avoidance,
     (35) sums and saturates; then the safety filter after (35), then (surge, yaw rate). Returns (command,
-    its velocity terms, which limits saturated)."""
+    its velocity terms, which limits saturated). With `c.yaw_lag` > 0 the yaw rate is the lag-compensated
+    heading loop's, from the boat's rate as the agent models it (`yaw_rate_estimate`); with
+    `c.boat_max_yaw_rate` it is clipped to the boat's turn-rate limit."""
     ox, oy = desired_offset(c.radius, phase)
     usable = [j for j, estimate in estimates.items() if estimate is not None and j in neighbour_phases]
     gain = neighbour_gain(len(usable), c.gain_neighbour, c.neighbour_gain_cap)
@@ -68,7 +74,17 @@ def control_command(c: ControlParams, dt: float, phase: float, next_phase: float
     if c.safety_filter:
         command_velocity, filtered = safety_filter(command_velocity, obstacles, c.min_clearance, c.clearance_rate)
     surge, yaw_rate, yaw_saturated = surge_and_yaw_rate(
-        command_velocity, heading, c.yaw_rate, dt, c.max_correction_yaw_rate, c.max_speed)
+        command_velocity, heading, c.yaw_rate, dt, c.max_correction_yaw_rate, c.max_speed, c.heading_gain)
+    if c.yaw_lag > 0.0:
+        vx, vy = command_velocity.tolist()
+        error = 0.0 if vx == 0.0 and vy == 0.0 else wrap_angle(math.atan2(vy, vx) - heading)
+        yaw_rate = lag_compensated_rate(error, yaw_rate_estimate, c.yaw_rate, c.yaw_lag, c.heading_bandwidth,
+                                        c.heading_damping)
+        correction = yaw_rate - c.yaw_rate
+        yaw_saturated = abs(correction) > c.max_correction_yaw_rate
+        yaw_rate = c.yaw_rate + min(max(correction, -c.max_correction_yaw_rate), c.max_correction_yaw_rate)
+    if c.boat_max_yaw_rate is not None and abs(yaw_rate) > c.boat_max_yaw_rate:
+        yaw_rate, yaw_saturated = math.copysign(c.boat_max_yaw_rate, yaw_rate), True
     saturated = {
         "formation": formation_bounded is not formation,
         "avoidance": avoidance_bounded is not avoidance,

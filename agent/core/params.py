@@ -83,6 +83,19 @@ class ControlParams(StrictModel):
     oscillator_gain: PositiveFloat = Field(
         1.0, description="K of (28): K_m = K for m <= n/2, 0 above (the paper leaves K_m open)"
     )
+    # The boat as it is (docs/sea.md (What the agent does)): all inert by default, the paper's kinematic boat.
+    heading_gain: PositiveFloat | None = Field(
+        None, description="K of the heading correction omega^c = K (heading error) (1/s); None: 1/dt, (31)")
+    yaw_lag: NonNegativeFloat = Field(
+        0.0, description="the boat's yaw-rate time constant tau_r (s) the heading loop compensates; 0: none")
+    heading_bandwidth: PositiveFloat = Field(
+        2.0, description="w_n of the lag-compensated heading loop (rad/s), with yaw_lag > 0")
+    heading_damping: PositiveFloat = Field(0.8, description="zeta of the lag-compensated heading loop")
+    boat_max_yaw_rate: PositiveFloat | None = Field(
+        None, description="the boat's turn-rate limit (rad/s): no command exceeds it; None: no limit")
+    surge_lag: NonNegativeFloat = Field(
+        0.0, description="the boat's surge time constant tau_u (s): the separation guard adds its coasting "
+                         "distance |u| tau_u; 0: none")
 
     @model_validator(mode="after")
     def _circling(self) -> ControlParams:

@@ -34,7 +34,8 @@ def state_to_json(state: VesselState) -> dict:
         "phase": state.phase,
         "own": _history_to_json(state.own),
         "motion": {"velocity": floats(motion.velocity), "stamp": motion.stamp,
-                   "position": None if motion.position is None else floats(motion.position)},
+                   "position": None if motion.position is None else floats(motion.position),
+                   "yaw_rate": motion.yaw_rate},
         "tracks": {j: _track_to_json(track) for j, track in state.tracks.items()},
         "priors": {j: {"position": floats(p.position), "covariance": floats(p.covariance), "stamp": p.stamp}
                    for j, p in state.priors.items()},
@@ -57,7 +58,8 @@ def state_from_json(data: dict, params: AgentParams) -> VesselState:
         vessel=data["vessel"],
         own=_history_from_json(data["own"], params.fleet.history_ticks, _point),
         motion=OwnMotion(velocity=np.array(motion["velocity"], dtype=float), stamp=motion["stamp"],
-                         position=None if motion["position"] is None else np.array(motion["position"], dtype=float)),
+                         position=None if motion["position"] is None else np.array(motion["position"], dtype=float),
+                         yaw_rate=float(motion.get("yaw_rate", 0.0))),
         tracks={j: _track_from_json(j, t, params, data["vessel"]) for j, t in data["tracks"].items()},
         priors={j: NeighbourPrior(np.array(p["position"], dtype=float),
                                   np.array(p["covariance"], dtype=float).reshape(2, 2), p["stamp"])

@@ -48,6 +48,7 @@ class OwnMotion:
     velocity: np.ndarray = field(default_factory=lambda: np.zeros(2))
     stamp: float | None = None
     position: np.ndarray | None = None
+    yaw_rate: float = 0.0      # the boat's yaw rate as the agent models it (control.yaw_lag > 0)
 
 
 @dataclass

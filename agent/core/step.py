@@ -23,7 +23,7 @@ import numpy as np
 from agent.core.checks import finite_vector, obstacle_array, valid_range
 from agent.core.command import control_command
 from agent.core.control.oscillator import oscillator_step
-from agent.core.control.separation import guarded_surge
+from agent.core.control.separation import coasting_distance, guarded_surge
 from agent.core.cooperation import fuse_reciprocal, fuse_targets, swap_velocity
 from agent.core.membership import forget_silent, receive_shares, start_track, store_ranges
 from agent.core.neighbours import NeighbourTrack, stamp_key
@@ -31,7 +31,6 @@ from agent.core.params import AgentParams
 from agent.core.records import STOP, Command, NeighbourRecord, Share, TickInputs, TickOutput, TickRecord
 from agent.core.state import VesselState
 from agent.core.target import own_motion, track_target
-
 
 SEPARATION_RANGES = 5   # the median of this many last ranges judges a localised neighbour, outliers aside
 # |p^_ij| further than this from that median (m): the estimate is wrong, not localised. The median of five
@@ -120,13 +119,17 @@ def step(params: AgentParams, state: VesselState, inputs: TickInputs) -> tuple[V
         health.bad_obstacles += 1
     command, terms, saturated = control_command(
         control, params.dt, state.phase, next_phase, odometry.heading, target_state, state.motion.velocity,
-        localised, neighbour_phases, obstacles)
+        localised, neighbour_phases, obstacles, state.motion.yaw_rate)
     command = _keep_apart(params, state, inputs.ranges, localised, medians, distances, estimated,
                           odometry.heading, command)
     if not (math.isfinite(command.surge) and math.isfinite(command.yaw_rate)):
         # Never publish a non-finite command, whatever went wrong upstream.
         health.non_finite_commands += 1
         command = STOP
+    if control.yaw_lag > 0.0:
+        # The boat's rate over the coming period, as the first-order lag makes it of this command.
+        rate = state.motion.yaw_rate
+        state.motion.yaw_rate = rate + (1.0 - math.exp(-elapsed / control.yaw_lag)) * (command.yaw_rate - rate)
     surge = command.surge
     share = Share(
         sender=state.vessel, odometry=odometry,
@@ -218,9 +221,12 @@ def _keep_apart(params: AgentParams, state: VesselState, ranges, localised: dict
             too_close = True    # short ranges the estimate does not explain: its direction is not to be trusted
     if command.surge == 0.0:
         return command
+    guard = limit + control.separation_margin
+    if control.surge_lag > 0.0:
+        # A boat whose surge lags the command by tau_u coasts |u| tau_u after a stop: keep that much further.
+        guard += coasting_distance(math.hypot(*state.motion.velocity.tolist()), control.surge_lag)
     surge = 0.0 if too_close else guarded_surge(command.surge, heading, command.yaw_rate, params.dt,
-                                                estimated, limit + control.separation_margin,
-                                                control.separation_rate)
+                                                estimated, guard, control.separation_rate)
     if surge == command.surge:
         return command
     state.health.separation_stops += 1

@@ -24,7 +24,7 @@ from agent.core.state import VesselState
 from agent.core.step import step
 from mission_log.metrics import RunMetrics, summarise
 from sim_bridge.scenario import Scenario, initial_estimates
-from sim_bridge.world import Truth, World, lost_shares, streams
+from sim_bridge.world import Truth, World, WorldConfig, lost_shares, streams
 
 
 @dataclass
@@ -62,26 +62,32 @@ GC_YOUNG_THRESHOLD = 10_000
 Retune = Callable[[str, float, int, AgentParams], AgentParams]
 
 
+# make_world(world config, the world's random stream) -> the world a run steps (lab/harness/plant_effects.py wraps one)
+MakeWorld = Callable[[WorldConfig, np.random.Generator], World]
+
+
 def run(scenario: Scenario, seed: np.random.SeedSequence | int | None = None,
-        retune: Retune | None = None) -> RunTrace:
+        retune: Retune | None = None, make_world: MakeWorld = World) -> RunTrace:
     """One run of `scenario`; `seed` defaults to the scenario's own. A vessel that joins later, or one the
     scenario starts cold, starts with no estimates (its target from its first bearing, its neighbours from
     the ranges and shares), as its agent process would. `retune`, if given, gives each live vessel at each
     tick the parameters it ticks with, from those of its previous tick (the scenario's at first): an
-    operator's mission commands (lab/harness/mission_plan.py)."""
+    operator's mission commands (lab/harness/mission_plan.py). `make_world` builds the world (a plant with
+    lags, a current, compass biases: lab/harness/plant_effects.py)."""
     thresholds = gc.get_threshold()
     gc.set_threshold(max(thresholds[0], GC_YOUNG_THRESHOLD), *thresholds[1:])
     try:
-        return _run(scenario, seed, retune)
+        return _run(scenario, seed, retune, make_world)
     finally:
         gc.set_threshold(*thresholds)
 
 
-def _run(scenario: Scenario, seed: np.random.SeedSequence | int | None, retune: Retune | None) -> RunTrace:
+def _run(scenario: Scenario, seed: np.random.SeedSequence | int | None, retune: Retune | None,
+         make_world: MakeWorld) -> RunTrace:
     sequence = seed if isinstance(seed, np.random.SeedSequence) else np.random.SeedSequence(
         scenario.seed if seed is None else seed)
     random = streams(sequence)
-    world = World(scenario.world, random.world)
+    world = make_world(scenario.world, random.world)
     params = scenario.agent_params()
     ids = [v.id for v in scenario.world.vessels]
     index = {v: n for n, v in enumerate(ids)}

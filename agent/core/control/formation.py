@@ -84,11 +84,13 @@ def tracking_velocity(target_velocity_estimate: tuple[float, float], desired_rel
 
 
 def surge_and_yaw_rate(velocity_command: np.ndarray, heading: float, yaw_rate: float, dt: float,
-                       max_correction: float, max_speed: float) -> tuple[float, float, bool]:
+                       max_correction: float, max_speed: float, heading_gain: float | None = None
+                       ) -> tuple[float, float, bool]:
     """(31): v = [cos theta, sin theta] v^c (bounded by U_v), omega = sat(U_omega_c, omega^c) + omega*.
 
     The correction omega^c = (atan2(v^c) - theta) / dt, with the heading error wrapped to (-pi, pi]: the
     paper's arccos of the x-component loses the sign of the heading. A zero v^c asks for no turn.
+    `heading_gain` K: omega^c = K (atan2(v^c) - theta) instead (None: K = 1/dt, (31) as written).
     Returns (surge, yaw rate, whether the correction saturated).
     """
     speed = math.hypot(velocity_command[0], velocity_command[1])
@@ -98,7 +100,15 @@ def surge_and_yaw_rate(velocity_command: np.ndarray, heading: float, yaw_rate: f
         correction = 0.0
     else:
         error = wrap_angle(math.atan2(velocity_command[1], velocity_command[0]) - heading)
-        correction = error / dt
+        correction = error / dt if heading_gain is None else heading_gain * error
     saturated = abs(correction) > max_correction
     correction = min(max(correction, -max_correction), max_correction)
     return surge, correction + yaw_rate, saturated
+
+
+def lag_compensated_rate(error: float, rate: float, reference_rate: float, lag: float, bandwidth: float,
+                         damping: float) -> float:
+    """The yaw-rate command u for a boat whose rate r follows it with a first-order lag, tau r' = u - r:
+    u = r + tau (w_n^2 e + 2 zeta w_n (omega_d - r)), which makes the heading error e = theta_d - theta obey
+    e'' + 2 zeta w_n e' + w_n^2 e = 0 while theta_d turns at omega_d (state feedback on theta and r)."""
+    return rate + lag * (bandwidth * bandwidth * error + 2.0 * damping * bandwidth * (reference_rate - rate))

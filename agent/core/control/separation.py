@@ -67,3 +67,9 @@ def guarded_surge(surge: float, heading: float, yaw_rate: float, dt: float,
     if surge < low:
         return low
     return surge
+
+
+def coasting_distance(speed: float, surge_lag: float) -> float:
+    """How far a boat at `speed` (m/s) whose surge follows the command with a first-order lag of time
+    constant `surge_lag` (s) runs after a stop command: int_0^inf |u| e^{-t/tau} dt = |u| tau (m)."""
+    return abs(speed) * surge_lag
