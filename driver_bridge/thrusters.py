@@ -61,8 +61,8 @@ class CommandWindow(StrictModel):
 
     max_age: PositiveFloat = Field(0.5, description="refuse a command stamped longer ago than this (s): stale or "
                                    "replayed")
-    max_ahead: PositiveFloat = Field(0.2, description="refuse a command stamped further ahead than this (s); also "
-                                     "the longest a spoofed stamp can hold the real agent's commands off")
+    # Also the longest a spoofed stamp can hold the real agent's commands off.
+    max_ahead: PositiveFloat = Field(0.2, description="refuse a command stamped further ahead than this (s)")
 
 
 class CommandGate:

@@ -65,8 +65,8 @@ class UwbSettings(StrictModel):
     """Which module node ids are which vessels, and the bounds of a believable frame."""
 
     peers: dict[NodeNumber, VesselId] = Field(description="LinkTrack node id (0-255) -> vessel id")
-    max_nodes: int = Field(64, ge=1, le=255, description="most node blocks in one frame; a longer length "
-                           "field is refused at once instead of waiting for bytes that will not come")
+    # A longer length field is refused at once instead of waiting for bytes that will not come.
+    max_nodes: int = Field(64, ge=1, le=255, description="most node blocks in one frame")
     max_range: PositiveFloat = Field(1000.0, le=MAX_POSITION, description="longest believable range (m); our "
                                      "choice, above LinkTrack's rated range (at most the contract's limit)")
 

@@ -59,9 +59,9 @@ class ObservabilityParams(StrictModel):
 
     window: PositiveFloat = Field(
         10.0, description="tau (s): time constant of the exponential forgetting of the relative path's spread")
+    # Narrower in one direction: a line (mirror-ambiguous); in both: no motion (unobservable).
     min_width: PositiveFloat = Field(
-        0.25, description="w_min (m): a relative path narrower than this (RMS) in a direction is taken as a "
-                         "line in that direction (mirror-ambiguous), in both as no motion (unobservable)")
+        0.25, description="w_min (m): RMS width of the relative path below which a direction counts as flat")
 
 
 def eigenvalues(s11: float, s12: float, s22: float) -> tuple[float, float]:
