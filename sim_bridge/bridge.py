@@ -461,7 +461,7 @@ class SimBridge:
 
     def _log_frames(self, stamp: int, truth) -> None:
         """Ground truth for Foxglove's 3D panel: the vessels and the target in the `world` frame and, once a
-        second, the islands and the desired circle (agent/foxglove.py)."""
+        second, the islands and the desired circle (agent/runtime/foxglove.py)."""
         links = foxglove.world_links(truth.positions, truth.headings, truth.target_position)
         self.log.log("/tf", foxglove.transforms(stamp, links), stamp, schema=foxglove.FrameTransforms)
         if stamp >= self._next_scene:
