@@ -33,8 +33,8 @@ def _relative(path):
 
 def _runs_at_import(tree):
     """True for a script module (a bare call or raise at top level): importing it would run it."""
-    return any(isinstance(node, ast.Raise) or (isinstance(node, ast.Expr) and isinstance(node.value, ast.Call))
-               for node in tree.body)
+    return any(isinstance(node, ast.Raise)
+               or (isinstance(node, ast.Expr) and isinstance(node.value, ast.Call)) for node in tree.body)
 
 
 def _module_name(path):
@@ -70,10 +70,11 @@ def _literal_description_offenders():
             for keyword in node.keywords:
                 value = keyword.value
                 # Adjacent literals ("a" "b") are already one Constant in the tree, as Python joins them.
-                if keyword.arg == "description" and isinstance(value, ast.Constant) and isinstance(value.value, str):
-                    if len(value.value) > MAX_DESCRIPTION_CHARS:
-                        offenders.append(f"{_relative(path)}:{value.lineno} description has {len(value.value)} "
-                                         f"characters")
+                if keyword.arg != "description" or not isinstance(value, ast.Constant):
+                    continue
+                if isinstance(value.value, str) and len(value.value) > MAX_DESCRIPTION_CHARS:
+                    offenders.append(f"{_relative(path)}:{value.lineno} description has {len(value.value)} "
+                                     "characters")
     return offenders
 
 
@@ -108,7 +109,8 @@ def _field_line(cls, name):
     start = inspect.getsourcelines(cls)[1]
     tree = ast.parse(Path(path).read_text(encoding="utf-8"))
     for node in ast.walk(tree):
-        if isinstance(node, ast.ClassDef) and node.name == cls.__name__ and node.lineno <= start <= node.end_lineno:
+        if (isinstance(node, ast.ClassDef) and node.name == cls.__name__
+                and node.lineno <= start <= node.end_lineno):
             for statement in node.body:
                 if isinstance(statement, ast.AnnAssign) and getattr(statement.target, "id", None) == name:
                     return f"{_relative(path)}:{statement.lineno}"
@@ -130,8 +132,8 @@ def _model_description_offenders():
 
 def test_module_docstrings_are_short():
     offenders = _docstring_offenders()
-    assert not offenders, (f"{len(offenders)} module docstrings over {MAX_DOCSTRING_LINES} lines (move reasons "
-                           "and measurements to docs/):\n" + "\n".join(offenders))
+    assert not offenders, (f"{len(offenders)} module docstrings over {MAX_DOCSTRING_LINES} lines "
+                           "(move reasons and measurements to docs/):\n" + "\n".join(offenders))
 
 
 def test_field_descriptions_in_the_source_fit_on_one_line():
@@ -142,8 +144,8 @@ def test_field_descriptions_in_the_source_fit_on_one_line():
 
 def test_model_field_descriptions_fit_on_one_line():
     offenders = _model_description_offenders()
-    assert not offenders, (f"{len(offenders)} model field descriptions over {MAX_DESCRIPTION_CHARS} characters "
-                           "(move the reason to a comment or docs/):\n" + "\n".join(offenders))
+    assert not offenders, (f"{len(offenders)} model field descriptions over {MAX_DESCRIPTION_CHARS} "
+                           "characters (move the reason to a comment or docs/):\n" + "\n".join(offenders))
 
 
 def test_the_model_walk_sees_the_config_models():
