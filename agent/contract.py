@@ -326,9 +326,9 @@ class WeakestPair(StrictModel):
     """The neighbour whose relative motion has told its pair filter least (agent/core/observability.py)."""
 
     neighbour: VesselId
+    # Its square root is the path's width in its narrowest direction.
     excitation: Annotated[float, Field(ge=0, allow_inf_nan=False)] = Field(
-        description="smallest eigenvalue of the spread of the relative path over the observability window (m^2); "
-                    "its square root is the path's width in its narrowest direction")
+        description="smallest eigenvalue of the relative path's spread over the observability window (m^2)")
     observability: Literal[VERDICTS]
 
 
@@ -342,9 +342,9 @@ class ClockOffset(StrictModel):
     source: Annotated[str, Field(pattern=VESSEL_ID_PATTERN)] = Field(
         description=f"'{CLOCK_SOURCE_SENSORS}' (this vessel's sensor stamps) or the id of the neighbour "
                     "whose shares are stamped so")
+    # The median over the source's recent messages: > 0 ahead of the agent's clock, < 0 behind.
     offset: Annotated[float, Field(ge=-1e9, le=1e9, allow_inf_nan=False)] = Field(
-        description="its stamps minus the agent's clock at their arrival (s), the median over its recent "
-                    "messages: > 0 ahead of the agent's clock, < 0 behind")
+        description="its stamps minus the agent's clock at their arrival (s), median of the recent ones")
 
 
 class Status(Header):
@@ -362,10 +362,10 @@ class Status(Header):
         None, description="r*: the radius of the circle this vessel steers to now (m)")
     mission: list[MissionAck] = Field(default_factory=list, max_length=8,
                                       description="the latest mission command judged from each sender")
+    # Every source whose stamps run consistently outside the input window of the agent's clock.
     clocks: list[ClockOffset] = Field(
         default_factory=list, max_length=MAX_PEERS + 1,
-        description="the alarm of clocks that disagree: every source whose stamps run consistently outside "
-                    "the input window of the agent's clock (empty: none)")
+        description="the alarm of clocks that disagree with the agent's (empty: none)")
 
 
 class Clock(StrictModel):

@@ -20,13 +20,7 @@ sentence, frame and command is handled under a last-resort guard that counts an 
 `<port>_failed` and goes on. What was refused is said on stderr at most every REPORT_SECONDS, and in full
 at the end.
 
-Which commands drive the thrusters: those whose `sender` is this vessel, stamped within the `commands`
-window of the driver's own wall clock (`thrusters.CommandGate`: not older than `max_age`, not more than
-`max_ahead` ahead) and after the command in force. The `seq` plays no part (a sender's number anyone on the
-network can set). The agent's liveliness token (`usv/<id>/alive`) is its session: when it goes away the
-thrusters stop at once, without waiting for the watchdog. The watchdog itself runs on the monotonic clock,
-so a step of the wall clock cannot hold a stale command in force. None of this authenticates a command:
-on a network without TLS and access control anyone may publish a fresh one (docs/reliability.md).
+More: docs/contract.md, "The driver bridge in detail", `driver_bridge/node.py`.
 """
 
 from __future__ import annotations

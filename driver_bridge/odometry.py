@@ -19,15 +19,9 @@ ds * sin(dpsi/2) / (dpsi/2) along psi0 + dpsi/2, which is exact for a steady tur
 (https://gpsd.gitlab.io/gpsd/NMEA.html#_vhw_water_speed_and_heading):
 `$--VHW,<heading true, deg>,T,<heading magnetic, deg>,M,<speed, knots>,N,<speed, km/h>,K*hh`.
 
-Bounds. A sentence with a valid checksum can still say anything (a faulty speed log: 1e30 knots). What goes
-into the integration is bounded at each step, so that every state is a valid contract message: a heading
-field outside [0, 360] degrees is refused by the parser, a speed beyond `max_speed` (or a yaw rate beyond
-`max_yaw_rate`) by `update`, and a step that would take the position beyond the contract's MAX_POSITION
-(or a variance beyond MAX_VARIANCE) is refused whole: nothing is published, the step is counted, and the
-next step starts from the last position at the refused sample's time and heading (the refused motion is
-lost). At the edge of the frame the odometry therefore stops while the vessel heads out, and the agent,
-seeing no fresh odometry, stops the vessel; it resumes when the vessel heads back in. A frame that moved on
-would break the contract's "it never jumps".
+Bounds: a step that would break the contract (position or variance beyond its limits) is refused whole.
+
+More: docs/contract.md, "The driver bridge in detail", `driver_bridge/odometry.py`.
 """
 
 from __future__ import annotations

@@ -18,15 +18,10 @@ Watchdog (docs/contract.md, "Watchdog: your duty"): `output(now)` gives zero thr
 command is older than `timeout` seconds, or when there has been none. A non-finite command is refused,
 counted, and taken as a stop.
 
-`command_line` writes the pair for a motor controller as `$THR,<left>,<right>*hh\\r\\n` (our format, NMEA
+`command_line` writes the pair for a motor controller as `$THR,<left>,<right>*hh\r\n` (our format, NMEA
 framing, see serial_port), each value signed with three decimals in [-1, 1].
 
-Which commands are taken at all is `CommandGate`'s job, judged by the driver's own clock: a command stamped
-more than `max_age` ago (stale, or a replay) or more than `max_ahead` in the future is refused, and of the
-rest only one stamped after the command in force is taken. The `seq` a sender writes plays no part: a high-
-water mark of seqs is a number anyone who can publish moves wherever they like (an absurd seq locked the
-agent out; a seq of 0, taken as a restart, let a replay in at any time). The newest stamp taken can be at
-most `max_ahead` in the future, so a spoofed stamp holds the real agent off for at most that long.
+More: docs/contract.md, "The driver bridge in detail", `driver_bridge/thrusters.py`.
 """
 
 from __future__ import annotations
@@ -61,8 +56,8 @@ class CommandWindow(StrictModel):
 
     max_age: PositiveFloat = Field(0.5, description="refuse a command stamped longer ago than this (s): stale or "
                                    "replayed")
-    max_ahead: PositiveFloat = Field(0.2, description="refuse a command stamped further ahead than this (s); also "
-                                     "the longest a spoofed stamp can hold the real agent's commands off")
+    # Also the longest a spoofed stamp can hold the real agent's commands off.
+    max_ahead: PositiveFloat = Field(0.2, description="refuse a command stamped further ahead than this (s)")
 
 
 class CommandGate:

@@ -1,12 +1,6 @@
 """UWB ranging adapter: Nooploop LinkTrack serial frames (NLink protocol) -> ranges in metres per peer vessel.
 
-Source document: Nooploop, "NLink" protocol (the LinkTrack serial output protocols), V1.3,
-http://ftp.nooploop.com/software/products/uwb/doc/NLink_V1.3.pdf (linked from Nooploop's own ROS driver,
-https://github.com/nooploop-dev/nlink_parser; V1.4 is the current edition), read with the LinkTrack User
-Manual V2.3 (https://ftp.nooploop.com/downloads/linktrack/LinkTrack_User_Manual_V2.3_zh.pdf). The PDFs
-could not be opened where this was written: the byte offsets below come from Nooploop's reference unpacker
-(github.com/nooploop-dev/nlink_unpack, nlink_linktrack_nodeframe2.c, nlink_utils.c) and were checked
-against frames captured from real modules in nlink_parser's tests (tests/test_driver_uwb.py replays them).
+Source: Nooploop's NLink protocol V1.3 and its reference parsers (the sources are listed in the docs).
 
 Every frame, little-endian throughout:
     byte 0      0x55 frame header
@@ -25,6 +19,8 @@ Node_Frame3 (ranges only), 21-byte fixed part, then blocks of 7 bytes:
     (mV), 20 uint8 valid_node_count; block: 0 role, 1 id, 2-4 int24 dis (mm), 5 fp_rssi, 6 rx_rssi.
 
 Only the ranges and the ranging-round time are used; the vessel positions stay the agent's business.
+
+More: docs/contract.md, "The driver bridge in detail", `driver_bridge/uwb.py`.
 """
 
 from __future__ import annotations
@@ -65,8 +61,8 @@ class UwbSettings(StrictModel):
     """Which module node ids are which vessels, and the bounds of a believable frame."""
 
     peers: dict[NodeNumber, VesselId] = Field(description="LinkTrack node id (0-255) -> vessel id")
-    max_nodes: int = Field(64, ge=1, le=255, description="most node blocks in one frame; a longer length "
-                           "field is refused at once instead of waiting for bytes that will not come")
+    # A longer length field is refused at once instead of waiting for bytes that will not come.
+    max_nodes: int = Field(64, ge=1, le=255, description="most node blocks in one frame")
     max_range: PositiveFloat = Field(1000.0, le=MAX_POSITION, description="longest believable range (m); our "
                                      "choice, above LinkTrack's rated range (at most the contract's limit)")
 

@@ -4,20 +4,12 @@ The paper's metrics (Sec. VI), from a run's truth and the vessels' estimates (th
 or the sim bridge's and agents' logs):
 - e_ij^p(k) = max_i max_j |p^_ij - p_ij|: worst inter-vessel estimate;
 - e_io^p(k) = max_i |p^_io - p_io|, e_io^v(k) = max_i |v^_io - v_io|: worst target estimate.
-  From the logs, each estimate p^_ij (p^_io) is compared with the true p_i - p_j (p_i - p_o) at the true time
-  the estimate refers to: its tick's time (the record's `time`, its odometry's stamp in the vessel's own
-  clock; not the log time, which on the wall clock is when the tick ran), mapped to true time through the
-  clock model the sim bridge's sea mode logs (`/bridge/sea`), with the truth interpolated linearly between
-  its ticks (mission_log.series.estimate_errors). The estimate then counts at the truth tick nearest that time.
-  Comparing with the nearest truth tick instead would add the vessels' motion over up to a tick (clock
-  offsets of +-50 ms, 100 ms ticks, 0.5 m/s: a few cm, some 10 % of a 0.3 m e_ij), which is the metric's
-  error, not the estimator's. In lockstep (no clock model) every estimate is stamped on a truth tick, and
-  the comparison is with that tick's truth as it is;
+  From the logs, at the true time each estimate refers to (mission_log.series.estimate_errors);
 - e_c(k) = |(1/n) sum_i p_i - p_o|: formation centre against the target;
 - settling time: the first time from which every vessel's distance to the target stays within +-10 % of r*
   to the end of the run, r* being the circle in force for that vessel at each moment (its statuses say which:
-  the configured one, then what the operator's `set`s made of it; mission_log.reader.RadiusSchedule), in seconds from the mission's start (mission_log.reader.mission_start_ns: sim
-  time 0 in simulation; on the wall clock, the first tick logged, not the Unix epoch);
+  the configured one, then what the operator's `set`s made of it; mission_log.reader.RadiusSchedule), in
+  seconds from the mission's start (mission_log.reader.mission_start_ns);
 - the mean tick compute time.
 "Mean" in the tables is the time average over the whole run, as in the paper's Tables II-IV.
 
@@ -29,6 +21,8 @@ self-consistency ones that need only the agents' logs:
 - pair agreement: vessel i's p^_ij against vessel j's p^_ji, which should be its exact opposite;
 - target agreement: i's and j's target estimates against i's estimate of where j is,
   (p^_io - p^_jo) - p^_ij, which is zero when all three agree.
+
+More: docs/logs.md, "The modules in detail", `mission_log/metrics.py`.
 """
 
 from __future__ import annotations

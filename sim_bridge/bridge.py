@@ -72,12 +72,12 @@ class BridgeSettings(StrictModel):
     command_timeout: PositiveFloat = Field(2.0, description="lockstep: wall seconds to wait for a tick's commands")
     watchdog: PositiveFloat = Field(
         0.5, description="a vessel whose latest command arrived longer ago than this (s, the bridge's clock) stops")
+    # A status stamped further ahead is refused too; sim time, wall time in the sea mode.
     max_command_skew: PositiveFloat = Field(
-        1.0, description="a command stamped further than this (s) from the bridge's clock, or a status stamped "
-                         "further ahead, is refused and counted (sim time; wall time in the sea mode)")
+        1.0, description="a command stamped further than this from the bridge's clock is refused and counted (s)")
+    # The bridge waits for it once the agents are ready; None: sim time 0 is the moment they are.
     epoch_ns: int | None = Field(
-        None, ge=0, description="sea mode: the wall time (ns since 1970) of sim time 0, which the bridge waits "
-                                "for once the agents are ready; None: the moment they are")
+        None, ge=0, description="sea mode: the wall time of sim time 0 (ns since 1970); None: agents ready")
     startup_timeout: PositiveFloat = Field(30.0, description="wall seconds to wait for the first agents")
     zenoh: ZenohSettings = ZenohSettings()
     log: str | None = Field(None, description="MCAP file of the ground truth")
@@ -461,7 +461,7 @@ class SimBridge:
 
     def _log_frames(self, stamp: int, truth) -> None:
         """Ground truth for Foxglove's 3D panel: the vessels and the target in the `world` frame and, once a
-        second, the islands and the desired circle (agent/foxglove.py)."""
+        second, the islands and the desired circle (agent/runtime/foxglove.py)."""
         links = foxglove.world_links(truth.positions, truth.headings, truth.target_position)
         self.log.log("/tf", foxglove.transforms(stamp, links), stamp, schema=foxglove.FrameTransforms)
         if stamp >= self._next_scene:

@@ -5,37 +5,16 @@ for the mission to end, stops the agents with SIGTERM (they finish their logs), 
 paper's metrics from the logs alone: the bridge's ground truth against what each agent logged it believed.
 The folder ends up with every MCAP log, `metrics.json`, `summary.md` and `trajectories.png`.
 
-Ports: each agent listens on port 0, so the OS picks a free port as the agent binds it (the others learn it
-from Zenoh's gossip). Only the sim bridge's port must be known in advance, by the launcher and the agents
-that connect to it; `free_port()` draws it, and if another process binds it before the bridge does (the
-bridge then exits at start-up with "Address already in use") the launcher starts the bridge again on
-another port. Any process that exits on its own during the mission fails the launch, naming it, and so
-does a sim bridge that ends before the scenario's last tick.
-
-Stopping. SIGTERM, SIGINT or SIGHUP to the launcher (`usv-fleet run` installs the handlers) stops the run:
-the bridge and every agent get SIGTERM, whatever has not exited `STOP_SECONDS` later gets SIGKILL (at once
-on a second signal), the launcher waits for all of them, and exits with 128 + the signal's number after a
-line saying it was interrupted. Each child also carries a parent-death signal (Linux prctl
-PR_SET_PDEATHSIG): should the launcher itself be killed with SIGKILL, the kernel sends its children SIGTERM,
-so no process of the run outlives it. `processes.json` in the run folder lists every child's pid.
-
 A run cut short (interrupted, a process failed, the bridge ended early, the time ran out) still gets its
 metrics and figures from the logs there are, and `summary.md` and `metrics.json` say plainly that it was cut
 short: the ticks done of the ticks planned, and why.
-
-A full disk under the run folder stops nothing. Each child prints into a pipe the launcher reads, never
-into the run folder, and the launcher writes each console to `<name>.log` (sim_bridge/console.py): while the
-disk refuses, it keeps the last 64 kB of each in memory and writes them, after a line saying what was lost
-and when, once there is room again. Each process's MCAP log suspends itself, says so once on the process's
-stderr (which the launcher repeats on its own, once per process) and in the agent's status
-(`log_suspended`, `log_dropped`), and resumes in a new part when there is room, its first message a record
-of the gap (agent/runtime/mcap_log.py). The launcher counts the ticks done from the sim clock as well as the
-bridge's log, finishes the summary files it can and names, in one line, those it cannot.
 
 Exit codes: 0, the run went to its end and every log and console is whole; 1, the run failed or was cut
 short; 2, a bad scenario or setting; 3, the run went to its end but logs were lost (a process's log was
 suspended by write errors, a console or a summary file could not be written in full; each said in a line);
 128 + N, stopped by signal N.
+
+More: docs/fleet.md §8, `sim_bridge/fleet.py`.
 """
 
 from __future__ import annotations

@@ -41,10 +41,10 @@ class InitialUncertainty(StrictModel):
 
     neighbour_variance: PositiveFloat = Field(0.04, description="P_ij,0 = value * I (Table II: 0.04)")
     target_variance: PositiveFloat = Field(1.0, description="P_io,0 = value * I (Table II: I)")
+    # A cold vessel takes the target from its first bearing and its neighbours from the ranges and shares.
     cold: Literal["all"] | list[str] = Field(
         default_factory=list,
-        description="vessels that start with no estimates (target from the first bearing, neighbours from "
-                    "the ranges and shares): 'all', or a list of ids")
+        description="vessels that start with no estimates: 'all', or a list of ids")
 
 
 class PaperRow(StrictModel):

@@ -83,9 +83,9 @@ class SensorTiming(StrictModel):
     """When one kind of sensor measures, and how late its messages reach the vessel's driver (sea mode)."""
 
     period_ms: PositiveFloat | None = Field(None, description="time between two measurements (ms); None: dt")
+    # None: drawn for each vessel, uniform in [0, period).
     phase_ms: NonNegativeFloat | None = Field(
-        None, description="time of the first measurement after the start (ms), less than the period; None: "
-                          "drawn for each vessel, uniform in [0, period)")
+        None, description="time of the first measurement after the start (ms), less than the period")
     latency_ms: NonNegativeFloat = Field(0.0, description="mean time from the measurement to the driver (ms)")
     jitter_ms: NonNegativeFloat = Field(
         0.0, description="each latency is uniform in [latency - jitter, latency + jitter] (ms)")
@@ -109,26 +109,27 @@ class SeaConfig(StrictModel):
         0.0, description="each vessel's clock drift is drawn uniform in [-drift_ppm, drift_ppm]")
     offsets_ms: dict[str, FiniteFloat] = Field(default_factory=dict, description="vessel id -> offset, not drawn")
     drifts_ppm: dict[str, FiniteFloat] = Field(default_factory=dict, description="vessel id -> drift, not drawn")
+    # An NTP step or an operator's date -s, for the vessel's driver and agent alike.
     steps: dict[str, list[tuple[NonNegativeFloat, FiniteFloat]]] = Field(
         default_factory=dict,
-        description="vessel id -> [(sim time s, step ms)]: its clock steps by that much then (an NTP step, "
-                    "an operator's date -s), for its driver and agent alike")
+        description="vessel id -> [(sim time s, step ms)]: its clock steps by that much then")
+    # A driver on a computer of its own; the vessel's sensors are stamped in that clock.
     driver_offsets_ms: dict[str, FiniteFloat] = Field(
         default_factory=dict,
-        description="vessel id -> how far its driver's clock runs from its computer's (ms): a driver on a "
-                    "computer of its own; its sensors are stamped in that clock")
+        description="vessel id -> how far its driver's clock runs from its computer's (ms)")
     odometry: SensorTiming = Field(SensorTiming(), description="odometry (with the sonar, which rides along)")
     uwb: SensorTiming = SensorTiming()
     camera: SensorTiming = SensorTiming()
+    # 'arrival' is the driver's clock at measurement + latency.
     stamps: Literal["arrival", "measurement"] = Field(
-        "arrival", description="'arrival': the driver stamps a message when it receives it (its clock at "
-                               "measurement + latency); 'measurement': with the time it was measured")
+        "arrival", description="'arrival': a driver stamps a message when it receives it; 'measurement': when "
+                               "measured")
+    # As boats wait for the go: deployment estimates stamped within it stay true.
     hold_ms: NonNegativeFloat = Field(
-        0.0, description="the vessels are held still (zero command) for this long at the start, as boats wait "
-                         "for the go: deployment estimates stamped within it stay true")
+        0.0, description="the vessels are held still (zero command) for this long at the start (ms)")
+    # So a command acts within step_ms of its arrival.
     step_ms: PositiveFloat = Field(
-        10.0, description="the world moves in steps this long, each with the latest command, so a command acts "
-                          "within step_ms of its arrival (dt must be a whole number of them)")
+        10.0, description="the world moves in steps this long, each with the latest command (ms; dt a multiple)")
 
 
 class DynamicsConfig(StrictModel):

@@ -66,8 +66,9 @@ class Inventory(StrictModel):
     topology: Literal["peer", "router"] = "peer"
     router: Endpoint | None = Field(None, description="the shore router (topology router)")
     operator: Endpoint | None = Field(None, description="the operator's station")
+    # On a boat they are installed in /etc/usv/<id>/certs.
     tls: str | None = Field(None, description="folder of the fleet's certificates (usv-deploy certs), relative to "
-                            "the inventory's folder; on a boat they are installed in /etc/usv/<id>/certs")
+                            "the inventory's folder")
     vessels: list[Vessel] = Field(min_length=1)
     agent: AgentOverlay = Field(AgentParams(), description="agent parameters (AgentParams) of every vessel")
     driver: dict = Field(default_factory=dict, description="driver settings (DriverSettings) of every vessel")

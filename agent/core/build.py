@@ -20,8 +20,9 @@ class InitialEstimates(StrictModel):
     target_variance: PositiveFloat = Field(1.0, description="P_io,0 = value * I")
     neighbours: dict[str, tuple[float, float]] = Field(default_factory=dict, description="p^_ij,0 by id")
     neighbour_variance: PositiveFloat = Field(0.04, description="P_ij,0 = value * I")
-    stamp: float | None = Field(0.0, description="time (s) the estimates refer to, in the fleet's clock; "
-                                                   "null: the agent's first tick (what it is told at launch)")
+    # null: the estimates are what the agent is told at launch, taken at its first tick.
+    stamp: float | None = Field(0.0, description="time the estimates refer to, in the fleet's clock (s); "
+                                                   "null: the first tick")
 
 
 def initial_state(vessel_id: str, params: AgentParams, initial: InitialEstimates) -> VesselState:

@@ -5,23 +5,13 @@ The paper. p_ij is observable from the range pairs (12) and the displacements (1
 
     Phi_ij,l = sum_{k=l}^{l+N-1} delta_ij,k delta_ij,k^T > 0                                        (41)
 
-over a window of N steps, which holds when the relative velocity is persistently exciting, (37), (39):
-lambda_ij,1 I <= S_ij,l = sum_k v_ij,k v_ij,k^T, with the bounds (38) for the formation's motion. Its
-controller is built so that this holds once the oscillator (28) has settled (Theorem 1). Before that, and
-whenever two vessels move in parallel or on straight lines, nothing guarantees it.
+over a window of N steps, which holds when the relative velocity is persistently exciting, (37)-(39).
 
 What is computed. The relative path D_m at the range epochs m (the measured relative displacement delta~_ij
 of (15), summed from the track's start), and its spread over a window that forgets with time constant tau:
 
     w_m = exp(-(t - t_m) / tau),   D_bar = sum_m w_m D_m / sum_m w_m,
     S = sum_m w_m (D_m - D_bar)(D_m - D_bar)^T / sum_m w_m.
-
-D_m - D_(m-1) is the displacement delta_ij of (12) between two range epochs, so S y = 0 exactly when
-delta_m^T y = 0 for every m of the window, i.e. exactly when Phi y = 0 in (41): S > 0 if and only if Phi > 0.
-S is reported rather than Phi because it is a length: sqrt(lambda_min(S)) is the width (m, RMS) of the set of
-points the ranges were measured from, in its narrowest direction, whatever the ranging rate (Phi grows with
-the number of epochs and shrinks with their spacing squared); and odometry noise enters Phi at every step
-whatever the motion, S only as the random walk it sums to over the window.
 
 Reading it (the verdict, `verdict`):
 - "unobservable": lambda_max(S) < w_min^2. No relative motion to speak of (parallel motion at one
@@ -31,13 +21,7 @@ Reading it (the verdict, `verdict`):
   along the line (Phi has rank one).
 - "observable": both eigenvalues at least w_min^2.
 
-Hand values (tests/test_observability.py): a path on a straight line has lambda_min = 0; N points evenly on a
-circle of radius rho with no forgetting give lambda_1 = lambda_2 = rho^2 / 2; a pair in formation, whose
-p_ij turns at omega with |p_ij| = rho, gives with a = omega tau (exponential weights, continuous time)
-
-    lambda_(1,2) = rho^2 / 2 * a^2 / (1 + a^2) * (1 -+ 1 / sqrt(1 + 4 a^2)).
-
-Cost: `add` is a few float operations (no numpy, nothing allocated), the eigenvalues are closed form.
+More: docs/estimation.md §10, `agent/core/observability.py`.
 """
 
 from __future__ import annotations
@@ -59,9 +43,9 @@ class ObservabilityParams(StrictModel):
 
     window: PositiveFloat = Field(
         10.0, description="tau (s): time constant of the exponential forgetting of the relative path's spread")
+    # Narrower in one direction: a line (mirror-ambiguous); in both: no motion (unobservable).
     min_width: PositiveFloat = Field(
-        0.25, description="w_min (m): a relative path narrower than this (RMS) in a direction is taken as a "
-                         "line in that direction (mirror-ambiguous), in both as no motion (unobservable)")
+        0.25, description="w_min (m): RMS width of the relative path below which a direction counts as flat")
 
 
 def eigenvalues(s11: float, s12: float, s22: float) -> tuple[float, float]:

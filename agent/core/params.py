@@ -14,19 +14,17 @@ from agent.core.estimators.registry import RelativeEstimationParams
 class TargetEstimationParams(StrictModel):
     """Pseudo-linear Kalman filter of the target, Sec. III-B."""
 
+    # Table I's 0.01 must also absorb the vessel's own turns, which this filter takes as a known input, and
+    # with it the range collapses (docs/estimation.md, PLKF; docs/fleet.md §4).
     process_noise: PositiveFloat = Field(
         1e-5,
-        description=(
-            "Q_o = value * I_4 per step. Table I's 0.01 must also absorb the vessel's own turns, which this "
-            "filter takes as a known input, and with it the range collapses (docs/estimation.md, PLKF)"
-        ),
+        description="Q_o = value * I_4 per step (Table I: 0.01)",
     )
+    # 'measured' is (25) as printed, biased towards the target; 'predicted' is the instrumental-variable
+    # form of Nguyen and Dogancay 2018.
     gain_bearing: Literal["predicted", "measured"] = Field(
         "predicted",
-        description=(
-            "bearing the PLKF gain is built from: 'measured' is (25) as printed (biased towards the target), "
-            "'predicted' the instrumental-variable form of Nguyen and Dogancay 2018"
-        ),
+        description="bearing the PLKF gain (25) is built from: 'predicted' (instrumental variable) or 'measured'",
     )
     bearing_variance: PositiveFloat = Field(1e-4, description="R_b = value * I_2 (Table I)")
     initial_covariance: PositiveFloat = Field(1.0, description="P_io,0 = value * I_4 (Table I)")
@@ -43,8 +41,8 @@ class ControlParams(StrictModel):
 
     radius: PositiveFloat = Field(5.0, description="r*_io, circumnavigation radius (m)")
     yaw_rate: Annotated[float, Field(allow_inf_nan=False)] = Field(
-        math.pi / 30, description="omega*_i, desired yaw rate (rad/s); its sign is the direction of circling "
-                                  "(positive: counter-clockwise seen from above)")
+        math.pi / 30, description="omega*_i, desired yaw rate (rad/s); sign = direction (+: counter-clockwise "
+                                  "from above)")
     safety_distance: PositiveFloat = Field(3.0, description="d_s (m)")
     max_correction_yaw_rate: PositiveFloat = Field(math.pi / 3, description="U_omega_c (rad/s)")
     max_speed: PositiveFloat = Field(5.0, description="U_v (m/s)")
@@ -53,12 +51,11 @@ class ControlParams(StrictModel):
     max_avoidance_speed: PositiveFloat = Field(0.7, description="U_vs (m/s)")
     gain_neighbour: PositiveFloat = Field(1.5, description="kappa_ij")
     gain_target: PositiveFloat = Field(0.9, description="kappa_io")
+    # Table I's value for n = 4; keeps the sampled loop damped for large fleets
+    # (agent/core/control/formation.py).
     neighbour_gain_cap: PositiveFloat | None = Field(
         4.5,
-        description=(
-            "cap on the sum of kappa_ij over the neighbours (Table I's value for n = 4); keeps the sampled "
-            "loop damped for large fleets; null for (33) as written (agent/core/control/formation.py)"
-        ),
+        description="cap on the sum of kappa_ij over the neighbours; null for (33) as written",
     )
     avoidance_gain: PositiveFloat = Field(1.7, description="k_1")
     avoidance_spread: PositiveFloat = Field(0.5, description="k_2")
@@ -68,17 +65,16 @@ class ControlParams(StrictModel):
     clearance_rate: PositiveFloat = Field(
         1.0, description="safety filter: closing speed allowed per metre of clearance left (1/s)"
     )
+    # Closer than this by the ranges to a neighbour it has not localised, the vessel does not move.
     min_separation: NonNegativeFloat = Field(
-        3.0, description="the separation guard keeps the vessels at least this far apart (m): closer than "
-                         "this by the ranges to a neighbour it has not localised, the vessel does not move")
+        3.0, description="the separation guard keeps the vessels at least this far apart (m)")
+    # Room for the estimate's error. The guard keeps apart from the localised neighbours and from those
+    # whose pair covariance has a trace within this squared (agent/core/control/separation.py).
     separation_margin: NonNegativeFloat = Field(
-        0.5, description="the guard keeps a neighbour's estimated distance at least min_separation + this "
-                         "(m): room for the estimate's error. It keeps apart from the localised neighbours and "
-                         "from those whose pair covariance has a trace within this squared "
-                         "(agent/core/control/separation.py)")
+        0.5, description="the guard keeps a neighbour's estimated distance at least min_separation + this (m)")
+    # rate * dt at most 1/2, so that a pair never closes past the guard's distance in a period.
     separation_rate: PositiveFloat = Field(
-        2.0, description="closing speed the guard allows towards a neighbour per metre beyond its distance "
-                         "(1/s); rate * dt at most 1/2, so that a pair never closes past it in a period")
+        2.0, description="closing speed the guard allows towards a neighbour per metre beyond its distance (1/s)")
     safety_filter: bool = Field(True, description="apply the safety filter after (35); false: (35) alone")
     oscillator_gain: PositiveFloat = Field(
         1.0, description="K of (28): K_m = K for m <= n/2, 0 above (the paper leaves K_m open)"
@@ -111,49 +107,42 @@ class FleetParams(StrictModel):
         1.0, description="a neighbour silent for longer than this (s) leaves the formation"
     )
     history_ticks: int = Field(50, ge=2, le=100_000, description="odometry and ranges kept per neighbour")
+    # Covariance intersection, so the two vessels of a pair agree (agent/core/fusion.py, docs/fleet.md §3);
+    # false: each vessel keeps its own, as in the paper.
     fuse_shared_estimates: bool = Field(
         True,
-        description=(
-            "fuse each neighbour's shared estimate of p_ji with our p_ij by covariance intersection, so the "
-            "two vessels of a pair agree (agent/core/fusion.py); false: each vessel keeps its own, as in the paper"
-        ),
+        description="fuse each neighbour's shared estimate of p_ji with our p_ij (false: as in the paper)",
     )
+    # Moved to this vessel through p_ij and fused by covariance intersection: bearings from several angles
+    # triangulate (docs/fleet.md §3).
     fuse_target_estimates: bool = Field(
         True,
-        description=(
-            "fuse the neighbours' target estimates, moved to this vessel through p_ij, with our own by "
-            "covariance intersection (bearings from several angles triangulate); false: as in the paper"
-        ),
+        description="fuse the neighbours' target estimates with our own (false: as in the paper)",
     )
+    # The positions at the range's time are interpolated; a range in a longer gap is counted, not used.
     max_odometry_gap: PositiveFloat = Field(
-        0.5, description="a range's time may fall between two odometry samples at most this far apart (s); "
-                         "the positions there are interpolated (a range in a longer gap is counted, not used)")
+        0.5, description="widest gap between the two odometry samples around a range's time (s)")
+    # That odometry comes in the neighbour's share, typically a tick later; then the range counts as unpaired.
     range_wait: PositiveFloat = Field(
-        1.0, description="how long a range waits for the neighbour's odometry of its time (s), which comes in "
-                         "the neighbour's share, typically a tick later; then it is counted as unpaired")
+        1.0, description="how long a range waits for the neighbour's odometry of its time (s)")
+    # An initial estimate older than the odometry kept is stale too: it would start the pair filter from a
+    # past position.
     prior_max_age: PositiveFloat = Field(
-        5.0, description="an initial estimate whose stamp is older than the odometry kept, or older than this "
-                         "(s) at the first tick, is stale and not used: it would start the pair filter from a "
-                         "past position")
+        5.0, description="an initial estimate older than this at the first tick is stale and not used (s)")
+    # A range-only start (r^2 I) is above it.
     localised_trace: PositiveFloat = Field(
-        2.0, description="a neighbour steers the formation and lends its target estimate only once the trace "
-                         "of its pair covariance P_ij is at most this (m^2): a range-only start (r^2 I) does not")
+        2.0, description="trace of P_ij at most which a neighbour steers the formation and lends its target (m^2)")
+    # The chi-square 99.9 % point for 4 degrees of freedom: a good estimate is dropped once in a thousand,
+    # and beyond it a faulty one is more likely than noise. Left out estimates are counted.
     target_gate: PositiveFloat = Field(
         18.47,
-        description=(
-            "a neighbour's target estimate whose squared Mahalanobis distance from ours exceeds this is left "
-            "out of the fusion (counted): the chi-square 99.9 % point for 4 degrees of freedom, so a good "
-            "estimate is dropped once in a thousand and a faulty one is more likely than noise beyond it"
-        ),
+        description="squared Mahalanobis distance from ours beyond which a neighbour's target is not fused",
     )
+    # Measured on the join scenario, 10 runs (docs/fleet.md §7): 4 left 2 runs with pair errors of 3 m, 1
+    # settles all 10 with half the error, 0.25 waits too long and falls back to the far worse range prior.
     target_route_factor: PositiveFloat = Field(
         1.0,
-        description=(
-            "a joiner's pair filter starts from both vessels' target estimates once the trace of their two "
-            "position covariances is at most this times P_io,0. Measured on the join scenario, 10 runs "
-            "(docs/fleet.md §7): 4 left 2 runs with pair errors of 3 m, 1 settles all 10 with half the error, "
-            "0.25 waits too long and falls back to the far worse range prior"
-        ),
+        description="a joiner's pair starts from both target estimates once trace(both covs) <= this * P_io,0",
     )
 
 

@@ -75,9 +75,9 @@ class Inputs(StrictModel):
     obstacle_points: list[Vector2] | None = Field(description="sonar points relative to the vessel (m)")
     shares: dict[str, LoggedShare] = Field(description="neighbour id -> its latest share")
     range_stamp: float | None = Field(description="when the ranges were measured (s); None: at `time`")
+    # Measured before `range_stamp` since the last tick, oldest first.
     earlier_ranges: list[tuple[float, dict[str, float]]] = Field(
-        default_factory=list, description="range sets measured before `range_stamp` since the last tick, oldest "
-                                          "first: [stamp (s), neighbour id -> range (m)]")
+        default_factory=list, description="earlier range sets: [stamp (s), neighbour id -> range (m)]")
 
 
 # ----- /<id>/estimates: the tick's TickRecord -----
@@ -102,15 +102,16 @@ class NeighbourEstimate(StrictModel):
     updates: Count
     rejected: Count
     outcomes: list[RangeUpdate] = Field(description="each range update this tick ran")
-    localised: bool = Field(False, description="steered the formation this tick: its covariance small enough "
-                                               "and its estimate agreeing with the ranges")
+    # Its covariance small enough and its estimate agreeing with the ranges.
+    localised: bool = Field(False, description="steered the formation this tick")
+    # The spread of the relative path at the range epochs over the observability window
+    # (agent/core/observability.py).
     excitation: Annotated[list[float], Field(
-        min_length=2, max_length=2, description="smallest and largest eigenvalue (m^2) of the spread of the "
-                                                "relative path at the range epochs over the observability "
-                                                "window, (41) (agent/core/observability.py)")]
+        min_length=2, max_length=2, description="smallest and largest eigenvalue of the relative path's "
+                                                "spread, (41) (m^2)")]
+    # mirror-ambiguous: a straight line; unobservable: no relative motion.
     observability: Literal[VERDICTS] = Field(
-        description="what the relative path lets the ranges tell: observable, mirror-ambiguous (a straight "
-                    "line) or unobservable (no relative motion)")
+        description="what the relative path lets the ranges tell: observable, mirror-ambiguous or unobservable")
 
 
 class BearingUpdate(StrictModel):
@@ -267,15 +268,16 @@ class AgentSummary(StrictModel):
     refused: dict[str, Count] = Field(description="inputs the gate refused, by reason")
     loop_seconds: float = Field(description="wall time from the first tick to the end (s)")
     cpu_seconds: float = Field(description="CPU time of the process, all threads, over the same span (s)")
+    # Against the same step timed alone: what sharing the machine costs it.
     core_cpu_seconds: float | None = Field(
-        None, description="CPU time of the tick thread inside the core's step over the same span (s): against "
-                          "the same step timed alone, what sharing the machine costs it")
+        None, description="CPU time of the tick thread inside the core's step over the same span (s)")
+    # The trigger is the sim clock's arrival or the timer; on lockstep sim time this includes the wait for
+    # the neighbours' shares.
     reaction_ms: ReactionSummary | None = Field(
-        None, description="from each tick's trigger (the sim clock's arrival, or the timer) to its command's put; "
-                          "on lockstep sim time it includes the wait for the neighbours' shares")
+        None, description="from each tick's trigger to its command's put (ms)")
+    # The reaction without the waits for a core: what a computer of the agent's own would take.
     reaction_cpu_ms: ReactionSummary | None = Field(
-        None, description="the tick thread's CPU from the start of each tick to its command's put: the reaction "
-                          "without the waits for a core, what a computer of the agent's own would take")
+        None, description="the tick thread's CPU from the start of each tick to its command's put (ms)")
 
 
 class BridgeSummary(StrictModel):

@@ -17,17 +17,10 @@ with the format, run and part records, so any part reads on its own; `mission_lo
 of a set into one log. Once the closed parts would leave no room for a full current part within
 `max_total_mb`, the oldest are deleted, so the set stays within the bound (plus at most one flush).
 
-**Write errors** (a full disk, a quota: ENOSPC, EDQUOT, or any OSError of a write). Writing never stops
-the caller: the part whose write fails is abandoned as an unfinished file (readable up to its last complete
-chunk), and later messages are dropped and counted (`dropped`) while logging is `suspended`. A new part is
-tried every `retry_seconds` (2 s by default), with or without rotation, so logging resumes once there is
-room; the new part's first message, on `/log/gap` (`LogGap`), says what was lost: how many messages of which
-topics, the log times of the first and last lost, and the wall-clock times the log was suspended and resumed.
-With `announce` (a function taking one line; the processes print it on stderr), the log says once per
-failure that it is suspended (the line starts with `SUSPENDED`) and says when it resumes, and `log()` never
-raises an OSError; without it, the `log()` call whose write fails raises the OSError once (the caller counts
-it). `close()` never raises an OSError: it finishes what it can, and says in one line on stderr what the log
-lost.
+**Write errors** (ENOSPC, EDQUOT, any OSError of a write) suspend the log, never the caller: later
+messages are dropped and counted, and a new part, opened when there is room, starts with a `/log/gap`.
+
+More: docs/logs.md, "The modules in detail", `agent/runtime/mcap_log.py`.
 """
 
 from __future__ import annotations

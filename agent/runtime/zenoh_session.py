@@ -37,9 +37,10 @@ class ZenohSettings(StrictModel):
     connect: list[str] = Field(default_factory=list, description="endpoints to connect to, e.g. tcp/10.0.0.2:7447")
     listen: list[str] = Field(default_factory=list, description="endpoints to listen on, e.g. tcp/0.0.0.0:7447")
     multicast_scouting: bool = Field(False, description="off by default: explicit endpoints only")
+    # A boat's agent may boot before the shore router is up; after the timeout it exits and its service
+    # restarts it.
     connect_timeout: PositiveFloat = Field(
-        30.0, description="client: seconds to keep trying to reach the router at start-up (a boat's agent may "
-                          "boot before the shore router is up); then it exits and its service restarts it")
+        30.0, description="client: seconds to keep trying to reach the router at start-up")
 
 
 class SessionError(zenoh.ZError):

@@ -21,20 +21,7 @@ When a tick reads its inputs (`snapshot`), own odometry older than the one the l
 faster than MAX_SPEED (1 km/s) from it, is left out of that tick (`implausible_motion`): the core's own
 velocity is the difference of the two.
 
-Freshness is judged by stamps, never by `seq`, which is informative only: a high-water mark an attacker could
-move (one `seq` of 10^9) would lock the agent out of its own sensors. The mark per (key, sender) moves only
-with stamps inside the window, so it is never more than `max_future` ahead of the clock, and a mark that the
-clock has left behind by more than that no longer blocks anything. The marks of a sender start again when
-its liveliness session does (`forget`, on the token's undeclaration and declaration), and every mark when
-the simulation restarts (`reset`). Without a clock to judge by (sim time before the first clock, or while
-the clock is silent) stamps are not judged and no mark moves.
-
-Every per-sender map is bounded by MAX_PEERS senders (the node admits at most that many live tokens), held
-shares by `max_held` per sender, and a share keeps of the sender's estimates only the one of this vessel.
-
-On sim time the gate holds each share until the sim clock says whether the simulated radio delivers it
-(`deliver_shares`), so a fleet over Zenoh in lockstep uses exactly the shares the in-process runner uses; in
-real time each neighbour's newest share that has come is taken, unless the radio lost it.
+More: docs/reliability.md §4, `agent/shell/gate.py`.
 """
 
 from __future__ import annotations

@@ -1,33 +1,17 @@
 """Who counts as a neighbour: the table of live liveliness tokens, bounded, and the proof a vessel id owes
 when it comes back.
 
-A token (`usv/<id>/alive`) says nothing about who declared it: without TLS anyone on the network can declare
-any id, as often as they like. So the table (at most MAX_PEERS ids) is not first come, first served:
-- evidence ranks the entries: our own UWB module ranging to an id (`ranged`, within RANGED_WITHIN s) is
-  evidence that a vessel with that id is out there; a token without it is only a claim. A new token evicts,
-  when the table is full, the oldest entry without that evidence (unproven ones before proven ones); a new
-  token with it may also evict the oldest unproven entry with it. An entry that is both ranged and proven is
-  never evicted, and a token without evidence never evicts one that has it. So 300 forged tokens cannot
-  keep a genuine vessel out: its ranges get it in (`peers_evicted` counts the ones that made room).
-- a vessel id declared for the first time in this agent's life is taken at its word, as the deployment
-  (or a joiner) says (the ranges judge its estimates in the core, agent/core/membership.py). An id declared
-  again, after its token went away or was evicted, is watched for its session: each tick its claimed
-  odometry is judged against our ranges to it (agent/core/vetting.py) at the offset between the two
-  odometry frames learnt from the core's own pair estimate while it was here (a vessel whose odometry runs
-  on, as a bridge's does through an agent's restart, keeps that offset), or without one at the offset that
-  fits best (which only catches claims far from the truth). It agrees when the residuals are small, move
-  no more than TREND over the window, and fit no worse than those of a hull lying still (the simpler story
-  for a dead vessel's id). SUSTAIN agreements in a row prove it; DOUBT disagreements in a row before that, or
-  one misfit beyond REFUTE tolerances at any time, refute it: its shares and ranges no longer reach the
-  core, for the rest of its session. Its shares do reach the core until then: a restarted vessel that its
-  neighbours ignored for the seconds of a proof would be a vessel they do not keep their distance from (a
-  restart test came to 1.4 m that way). So a process that declares a dead vessel's id steers for the few
-  seconds before it is refuted (about 5 s), not for good.
-  Ranges see a lie along the line of sight only: a claim that moves across it agrees with the ranges for
-  a while, and the hull-lying-still test is what catches the dead vessel's slot claimed on the circle.
-What TLS adds: only a fleet certificate may declare a vessel's token, and only its own (docs/deploy.md);
-the table then holds the fleet. Ranges forged on our own `sensor/uwb` key, possible without TLS, would
-forge the evidence too.
+A token (`usv/<id>/alive`) says nothing about who declared it, so the table (at most MAX_PEERS ids) is
+not first come, first served:
+- evidence ranks the entries: our own UWB module ranging to an id (`ranged`, within RANGED_WITHIN s). A
+  new token evicts, when the table is full, the oldest entry without that evidence (unproven before
+  proven); an entry both ranged and proven is never evicted (`peers_evicted` counts those that made room);
+- an id declared for the first time in this agent's life is taken at its word; an id declared again is
+  watched for its session: its claimed odometry is judged against our ranges (agent/core/vetting.py).
+  SUSTAIN agreements in a row prove it; DOUBT disagreements in a row before that, or one misfit beyond
+  REFUTE, refute it: its shares and ranges no longer reach the core for the rest of its session.
+
+More: docs/reliability.md §4, `agent/shell/peers.py`.
 """
 
 from __future__ import annotations

@@ -25,16 +25,17 @@ class NodeSettings(StrictModel):
     # ----- robustness: what arrives is bounded, a failed tick is survived (agent/shell/gate.py, failures.py) -----
     max_input_future: PositiveFloat = Field(0.5, description="inputs stamped further ahead of the clock (s) are "
                                             "refused")
+    # A token bucket per key; lockstep at 100x real time sends 1000/s.
     max_input_rate: PositiveFloat = Field(
-        1000.0, description="messages per second on one key, beyond which they are refused before decoding "
-                            "(a token bucket per key; lockstep at 100x real time sends 1000/s)")
+        1000.0, description="messages per second on one key beyond which they are refused before decoding")
+    # After it the agent sends heartbeat statuses, judges no stamps, and takes a clock that goes back as a
+    # restart of the simulation.
     clock_timeout: PositiveFloat = Field(
-        1.0, description="sim: wall seconds without a clock after which the agent sends heartbeat statuses, "
-                         "judges no stamps, and takes a clock that goes back as a restart of the simulation")
+        1.0, description="sim: wall seconds without a clock after which the agent takes the clock as silent")
+    # Refused unless the clock was silent or `clock_confirm` such clocks in a row continue each other (then
+    # the simulation restarted); the sim bridge's clock advances a tick at a time.
     max_clock_jump: PositiveFloat = Field(
-        1.0, description="sim: a clock further than this (sim s) from the last one, either way, is refused "
-                         "unless the clock was silent or `clock_confirm` such clocks in a row continue each other "
-                         "(then the simulation restarted); the sim bridge's clock advances a tick at a time")
+        1.0, description="sim: a clock further than this from the last one, either way, is refused (sim s)")
     clock_confirm: int = Field(3, ge=1, description="sim: clocks beyond `max_clock_jump` that continue each "
                                "other and make a restart without a silence")
     rebuild_after: int = Field(
@@ -43,18 +44,22 @@ class NodeSettings(StrictModel):
         1.0, description="seconds to look for another agent with this vessel id at start-up (0: do not look)")
     no_sensor_warning: PositiveFloat = Field(5.0, description="seconds without any own sensor message after "
                                              "which the agent says so on stderr")
-    log: str | None = Field(None, description="MCAP file to write; '{vessel}' is replaced by the vessel id and "
-                            "'{start}' by the UTC start time (so a restarted agent starts a new file)")
+    # '{start}' makes a restarted agent start a new file.
+    log: str | None = Field(None, description="MCAP file to write; '{vessel}': the vessel id, '{start}': the "
+                            "UTC start time")
+    # The default keeps about 6 h of an agent's log (docs/reliability.md §3).
     log_rotation: LogRotation | None = Field(
-        LogRotation(), description="start a new part of the log by size or time and keep a bounded total "
-                                   "(about 6 h of an agent's log by default); null: one file")
+        LogRotation(), description="start a new part of the log by size or time, keep a bounded total; null: "
+                                   "one file")
+    # So that `usv-log replay --start` can begin mid-mission; one costs about 8 kB compressed with 3
+    # neighbours.
     snapshot_every: int = Field(
-        50, ge=0, description="log the core's state every this many ticks (0: never), so that `usv-log replay "
-                              "--start` can begin mid-mission; one costs about 8 kB compressed with 3 neighbours")
+        50, ge=0, description="log the core's state every this many ticks (0: never)")
+    # The sim bridge stamps this vessel's sensors with that clock; on a boat the agent and the driver share
+    # the computer's clock.
     vessel_clock: SimulatedVesselClock | None = Field(
-        None, description="the sim's sea mode only: read the system clock through this vessel's "
-                          "simulated clock, the one the sim bridge stamps its sensors with (on a boat the "
-                          "agent and the driver share the computer's clock); null: the system clock")
+        None, description="sea mode only: read the system clock through this vessel's simulated clock; null: "
+                          "the system clock")
     initial: InitialEstimates = InitialEstimates()
     agent: Annotated[AgentParams, InlineOrFile(AgentParams)] = Field(
         AgentParams(), description="the algorithm's parameters: an AgentParams file's content, or its name")

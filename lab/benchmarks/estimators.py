@@ -7,35 +7,7 @@ Data (one seeded `numpy.random.Generator` tree, `--seed`): two vessels on the pa
 with the Table II mixture noise 0.8 N(0, 0.4) + 0.2 N(0, 10), odometry noise N(0, 1e-6 I) on each vessel.
 Every input is computed before the clock starts:
 
-- our estimators get `predict(displacement)` with the measured relative displacement as a numpy (2,) float64
-  row (what `comparison.run_once` passes) and `update(r_prev, r_now)` with two Python floats;
-- filterpy's `KalmanFilter` (dim_x=2, dim_z=1, F = I, B = I, Q = R_delta = 2 * 1e-6 * I) gets
-  `predict(u=delta)` with delta as a (2, 1) array, and `update(z, R=R_z, H=delta^T)` with z, R_z as (1, 1)
-  and H as (1, 2) arrays. z is the pseudo-measurement (13) and R_z the equivalent noise (14) evaluated at the
-  filter's own prior estimate; both come from one untimed filterpy pass over the same data, which the timed
-  passes repeat exactly (the filter is deterministic). Our estimators compute z and R_z themselves inside
-  `update`, so this split favours filterpy.
-
-Predict does the same work on both sides: x += delta and P += R_delta (filterpy: x = F x + B u,
-P = F P F^T + Q with F = I).
-
-Our estimators start from the bench's prior: the true relative position plus N(0, initial_covariance I), with
-covariance initial_covariance I (Table I). The agent's default, raw_range, is also started cold, with
-covariance NO_PRIOR_VARIANCE I (no prior at all, as it restarts a dropped fix); a joiner with no estimate at
-all starts from the range along x with a spread of the range itself (membership.prior_from_target), nearly
-as uninformative. raw_range works in two phases: a batch fix (a small non-linear least squares every
-`solve_every` ranges) until it reports `fixed`, then a cheap tracking update. Its rows are also split by
-phase; which update is in which phase comes from an untimed run over the same data (the estimators are
-deterministic, so every timed repeat goes through the same phases).
-
-The bank, vessel 0's 11 pairs in a ring of 12, is timed for the MCKF (the paper's filter) and for raw_range
-(the default, from the bench's prior and cold) against 11 filterpy KFs; one sample is one tick, predict and
-update of all 11. The bench starts all pairs at the same tick, as a vessel (re)started among its neighbours
-may, so that the bank's pairs run their fix phases, and their batch solves, side by side: its worst case.
-
-Each timed call is bracketed by `time.perf_counter_ns` with the garbage collector off; every repeat starts
-fresh filters on the same data, and the repeats visit the estimators in turn so that drift of the machine
-hits all of them alike. Median, mean, p99 and max are over the individual samples of all repeats pooled.
+More: docs/estimation.md §10, `lab/benchmarks/estimators.py`.
 """
 
 from __future__ import annotations

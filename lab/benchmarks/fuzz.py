@@ -6,17 +6,7 @@ target at the origin), and between each tick's genuine messages a batch of bad p
 agent subscribes to: its four sensor keys, every vessel's share (`usv/*/share`), `sim/clock` and the
 operator's mission keys (`mission/all`, `mission/1`; a genuine body is a harmless `set` of the radius and
 direction the mission already has). The payloads
-come from one seeded numpy Generator, in these classes:
-
-- `random_bytes`: random bytes, some starting like JSON;
-- `wrong_types`: a genuine message with fields of the wrong JSON type, missing, extra, or not an object;
-- `extremes`: numbers like 1e308, -1e308, 1e-308, 5e-324, 1e400, NaN, Infinity, 2^63, 10^400, 1e5 + 1;
-- `non_spd`: covariances that are not symmetric positive semi-definite, or too large (odometry and shares);
-- `seq_poison` and `stamp_poison`: seq 10^9, 2^63, 10^400, -1, ...; stamps 0, 2^62, 2^63, 10^400, +-10 s,
-  and just inside the freshness window (on the clock also a few forged timelines of three clocks);
-- `phantom`: shares from ids without a liveliness token, senders that are not the key's vessel, ranges to
-  and clocks listing hundreds of unknown vessels, mission commands to vessels that do not exist;
-- `flood`: bursts of hundreds of messages on one key as fast as Zenoh takes them (shares from new ids).
+come from one seeded numpy Generator, in the classes listed in docs/reliability.md §4.
 
 Every command the agent publishes is recorded and checked (finite, |surge| <= U_v, |yaw rate| <= U_omega_c +
 omega*); the agent's peak resident memory is read from /proc (VmHWM) before and after; after the storm a
@@ -27,6 +17,8 @@ few genuine ticks must bring commands that move the vessel again. `tests/test_fu
 a seq of 2^63 - 1, 300 new senders and a replayed hold, a flood from one sender while usv-op holds, 300
 forged liveliness tokens and a vessel's restart, a dead vessel's id declared by another process; after
 each, the operator's `usv-op hold` and `usv-op resume` must be applied. `tests/test_attacks.py` runs them.
+
+More: docs/reliability.md §4, `lab/benchmarks/fuzz.py`.
 """
 
 from __future__ import annotations

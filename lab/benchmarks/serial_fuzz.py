@@ -10,22 +10,8 @@ calls, with a clock of the campaign's own (100 ms a line) so that a run repeats 
 - `cmd`: what the driver reads from Zenoh, `usv/<id>/cmd` payloads -> the command gate -> the `$THR` line
   written to the motor controller (the driver parses no `$THR`: it writes them).
 
-Lines and frames come from one seeded numpy Generator, in these classes (`classes_for` says which apply):
-
-- `random_bytes`: random bytes, with or without a line end;
-- `extreme_numbers`: a valid checksum (and framing) around numbers beyond the contract: speeds of 1e30 and
-  +-1e308 knots, headings of 1e30 or -5 degrees, pixels at 1e308, ranges of +-8388 m (int24's ends), node
-  ids of every byte, a command's 1e308 or stamp 2^63;
-- `non_finite`: NaN, inf, Infinity, 1e400 as text (NaN and infinite float32 in an NLink frame's IMU fields);
-- `truncated`: a good line or frame cut short;
-- `wrong_fields`: a valid checksum with fields missing or added, another sentence type, an NLink count that
-  disagrees with the length, a frame type not handled; a command missing fields or of another vessel;
-- `overlong`: lines past the reader's 256 bytes (1e308 written out in 309 digits), runs without a line end,
-  NLink length fields past max_nodes; commands of 100 kB;
-- `garbage_payload`: valid framing (`$...*hh`, or header, length and checksum) around random content;
-- `burst`: 20 to 200 lines or frames at once in one read, good and bad mixed, split at random;
-- `walk` (vhw only): valid sentences just inside the speed bound on one heading, ten minutes apart: what
-  walks the dead-reckoned position to the contract's edge.
+Lines and frames come from one seeded numpy Generator, in the classes listed in docs/reliability.md §4
+(`classes_for` says which apply).
 
 Between bad lines come good ones (half as many). Checks: no exception escapes a handler; the last-resort
 guard (`<port>_failed`) catches nothing either, so every refusal has its own reason; every message that
@@ -34,6 +20,8 @@ known peers) and every `$THR` line carries a valid checksum and values within [-
 good lines are published again (odometry steering back inside the frame, after one sentence that turns
 it: the walk may have left it at the edge, where outward steps are refused) and the thruster watchdog still
 stops the thrusters.
+
+More: docs/reliability.md §4, `lab/benchmarks/serial_fuzz.py`.
 """
 
 from __future__ import annotations

@@ -21,11 +21,7 @@ Two pieces, both pure numpy/scipy:
   part of the motion drops out and only its noise Q enters. The bound on the RMSE of any unbiased estimate of
   p_k from the data up to step k is sqrt(trace(J_k^{-1})).
 
-The recursion is exact for this model: the dynamics are linear with Gaussian noise, and the range
-information I_f H^T H is evaluated at the true path (in the simulation the path is fixed and only the noise
-and the initial estimate are random, so the data's Fisher information is that of the truth). It bounds
-unbiased estimators; a biased one (for instance a filter that ignores the log-normal noise's mean) is not
-strictly bound by it, but it still says how far the data would let an estimator go.
+More: docs/estimation.md §10, `lab/experiments/bound.py`.
 """
 
 from __future__ import annotations

@@ -5,11 +5,7 @@ positions (m) of the two ends of the range, a and b, either of which may be stat
 irregular and have gaps. Vessel i is end a and vessel j is end b, so the estimated relative position is
 p = a - b.
 
-Real data carries ranges, not odometry, so odometry is synthesised from the ground truth: for the range
-epochs k-1, k each end's true displacement over [t_{k-1}, t_k] gets its own N(0, R_delta * h_k / dt * I)
-noise, h_k = t_k - t_{k-1}; R_delta (`displacement_variance`) is per sampling period dt and grows linearly
-with the interval, as a random walk does. The displacement fed to a range pair therefore covers exactly the
-interval between its two range epochs, gaps included.
+Odometry is synthesised from the ground truth: each end's true displacement plus N(0, R_delta h_k/dt I).
 
 Each Monte Carlo run draws its own displacement noise and its own initial estimate
 p0 ~ N(p(t0), P0) from one child of `SeedSequence(seed)`; every estimator of a run sees the same numbers.
@@ -24,6 +20,8 @@ bias) is reported either way and never removed.
 
 The pure parts (`parse_csv`, `range_residual_stats`, `synthesise_displacements`, `replay`) do no I/O beyond
 reading the CSV; `run` adds the printing, the progress bar and the output files.
+
+More: docs/real_data.md, "The modules in detail", `lab/experiments/replay.py`.
 """
 
 from __future__ import annotations

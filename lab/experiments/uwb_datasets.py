@@ -10,25 +10,14 @@ SOURCE is a checkout of the data set's repository (`SOURCES`). `uwb-convert` wri
 NLOS), kind (tag-anchor, one end static, moving pair) and the source files it came from. Times start at 0 at
 the run's first range; lengths are in metres, rounded to the millimetre.
 
-From 3-D to the plane. The agent estimates a planar relative position, as vessels on water share a plane,
-but every data set here measures 3-D ranges between antennas at different heights. Each range r is mapped to
-the horizontal range sqrt(r^2 - dz^2), dz the two antennas' height difference from the ground truth (clipped
-at 0 when noise makes r < |dz|). That is what a vessel would do with its known antenna heights; leaving r as
-it is would add a geometric bias r - sqrt(r^2 - dz^2), near a metre at short range where dz is 1.25 m (MURP).
-The mapping keeps the sensor's error: a range error e becomes about e r / sqrt(r^2 - dz^2).
+From 3-D to the plane: each range r becomes the horizontal range sqrt(r^2 - dz^2) (0 when r < |dz|).
 
 Tag-anchor runs put the moving tag at end a and the fixed anchor at end b, so the replay's relative position
 is tag minus anchor and the synthetic odometry is the tag's own motion.
 
-Calibration. Each data set's sensor is calibrated as a user would calibrate theirs: on runs of its own, in
-the conditions of the mission (moving), that are never scored. `fit-noise` reads them (`CALIBRATION`:
-Hanyang's case 1, CUHK-SZ's tags 1 and 2, MURP's moving calibration trials 8-12) and writes
-configs/uwb/<data set>.yaml: a pair's constant bias, whose prior variance is the spread of the calibration
-runs' mean residuals (raw_range's `bias_variance`), and a Gaussian mixture fitted to the residuals about each
-run's own mean. `uwb-convert` leaves the calibration runs out, so no scored run was seen by a fit. `fit-noise csv`
-fits your own sensor's runs the same way, from replay CSVs with ground truth. `uwb-page` replays
-every run with the noise of each config given, and with each data set's own calibrated config
-(`--sensor-configs`), never with a truth-derived variance, and writes docs/results/real_uwb.md.
+Calibration: `fit-noise` fits each sensor on its calibration runs only, which `uwb-convert` leaves out.
+
+More: docs/real_data.md, "The modules in detail", `lab/experiments/uwb_datasets.py`.
 """
 
 from __future__ import annotations
