@@ -33,10 +33,11 @@ compare: $(RUNTIME)
 test: $(STAMP)
 	$(PY) -m pytest -q
 
-# The pure, in-process suite, under a minute: no fleet processes, Zenoh sessions or real-time waits
-# (the tests marked `slow`; tests/conftest.py says which).
+# The core suite, under a minute on 2 cores (pytest-xdist, one worker a core): no processes, Zenoh sessions,
+# real-time waits or seconds-long integration runs (the tests marked `slow`; tests/conftest.py says which).
+FAST := -m "not slow" -n auto
 test-fast: $(STAMP)
-	$(PY) -m pytest -q -m "not slow"
+	$(PY) -m pytest -q $(FAST)
 
 bench: $(STAMP)
 	$(VENV)/bin/usv-lab bench --seed 7
@@ -69,7 +70,7 @@ test-pythons: $(STAMP)
 	  $(MAKE) --no-print-directory test-fast PYTHON=$$found VENV=.venv-$$version || exit 1; \
 	done
 	@echo "test-pythons: OPENBLAS_CORETYPE=Haswell on $$($(PY) --version)"
-	OPENBLAS_CORETYPE=Haswell $(PY) -m pytest -q -m "not slow"
+	OPENBLAS_CORETYPE=Haswell $(PY) -m pytest -q $(FAST)
 
 clean:
 	rm -rf $(VENV) .venv-3.* .pytest_cache .hypothesis

@@ -1,9 +1,13 @@
 """Shared fixtures and helpers, and which tests are `slow`.
 
-The `slow` marker (registered in pyproject.toml) is for tests that wait on the world outside the test process:
-they start the fleet's processes, open Zenoh sessions, or watch real time go by. `make test-fast`
-(`pytest -m "not slow"`) leaves them out and runs the pure, in-process suite in well under a minute;
-`make test` (what CI runs) runs everything. A test is slow when one of these holds, and only then:
+The `slow` marker (registered in pyproject.toml) is for two kinds of test. Those that wait on the world
+outside the test process: they start processes (the fleet's, or a command line in a child Python), open
+Zenoh sessions, or watch real time go by. And in-process integration runs that take seconds each: fleet
+simulations of tens of seconds over several seeds or variants, Monte Carlo campaigns, a lab command run end
+to end (bench, compare, replay, plots). Unit checks (a kernel against closed forms, one component's
+invariants over random inputs) stay fast even at a second or two. `make test-fast` (`pytest -m "not slow"`,
+on every core) leaves the slow ones out and runs in under a minute on 2 cores; `make test` (what CI runs)
+runs everything. A test is slow when one of these holds, and only then:
 
 1. it carries the mark itself: `@pytest.mark.slow`, or `pytestmark = pytest.mark.slow` for a whole module.
    This is the way for every new test;

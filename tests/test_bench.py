@@ -28,6 +28,7 @@ def _table_rows(document: str) -> dict[str, list[str]]:
     return rows
 
 
+@pytest.mark.slow
 def test_bench_writes_every_row_with_finite_positive_numbers(tmp_path, capsys):
     assert main(["bench", "--updates", "200", "--repeats", "1", "--out", str(tmp_path)]) == 0
     document = (tmp_path / "benchmark.md").read_text(encoding="utf-8")
@@ -74,6 +75,7 @@ def test_filterpy_kf_and_our_kf_agree_on_the_bench_data():
         assert np.max(np.linalg.norm(ours - dead_reckoned, axis=1)) > 0.1
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("setup", bench.BANK_SETUPS, ids=lambda setup: setup.label)
 def test_the_timed_bank_feeds_each_estimator_its_own_pair(setup):
     """The bank loop, its pairs interleaved tick by tick, ends where each pair run alone does: every
@@ -94,6 +96,7 @@ def test_the_timed_bank_feeds_each_estimator_its_own_pair(setup):
         assert bench.new_ours(setup, bank[0], params).covariance[0, 0] >= 1e12
 
 
+@pytest.mark.slow
 def test_phases_split_every_sample_and_a_tick_fixes_while_any_pair_does():
     params = bench.bench_params()
     _, bank, _ = bench.make_data(seed=7, updates=300, params=params)

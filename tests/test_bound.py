@@ -252,6 +252,7 @@ def test_comparison_result_carries_the_bound_of_its_true_path():
     assert result.bound_at(5.0) == pytest.approx(expected[50])
 
 
+@pytest.mark.slow
 def test_compare_page_has_the_bound_and_the_ratios_and_is_reproducible(tmp_path):
     pytest.importorskip("tqdm")
     pytest.importorskip("matplotlib")

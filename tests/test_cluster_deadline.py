@@ -52,6 +52,7 @@ def _compare(address: str, *options: str) -> tuple[subprocess.CompletedProcess, 
     return done, time.monotonic() - started
 
 
+@pytest.mark.slow
 def test_compare_gives_up_on_a_silent_scheduler_by_the_default_deadline(silent_server, tmp_path):
     done, seconds = _compare(silent_server, "--out", str(tmp_path))
     lines = done.stderr.strip().splitlines()
@@ -64,6 +65,7 @@ def test_compare_gives_up_on_a_silent_scheduler_by_the_default_deadline(silent_s
     assert not list(tmp_path.iterdir()), "no page for a campaign that never ran"
 
 
+@pytest.mark.slow
 def test_the_deadline_is_an_option(silent_server, tmp_path):
     done, seconds = _compare(silent_server, "--out", str(tmp_path), "--cluster-timeout", "2")
     print(f"usv-lab compare --cluster (silent) --cluster-timeout 2: exit {done.returncode} after "

@@ -59,6 +59,7 @@ def test_keys():
         key("1", "sensor/lidar")
 
 
+@pytest.mark.slow
 def test_a_bridge_that_imports_the_contract_loads_no_part_of_the_core():
     """In a fresh interpreter, as a bridge starts: the contract alone brings in none of agent.core (the
     translation to the core's records is the shell's, agent/shell/translate.py)."""

@@ -46,6 +46,7 @@ def inventory(**changes) -> Inventory:
     return Inventory.model_validate(data)
 
 
+@pytest.mark.slow
 def test_the_example_inventory_renders_every_boat(tmp_path):
     result = usv_deploy("render", str(DEPLOY / "fleet.example.yaml"), "--all", "--out", str(tmp_path))
     assert result.returncode == 0, result.stderr
@@ -73,6 +74,7 @@ def test_the_example_inventory_renders_every_boat(tmp_path):
     assert yaml.safe_load((tmp_path / "1" / "agent.yaml").read_text())["agent"]["control"]["max_speed"] != 1.2
 
 
+@pytest.mark.slow
 def test_print_config_shows_the_effective_settings_without_starting(tmp_path):
     render(inventory(), "2", tmp_path)
     for program, model, name in (("agent", NodeSettings, "agent.yaml"), ("driver_bridge", DriverSettings,
@@ -87,6 +89,7 @@ def test_print_config_shows_the_effective_settings_without_starting(tmp_path):
         assert "effective settings" in shown.stdout
 
 
+@pytest.mark.slow
 def test_bad_inventories_are_refused_with_the_reason(tmp_path):
     cases = {
         "duplicate": ({"vessels": [{"id": "1", "address": "a"}, {"id": "1", "address": "b"}]}, "unique"),
@@ -175,6 +178,7 @@ def secure_inventory(folder: Path, port: int = 7447, address: str = "10.10.0.1")
     return path
 
 
+@pytest.mark.slow
 def test_a_secure_fleet_renders_tls_configs_and_certificates(tmp_path):
     pytest.importorskip("cryptography")
     inventory_path = secure_inventory(tmp_path)
@@ -210,6 +214,7 @@ def test_a_secure_fleet_renders_tls_configs_and_certificates(tmp_path):
     assert agent.zenoh.connect == ["tls/10.10.0.1:7447"]
 
 
+@pytest.mark.slow
 def test_render_says_which_router_certificates_it_could_not_find(tmp_path):
     inventory_path = secure_inventory(tmp_path)                       # no certificates made
     rendered = usv_deploy("render", str(inventory_path), "--all", "--out", str(tmp_path / "rendered"))
@@ -253,6 +258,7 @@ def test_the_secure_router_and_the_operator_start_from_any_directory(tmp_path):
         assert router.wait(15) == 0
 
 
+@pytest.mark.slow
 def test_render_warns_of_each_device_a_vessel_lacks(tmp_path):
     data = yaml.safe_load((DEPLOY / "fleet.example.yaml").read_text())
     del data["vessels"][1]["devices"]["camera"]

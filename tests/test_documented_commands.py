@@ -118,6 +118,7 @@ def test_every_command_option_and_subcommand_the_readme_names_exists():
     assert checked >= 25       # the README's tables of commands and subcommands, at least
 
 
+@pytest.mark.slow
 def test_the_make_targets_the_readme_names_exist():
     targets = [line.split()[1] for line in readme_commands() if line.startswith("make ")]
     assert {"demo", "test", "test-fast", "test-pythons", "compare", "scenarios"} <= set(targets)
@@ -126,6 +127,7 @@ def test_the_make_targets_the_readme_names_exist():
         assert result.returncode == 0, (target, result.stderr)
 
 
+@pytest.mark.slow
 def test_the_agent_parameters_file_is_what_the_readme_says_generates_it():
     assert "python -m agent.core.params" in readme_commands()
     result = subprocess.run([sys.executable, "-m", "agent.core.params"], cwd=ROOT, capture_output=True, text=True,
@@ -134,6 +136,7 @@ def test_the_agent_parameters_file_is_what_the_readme_says_generates_it():
     assert result.stdout == (ROOT / "configs" / "agent.yaml").read_text()
 
 
+@pytest.mark.slow
 def test_every_python_m_the_readme_names_runs():
     """`python -m agent` and the others the README offers beside the commands start as their command does."""
     modules = [line.split()[2] for line in readme_commands()
@@ -145,6 +148,7 @@ def test_every_python_m_the_readme_names_runs():
         assert result.returncode == 0 and result.stdout.startswith("usage:"), (module, result.stderr)
 
 
+@pytest.mark.slow
 def test_the_activation_line_puts_the_commands_on_the_path():
     assert "source .venv/bin/activate" in readme_commands()
     result = subprocess.run(["bash", "-c", f"source {BIN / 'activate'} && command -v usv-log usv-op usv-fleet"],
@@ -153,6 +157,7 @@ def test_the_activation_line_puts_the_commands_on_the_path():
     assert result.stdout.split() == [str(BIN / name) for name in ("usv-log", "usv-op", "usv-fleet")]
 
 
+@pytest.mark.slow
 def test_the_examples_named_in_help_texts_exist(tmp_path):
     """Scenario names and the inventory offered as examples in `--help` (the set and replay examples run in the
     walk-through below)."""

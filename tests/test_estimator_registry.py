@@ -103,6 +103,7 @@ def test_a_wrong_estimator_or_field_is_one_line_listing_the_valid_ones(tmp_path,
     assert "\n" not in str(caught.value)
 
 
+@pytest.mark.slow
 def test_usv_agent_meets_the_error_as_one_line(tmp_path):
     path = tmp_path / "node.yaml"
     path.write_text("agent:\n  relative:\n    estimator: {name: mckf, window: 100}\n")

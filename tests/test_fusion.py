@@ -77,6 +77,7 @@ def test_a_faulty_neighbour_target_estimate_is_gated_out():
     assert np.linalg.norm(out.record.target_state[:2] - [5.0, 0.0]) < 0.5
 
 
+@pytest.mark.slow
 def test_cooperative_fusion_improves_the_fleet_over_the_paper_architecture():
     """Table II's MCKF fleet over 30 s, same seeds: with both fusions the estimates are better."""
     _, variants = load_scenarios(SCENARIOS / "table2_estimators.yaml")

@@ -65,6 +65,7 @@ def test_no_document_runs_a_lab_module_directly():
     assert not found
 
 
+@pytest.mark.slow
 def test_python_dash_m_lab_is_usv_lab():
     done = subprocess.run([sys.executable, "-m", "lab", "fit-noise", "--help"], cwd=ROOT, capture_output=True,
                           text=True, timeout=120, check=False)

@@ -111,11 +111,13 @@ def _written(paths: list[Path], out: Path) -> set[str]:
     return {path.name for path in paths}
 
 
+@pytest.mark.slow
 def test_with_truth_all_three_figures(tmp_path):
     out = tmp_path / "figures"     # not there yet: plot_run makes it
     assert _written(plot_run(_run(), out), out) == {"trajectories.png", "errors.png", "ranges.png"}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("sim", ["none", "no truth topic"])
 def test_without_truth_no_errors_figure(tmp_path, sim):
     run = _run(truth=False)
@@ -125,12 +127,14 @@ def test_without_truth_no_errors_figure(tmp_path, sim):
     assert not (tmp_path / "errors.png").exists()
 
 
+@pytest.mark.slow
 def test_a_single_vessel_without_estimates(tmp_path):
     run = RunLog("synthetic", {"2": _vessel("2", settings=False, estimates=False)}, _sim())
     assert agent_radius(run) == 5.0
     assert _written(plot_run(run, tmp_path), tmp_path) == {"trajectories.png", "errors.png", "ranges.png"}
 
 
+@pytest.mark.slow
 def test_the_bridge_log_alone(tmp_path):
     run = RunLog("synthetic", {}, _sim())
     assert _written(plot_run(run, tmp_path, radius=3.0), tmp_path) == {"trajectories.png", "errors.png"}
@@ -141,6 +145,7 @@ def test_radius_from_any_vessel_with_settings():
     assert agent_radius(RunLog("synthetic", {"2": _vessel("2", settings=False)})) == 5.0
 
 
+@pytest.mark.slow
 def test_importing_the_module_does_not_load_matplotlib():
     """The module sits beside the reader the agent side uses; matplotlib must wait for a plot."""
     code = "import sys, mission_log.plots; sys.exit('matplotlib' in sys.modules)"
@@ -148,6 +153,7 @@ def test_importing_the_module_does_not_load_matplotlib():
     assert done.returncode == 0
 
 
+@pytest.mark.slow
 def test_every_legend_lies_inside_its_figure(tmp_path, monkeypatch):
     """A legend wider than its figure is cut off at both sides in the PNG (ranges.png's legend below the
     panels did, with every neighbour in one row)."""

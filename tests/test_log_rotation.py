@@ -100,6 +100,7 @@ def test_the_oldest_parts_are_deleted_to_keep_the_set_within_its_bound(tmp_path)
     assert run.missing_parts == {kept[0]: vessel.missing_parts}
 
 
+@pytest.mark.slow
 def test_a_log_rotates_by_time(tmp_path):
     rotation = LogRotation(max_file_mb=None, max_file_seconds=0.3, max_total_mb=None)
     with McapLog(tmp_path / "sim.mcap", metadata={"scenario": "x"}, rotation=rotation) as log:

@@ -89,6 +89,7 @@ def test_a_direction_is_the_sign_of_the_yaw_rate_and_keeps_its_size():
     assert decode(MissionCommand, payload("set", direction="up"))[0] is None
 
 
+@pytest.mark.slow
 def test_a_fleet_with_a_negative_yaw_rate_circles_clockwise_as_well_as_the_other_way():
     """omega*'s sign is the direction: the controller, the oscillators and the fusion are symmetric in it."""
     from pathlib import Path
@@ -360,6 +361,7 @@ def test_the_fleet_obeys_hold_resume_and_a_new_radius_and_refuses_bad_commands(t
     assert "8 m from" in (folder / "summary.md").read_text()
 
 
+@pytest.mark.slow
 def test_in_lockstep_a_hold_received_during_tick_k_stops_every_vessel_from_tick_k_plus_1_until_resume(tmp_path):
     """The agent processes' own nodes in lockstep (lab/benchmarks/shell.py): the hold and the resume arrive
     between two ticks, exactly as a lockstep fleet would get them."""

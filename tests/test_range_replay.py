@@ -347,6 +347,7 @@ def replay_only(monkeypatch):
     monkeypatch.setattr(cli, "SUBCOMMANDS", {"replay": cli.SUBCOMMANDS["replay"]})
 
 
+@pytest.mark.slow
 def test_cli_writes_table_and_figure(tmp_path, replay_only, capsys, monkeypatch):
     t, ranges, a, b = circle_scenario(seed=3, range_std=0.1, duration=20.0)
     csv_path = write_csv(tmp_path / "walk.csv", t, ranges, a, b)
@@ -369,6 +370,7 @@ def test_cli_writes_table_and_figure(tmp_path, replay_only, capsys, monkeypatch)
     assert (out / "replay_walk.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
+@pytest.mark.slow
 def test_cli_given_range_variance_and_config(tmp_path, replay_only, capsys):
     t, ranges, a, b = circle_scenario(seed=3, range_std=0.1, duration=12.0)
     csv_path = write_csv(tmp_path / "walk.csv", t, ranges, a, b)
@@ -382,6 +384,7 @@ def test_cli_given_range_variance_and_config(tmp_path, replay_only, capsys):
     assert "pseudo-linear filters' range variance: 0.5 m^2" in printed and "1e-05 m^2 per dt" in printed
 
 
+@pytest.mark.slow
 def test_cli_config_sets_the_noise_and_the_truth_variance_is_labelled(tmp_path, replay_only, capsys):
     t, ranges, a, b = circle_scenario(seed=3, range_std=0.1, duration=12.0)
     csv_path = write_csv(tmp_path / "walk.csv", t, ranges, a, b)

@@ -268,6 +268,7 @@ def test_a_gross_outlier_barely_moves_the_estimate():
     assert moved < 0.01
 
 
+@pytest.mark.slow
 def test_nees_over_a_monte_carlo_is_inside_its_95_percent_band():
     runs, seconds = 50, 30.0
     path = circle(seconds)
@@ -329,6 +330,7 @@ def test_a_wrong_fix_is_dropped_by_the_monitor_and_the_position_found_again():
     assert np.linalg.norm(estimator.position - path[-1]) < 0.3
 
 
+@pytest.mark.slow
 def test_in_the_agent_a_saved_and_restored_fleet_runs_on_bit_for_bit(monkeypatch):
     """The whole tick (agent/core/step.py) with every pair on the raw-range estimator: a JSON round trip of
     every vessel's state mid-run (while some pairs may still be fixing) changes nothing."""
@@ -555,6 +557,7 @@ def test_the_exact_log_normal_fisher_information_is_the_integral():
     assert fisher == pytest.approx(9.85, abs=0.01)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("seed", [7, 6])
 def test_with_the_exact_log_normal_in_tracking_experiment_1_is_consistent_and_no_run_strays(seed):
     # Experiment 1's log-normal runs on the seed whose worst run was 3.25 times the bound with the fitted

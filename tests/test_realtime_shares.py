@@ -192,6 +192,7 @@ def late_answering_fleet(seconds: float, late_ticks: int, resume: dict[str, floa
     return {"nodes": nodes, "closest": closest, "radii": radii}
 
 
+@pytest.mark.slow
 def test_a_fleet_whose_shares_all_come_a_tick_late_keeps_its_deployment_estimates_and_its_neighbours():
     run = late_answering_fleet(seconds=12.0, late_ticks=1)
     for vessel, node in run["nodes"].items():

@@ -220,6 +220,7 @@ def _restarted_in_process(seed: int, down: float, back: float, duration: float, 
     return np.array(times), np.array(radii), np.array(closest)
 
 
+@pytest.mark.slow
 def test_an_agent_restarted_in_process_gets_back_onto_the_circle():
     """Vessel 2 restarted at 20 s of a 60 s Table II run: over the last 10 s within +-10 % of r*, and no two
     vessels closer than the safety distance after the restart, for every seed and outage. Before its target

@@ -37,6 +37,7 @@ def test_every_shipped_scenario_file_loads():
         assert variants
 
 
+@pytest.mark.slow
 def test_a_run_is_bit_for_bit_repeatable_for_a_seed():
     short = scenario("dropout_join.yaml", "join", duration=55.0)  # packet loss, a join, noise of every kind
     a, b, c = run(short, 11), run(short, 11), run(short, 12)
@@ -62,6 +63,7 @@ def test_short_table_two_run_converges():
     assert np.all(np.isfinite(trace.commands))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("variant, before, after", [("dropout", 4, 3), ("join", 4, 5)])
 def test_fleet_respaces_after_a_vessel_leaves_or_joins(variant, before, after):
     trace = run(scenario("dropout_join.yaml", variant), 0)
@@ -99,6 +101,7 @@ def test_occlusion_gives_prediction_only_steps():
     assert state.tracker.skipped == 20 and state.tracker.updates == 0
 
 
+@pytest.mark.slow
 def test_vessels_keep_clear_of_the_islands():
     """The islands scenario: occlusions happen, no vessel ever enters an island, the fleet settles."""
     from sim_bridge.geometry import point_in_polygon, sample_boundary

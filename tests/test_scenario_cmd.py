@@ -53,6 +53,7 @@ def tiny(tmp_path: Path) -> Path:
     return path
 
 
+@pytest.mark.slow
 def test_scenario_writes_the_page_and_both_figures(tiny, tmp_path, capsys):
     out = tmp_path / "out"
     argv = ["scenario", str(tiny), "--out", str(out), "--workers", "1"]
@@ -150,6 +151,7 @@ def test_an_unknown_name_is_refused_with_the_known_ones(tmp_path, capsys):
     assert not any(tmp_path.iterdir())
 
 
+@pytest.mark.slow
 def test_results_do_not_depend_on_the_number_of_workers(tiny):
     _, scenarios = scenario_cmd.load(tiny)
     summaries = []

@@ -107,6 +107,7 @@ def test_a_kinematic_world_with_sensors_has_no_environment():
     assert w.environment is None and math.isfinite(w.truth().positions["a"][0])
 
 
+@pytest.mark.slow
 def test_every_share_the_core_makes_at_sea_is_one_the_wire_carries(tmp_path):
     """At sea pairs lose their fix and start again from no prior (1e12 m^2): such an estimate is left out of
     the share, which the contract would otherwise refuse whole (the agent process then sent no share at all,

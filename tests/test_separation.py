@@ -211,6 +211,7 @@ def _assert_safe(trace, params: AgentParams, what: str) -> float:
 FLEETS = [(2, 30.0), (12, 16.0)] + [(int(n), 24.0) for n in np.random.default_rng(27).integers(3, 12, 3)]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("count, duration", FLEETS)
 def test_random_sets_straight_into_the_parameters_never_break_the_separation(count, duration):
     """The guard alone, against any r*, omega* and direction, changed in one tick: no two vessels come
@@ -222,6 +223,7 @@ def test_random_sets_straight_into_the_parameters_never_break_the_separation(cou
     _assert_safe(trace, scenario.agent, f"{count} vessels, sets {sets}")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("count, duration", FLEETS)
 def test_random_sets_judged_by_the_agents_never_break_the_separation(count, duration):
     """The same sets sent as the operator's `set`: what the fleet cannot fly is refused with a line that
@@ -245,6 +247,7 @@ def _table_two(duration: float = 40.0) -> Scenario:
     ({"yaw_rate": 3.14159}, "yaw rate 3.14159 rad/s: 15.71 m/s on the circle of 5 m, over the 3.5 m/s"),
     ({"radius": 0.1}, "radius 0.1 m: neighbours 0.14 m apart on the circle of 4 vessels, under the 4.5 m"),
 ])
+@pytest.mark.slow
 def test_the_issues_sets_on_table_two_keep_the_safety_distance(fields, words):
     """Issue 27's two cases on the Table II fleet at 20 s: sent as `set`, every vessel refuses it with the
     reason (seed 0); forced into the parameters, the guard holds the safety distance (seeds 0 and 1; the

@@ -7,6 +7,7 @@ thrusters."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from agent.contract import MAX_POSITION
 from driver_bridge.serial_port import LineReader
@@ -23,6 +24,7 @@ PER_PARSER = 2000
 SEED = 11
 
 
+@pytest.mark.slow
 def test_a_serial_fuzz_storm_raises_nothing_and_nothing_beyond_the_contract_gets_out():
     results = run_serial_campaign(PER_PARSER, SEED)
     assert set(results) == set(PARSERS)
@@ -49,6 +51,7 @@ def test_a_serial_fuzz_storm_raises_nothing_and_nothing_beyond_the_contract_gets
     assert cmd["command_malformed"] > 0 and cmd["command_other_vessel"] > 0, cmd
 
 
+@pytest.mark.slow
 def test_the_campaign_repeats_with_its_seed():
     def counts(seed: int) -> dict:
         return {p: (r.reasons(), r.lines, r.published) for p, r in run_serial_campaign(300, seed).items()}

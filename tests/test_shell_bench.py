@@ -7,6 +7,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from lab.benchmarks.shell import AGENT_SECTIONS, run_shells
 from lab.harness.runner import run
@@ -15,6 +16,7 @@ from sim_bridge.scenario import select_scenario, with_duration
 SCENARIOS = Path(__file__).resolve().parents[1] / "configs" / "scenarios"
 
 
+@pytest.mark.slow
 def test_the_shells_command_what_the_cores_command_and_every_section_is_timed(tmp_path):
     _, scenario = select_scenario(with_duration(SCENARIOS / "table2_estimators.yaml", tmp_path, 5.0), "mckf")
     shell = run_shells(scenario, tmp_path / "logs")

@@ -30,6 +30,7 @@ def _assert_same_run(again, original):
         np.testing.assert_array_equal(getattr(again, name), getattr(original, name), err_msg=name)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("variant", ["mckf", "kf", "akf", "rls", "huber_rls"])
 def test_a_fleet_whose_states_are_saved_and_read_back_mid_run_runs_on_bit_for_bit(monkeypatch, variant):
     _, scenario = select_scenario(SCENARIOS / "table2_estimators.yaml", variant)
@@ -49,6 +50,7 @@ def test_a_fleet_whose_states_are_saved_and_read_back_mid_run_runs_on_bit_for_bi
     assert sorted(round_trips) == ["1", "2", "3", "4"]
 
 
+@pytest.mark.slow
 def test_a_joining_fleet_round_trips_with_priors_pending_and_tracks_starting(monkeypatch):
     """The join scenario: at the save, the joiner's pair filters have not all started (priors pending)."""
     _, scenario = select_scenario(SCENARIOS / "dropout_join.yaml")

@@ -448,6 +448,7 @@ def test_message_loss_is_deterministic_and_has_the_right_rate():
         message_lost(1, "a", "b", 0, 1.5)
 
 
+@pytest.mark.slow
 def test_message_loss_is_the_same_in_another_process():
     code = ("from sim_bridge.world import message_lost; "
             "print(''.join('1' if message_lost(5, 'usv1', 'usv2', t, 0.3) else '0' for t in range(300)))")

@@ -43,6 +43,7 @@ def _limit_memory() -> None:
     resource.setrlimit(resource.RLIMIT_AS, (ADDRESS_SPACE, ADDRESS_SPACE))
 
 
+@pytest.mark.slow
 def test_alias_bomb_refused_by_the_agent_in_a_few_megabytes(tmp_path: Path) -> None:
     """`usv-agent --config bomb.yaml`: exit 2, one line naming the file, and a peak resident memory of a
     started Python process (the bomb expands to 387 million strings: gigabytes before the loader's bound)."""
@@ -97,6 +98,7 @@ def _big(path: Path, head: str) -> Path:
     return path
 
 
+@pytest.mark.slow
 def test_file_over_the_limit_refused_before_it_is_read(tmp_path: Path) -> None:
     """A 3 MB settings file, scenario or inventory (valid YAML) is refused naming the file and the limit,
     whichever loader reads it; one just within the limit loads."""
