@@ -248,9 +248,11 @@ def test_a_fit_noise_output_drops_into_the_agent_as_it_is(tmp_path):
     files = [str(uwb.write_run(_calibration_run(f"cal{j}", bias + rng.normal(0.0, 0.03, 300)), tmp_path))
              for j, bias in enumerate((0.05, 0.15, 0.10))]
     out = tmp_path / "my_uwb.yaml"
-    assert uwb.main(["fit-noise", "csv", *files, "--components", "1", "--out", str(out)]) == 0
+    from lab import cli
+
+    assert cli.main(["fit-noise", "csv", *files, "--components", "1", "--out", str(out)]) == 0
     fitted = load_yaml(AgentParams, out)
-    assert fitted.relative.raw_range != AgentParams().relative.raw_range
+    assert fitted.relative.estimator != AgentParams().relative.estimator
     (tmp_path / "boat.yaml").write_text("clock: wall\nagent: my_uwb.yaml\n", encoding="utf-8")
     for arguments in (["--params", str(out)], ["--config", str(tmp_path / "boat.yaml")]):
         result = subprocess.run([sys.executable, "-m", "agent", "--vessel", "1", *arguments, "--print-config"],
