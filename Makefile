@@ -9,9 +9,11 @@ STAMP := $(VENV)/.installed-stamp
 
 .PHONY: demo compare test test-fast test-pythons bench scenarios fleet-bench runtime-bench venv clean
 
+# --no-compile: the imports compile what they use, once (10 of the first demo's 45 s went to compiling all of
+# numpy, scipy and matplotlib).
 $(RUNTIME): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
-	$(PY) -m pip install --quiet --disable-pip-version-check -e '.[lab]'
+	$(PY) -m pip install --quiet --no-compile --disable-pip-version-check -e '.[lab]'
 	touch $(RUNTIME)
 
 $(STAMP): $(RUNTIME)
@@ -29,7 +31,7 @@ demo: $(RUNTIME)
 compare: $(RUNTIME)
 	$(VENV)/bin/usv-lab compare --runs 100 --seed 2024
 
-# Everything (what .ci/run calls), about 8 minutes on 2 cores.
+# Everything (what .ci/run calls), about 20 minutes on 2 cores.
 test: $(STAMP)
 	$(PY) -m pytest -q
 
