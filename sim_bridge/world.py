@@ -374,14 +374,7 @@ class World:
             held = vessel.heading
             vessel.position = _fixed(x + dx, y + dy)
             vessel.heading = float(wrap_angle(vessel.heading + yaw_rate * dt))
-            # (5): odometry accumulates the true displacement plus its per-step noise.
-            nx, ny = self._displacement_noise.sample(self._rng).tolist()
-            if self._odometry_model is None:
-                vessel.odometry_position = _fixed((ox + dx) + nx, (oy + dy) + ny)
-                vessel.odometry_heading = self._noisy_heading(vessel.heading)
-            else:
-                self._noisy_heading(vessel.heading)   # drawn and unused: the world's stream stays the paper's
-                self._sensed_odometry(vessel, (dx / dt, dy / dt), held, yaw_rate * dt)
+            self._odometry(vessel, ox, oy, dx, dy, held, yaw_rate * dt)
         self._target.step(dt, self._rng)
         self.tick += 1
         # The clock counts whole nanoseconds, as every stamp on the wire does, so the in-process runner and
@@ -413,8 +406,8 @@ class World:
 
     def _move_hulls(self, commands: Mapping[str, Command]) -> None:
         """Advance the hulls by dt under the live vessels' commands (a vessel not live, or a bad command:
-        a stop, (0, 0), for its inner loop), then read each live vessel's new state. Odometry (5) as in the
-        kinematic world: the true displacement over the period plus its noise, drawn in the same order."""
+        a stop, (0, 0), for its inner loop), then read each live vessel's new state and its odometry, as in the
+        kinematic world."""
         config, hulls = self.config, self._hulls
         speed, rate = np.zeros(len(config.vessels)), np.zeros(len(config.vessels))
         for vessel_id in self._live:
@@ -436,16 +429,9 @@ class World:
             vessel.position = _fixed(xs[n], ys[n])
             vessel.velocity = _fixed(vxs[n], vys[n])
             vessel.heading = headings[n]
-            nx, ny = self._displacement_noise.sample(self._rng).tolist()
-            if self._odometry_model is None:
-                vessel.odometry_position = _fixed((ox + dx) + nx, (oy + dy) + ny)
-                vessel.odometry_heading = self._noisy_heading(vessel.heading)
-            else:
-                self._noisy_heading(vessel.heading)   # drawn and unused, as in the kinematic world
-                # Through the water: the step's mean velocity over ground less the current at its end.
-                ground = (dx / dt, dy / dt)
-                vessel.water_velocity = (ground[0] - cxs[n], ground[1] - cys[n])
-                self._sensed_odometry(vessel, ground, held, float(wrap_angle(headings[n] - held)))
+            # Through the water: the step's mean velocity over ground less the current at its end.
+            vessel.water_velocity = (dx / dt - cxs[n], dy / dt - cys[n])
+            self._odometry(vessel, ox, oy, dx, dy, held, float(wrap_angle(headings[n] - held)))
 
     # --- inside a tick -----------------------------------------------------------------------------------
 
@@ -462,13 +448,23 @@ class World:
     def _noisy_heading(self, heading: float) -> float:
         return float(wrap_angle(heading + self._rng.normal(0.0, self._heading_std)))
 
-    def _sensed_odometry(self, vessel: _Vessel, ground: tuple[float, float], held: float, turn: float
-                         ) -> None:
-        """A non-paper odometry over the step just made: `ground` the velocity over ground (m/s), `held` the
-        heading held over the step, `turn` the heading's change (rad); the water velocity is the vessel's."""
+    def _odometry(self, vessel: _Vessel, ox: float, oy: float, dx: float, dy: float, held: float, turn: float
+                  ) -> None:
+        """The odometry over the step just made, from (ox, oy) (its position before it): (5), the true
+        displacement (dx, dy) plus its per-step noise; or `config.sensors`' model, with `held` the heading held
+        over the step, `turn` the heading's change (rad) and the vessel's water velocity (ground's if None).
+        The paper's noises are drawn either way, in the same order: the world's stream stays the paper's."""
+        nx, ny = self._displacement_noise.sample(self._rng).tolist()
+        heading = self._noisy_heading(vessel.heading)
+        if self._odometry_model is None:
+            vessel.odometry_position = _fixed((ox + dx) + nx, (oy + dy) + ny)
+            vessel.odometry_heading = heading
+            return
+        dt = self.config.dt
+        ground = (dx / dt, dy / dt)
         water = ground if vessel.water_velocity is None else vessel.water_velocity
-        state = advance_odometry(self._odometry_model, vessel.odometry_state, ground, water, held, turn,
-                                 self.config.dt, self._sensor_rng)
+        state = advance_odometry(self._odometry_model, vessel.odometry_state, ground, water, held, turn, dt,
+                                 self._sensor_rng)
         vessel.odometry_state = state
         vessel.odometry_position = _fixed(*state.position)
         vessel.odometry_heading = state.heading
