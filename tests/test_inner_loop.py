@@ -15,37 +15,14 @@ import pytest
 from boat import inner_loop
 from boat.inner_loop import LoopState
 from boat.presets import PRESETS
-from sim_bridge.hull import HullFleet
-
-
-def step_response(name: str, kind: str, size: float, cruise: float = 0.0, h: float = 0.02):
-    """(times, response) of one hull's u_r (kind 'speed') or r ('rate') to a step command at t = 0, after 20 s
-    at the cruise speed."""
-    fleet = HullFleet(PRESETS[name], 1, h, 1)
-    t = 0.0
-    for _ in range(200 if cruise else 0):
-        fleet.advance(t, 0.1, np.array([cruise]), np.zeros(1), t)
-        t += 0.1
-    out = []
-    for _ in range(500):
-        speed, rate = (size, 0.0) if kind == "speed" else (cruise, size)
-        fleet.advance(t, h, np.array([speed]), np.array([rate]), t)
-        t += h
-        out.append(fleet.state[3 if kind == "speed" else 5, 0])
-    return h * np.arange(1, 501), np.array(out)
-
-
-def rise_and_overshoot(t, y, size):
-    first90 = int(np.argmax(y >= 0.9 * size))
-    assert y[first90] >= 0.9 * size, "never reached 90 %"
-    t10 = np.interp(0.1 * size, y[:first90 + 1], t[:first90 + 1])
-    return t[first90] - t10, (y.max() - size) / size
+from lab.experiments.hull import rise_overshoot, step_response
 
 
 @pytest.mark.parametrize("name", ["otter", "heron", "wamv"])
 def test_speed_step_response(name):
-    t, u = step_response(name, "speed", 1.0)
-    rise, overshoot = rise_and_overshoot(t, u, 1.0)
+    t, u = step_response(name, "speed", 1.0, 0.0)
+    assert u.max() >= 0.9, "never reached 90 %"
+    rise, overshoot = rise_overshoot(t, u, 1.0)
     assert rise <= 1.0 and overshoot <= 0.15
     assert u[-1] == pytest.approx(1.0, rel=0.02)
 
@@ -54,7 +31,8 @@ def test_speed_step_response(name):
 @pytest.mark.parametrize("name", ["otter", "heron", "wamv"])
 def test_turn_rate_step_response(name, cruise, bound):
     t, r = step_response(name, "rate", 0.2, cruise)
-    rise, overshoot = rise_and_overshoot(t, r, 0.2)
+    assert r.max() >= 0.9 * 0.2, "never reached 90 %"
+    rise, overshoot = rise_overshoot(t, r, 0.2)
     assert rise <= 0.4 and overshoot <= bound
     assert r[-1] == pytest.approx(0.2, rel=0.02)
 

@@ -40,7 +40,10 @@ def step_response(name: str, kind: str, size: float, cruise: float, h: float = 0
 
 
 def rise_overshoot(t: np.ndarray, y: np.ndarray, size: float) -> tuple[float, float]:
+    """10-90 % rise time (s) and overshoot (a fraction of `size`) of the step response y(t)."""
     first90 = int(np.argmax(y >= 0.9 * size))
+    if y[first90] < 0.9 * size:
+        raise ValueError("the response never reached 90 % of the step")
     t10 = np.interp(0.1 * size, y[:first90 + 1], t[:first90 + 1])
     return float(t[first90] - t10), float((y.max() - size) / size)
 
