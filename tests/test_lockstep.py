@@ -37,6 +37,16 @@ def logged(folder: Path, vessels: list[str]) -> dict:
     return out
 
 
+def assert_same_motion(log: dict, trace, stamps: list[int]) -> None:
+    """Every vessel's true position and command at every stamp equal the in-process runner's, to 1e-9."""
+    for k, stamp in enumerate(stamps):
+        for n, i in enumerate(trace.vessels):
+            np.testing.assert_allclose(log["truth"][stamp]["vessels"][i]["position"], trace.positions[k, n],
+                                       rtol=0, atol=1e-9)
+            np.testing.assert_allclose(log["cmd"][i][stamp], trace.commands[k, n], rtol=0, atol=1e-9,
+                                       err_msg=f"vessel {i} at {stamp * 1e-9:.1f} s")
+
+
 # The paper's estimator, the default, and the default on the Otter's hull in the moderate sea (current, wind,
 # waves, realistic sensors: the world's dynamics and environment run in the sim bridge as in the runner).
 @pytest.mark.parametrize("file, variant", [("table2_estimators", "mckf"), ("table2_estimators", "raw_range"),
@@ -52,13 +62,10 @@ def test_table_two_over_zenoh_equals_the_in_process_runner(tmp_path, file, varia
     np.testing.assert_array_equal(np.array(stamps), np.round(trace.time * 1e9).astype(np.int64))
     counts = bridge_counts((folder / "bridge.log").read_text())
     assert (counts["ticks"], counts["missed"], counts["watchdog"]) == (201, 0, 0)
+    assert_same_motion(log, trace, stamps)
     compared = 0
     for k, stamp in enumerate(stamps):
         for n, i in enumerate(trace.vessels):
-            np.testing.assert_allclose(log["truth"][stamp]["vessels"][i]["position"], trace.positions[k, n],
-                                       rtol=0, atol=1e-9)
-            np.testing.assert_allclose(log["cmd"][i][stamp], trace.commands[k, n], rtol=0, atol=1e-9,
-                                           err_msg=f"vessel {i} at {stamp * 1e-9:.1f} s")
             np.testing.assert_allclose(log["target"][i][stamp], trace.estimates[k, n], rtol=0, atol=1e-9)
             relative = log["relative"][i][stamp]
             expected = {j: trace.relative[k, n, m] for m, j in enumerate(trace.vessels)

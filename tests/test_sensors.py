@@ -445,7 +445,7 @@ def test_the_sea_mode_refuses_the_uwb_and_camera_models_it_does_not_apply():
 def test_the_realistic_sensors_over_zenoh_in_lockstep_equal_the_in_process_runner(tmp_path):
     """The sim bridge publishes what the world reads (biased odometry, ranges between antennas with some
     dropped, turned bearings), and the agents' commands match the runner's tick for tick."""
-    from test_lockstep import logged
+    from test_lockstep import assert_same_motion, logged
 
     from sim_bridge.fleet import launch
     from sim_bridge.scenario import select_scenario, with_duration
@@ -462,12 +462,7 @@ def test_the_realistic_sensors_over_zenoh_in_lockstep_equal_the_in_process_runne
     log = logged(folder, trace.vessels)
     stamps = sorted(log["truth"])
     assert len(stamps) == len(trace.time) == 101
-    for k, stamp in enumerate(stamps):
-        for n, i in enumerate(trace.vessels):
-            np.testing.assert_allclose(log["truth"][stamp]["vessels"][i]["position"], trace.positions[k, n],
-                                       rtol=0, atol=1e-9)
-            np.testing.assert_allclose(log["cmd"][i][stamp], trace.commands[k, n], rtol=0, atol=1e-9,
-                                       err_msg=f"vessel {i} at {stamp * 1e-9:.1f} s")
+    assert_same_motion(log, trace, stamps)
     # And the agent's tick inputs held fewer ranges than peers at times: the dropouts went over the wire.
     received = [len(message["ranges"]) for topic, _, message in read_messages(folder / "agent-1.mcap")
                 if topic == "/1/inputs"]
