@@ -18,11 +18,11 @@ import numpy as np
 import pytest
 import yaml
 
-from agent.contract import CLOCK_SOURCE_SENSORS, Odometry, ShareMessage, encode
+from agent.contract import CLOCK_SOURCE_SENSORS, Clock, Odometry, ShareMessage, encode
 from agent.shell.gate import OFFSET_MIN, OFFSET_WINDOW, InputGate, StampOffsets
 from agent.shell.node import AgentNode
 from agent.shell.settings import NodeSettings
-from agent.shell.startup import no_sensor_words
+from agent.shell.startup import SensorWatch, no_sensor_words
 from agent.shell.wall_clock import SimulatedVesselClock, WallTimeline
 from mission_log.reader import read_log
 from mission_log.series import truth_of
@@ -321,3 +321,24 @@ def test_sensors_that_arrive_refused_are_not_blamed_on_a_missing_bridge():
     said = no_sensor_words("1", node.gate, False, None, node.settings.no_sensor_warning)
     assert "sensor messages arrive but none was taken" in said and "'future': 15" in said
     assert "no bridge publishes" not in said
+
+
+def test_the_no_sensor_line_is_said_again_when_its_reason_changes_and_only_then():
+    """Before: said once, `no_sensor_warning` s after start. An agent whose simulation started a moment later
+    than that said 'no sim/clock' and never that no bridge publishes for its vessel (CI, 2026-12-03)."""
+    node, said = AgentNode("1", NodeSettings()), []
+    watch = SensorWatch(said.append, every=1.0, opened=0.0)
+    watch.check(0.5, "1", node.gate, True, None)
+    assert said == []                                      # not before `every` seconds
+    watch.check(1.0, "1", node.gate, True, None)
+    assert len(said) == 1 and said[0].startswith("no sim/clock in 1 s")
+    clock = Clock(stamp_ns=0, seq=0, vessels=["2", "3"])
+    watch.check(1.5, "1", node.gate, True, clock)          # the reason changed, but the next look is at 2 s
+    watch.check(2.0, "1", node.gate, True, clock)
+    watch.check(3.0, "1", node.gate, True, clock)          # the same reason: not said twice
+    assert len(said) == 2 and said[1].startswith("no sensor data on usv/1/sensor/* in 2 s")
+    assert "lists vessels 2, 3, not 1" in said[1]
+    node.gate.offer("usv/1/sensor/odom", odometry(T0), T0)
+    watch.check(4.0, "1", node.gate, True, clock)
+    watch.check(6.0, "1", node.gate, True, None)           # taken once: nothing more is said, whatever follows
+    assert len(said) == 2

@@ -43,7 +43,7 @@ from agent.shell.peers import RANGED_WITHIN, PeerTable
 from agent.shell.publish import Outbox, declare_publishers, health
 from agent.shell.recorder import Recorder
 from agent.shell.settings import NodeSettings
-from agent.shell.startup import StartupError, check_id_free, tell_if_no_sensors
+from agent.shell.startup import SensorWatch, StartupError, check_id_free
 from agent.shell.ticker import HEARTBEAT, Ticker
 
 
@@ -114,13 +114,11 @@ class AgentNode:
             token = session.liveliness().declare_token(key(self.id, LIVELINESS))
             publishers = declare_publishers(session, self.id, sim)
             started = opened = time.monotonic()
-            cpu_started, sensors_told = time.process_time(), False
+            cpu_started = time.process_time()
+            watch = SensorWatch(self._say, self.settings.no_sensor_warning, opened)
             while not self.stopping.is_set() and (max_ticks is None or self.ticks < max_ticks):
                 try:
-                    if not sensors_told and time.monotonic() - opened >= self.settings.no_sensor_warning:
-                        sensors_told = True
-                        tell_if_no_sensors(self._say, self.id, self.gate, sim, self.ticker.clock.latest,
-                                           self.settings.no_sensor_warning)
+                    watch.check(time.monotonic(), self.id, self.gate, sim, self.ticker.clock.latest)
                     clock = self._next_sim_tick(publishers) if sim else self.ticker.next_timer()
                     if sim and clock is None:
                         continue

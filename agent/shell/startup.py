@@ -4,7 +4,8 @@ A second agent with the same vessel id would alternate with the first on the ves
 id's liveliness token for `id_check` seconds and refuses to start (StartupError, one line, exit 2) if another
 agent holds it. A vessel id no bridge publishes for would command STOP for ever, silently: after
 `no_sensor_warning` seconds without an own sensor message taken, one line on stderr says why (no bridge, no
-simulation, or sensor stamps refused and how far their clock runs from the agent's).
+simulation, or sensor stamps refused and how far their clock runs from the agent's), and again whenever the
+reason changes while none is taken.
 """
 
 from __future__ import annotations
@@ -38,12 +39,38 @@ def check_id_free(session, vessel: str, seconds: float, seen: Callable[[], bool]
         stopping.wait(min(0.1, max(0.0, deadline - time.monotonic())))
 
 
-def tell_if_no_sensors(say: Callable[[str], None], *args) -> None:
-    """`no_sensor_words(*args)` said, if there is anything to say; a word to the operator is not worth the
-    vessel: whatever fails here is let go."""
-    with contextlib.suppress(Exception):
-        if words := no_sensor_words(*args):
-            say(words)
+class SensorWatch:
+    """Until an own sensor message is taken, says every `every` seconds why none is, when the reason differs from
+    the one said last: an agent started before its simulation first says there is no sim/clock, then, once the
+    clock runs, that no bridge publishes for its vessel. A word to the operator is not worth the vessel:
+    whatever fails here is let go."""
+
+    def __init__(self, say: Callable[[str], None], every: float, opened: float):
+        self.say, self.every, self.opened = say, every, opened
+        self.next_check, self.said, self.done = opened + every, None, False
+
+    def check(self, now: float, vessel: str, gate: InputGate, sim: bool, clock: Clock | None) -> None:
+        if self.done or now < self.next_check:
+            return
+        self.next_check = now + self.every
+        with contextlib.suppress(Exception):
+            reason = no_sensor_reason(vessel, gate, sim, clock)
+            self.done = reason is None
+            if reason is not None and reason != self.said:
+                self.said = reason
+                self.say(no_sensor_words(vessel, gate, sim, clock, round(now - self.opened, 1)))
+
+
+def no_sensor_reason(vessel: str, gate: InputGate, sim: bool, clock: Clock | None) -> str | None:
+    """Why no own sensor message was taken, in a word (None if one was): `refused`, `no clock`, or `no bridge`
+    with the vessels the sim clock lists."""
+    if any(gate.accepted[topic] for topic in OWN_TOPICS):
+        return None
+    if gate.offsets.heard(CLOCK_SOURCE_SENSORS):
+        return "refused"
+    if sim and clock is None:
+        return "no clock"
+    return f"no bridge {None if clock is None else clock.vessels}"
 
 
 def no_sensor_words(vessel: str, gate: InputGate, sim: bool, clock: Clock | None, waited: float) -> str | None:
