@@ -9,6 +9,8 @@ the ports and to Zenoh, so swapping a device means swapping an adapter.
     speed log   --$..VHW------->   DeadReckoning   -> usv/<id>/sensor/odom     (Odometry)
     detector    --$DET--------->   BearingAdapter  -> usv/<id>/sensor/bearing  (Bearing, with the odometry's heading)
     usv/<id>/cmd (Cmd)  -------->  ThrusterAdapter -> $THR lines to the motor controller, `rate_hz` times a second
+                                   or LoopThrusters (thrusters.control: inner_loop; closed on the speed log and
+                                   yaw) -> $THR lines at the loop's `loop_hz`
 
 The watchdog is the adapter's: with no fresh command the thrusters get zero. Stamps are wall time (the
 clock the agents run on at sea). One thread reads the ports (select); the Zenoh callback only stores the
@@ -33,9 +35,10 @@ import threading
 import time
 from collections import Counter
 from collections.abc import Callable, Iterable
+from typing import Literal
 
 import zenoh
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from agent.config import PositiveFloat, StrictModel
 from agent.contract import LIVELINESS, Bearing, Cmd, Ranges, decode, encode, key
@@ -44,6 +47,7 @@ from agent.runtime.zenoh_session import ZenohSettings, zenoh_config
 from driver_bridge.bearing import BearingAdapter, CameraSettings, read_detection
 from driver_bridge.odometry import DeadReckoning, OdometrySettings, read_vhw
 from driver_bridge.serial_port import LineReader, open_serial, write_all
+from driver_bridge.thrust_loop import LoopSettings, LoopThrusters
 from driver_bridge.thrusters import (
     ZERO_THRUST,
     CommandGate,
@@ -83,9 +87,29 @@ class CameraPort(Port):
     camera: CameraSettings
 
 
+THR_LINE_BITS = 10 * len(b"$THR,+0.000,+0.000*00\r\n")   # one thrust line at 8N1
+
+
 class ThrusterPort(Port):
-    hull: ThrusterSettings
-    rate_hz: PositiveFloat = Field(10.0, description="thrust lines per second to the motor controller")
+    control: Literal["mix", "inner_loop"] = Field(
+        "mix", description="'mix': open-loop steady-state mix of the command; 'inner_loop': a boat preset's loop")
+    hull: ThrusterSettings | None = Field(None, description="the mix's hull (control: mix)")
+    inner_loop: LoopSettings | None = Field(None, description="the preset and its loop (control: inner_loop)")
+    rate_hz: PositiveFloat = Field(10.0, description="thrust lines per second with the mix (the loop: its loop_hz)")
+
+    @model_validator(mode="after")
+    def _control(self) -> ThrusterPort:
+        if self.control == "mix" and self.hull is None:
+            raise ValueError("control 'mix' needs hull (its drag, beam and thrust)")
+        if self.control == "inner_loop" and self.inner_loop is None:
+            raise ValueError("control 'inner_loop' needs inner_loop (at least its preset)")
+        if self.baud < self.lines_per_second() * THR_LINE_BITS:
+            raise ValueError(f"{self.baud} baud cannot carry {self.lines_per_second():g} thrust lines a second "
+                             f"(needs {self.lines_per_second() * THR_LINE_BITS:g})")
+        return self
+
+    def lines_per_second(self) -> float:
+        return self.inner_loop.loop_hz if self.control == "inner_loop" else self.rate_hz
 
 
 class DriverSettings(StrictModel):
@@ -95,6 +119,13 @@ class DriverSettings(StrictModel):
     camera: CameraPort | None = None
     thrusters: ThrusterPort | None = None
     commands: CommandWindow = CommandWindow()
+
+    @model_validator(mode="after")
+    def _measured(self) -> DriverSettings:
+        if self.thrusters is not None and self.thrusters.control == "inner_loop" and self.odometry is None:
+            raise ValueError("thrusters.control 'inner_loop' closes its loop on the speed log and yaw: "
+                             "it needs the odometry port")
+        return self
 
 
 class DriverBridge:
@@ -112,7 +143,7 @@ class DriverBridge:
         self.uwb = NLinkParser(settings.uwb.module) if settings.uwb else None
         self.dead_reckoning = DeadReckoning(settings.odometry.dead_reckoning) if settings.odometry else None
         self.camera = BearingAdapter(settings.camera.camera) if settings.camera else None
-        self.thrusters = ThrusterAdapter(settings.thrusters.hull) if settings.thrusters else None
+        self.thrusters = self._thrusters(settings)
         self.published: Counter[str] = Counter()
         self.refused: Counter[str] = Counter()
         self.lines = {"odometry": LineReader(), "camera": LineReader()}
@@ -122,6 +153,15 @@ class DriverBridge:
         self._command: Cmd | None = None
         self._applied: Cmd | None = None
         self._agent_left = False
+
+    def _thrusters(self, settings: DriverSettings) -> ThrusterAdapter | LoopThrusters | None:
+        port = settings.thrusters
+        if port is None:
+            return None
+        if port.control == "mix":
+            return ThrusterAdapter(port.hull)
+        return LoopThrusters(port.inner_loop, settings.odometry.dead_reckoning,
+                             lambda line: self._report(f"usv-driver {self.id}: {line}"))
 
     # ----- refusals and the last-resort guard -----
     def refusals(self) -> dict[str, dict[str, int]]:
@@ -214,6 +254,8 @@ class DriverBridge:
             self.refused[f"odometry_{reason}"] += 1
             return
         speed, heading = sample
+        if isinstance(self.thrusters, LoopThrusters):
+            self.thrusters.measure(time.monotonic(), speed, heading)   # the watchdog's clock
         before = self.dead_reckoning.state
         state = self.dead_reckoning.update(self.clock_ns() * 1e-9, speed, heading)   # refusals counted there
         if state is not None and state is not before:
@@ -278,7 +320,7 @@ class DriverBridge:
                 subscriber = session.declare_subscriber(key(self.id, "cmd"), self._on_command)
                 agent = session.liveliness().declare_subscriber(key(self.id, LIVELINESS), self._on_agent_liveliness,
                                                                  history=True)
-                period = 1.0 / self.settings.thrusters.rate_hz if self.thrusters else 0.1
+                period = 1.0 / self.settings.thrusters.lines_per_second() if self.thrusters else 0.1
                 next_drive = time.monotonic()
                 while not self.stopping.is_set():
                     if max_seconds is not None and time.monotonic() - started > max_seconds:
