@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import contextlib
 import itertools
+import math
 import os
 import re
 import select
@@ -204,18 +205,18 @@ REVERSE = "$THR,-0.250,-0.250*"      # -1 m/s: what the spoofer asks for, never 
 
 
 @contextlib.contextmanager
-def thruster_driver(tmp_path: Path, extra: dict | None = None, watchdog: float = 5.0):
-    """`usv-driver` for vessel 1 with a hull on a pseudo-terminal (a `watchdog` s timeout): yields the process
-    (stdout and stderr in one text pipe), its thrust lines and its Zenoh port; killed if still running at the
-    end."""
+def thruster_driver(tmp_path: Path, extra: dict | None = None, watchdog: float = 5.0, control: dict | None = None):
+    """`usv-driver` for vessel 1 with a hull on a pseudo-terminal (a `watchdog` s timeout, or the thrusters'
+    `control` settings instead of the mix's): yields the process (stdout and stderr in one text pipe), its
+    thrust lines and its Zenoh port; killed if still running at the end."""
     master, slave = os.openpty()
     port = free_port()
     config = tmp_path / "driver.yaml"
     config.write_text(yaml.safe_dump({
         "zenoh": {"listen": [f"tcp/127.0.0.1:{port}"]},
-        "thrusters": {"device": os.ttyname(slave), "rate_hz": 20.0,
-                      "hull": {"max_thrust": 100.0, "half_beam": 0.5, "surge_drag": 50.0, "yaw_drag": 20.0,
-                               "timeout": watchdog}},
+        "thrusters": {"device": os.ttyname(slave), **(control or {
+            "rate_hz": 20.0, "hull": {"max_thrust": 100.0, "half_beam": 0.5, "surge_drag": 50.0, "yaw_drag": 20.0,
+                                      "timeout": watchdog}})},
         **(extra or {}),
     }))
     driver = subprocess.Popen([sys.executable, "-m", "driver_bridge", "--vessel", "1", "--config", str(config)],
@@ -412,3 +413,102 @@ def test_a_storm_of_bad_serial_lines_leaves_the_driver_alive_its_watchdog_workin
     assert refused and int(refused.group(1)) >= 12, output     # the twelve huge ones, and the campaign's
     assert "refused so far (dropped, going on)" in output and "Traceback" not in output, output
     assert all(isinstance(message, Odometry) for message in odometry), odometry   # each within the contract
+
+
+def _thrust_pair(line: str) -> tuple[float, float]:
+    left, right = line.split("*")[0].split(",")[1:]
+    return float(left), float(right)
+
+
+class Repeating:
+    """Calls `act(value)` every 50 ms with the value last set (None: nothing), on its own thread."""
+
+    def __init__(self, act) -> None:
+        import threading
+
+        self.act, self.value, self.stopping = act, None, threading.Event()
+        self.thread = threading.Thread(target=self._run, daemon=True)
+        self.thread.start()
+
+    def _run(self) -> None:
+        while not self.stopping.wait(0.05):
+            if self.value is not None:
+                self.act(self.value)
+
+    def close(self) -> None:
+        self.stopping.set()
+        self.thread.join(5)
+
+
+def test_the_driver_bridges_inner_loop_answers_commands_with_thrust_of_the_right_sign_and_ratio(tmp_path):
+    """thrusters.control inner_loop with the Otter preset, closed on a speed log (VHW, 20 Hz) whose compass
+    heading turns as commanded. A turn in place (0 m/s, 0.2 rad/s counter-clockwise): port astern, starboard
+    ahead, and while the port one is not at full astern the pair's thrust cancels in surge, T_p = -T_s, so
+    left / right = -F / R (each value is over its own limit). Commands stop: zero within the 0.5 s timeout.
+    Straight ahead with the boat still: both ahead, equal. The speed log falls silent: zero. Each stop said once."""
+    from boat.presets import PRESETS
+    from driver_bridge.serial_port import write_all
+
+    tr = PRESETS["otter"].thrusters
+    log_master, log_slave = os.openpty()
+    os.set_blocking(log_master, False)
+    heading = [90.0]
+
+    def vhw(turn_deg_s: float) -> None:   # the compass heading (clockwise) falls when turning counter-clockwise
+        heading[0] = (heading[0] - turn_deg_s * 0.05) % 360.0
+        write_all(log_master, xor_sentence(f"IIVHW,{heading[0]:.3f},T,,M,0.0,N,,K"), timeout_s=5.0)
+
+    extra = {"odometry": {"device": os.ttyname(log_slave), "baud": 4800}}
+    control = {"control": "inner_loop", "inner_loop": {"preset": "otter"}}
+    speed_log = commands = None
+    with thruster_driver(tmp_path, extra, control=control) as (driver, thrusters, port):
+        try:
+            with zenoh.open(zenoh_config(ZenohSettings(connect=[f"tcp/127.0.0.1:{port}"]))) as session:
+                wait_for(lambda: list(session.info.peers_zid()), what="the driver bridge's session")
+                publisher = session.declare_publisher("usv/1/cmd")
+                seqs = itertools.count()
+                speed_log = Repeating(vhw)
+                commands = Repeating(lambda c: publisher.put(encode(Cmd(
+                    stamp_ns=time.time_ns(), seq=next(seqs), sender="1", surge=c[0], yaw_rate=c[1]))))
+                speed_log.value = math.degrees(0.2)
+                time.sleep(0.5)
+                commands.value = (0.0, 0.2)
+                thrusters.read_until(lambda line: not line.startswith(STOPPED), seconds=15, what="the turn")
+                turn = [_thrust_pair(line) for line in thrusters.read(2.0)]
+                assert all(left < 0 < right for left, right in turn), turn
+                unsaturated = [(left, right) for left, right in turn if left > -0.9995]
+                assert len(unsaturated) >= 40, turn             # 2 s at 50 Hz, the first 0.1 s saturated
+                for left, right in unsaturated:                 # T_p = -T_s, within the lines' 3 decimals
+                    assert abs(left * tr.max_reverse + right * tr.max_forward) <= 5e-4 * (tr.max_forward
+                                                                                        + tr.max_reverse)
+
+                commands.value = None
+                thrusters.read_until(lambda line: line.startswith(STOPPED), seconds=10, what="the watchdog's stop")
+                speed_log.value = 0.0                           # still water, heading held: r decays to 0
+                lines = thrusters.read(1.5)
+                assert lines and all(line.startswith(STOPPED) for line in lines), lines
+
+                commands.value = (1.0, 0.0)
+                thrusters.read_until(lambda line: not line.startswith(STOPPED), seconds=10, what="ahead")
+                ahead = [_thrust_pair(line) for line in thrusters.read(1.0)]
+                assert ahead and all(0 < left == right for left, right in ahead), ahead
+
+                speed_log.value = None                          # the speed log falls silent; commands go on
+                thrusters.read_until(lambda line: line.startswith(STOPPED), seconds=10,
+                                     what="the stop without measurements")
+                lines = thrusters.read(0.5)
+                assert lines and all(line.startswith(STOPPED) for line in lines), lines
+                commands.close()                                # then the commands stop too: said once more
+                thrusters.read(1.5)
+            driver.send_signal(signal.SIGTERM)
+            output, _ = driver.communicate(timeout=15)
+        finally:
+            for repeating in (speed_log, commands):
+                if repeating is not None:
+                    repeating.close()
+            os.close(log_master)
+            os.close(log_slave)
+    assert driver.returncode == 0, output
+    assert output.count("thrusters stopped: no fresh command (timeout 0.5 s)") == 2, output
+    assert output.count("thrusters stopped: no speed-log or yaw sample for ") == 1, output
+    assert "'thruster_events': {'watchdog_stop': 2, 'measurement_stop': 1}" in output, output

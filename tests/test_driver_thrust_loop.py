@@ -182,3 +182,25 @@ def test_a_stop_is_said_once_and_counted():
     driver.measure(150 * DT, 0.5, 0.0)
     driver.output(150 * DT)
     assert driver.events["watchdog_stop"] == 1 and len(said) == 2 and "no fresh command" in said[1], said
+
+
+@pytest.mark.parametrize("thrusters, odometry, says", [
+    ({"control": "inner_loop"}, True, "control 'inner_loop' needs inner_loop"),
+    ({"control": "inner_loop", "inner_loop": {"preset": "catamaran"}}, True, "unknown hull preset 'catamaran'"),
+    ({"control": "inner_loop", "inner_loop": {"preset": "otter"}}, False, "it needs the odometry port"),
+    ({"control": "inner_loop", "inner_loop": {"preset": "otter"}, "baud": 9600}, True,
+     "9600 baud cannot carry 50 thrust lines a second"),
+    ({}, True, "control 'mix' needs hull"),
+])
+def test_a_driver_config_that_cannot_close_the_loop_is_a_clear_error(thrusters, odometry, says):
+    from agent.config import ConfigError, parse_mapping
+    from driver_bridge.node import DriverSettings
+
+    config = {"thrusters": {"device": "/dev/null", **thrusters}}
+    if odometry:
+        config["odometry"] = {"device": "/dev/null"}
+    with pytest.raises(ConfigError, match=says):
+        parse_mapping(DriverSettings, config, "driver.yaml")
+    config["thrusters"] = {"device": "/dev/null", "control": "inner_loop", "inner_loop": {"preset": "otter"}}
+    config["odometry"] = {"device": "/dev/null"}
+    assert parse_mapping(DriverSettings, config, "driver.yaml").thrusters.lines_per_second() == 50.0
