@@ -45,7 +45,7 @@ class LoopSettings(StrictModel):
                                    "(the sim's dynamics.inner_loop_hz)")
     measurement_timeout: PositiveFloat = Field(0.5, description="zero thrust when the last speed or yaw sample is "
                                                "older than this (s)")
-    rate_filter: NonNegativeFloat = Field(0.1, le=10.0, description="time constant of the low-pass on the "
+    rate_filter: NonNegativeFloat = Field(0.05, le=10.0, description="time constant of the low-pass on the "
                                           "measured yaw rate (s); 0: none")
 
     @model_validator(mode="after")

@@ -204,3 +204,19 @@ def test_a_driver_config_that_cannot_close_the_loop_is_a_clear_error(thrusters, 
     config["thrusters"] = {"device": "/dev/null", "control": "inner_loop", "inner_loop": {"preset": "otter"}}
     config["odometry"] = {"device": "/dev/null"}
     assert parse_mapping(DriverSettings, config, "driver.yaml").thrusters.lines_per_second() == 50.0
+
+
+def test_the_loop_on_a_10_hz_compass_turns_the_hull_as_told():
+    """lab/experiments/driver_loop.py: its hull under the driver's thrust is the sim's (fed the exact rate,
+    the lab's step_response trace); fed a VHW compass heading at 10 Hz, rounded to 0.1 degree and
+    differenced, the turn-rate step rises within the inner loop's bounds (tests/test_inner_loop.py) and
+    settles on the command."""
+    from lab.experiments import driver_loop
+
+    _, rate, _ = driver_loop.turn("otter", None, 0.0)
+    _, expected = step_response("otter", "rate", 0.2, 1.0)
+    assert np.abs(rate[:len(expected)] - expected).max() <= 1e-9
+    t, rate, thr = driver_loop.turn("otter", 10, 0.05)
+    rise, overshoot = rise_overshoot(t, rate, 0.2)
+    assert rise <= 0.4 and overshoot <= 0.35 and rate[-50:].mean() == pytest.approx(0.2, rel=0.02)
+    assert (thr[:, 0] < thr[:, 1]).all()   # turning counter-clockwise: the starboard thruster pushes harder
