@@ -9,8 +9,8 @@ the ports and to Zenoh, so swapping a device means swapping an adapter.
     speed log   --$..VHW------->   DeadReckoning   -> usv/<id>/sensor/odom     (Odometry)
     detector    --$DET--------->   BearingAdapter  -> usv/<id>/sensor/bearing  (Bearing, with the odometry's heading)
     usv/<id>/cmd (Cmd)  -------->  ThrusterAdapter -> $THR lines to the motor controller, `rate_hz` times a second
-                                   or LoopThrusters (thrusters.control: inner_loop; closed on the speed log and
-                                   yaw) -> $THR lines at the loop's `loop_hz`
+                                   or LoopThrusters (thrusters.control: inner_loop, closed on the
+                                   speed log and yaw) -> $THR lines at the loop's `loop_hz`
 
 The watchdog is the adapter's: with no fresh command the thrusters get zero. Stamps are wall time (the
 clock the agents run on at sea). One thread reads the ports (select); the Zenoh callback only stores the
@@ -92,10 +92,10 @@ THR_LINE_BITS = 10 * len(b"$THR,+0.000,+0.000*00\r\n")   # one thrust line at 8N
 
 class ThrusterPort(Port):
     control: Literal["mix", "inner_loop"] = Field(
-        "mix", description="'mix': open-loop steady-state mix of the command; 'inner_loop': a boat preset's loop")
+        "mix", description="'mix': open-loop steady-state mix of the command; 'inner_loop': a preset's loop")
     hull: ThrusterSettings | None = Field(None, description="the mix's hull (control: mix)")
     inner_loop: LoopSettings | None = Field(None, description="the preset and its loop (control: inner_loop)")
-    rate_hz: PositiveFloat = Field(10.0, description="thrust lines per second with the mix (the loop: its loop_hz)")
+    rate_hz: PositiveFloat = Field(10.0, description="thrust lines per second with the mix (loop: loop_hz)")
 
     @model_validator(mode="after")
     def _control(self) -> ThrusterPort:
@@ -104,8 +104,9 @@ class ThrusterPort(Port):
         if self.control == "inner_loop" and self.inner_loop is None:
             raise ValueError("control 'inner_loop' needs inner_loop (at least its preset)")
         if self.baud < self.lines_per_second() * THR_LINE_BITS:
-            raise ValueError(f"{self.baud} baud cannot carry {self.lines_per_second():g} thrust lines a second "
-                             f"(needs {self.lines_per_second() * THR_LINE_BITS:g})")
+            lines = self.lines_per_second()
+            raise ValueError(f"{self.baud} baud cannot carry {lines:g} thrust lines a second "
+                             f"(needs {lines * THR_LINE_BITS:g})")
         return self
 
     def lines_per_second(self) -> float:

@@ -38,15 +38,16 @@ from driver_bridge.thrusters import Thrust
 
 
 class LoopSettings(StrictModel):
-    preset: str = Field(description="boat preset whose thrusters and inner loop run here: otter, heron or wamv")
-    overrides: dict = Field(default_factory=dict,
-                            description="changes deep-merged onto the preset, e.g. {thrusters: {max_forward: 110}}")
-    loop_hz: PositiveFloat = Field(50.0, le=1000.0, description="rate of the loop and of the $THR lines "
-                                   "(the sim's dynamics.inner_loop_hz)")
-    measurement_timeout: PositiveFloat = Field(0.5, description="zero thrust when the last speed or yaw sample is "
-                                               "older than this (s)")
-    rate_filter: NonNegativeFloat = Field(0.05, le=10.0, description="time constant of the low-pass on the "
-                                          "measured yaw rate (s); 0: none")
+    preset: str = Field(description="boat preset whose thrusters and inner loop run here: otter, heron, wamv")
+    overrides: dict = Field(
+        default_factory=dict,
+        description="changes deep-merged onto the preset, e.g. {thrusters: {max_forward: 90}}")
+    loop_hz: PositiveFloat = Field(
+        50.0, le=1000.0, description="rate of the loop and its $THR lines (the sim's dynamics.inner_loop_hz)")
+    measurement_timeout: PositiveFloat = Field(
+        0.5, description="zero thrust when the last speed or yaw sample is older than this (s)")
+    rate_filter: NonNegativeFloat = Field(
+        0.05, le=10.0, description="time constant of the low-pass on the measured yaw rate (s); 0: none")
 
     @model_validator(mode="after")
     def _known(self) -> LoopSettings:
@@ -88,7 +89,7 @@ class Measurements:
             self.rejected[reason] += 1
             return reason
         gap = now - self.speed_at
-        fresh = gap <= self.settings.measurement_timeout   # else a restart: nothing to difference or filter from
+        fresh = gap <= self.settings.measurement_timeout   # else a restart: nothing to difference or filter
         self.u, self.speed_at = speed, now
         if o.yaw_input == "yaw_rate":
             rate = o.yaw_sign * yaw
@@ -181,8 +182,9 @@ class LoopThrusters:
             m = self.measurements
             if stopped == "command":
                 self.events["watchdog_stop"] += 1
-                self.report(f"thrusters stopped: no fresh command (timeout {self.boat.inner_loop.timeout:g} s); "
-                            f"counted as watchdog_stop")
+                timeout = self.boat.inner_loop.timeout
+                self.report(f"thrusters stopped: no fresh command (timeout {timeout:g} s); "
+                            "counted as watchdog_stop")
             else:
                 self.events["measurement_stop"] += 1
                 since = now - min(m.speed_at, m.rate_at)

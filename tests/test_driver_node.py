@@ -205,7 +205,8 @@ REVERSE = "$THR,-0.250,-0.250*"      # -1 m/s: what the spoofer asks for, never 
 
 
 @contextlib.contextmanager
-def thruster_driver(tmp_path: Path, extra: dict | None = None, watchdog: float = 5.0, control: dict | None = None):
+def thruster_driver(tmp_path: Path, extra: dict | None = None, watchdog: float = 5.0,
+                    control: dict | None = None):
     """`usv-driver` for vessel 1 with a hull on a pseudo-terminal (a `watchdog` s timeout, or the thrusters'
     `control` settings instead of the mix's): yields the process (stdout and stderr in one text pipe), its
     thrust lines and its Zenoh port; killed if still running at the end."""

@@ -25,9 +25,9 @@ def _driver(name: str, **settings) -> LoopThrusters:
 
 
 def _closed(name: str, phases: list[tuple[float, float | None, float]], cruise: float = 0.0) -> dict:
-    """The sim's hull (its own loop running, as in the sim bridge) with the driver's loop beside it on the same
-    measurements and commands: `phases` of (seconds, surge or None for no command, yaw rate). Returns each
-    tick's driver demand, the sim's demand, the $THR pair, the hull's (u_r, r) after the tick, and t."""
+    """The sim's hull (its own loop running, as in the sim bridge) with the driver's loop beside it on the
+    same measurements and commands: `phases` of (seconds, surge or None for no command, yaw rate). Returns
+    each tick's driver demand, the sim's demand, the $THR pair, the hull's (u_r, r) after the tick, and t."""
     fleet, driver = HullFleet(PRESETS[name], 1, DT, 1), _driver(name)
     out = {key: [] for key in ("driver", "sim", "thr", "u", "r", "t")}
     t, commanded_at, k = 0.0, 0.0, 0
@@ -64,8 +64,10 @@ def test_the_driver_loop_around_the_sim_hull_gives_the_sim_bridges_thrusts_and_r
         return round(seconds / DT) - 1   # the tick that ends at `seconds`
 
     assert run["u"][at(10)] == pytest.approx(1.0, rel=0.02)
-    assert run["u"][at(20)] == pytest.approx(1.0, rel=0.02) and run["r"][at(20)] == pytest.approx(0.2, rel=0.02)
-    assert run["u"][at(30)] == pytest.approx(-0.5, rel=0.02) and run["r"][at(30)] == pytest.approx(-0.1, rel=0.02)
+    assert run["u"][at(20)] == pytest.approx(1.0, rel=0.02)
+    assert run["r"][at(20)] == pytest.approx(0.2, rel=0.02)
+    assert run["u"][at(30)] == pytest.approx(-0.5, rel=0.02)
+    assert run["r"][at(30)] == pytest.approx(-0.1, rel=0.02)
     # The commands stop at 30 s: the thrust holds until the preset's 0.5 s timeout, then is zero.
     timeout = PRESETS[name].inner_loop.timeout
     last = 30.0 - DT
@@ -125,8 +127,8 @@ SPECIALS = np.array([np.nan, np.inf, -np.inf, 1e308, -1e308, 0.0])
 @pytest.mark.parametrize("seed", [3, 4])
 def test_any_input_gives_finite_thrust_in_range_and_zero_after_either_timeout(seed):
     """Random commands, speed-log samples and times (Cauchy values with NaN, +-inf and +-1e308 mixed in,
-    times jittered backwards, gaps of up to 2 s, a silent speed log): every $THR value finite and in [-1, 1]; zero whenever the
-    newest command or the newest sample came longer ago than its timeout."""
+    times jittered backwards, gaps of up to 2 s, a silent speed log): every $THR value finite and in [-1, 1];
+    zero whenever the newest command or the newest sample came longer ago than its timeout."""
     rng = np.random.default_rng(seed)
 
     def value(scale: float) -> float:
@@ -186,7 +188,7 @@ def test_a_stop_is_said_once_and_counted():
 
 @pytest.mark.parametrize("thrusters, odometry, says", [
     ({"control": "inner_loop"}, True, "control 'inner_loop' needs inner_loop"),
-    ({"control": "inner_loop", "inner_loop": {"preset": "catamaran"}}, True, "unknown hull preset 'catamaran'"),
+    ({"control": "inner_loop", "inner_loop": {"preset": "cat"}}, True, "unknown hull preset 'cat'"),
     ({"control": "inner_loop", "inner_loop": {"preset": "otter"}}, False, "it needs the odometry port"),
     ({"control": "inner_loop", "inner_loop": {"preset": "otter"}, "baud": 9600}, True,
      "9600 baud cannot carry 50 thrust lines a second"),
