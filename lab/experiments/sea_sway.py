@@ -1,11 +1,13 @@
 """The coping agent on the sea states with and without the speed log's sideslip correction (boat/sway.py).
 
     .venv/bin/python -m lab.experiments.sea_sway [--seeds S ...] [--variants NAME ...] [--radii R ...]
+    .venv/bin/python -m lab.experiments.sea_sway --as-written [--seeds S ...] [--variants NAME ...]
 
 Each run is a variant of configs/scenarios/sea_states.yaml in process (lab/harness/runner.py), its agent the
 coping one (lab/experiments/sea_agent.py COPING, with the Otter's turn-rate limit) and its odometry a speed
 log with `sway` none or hull, against Table II's moving target and a ground-fixed one; r* as given (a larger
-one only for the variants with a current). Prints one markdown table: the figures of sea_agent.summary.
+one only for the variants with a current). `--as-written`: the variants as the file holds them. Prints one
+markdown table: the figures of sea_agent.summary.
 """
 
 from __future__ import annotations
@@ -25,11 +27,15 @@ CURRENTS = ("current", "gradient", "moderate")   # the variants with a current, 
 TARGETS = {"moving": None, "fixed": [0.0, 0.0]}  # None: the scenario's own (Table II's 0.5 m/s)
 
 
-def scenario(variant: str, sway: str, target: str, radius: float | None) -> Scenario:
-    """`variant` of sea_states.yaml with the coping agent, the log's `sway`, the `target` and r*."""
+def scenario(variant: str, sway: str, target: str, radius: float | None, max_speed: float | None = None
+             ) -> Scenario:
+    """`variant` of sea_states.yaml with the coping agent (its surge bounded by `max_speed` if given), the
+    log's `sway`, the `target` and r*."""
     _, base = select_scenario(SEA_STATES, variant)
     data = base.model_dump()
     data["agent"] = deep_merge(data["agent"], AGENT)
+    if max_speed is not None:
+        data["agent"] = deep_merge(data["agent"], {"control": {"max_speed": max_speed}})
     if radius is not None:
         data["agent"] = deep_merge(data["agent"], {"control": {"radius": radius}})
     if data["world"]["sensors"]["odometry"]["kind"] == "water_log_compass":
@@ -49,17 +55,29 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--sways", nargs="+", default=["none", "hull"], choices=["none", "hull"])
     parser.add_argument("--radii", type=float, nargs="+", default=[10.0],
                         help="r* (m) tried besides the scenario's on the variants with a current")
+    parser.add_argument("--max-speed", type=float, help="the agent's control.max_speed (m/s); default its own")
+    parser.add_argument("--as-written", action="store_true", help="run the variants as the file holds them")
     args = parser.parse_args(argv)
-    print(f"seeds {' '.join(map(str, args.seeds))}")
+    print(f"seeds {' '.join(map(str, args.seeds))}, control.max_speed {args.max_speed or 'the agent default'}")
     print("| variant | target | r* (m) | sway | settled | e_c after (m) | e_ij after (m) | closest (m) "
           "| max abs(u) cmd (m/s) | max abs(r) cmd (rad/s) |")
     print("|---|---|---|---|---|---|---|---|---|---|")
+    if args.as_written:
+        print("| variant | settled | e_c after (m) | e_ij after (m) | closest (m) | max abs(u) cmd (m/s) "
+              "| max abs(r) cmd (rad/s) |")
+        print("|---|---|---|---|---|---|---|")
+        for variant in args.variants:
+            _, s = select_scenario(SEA_STATES, variant)
+            f = summary([figures(s, run(s, seed), seed) for seed in args.seeds])
+            print(f"| {variant} | {f['settled']}/{f['runs']} | {f['e_c']:.3f} | {f['e_ij']:.3f} | "
+                  f"{f['closest']:.2f} | {f['max_surge']:.2f} | {f['max_yaw_rate']:.3f} |", flush=True)
+        return 0
     for variant in args.variants:
         radii = [None] + (args.radii if variant in CURRENTS else [])
         for target in args.targets:
             for radius in radii:
                 for sway in args.sways:
-                    s = scenario(variant, sway, target, radius)
+                    s = scenario(variant, sway, target, radius, args.max_speed)
                     runs = [figures(s, run(s, seed), seed) for seed in args.seeds]
                     f = summary(runs)
                     print(f"| {variant} | {target} | {s.agent.control.radius:g} | {sway} | {f['settled']}/"
