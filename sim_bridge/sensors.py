@@ -4,7 +4,8 @@ Each model is a frozen pydantic object chosen in the world config (`WorldConfig.
 kernels below it that broadcast over vessels. docs/sea.md (Sensors): the equations, figures and sources.
 
 - Odometry `paper`: (5), kept in world.py as it was. `water_log_compass`: a speed log (scale error k, dead
-  band) and a compass (per-vessel bias b, white noise): p += s dt [cos psi_c, sin psi_c], s = (1 + k) u_r + n.
+  band) and a compass (per-vessel bias b, white noise): p += s dt [cos psi_c, sin psi_c], s = (1 + k) u_r + n;
+  with `sway: hull`, p moves by R(psi_c) (s, v_hat) dt on the arc between readings (boat/sway.py).
   `dvl_gyro`: bottom-track velocity over ground in the body frame, (1 + k) v_b + n, dead-reckoned with a
   gyro-integrated heading psi_g += dpsi + (b + n_r) dt, b += sigma_K sqrt(dt) w (bias random walk).
 - UWB: ranges between antennas at a lever arm (forward, left, up) from the hull's centre, which turn with
