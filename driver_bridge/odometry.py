@@ -14,6 +14,9 @@ Between two samples the vessel is taken to move along a circular arc: constant t
 heading to the second (or, with a yaw rate input, a turn of the trapezoid of the two rates times dt), and
 distance = trapezoid of the two speeds times dt. The arc's chord has length
 ds * sin(dpsi/2) / (dpsi/2) along psi0 + dpsi/2, which is exact for a steady turn at steady speed.
+With `sway_preset` the log's surge is joined by the hull's sideslip (boat/sway.py, from the interval's mean
+speed and turn rate): velocity R(psi) (u, v_hat), the sway distance the trapezoid of the estimates, on the
+same arc (boat.sway.arc_step, which the simulated log shares).
 
 `parse_vhw` reads NMEA 0183 VHW, "water speed and heading"
 (https://gpsd.gitlab.io/gpsd/NMEA.html#_vhw_water_speed_and_heading):
@@ -37,6 +40,8 @@ from agent.angles import wrap_angle
 from agent.config import NonNegativeFloat, PositiveFloat, StrictModel
 from agent.contract import (MAX_ANGLE, MAX_POSITION, MAX_SPEED, MAX_STAMP_NS, MAX_VARIANCE, Odometry,
                             nanoseconds)
+from boat import sway
+from boat.presets import PRESETS
 from driver_bridge.serial_port import nmea_number
 
 KNOT = 1852.0 / 3600.0  # m/s
@@ -56,6 +61,8 @@ class OdometrySettings(StrictModel):
                                      "(m/s); a sample beyond it is refused")
     max_yaw_rate: PositiveFloat = Field(10.0, le=MAX_ANGLE, description="fastest believable yaw rate "
                                         "(rad/s), with a yaw_rate input; a sample beyond it is refused")
+    sway_preset: Literal[tuple(PRESETS)] | None = Field(  # type: ignore[valid-type]
+        None, description="boat preset whose sway model adds the hull's sideslip to the log; None: none")
 
 
 @dataclass(frozen=True)
@@ -90,6 +97,9 @@ class DeadReckoning:
         self.state: OdometryState | None = None
         self._from: OdometryState | None = None       # where the next step starts (see the position bound)
         self._speed = self._rate = self._start = 0.0  # previous speed and yaw rate; first stamp
+        self._sway_model = None if self.settings.sway_preset is None else sway.SwayModel.of(
+            PRESETS[self.settings.sway_preset].hull)
+        self._sway = self._turn_rate = 0.0            # the last step's sway estimate (m/s) and turn rate (rad/s)
 
     def update(self, stamp_s: float, speed: float, yaw: float) -> OdometryState | None:
         s = self.settings
@@ -112,11 +122,14 @@ class DeadReckoning:
             else:
                 turn = wrap_angle(s.yaw_sign * yaw + s.yaw_offset - last.heading)  # shortest way round
             ds = 0.5 * (self._speed + speed) * dt
-            half = 0.5 * turn
-            chord = ds * (math.sin(half) / half if abs(half) > 1e-9 else 1.0 - half * half / 6.0)
-            direction = last.heading + half
-            x, y = last.x + chord * math.cos(direction), last.y + chord * math.sin(direction)
-            state = self._state(stamp_s, x, y, last.heading + turn, last.distance + abs(ds))
+            across = 0.0
+            if self._sway_model is not None:
+                rate = turn / dt
+                v = float(sway.step(self._sway_model, self._sway, ds / dt, rate, rate - self._turn_rate, dt))
+                across = 0.5 * (self._sway + v) * dt
+                self._sway, self._turn_rate = v, rate
+            x, y = sway.arc_step(last.x, last.y, last.heading, turn, ds, across)
+            state = self._state(stamp_s, x, y, last.heading + turn, last.distance + math.hypot(ds, across))
         # A step beyond the contract is refused whole (every agent would refuse the state). The next one
         # starts at this sample's time and heading but the last position: otherwise the interval to integrate,
         # and with it the step, would only grow, and the odometry would stay stuck once the vessel heads back.

@@ -4,7 +4,8 @@ Each model is a frozen pydantic object chosen in the world config (`WorldConfig.
 kernels below it that broadcast over vessels. docs/sea.md (Sensors): the equations, figures and sources.
 
 - Odometry `paper`: (5), kept in world.py as it was. `water_log_compass`: a speed log (scale error k, dead
-  band) and a compass (per-vessel bias b, white noise): p += s dt [cos psi_c, sin psi_c], s = (1 + k) u_r + n.
+  band) and a compass (per-vessel bias b, white noise): p += s dt [cos psi_c, sin psi_c], s = (1 + k) u_r + n;
+  with `sway: hull`, p moves by R(psi_c) (s, v_hat) dt on the arc between readings (boat/sway.py).
   `dvl_gyro`: bottom-track velocity over ground in the body frame, (1 + k) v_b + n, dead-reckoned with a
   gyro-integrated heading psi_g += dpsi + (b + n_r) dt, b += sigma_K sqrt(dt) w (bias random walk).
 - UWB: ranges between antennas at a lever arm (forward, left, up) from the hull's centre, which turn with
@@ -28,6 +29,7 @@ from pydantic import Field, model_validator
 
 from agent.angles import wrap_angle
 from agent.config import NonNegativeFloat, PositiveFloat, StrictModel, deep_merge
+from boat import sway as sway_kernel
 
 FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
 Fraction = Annotated[float, Field(ge=0, le=1, allow_inf_nan=False)]
@@ -133,6 +135,8 @@ class WaterLogCompass(StrictModel):
     compass_biases_deg: dict[str, FiniteFloat] = Field(
         default_factory=dict, description="vessel id -> compass bias (deg), not drawn")
     compass_noise_deg: NonNegativeFloat = Field(0.0, description="std of each compass reading's noise (deg)")
+    sway: Literal["none", "hull"] = Field(
+        "none", description="'hull': the driver adds its hull's sideslip (boat/sway.py, world.dynamics' preset)")
 
 
 class Gyro(StrictModel):
@@ -268,6 +272,8 @@ class OdometryState:
     heading: float           # the reading reported (compass, or gyro-integrated), rad
     scale: float             # k of the speed log or the DVL
     bias: float              # compass bias (rad), or the gyro's current bias (rad/s)
+    sway: float = 0.0        # the sway estimate v (m/s) of water_log_compass with `sway: hull`
+    rate: float = 0.0        # and the yaw rate from the compass over the last step (rad/s)
 
 
 def start_odometry(model: WaterLogCompass | DvlGyro, vessel: str, heading: float,
@@ -286,14 +292,17 @@ def start_odometry(model: WaterLogCompass | DvlGyro, vessel: str, heading: float
 
 
 def advance_odometry(model: WaterLogCompass | DvlGyro, state: OdometryState, ground_velocity, water_velocity,
-                     heading: float, turn: float, dt: float, rng: np.random.Generator) -> OdometryState:
+                     heading: float, turn: float, dt: float, rng: np.random.Generator,
+                     sway: sway_kernel.SwayModel | None = None) -> OdometryState:
     """The state after one step of dt over which the hull held `heading` (rad, true) with the given velocities
     over ground and through water (world frame, m/s), then turned by `turn` (rad). The step is dead-reckoned
     with the heading reading at its start. Draws: water_log_compass the speed noise then the compass noise;
     dvl_gyro the two velocity noises, the rate noise, then the bias step.
 
     In plain floats, the operations of `speed_log`, `dead_reckon`, `rotate` and `gyro_heading_step` on one
-    vessel (numpy's per-call overhead would cost more than the arithmetic)."""
+    vessel (numpy's per-call overhead would cost more than the arithmetic). water_log_compass with `sway:
+    hull` (then `sway` is the hull's model) dead-reckons as the driver bridge does: the yaw rate from the two
+    compass readings, the sway from boat/sway.py, and the arc between the readings (`boat.sway.arc_step`)."""
     x, y = state.position
     c, s = math.cos(heading), math.sin(heading)
     if isinstance(model, WaterLogCompass):
@@ -302,9 +311,15 @@ def advance_odometry(model: WaterLogCompass | DvlGyro, state: OdometryState, gro
         surge = water_velocity[0] * c + water_velocity[1] * s
         noise = model.speed_noise_density / math.sqrt(dt) * z_speed
         speed = 0.0 if abs(surge) < model.dead_band else (1.0 + state.scale) * surge + noise
-        x, y = x + math.cos(state.heading) * (speed * dt), y + math.sin(state.heading) * (speed * dt)
-        reading = heading + turn + state.bias + model.compass_noise_deg * DEG * z_compass
-        return OdometryState((x, y), float(wrap_angle(reading)), state.scale, state.bias)
+        reading = float(wrap_angle(heading + turn + state.bias + model.compass_noise_deg * DEG * z_compass))
+        if model.sway == "none":
+            x, y = x + math.cos(state.heading) * (speed * dt), y + math.sin(state.heading) * (speed * dt)
+            return OdometryState((x, y), reading, state.scale, state.bias)
+        turned = float(wrap_angle(reading - state.heading))
+        rate = turned / dt
+        v = float(sway_kernel.step(sway, state.sway, speed, rate, rate - state.rate, dt))
+        x, y = sway_kernel.arc_step(x, y, state.heading, turned, speed * dt, 0.5 * (state.sway + v) * dt)
+        return OdometryState((x, y), reading, state.scale, state.bias, v, rate)
     gyro = model.gyro
     z_forward, z_left, z_rate, z_bias = rng.standard_normal(4).tolist()
     gx, gy = float(ground_velocity[0]), float(ground_velocity[1])

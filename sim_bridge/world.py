@@ -42,6 +42,7 @@ from agent.contract import nanoseconds, seconds
 from agent.core.range_noise import GaussianMixtureNoise, RangeNoise
 from agent.core.records import Command, OdometryReading
 from boat.presets import BoatPreset, preset
+from boat.sway import SwayModel
 from sim_bridge.environment import Environment, SeaState
 from sim_bridge.geometry import (
     is_simple_polygon,
@@ -221,6 +222,11 @@ class WorldConfig(StrictModel):
             raise ValueError(f"sensors: values for unknown vessels {unknown}")
         if self.environment is not None and self.dynamics is None:
             raise ValueError("environment: the water and the wind act on hulls: give world.dynamics too")
+        if getattr(self.sensors.odometry, "sway", "none") == "hull":
+            if self.dynamics is None:
+                raise ValueError("sensors: odometry sway 'hull' takes the hull model of world.dynamics: "
+                                 "give it")
+            SwayModel.of(self.dynamics.boat().hull)   # a hull without sway damping is refused here
         if self.dynamics is not None:
             period = self.dt if self.sea is None else self.sea.step_ms * 1e-3
             steps = period / (self.dynamics.step_ms * 1e-3)
@@ -319,6 +325,8 @@ class World:
         self._heading_std = math.sqrt(config.heading_variance)
         self._sensors = config.sensors
         self._odometry_model = None if config.sensors.odometry.kind == "paper" else config.sensors.odometry
+        self._sway = (SwayModel.of(config.dynamics.boat().hull)
+                      if getattr(self._odometry_model, "sway", "none") == "hull" else None)
         # The new sensor models draw from a stream of their own, spawned (the world's draws stay as they were)
         # only when one is on: the paper's world takes nothing more from the generator. The environment's
         # stream is spawned after it, so the sensors draw the same with or without one.
@@ -464,7 +472,7 @@ class World:
         ground = (dx / dt, dy / dt)
         water = ground if vessel.water_velocity is None else vessel.water_velocity
         state = advance_odometry(self._odometry_model, vessel.odometry_state, ground, water, held, turn, dt,
-                                 self._sensor_rng)
+                                 self._sensor_rng, self._sway)
         vessel.odometry_state = state
         vessel.odometry_position = _fixed(*state.position)
         vessel.odometry_heading = state.heading

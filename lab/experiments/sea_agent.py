@@ -82,7 +82,11 @@ def effect_scenario(
 
 
 def measure(scenario: Scenario, effects: PlantEffects, seed: int) -> RunFigures:
-    trace = run(scenario, seed, make_world=world_factory(effects, seed))
+    return figures(scenario, run(scenario, seed, make_world=world_factory(effects, seed)), seed)
+
+
+def figures(scenario: Scenario, trace, seed: int) -> RunFigures:
+    """One run's figures from its trace (lab/harness/runner.py's RunTrace)."""
     radius = scenario.agent.control.radius
     settling = trace.metrics.settling_time
     after = trace.time >= (settling if settling is not None else np.inf)
