@@ -12,11 +12,8 @@ Frames and units (docs/contract.md, "Odometry"):
 
 Between two samples the vessel is taken to move along a circular arc: constant turn rate from the first
 heading to the second (or, with a yaw rate input, a turn of the trapezoid of the two rates times dt), and
-distance = trapezoid of the two speeds times dt. The arc's chord has length
-ds * sin(dpsi/2) / (dpsi/2) along psi0 + dpsi/2, which is exact for a steady turn at steady speed.
-With `sway_preset` the log's surge is joined by the hull's sideslip (boat/sway.py, from the interval's mean
-speed and turn rate): velocity R(psi) (u, v_hat), the sway distance the trapezoid of the estimates, on the
-same arc (boat.sway.arc_step, which the simulated log shares).
+distance = trapezoid of the two speeds times dt, on the arc's chord (boat.sway.arc_step, exact for a steady
+turn). With `sway_preset` the hull's sideslip (boat/sway.py) joins the log's surge on the same arc.
 
 `parse_vhw` reads NMEA 0183 VHW, "water speed and heading"
 (https://gpsd.gitlab.io/gpsd/NMEA.html#_vhw_water_speed_and_heading):
