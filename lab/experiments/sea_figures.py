@@ -167,6 +167,6 @@ def verdict(summary: StateSummary, checks: list[tuple[str, str, float]]) -> list
             continue
         value = getattr(summary, figure)
         ok = value <= bound if sign == "<=" else value >= bound
-        shown = "-" if math.isnan(value) else f"{value:.3f}"
-        results.append((f"{WORDS[figure]} {shown}{UNITS.get(figure, '')} {sign} {bound:g}", bool(ok)))
+        shown = "none (no run settled)" if math.isnan(value) else f"{value:.3f}{UNITS.get(figure, '')}"
+        results.append((f"{WORDS[figure]} {shown} {sign} {bound:g}", bool(ok)))
     return results

@@ -380,11 +380,12 @@ def render(args: argparse.Namespace, table: dict, summaries: dict, figures: list
                                   for m, (words, change) in MEASURES.items()]),
                   "",
                   markdown_table(["state", "agent", "settled", "e_c after (m)", "e_ij after (m)",
-                                  "spacing after (deg)", "closest (m)", "abs(r) cmd max (deg/s)",
-                                  "within limits"],
+                                  "spacing after (deg)", "closest (m)", "u cmd max, min (m/s)",
+                                  "abs(r) cmd max (deg/s)", "within limits"],
                                  [[k[1], k[2] if k[2] == ALL else f"without {k[2]}", f"{s.settled}/{s.runs}",
                                    _f(s.e_c_after), _f(s.e_ij_after), _f(math.degrees(s.spacing_after), 1),
-                                   _f(s.closest, 2), _f(math.degrees(s.max_yaw_rate), 1),
+                                   _f(s.closest, 2), f"{_f(s.max_surge, 2)}, {_f(s.min_surge, 2)}",
+                                   _f(math.degrees(s.max_yaw_rate), 1),
                                    "yes" if s.within_limits else "**no**"] for k, s in abs_]),
                   ""]
     lines += ["## Figures", ""]
