@@ -284,10 +284,20 @@ HEADER = ["state", "settled", "settling, median (s)", "e_ij whole / after (m)", 
           "u cmd max, min (limits) (m/s)", "abs(r) cmd max (limit) (deg/s)", "within limits"]
 
 
+def _target(s: Scenario) -> str:
+    spec = s.world.target
+    velocity = getattr(spec, "velocity", None)
+    if spec.kind != "constant_velocity" or velocity is None:
+        return f"target {spec.kind}"
+    speed = math.hypot(*velocity)
+    return "target still over ground" if speed == 0.0 else f"target at {speed:g} m/s over ground"
+
+
 def _describe(s: Scenario) -> str:
     world = s.world
+    circle = f"r* {s.agent.control.radius:g} m, {_target(s)}"
     if world.dynamics is None:
-        return "the paper's kinematics (1)-(2) and odometry (5)"
+        return f"the paper's kinematics (1)-(2) and odometry (5); {circle}"
     env = world.environment
     sea = "calm water" if env is None else next((n for n, c in SEA_STATES.items() if c == env), "own water")
     sensors = world.sensors
@@ -295,8 +305,8 @@ def _describe(s: Scenario) -> str:
         ", UWB antennas and faults" if sensors.uwb is not None else "") + (
         ", camera" if sensors.camera is not None else "")
     measures = [m for m in MEASURES if file_has(s, m)] or ["none"]
-    return (f"{world.dynamics.preset} hull, {sea}, {words}; estimator {s.agent.relative.estimator.name}; "
-            f"the agent's measures on: {', '.join(measures)}")
+    return (f"{world.dynamics.preset} hull, {sea}, {words}; {circle}; estimator "
+            f"{s.agent.relative.estimator.name}; the agent's measures on: {', '.join(measures)}")
 
 
 def _acceptance(summaries: dict, table: dict, table_name: str, checks_of: dict) -> list[str]:
@@ -332,7 +342,7 @@ def render(args: argparse.Namespace, table: dict, summaries: dict, figures: list
         f"- seeds: {args.runs} per row, run r on child r of numpy's SeedSequence({first.seed}); every row "
         "(states, cold start, A/B) meets the same seeds",
         f"- duration {first.duration:g} s (cold start {_cold_duration(table)}), dt {first.world.dt:g} s, "
-        f"{len(first.world.vessels)} vessels, r* {first.agent.control.radius:g} m",
+        f"{len(first.world.vessels)} vessels",
         "",
         markdown_table(["state", "what it holds"], [[k[1], _describe(table[k])] for k, _ in states_]),
         "",
