@@ -11,6 +11,7 @@ Experiments (lab/experiments/):
     usv-lab observability   which pairs are observable, and from when, seed by seed
     usv-lab hull            the hull presets' closed-form figures and inner-loop step responses
     usv-lab sea-agent-ab    the agent's measures for the boat's lags and limits, with and without
+    usv-lab sea-states      the sea states' page: the fleet on the Otter's hull in each state, cold start, A/B
     usv-lab loop-margins    the heading loop's and the formation modes' margins under 1 s lags
 Benchmarks (lab/benchmarks/):
     usv-lab bench, fleet-bench, runtime-bench, runtime-ab, cluster-bench, sea-bench, fuzz, serial-fuzz
@@ -59,6 +60,8 @@ SUBCOMMANDS = {
                   "the fleet in the sea mode against the ideal simulation, seed by seed"),
     "sea-agent-ab": ("lab.experiments.sea_agent_ab",
                      "the agent's measures for lags, limits, compass bias and current, with and without"),
+    "sea-states": ("lab.experiments.sea_states",
+                   "the Table II fleet on the Otter's hull in each sea state vs the ideal; cold start; A/B"),
     "loop-margins": ("lab.experiments.loop_margins",
                      "phase and gain margins of the heading loop and the formation's modes under hull lags"),
 }

@@ -62,12 +62,18 @@ def settling_time(time: np.ndarray, radii: np.ndarray, radius, band: float = SET
     return float(time[0] if len(outside) == 0 else time[outside[-1] + 1])
 
 
+def gap_departures(positions: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    """The angular gaps (rad) between neighbouring vessels around `centre`, in the order of their angles, less
+    the uniform 2 pi / n: all zero when they are evenly spaced on the circle."""
+    angles = np.sort(np.arctan2(*(np.asarray(positions) - centre).T[::-1]))
+    gaps = np.diff(np.append(angles, angles[0] + 2 * math.pi))
+    return gaps - 2 * math.pi / len(angles)
+
+
 def spacing_error(positions: np.ndarray, centre: np.ndarray) -> float:
     """Largest departure (rad) of the angular gaps between the vessels around `centre` from the uniform
     2 pi / n: zero when they are evenly spaced on the circle."""
-    angles = np.sort(np.arctan2(*(np.asarray(positions) - centre).T[::-1]))
-    gaps = np.diff(np.append(angles, angles[0] + 2 * math.pi))
-    return float(np.max(np.abs(gaps - 2 * math.pi / len(angles))))
+    return float(np.max(np.abs(gap_departures(positions, centre))))
 
 
 def nan_mean(values: np.ndarray) -> float:

@@ -47,6 +47,9 @@ class RunTrace:
     estimates: np.ndarray       # (K, n, 4) each vessel's target estimate x^_io
     relative: np.ndarray        # (K, n, n, 2) vessel i's estimate p^_ij of each neighbour j
     tick_seconds: np.ndarray    # (K, n) compute time of each tick
+    # (K, n) seconds each vessel's thrust demand has spent beyond its thrusters so far
+    # (Truth.thrust_limit_time); NaN without hull dynamics
+    thrust_limit: np.ndarray | None = None
     metrics: RunMetrics | None = None
 
 
@@ -158,7 +161,7 @@ def _empty_trace(scenario: Scenario, seed: int, ids: list[str], steps: int) -> R
         e_ij=nan(steps, np.nan), e_io=nan(steps, np.nan), e_io_velocity=nan(steps, np.nan),
         e_c=nan(steps, np.nan), radii=nan((steps, n), np.nan), commands=nan((steps, n, 2), np.nan),
         estimates=nan((steps, n, 4), np.nan), relative=nan((steps, n, n, 2), np.nan),
-        tick_seconds=nan((steps, n), np.nan),
+        tick_seconds=nan((steps, n), np.nan), thrust_limit=nan((steps, n), np.nan),
     )
 
 
@@ -168,6 +171,8 @@ def _record(trace: RunTrace, k: int, truth: Truth, records: dict[str, TickRecord
     would do) and every length of the tick goes through one np.hypot call: numpy's per-call overhead on
     2-vectors, not the arithmetic, was the cost (n (n - 1) + 3 n calls per tick)."""
     trace.target[k] = truth.target_position
+    for i, seconds in truth.thrust_limit_time.items():
+        trace.thrust_limit[k, index[i]] = seconds
     tx, ty = truth.target_position.tolist()
     tvx, tvy = truth.target_velocity.tolist()
     where = {i: position.tolist() for i, position in truth.positions.items()}

@@ -165,3 +165,32 @@ def _merged(events: list[tuple[float, str]]) -> list[tuple[float, str]]:
     for when, text in events:
         texts.setdefault(when, []).append(text)
     return [(when, ", ".join(parts)) for when, parts in texts.items()]
+
+
+def radius_spacing_figure(panels: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray, float]], title: str,
+                          path: Path) -> Path:
+    """One panel per variant: each vessel's distance to the target over time (radii (K, n)) with the band
+    r* ± 10 %, and on a second axis the spacing error (K,) in degrees; `panels` maps a variant to (time,
+    radii, spacing error (rad), r*)."""
+    plt = _pyplot()
+    rows, columns = _grid(len(panels))
+    fig, axes = plt.subplots(rows, columns, figsize=(4.8 * columns, 3.4 * rows), dpi=110, squeeze=False,
+                             layout="constrained")
+    for ax, (name, (time, radii, spacing, radius)) in zip(axes.flat, panels.items()):
+        colours = _colours("tab10", radii.shape[1])
+        ax.axhspan(0.9 * radius, 1.1 * radius, color="0.85", lw=0)
+        for n in range(radii.shape[1]):
+            ax.plot(time, radii[:, n], color=colours[n], lw=1.0)
+        ax.set_ylim(0.0, max(2.0 * radius, float(np.nanmax(np.minimum(radii, 4.0 * radius)))))
+        ax.set_xlabel("time (s)")
+        ax.set_ylabel("distance to the target (m)")
+        ax.grid(True, alpha=0.3)
+        twin = ax.twinx()
+        twin.plot(time, np.degrees(spacing), color="k", ls=":", lw=1.0)
+        twin.set_ylabel("spacing error (deg, dotted)")
+        twin.set_ylim(bottom=0.0)
+        ax.set_title(LABELS.get(name, name), fontsize=10)
+    for ax in list(axes.flat)[len(panels):]:
+        ax.set_visible(False)
+    fig.suptitle(title)
+    return _save(plt, fig, path)
