@@ -11,8 +11,10 @@ import pytest
 
 from agent.config import updated
 from agent.core.control.formation import lag_compensated_rate
+from agent.core.command import control_command
 from agent.core.control.separation import coasting_distance
 from agent.core.odometry_noise import displacement_variance
+from agent.core.params import ControlParams
 from agent.core.records import Command
 from lab.experiments.loop_margins import _frequencies, margins, plant
 from lab.experiments.sea_agent import COPING, effect_scenario, measure
@@ -166,3 +168,32 @@ def test_the_margins_of_a_sampled_integrator_are_the_closed_form():
         expected = 2.0 / 0.1 * math.asin(gain * 0.1 / 2.0)
         assert crossover == pytest.approx(expected, rel=1e-3)
         assert margin == pytest.approx(90.0 - math.degrees(expected * 0.1 / 2.0), abs=0.05)
+
+
+@pytest.mark.parametrize("seed", [41, 42])
+def test_no_command_goes_beyond_the_boats_turn_rate_or_astern_limit(seed):
+    """Over random situations (estimates, target, obstacles, heading, the lag-compensated loop on and off) the
+    command stays within boat_max_yaw_rate and boat_max_astern, and they bite: without them some commands go
+    beyond."""
+    rng = np.random.default_rng(seed)
+    bounded = ControlParams(boat_max_yaw_rate=0.3, boat_max_astern=1.0, max_speed=3.0)
+    beyond = {"rate": 0, "astern": 0}
+    for k in range(400):
+        lag = {"yaw_lag": 1.0} if k % 2 else {}
+        phase = rng.uniform(-math.pi, math.pi)
+        args = (0.1, phase, phase + math.pi / 300, rng.uniform(-math.pi, math.pi),
+                np.append(rng.normal(0, 8, 2), rng.normal(0, 0.5, 2)), rng.normal(0, 1, 2),
+                {j: rng.normal(0, 8, 2) for j in "234"}, {j: rng.uniform(0, 2 * math.pi) for j in "234"},
+                rng.normal(0, 4, (3, 2)) if k % 3 == 0 else None)
+        free, _, _ = control_command(updated(ControlParams(max_speed=3.0), **lag), *args, yaw_rate_estimate=0.1)
+        command, _, saturated = control_command(updated(bounded, **lag), *args, yaw_rate_estimate=0.1)
+        assert abs(command.yaw_rate) <= 0.3 and -1.0 <= command.surge <= 3.0
+        assert math.isfinite(command.surge) and math.isfinite(command.yaw_rate)
+        if free.surge < -1.0:
+            beyond["astern"] += 1
+            assert command.surge == -1.0 and saturated["speed"]
+        if abs(free.yaw_rate) > 0.3:
+            beyond["rate"] += 1
+        else:
+            assert command.yaw_rate == free.yaw_rate
+    assert beyond["astern"] >= 20 and beyond["rate"] >= 20, beyond

@@ -167,6 +167,7 @@ def test_the_ab_turns_every_measure_on_keeps_the_files_values_and_turns_one_off(
     control = full.agent.control
     assert control.gain_target == 0.4 and control.gain_neighbour == AgentParams().control.gain_neighbour
     assert control.boat_max_yaw_rate == 0.3 and control.max_speed == 3.0    # the Otter preset's bounds
+    assert control.boat_max_astern == 1.0
     for measure in sea_states.MEASURES:
         off = sea_states.without(full, measure)
         assert [m for m in sea_states.MEASURES if not sea_states.file_has(off, m)] == [measure]

@@ -46,7 +46,8 @@ def control_command(c: ControlParams, dt: float, phase: float, next_phase: float
     (35) sums and saturates; then the safety filter after (35), then (surge, yaw rate). Returns (command,
     its velocity terms, which limits saturated). With `c.yaw_lag` > 0 the yaw rate is the lag-compensated
     heading loop's, from the boat's rate as the agent models it (`yaw_rate_estimate`); with
-    `c.boat_max_yaw_rate` it is clipped to the boat's turn-rate limit."""
+    `c.boat_max_yaw_rate` it is clipped to the boat's turn-rate limit, with `c.boat_max_astern` the surge to
+    its astern limit."""
     ox, oy = desired_offset(c.radius, phase)
     usable = [j for j, estimate in estimates.items() if estimate is not None and j in neighbour_phases]
     gain = neighbour_gain(len(usable), c.gain_neighbour, c.neighbour_gain_cap)
@@ -85,11 +86,15 @@ def control_command(c: ControlParams, dt: float, phase: float, next_phase: float
         yaw_rate = c.yaw_rate + min(max(correction, -c.max_correction_yaw_rate), c.max_correction_yaw_rate)
     if c.boat_max_yaw_rate is not None and abs(yaw_rate) > c.boat_max_yaw_rate:
         yaw_rate, yaw_saturated = math.copysign(c.boat_max_yaw_rate, yaw_rate), True
+    # Before the separation guard, whose interval always holds 0: clipping here never undoes it.
+    astern = c.boat_max_astern is not None and surge < -c.boat_max_astern
+    if astern:
+        surge = -c.boat_max_astern
     saturated = {
         "formation": formation_bounded is not formation,
         "avoidance": avoidance_bounded is not avoidance,
         "yaw_rate": yaw_saturated,
-        "speed": abs(surge) >= c.max_speed,
+        "speed": abs(surge) >= c.max_speed or astern,
         "safety_filter": filtered,
     }
     terms = VelocityTerms(formation, tracking, avoidance, command_velocity - unfiltered, command_velocity)

@@ -61,9 +61,10 @@ MEASURES = {
     "heading loop": ("lag-compensated heading loop", lambda s: _control("yaw_lag", "heading_bandwidth")),
     "odometry noise": ("the pair filters' odometry noise from the sensors' specification",
                        lambda s: ODOMETRY),
-    "limits": ("no command beyond the hull preset's turn rate and speed",
+    "limits": ("no command beyond the hull preset's turn rate and speeds ahead and astern",
                lambda s: {"control": {"boat_max_yaw_rate": command_limits(s).max_yaw_rate,
-                                      "max_speed": command_limits(s).max_surge}}),
+                                      "max_speed": command_limits(s).max_surge,
+                                      "boat_max_astern": command_limits(s).max_reverse}}),
     "coasting": ("the separation guard keeps the coasting distance", lambda s: _control("surge_lag")),
 }
 # (state, measure) pairs of the A/B: calm has the hull's lags and limits alone; moderate has everything (the
