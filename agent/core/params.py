@@ -89,6 +89,8 @@ class ControlParams(StrictModel):
     heading_damping: PositiveFloat = Field(0.8, description="zeta of the lag-compensated heading loop")
     boat_max_yaw_rate: PositiveFloat | None = Field(
         None, description="the boat's turn-rate limit (rad/s): no command exceeds it; None: no limit")
+    leeway_time_constant: NonNegativeFloat = Field(
+        0.0, description="time constant of the leeway model the command steers against (s); 0: none")
     surge_lag: NonNegativeFloat = Field(
         0.0, description="the boat's surge time constant tau_u (s): the separation guard adds its coasting "
                          "distance |u| tau_u; 0: none")
