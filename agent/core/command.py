@@ -39,8 +39,8 @@ class VelocityTerms:
 def control_command(c: ControlParams, dt: float, phase: float, next_phase: float, heading: float,
                     target_state: np.ndarray | None, own_velocity: np.ndarray,
                     estimates: dict[str, np.ndarray | None], neighbour_phases: dict[str, float],
-                    obstacles: np.ndarray | None, yaw_rate_estimate: float = 0.0
-                    ) -> tuple[Command, VelocityTerms, dict[str, bool]]:
+                    obstacles: np.ndarray | None, yaw_rate_estimate: float = 0.0,
+                    sway: float = 0.0) -> tuple[Command, VelocityTerms, dict[str, bool]]:
     """The command for this tick: the desired offsets (27), (29) and their errors (30), (31), (32) pull
     towards the neighbours and the target, (33) adds the target's estimated velocity, (34) the avoidance,
     (35) sums and saturates; then the safety filter after (35), then (surge, yaw rate). Returns (command,
@@ -71,6 +71,10 @@ def control_command(c: ControlParams, dt: float, phase: float, next_phase: float
     formation_bounded = saturate(c.max_formation_speed, formation)
     avoidance_bounded = saturate(c.max_avoidance_speed, avoidance)
     command_velocity = formation_bounded + tracking + avoidance_bounded        # (35)
+    if sway != 0.0:
+        # The hull goes along its heading at the surge asked and across it at the sway the wind gives it
+        # (leeway): ask for the velocity less that sway, so that the sum is the velocity wanted.
+        command_velocity = command_velocity - sway * np.array([-math.sin(heading), math.cos(heading)])
     filtered, unfiltered = False, command_velocity
     if c.safety_filter:
         command_velocity, filtered = safety_filter(command_velocity, obstacles, c.min_clearance, c.clearance_rate)

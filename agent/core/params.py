@@ -91,6 +91,8 @@ class ControlParams(StrictModel):
         None, description="the boat's turn-rate limit (rad/s): no command exceeds it; None: no limit")
     boat_max_astern: PositiveFloat | None = Field(
         None, description="the boat's astern speed limit (m/s): no command goes astern faster; None: max_speed")
+    leeway_time_constant: NonNegativeFloat = Field(
+        0.0, description="time constant of the leeway model the command steers against (s); 0: none")
     surge_lag: NonNegativeFloat = Field(
         0.0, description="the boat's surge time constant tau_u (s): the separation guard adds its coasting "
                          "distance |u| tau_u; 0: none")

@@ -49,6 +49,8 @@ class OwnMotion:
     stamp: float | None = None
     position: np.ndarray | None = None
     yaw_rate: float = 0.0      # the boat's yaw rate as the agent models it (control.yaw_lag > 0)
+    # w of the leeway model sway = w . n(heading) (control.leeway_time_constant > 0; control/leeway.py)
+    leeway: np.ndarray = field(default_factory=lambda: np.zeros(2))
 
 
 @dataclass

@@ -22,6 +22,7 @@ import numpy as np
 
 from agent.core.checks import finite_vector, obstacle_array, valid_range
 from agent.core.command import control_command
+from agent.core.control.leeway import leeway_sway, leeway_update
 from agent.core.control.oscillator import oscillator_step
 from agent.core.control.separation import coasting_distance, guarded_surge
 from agent.core.cooperation import fuse_reciprocal, fuse_targets, swap_velocity
@@ -117,9 +118,16 @@ def step(params: AgentParams, state: VesselState, inputs: TickInputs) -> tuple[V
     obstacles, malformed = obstacle_array(inputs.obstacle_points)
     if malformed:
         health.bad_obstacles += 1
+    sway = 0.0
+    if control.leeway_time_constant > 0.0:
+        # The wind's leeway: the sway over ground the odometry showed over the last period, fitted by heading.
+        if velocity_change is not None:
+            state.motion.leeway = leeway_update(state.motion.leeway, state.motion.velocity, odometry.heading,
+                                                1.0 - math.exp(-elapsed / control.leeway_time_constant))
+        sway = leeway_sway(state.motion.leeway, odometry.heading)
     command, terms, saturated = control_command(
         control, params.dt, state.phase, next_phase, odometry.heading, target_state, state.motion.velocity,
-        localised, neighbour_phases, obstacles, state.motion.yaw_rate)
+        localised, neighbour_phases, obstacles, state.motion.yaw_rate, sway)
     command = _keep_apart(params, state, inputs.ranges, localised, medians, distances, estimated,
                           odometry.heading, command)
     if not (math.isfinite(command.surge) and math.isfinite(command.yaw_rate)):
