@@ -13,6 +13,9 @@ Experiments (lab/experiments/):
     usv-lab sea-agent-ab    the agent's measures for the boat's lags and limits, with and without
     usv-lab sea-states      the sea states' page: the fleet on the Otter's hull in each state, cold start, A/B
     usv-lab loop-margins    the heading loop's and the formation modes' margins under 1 s lags
+    usv-lab sea-sway        the coping agent on the sea states, with and without the sideslip correction
+    usv-lab sea-wind        the wind's leeway: odometry, radius and the leeway model, with and without
+    usv-lab driver-loop     the driver bridge's inner loop on the Otter, the rate from a VHW compass
 Benchmarks (lab/benchmarks/):
     usv-lab bench, fleet-bench, runtime-bench, runtime-ab, cluster-bench, sea-bench, fuzz, serial-fuzz
 
@@ -64,6 +67,12 @@ SUBCOMMANDS = {
                    "the Table II fleet on the Otter's hull in each sea state vs the ideal; cold start; A/B"),
     "loop-margins": ("lab.experiments.loop_margins",
                      "phase and gain margins of the heading loop and the formation's modes under hull lags"),
+    "sea-sway": ("lab.experiments.sea_sway:table",
+                 "the coping agent on the sea states, with and without the speed log's sideslip correction"),
+    "sea-wind": ("lab.experiments.sea_wind:table",
+                 "the wind's leeway: the odometry, r* and the agent's leeway model, with and without"),
+    "driver-loop": ("lab.experiments.driver_loop",
+                    "the driver bridge's inner loop on a hull preset, the yaw rate from a VHW compass"),
 }
 
 

@@ -11,6 +11,7 @@ change of a $THR value from one line to the next over the last 5 s (the thruster
 
 from __future__ import annotations
 
+import argparse
 import math
 
 import numpy as np
@@ -75,5 +76,10 @@ def table(name: str = "otter") -> str:
     return "\n".join(rows)
 
 
-if __name__ == "__main__":
-    print(table())
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--preset", default="otter", help="the boat preset (boat/presets.py)")
+
+
+def run(args: argparse.Namespace) -> int:
+    print(table(args.preset))
+    return 0

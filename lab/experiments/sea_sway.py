@@ -13,7 +13,6 @@ markdown table: the figures of sea_agent.summary.
 from __future__ import annotations
 
 import argparse
-import sys
 
 from agent.config import deep_merge
 from lab.experiments.sea_agent import COPING, ROOT, figures, summary
@@ -45,8 +44,7 @@ def scenario(variant: str, sway: str, target: str, radius: float | None, max_spe
     return Scenario.model_validate(data)
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def add_table_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     parser.add_argument("--variants", nargs="+", default=["calm", "current", "gradient", "wind", "waves",
                                                           "moderate"])
@@ -58,7 +56,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--max-speed", type=float,
                         help="the agent's control.max_speed (m/s); default the variant's")
     parser.add_argument("--as-written", action="store_true", help="run the variants as the file holds them")
-    args = parser.parse_args(argv)
+
+
+def run_table(args: argparse.Namespace) -> int:
     limit = "the variant's" if args.max_speed is None else f"{args.max_speed:g} m/s"
     print(f"seeds {' '.join(map(str, args.seeds))}, control.max_speed {limit}")
     if args.as_written:
@@ -86,7 +86,3 @@ def main(argv: list[str] | None = None) -> int:
                           f"{f['runs']} | {f['e_c']:.3f} | {f['e_ij']:.3f} | {f['closest']:.2f} | "
                           f"{f['max_surge']:.2f} | {f['max_yaw_rate']:.3f} |", flush=True)
     return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -14,7 +14,6 @@ a + b cos(theta - phi), theta the bearing of the vessel from the target).
 from __future__ import annotations
 
 import argparse
-import sys
 
 import numpy as np
 
@@ -56,8 +55,7 @@ def orbit_amplitude(trace, radius: float) -> float:
     return float(np.mean(amplitudes))
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def add_table_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
     parser.add_argument("--odometry", nargs="+", default=["as-written", "paper"],
                         help="as-written, paper, or a sensors preset (realistic_dvl)")
@@ -66,7 +64,9 @@ def main(argv: list[str] | None = None) -> int:
                         help="control.leeway_time_constant (s); 0: no leeway model")
     parser.add_argument("--wind-speed", type=float, help="the wind's mean (m/s); default the state's 8")
     parser.add_argument("--gust-gain", type=float, help="the gust's gain (m/s); default the state's 2")
-    args = parser.parse_args(argv)
+
+
+def run_table(args: argparse.Namespace) -> int:
     print(f"seeds {' '.join(map(str, args.seeds))}, wind {args.wind_speed or 'as written'}, "
           f"gust gain {'as written' if args.gust_gain is None else args.gust_gain}")
     print("| odometry | r* (m) | leeway T (s) | settled | e_c after (m) | mean abs(r - r*) last 10 s (m) "
@@ -83,7 +83,3 @@ def main(argv: list[str] | None = None) -> int:
                       f"{f['e_c']:.3f} | {f['radius_error']:.3f} | {b:.2f} | {f['closest']:.2f} |",
                       flush=True)
     return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())
