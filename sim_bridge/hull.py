@@ -14,7 +14,8 @@ substep the environment moves to its time (`advance`), the inner loop runs (ever
 the speed through the water u_r, as a speed log measures it, and the turn rate r),
 its (X, N) go through allocation and the thrusters' lag, then one RK4 step of the model with the thrust
 (its mean over the substep), the current and the loads held over the substep. Up to SMALL_FLEET hulls are
-advanced one by one in plain floats (`rk4_one`), more as arrays: the same operations, the same numbers. docs/sea.md ("Hull dynamics") holds the derivation and figures.
+advanced one by one in plain floats (`rk4_one`), more as arrays: the same operations, the same numbers.
+docs/sea.md ("Hull dynamics") holds the derivation and figures.
 """
 
 from __future__ import annotations
