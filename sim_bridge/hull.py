@@ -144,7 +144,8 @@ class CalmWater:
 
 
 # Up to this many hulls advance in plain floats (`HullFleet._advance_floats`), more as arrays: one hull's
-# substep costs about 15 us in floats, a fleet's about 150 us in numpy calls whatever its size (docs/sea.md).
+# substep costs about 18 us in floats, a fleet's about 175 us in numpy calls whatever its size: the two meet
+# at about 12 hulls (docs/sea.md, "What it costs").
 SMALL_FLEET = 10
 
 
@@ -248,7 +249,7 @@ class HullFleet:
                 cx, cy = env.current(now, x, y)
                 self.current = np.array([cx, cy], dtype=float)
                 currents = self.current.T.tolist()
-                u_g, v_g = self.body_velocity_of(states, currents)
+                u_g, v_g = self._body_velocity_of(states, currents)
                 lx, ly, ln = env.loads(now, x, y, psi, np.array(u_g), np.array(v_g), boat.windage)
                 loads = list(zip(*(np.broadcast_to(np.asarray(load, dtype=float), (count,)).tolist()
                                    for load in (lx, ly, ln))))
@@ -283,7 +284,7 @@ class HullFleet:
         self.saturated_time, self._saturated_step = np.array(saturated_time), np.array(saturated_step)
 
     @staticmethod
-    def body_velocity_of(states: list[list[float]], currents: list[list[float]]) -> tuple[list[float], list[float]]:
+    def _body_velocity_of(states: list[list[float]], currents: list[list[float]]) -> tuple[list[float], list[float]]:
         """`body_velocity`'s (u, v) of hulls given as floats, in its order of operations."""
         u_g, v_g = [], []
         for (_, _, psi, u, v, _), (cx, cy) in zip(states, currents):

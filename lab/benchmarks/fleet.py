@@ -1,9 +1,10 @@
 """`usv-lab fleet-bench`: what the fleet simulation costs. A benchmark, not a test: it asserts no time.
 
-(a) The wall time of the whole Table II Monte Carlo, through the same process pool as `usv-lab scenario`, with
-    the paper's kinematic vessels and again with a hull preset's dynamics overlaid on the same runs and seeds
-    (`world.dynamics: {preset: otter}`, nothing else changed), and their ratio; then, in this process, a few
-    of its runs alternately kinematic and on the hull, their CPU time split into World.step and the agents.
+(a) The CPU time of the whole Table II Monte Carlo, through the same engine as `usv-lab scenario`, with the
+    paper's kinematic vessels and with a hull preset's dynamics overlaid on the same runs and seeds
+    (`world.dynamics: {preset: otter}`, nothing else changed), the two side by side in one job list, and
+    their ratio; then, in this process, a few of its runs alternately kinematic and on the hull, their CPU
+    time split into World.step and the agents.
 (b) The compute time of one vessel's tick (`RunTrace.tick_seconds`) for fleets of n vessels on each pair
     estimator asked for (the paper's MCKF and the agent's default by default), built from the
     Table IV base (constant-velocity target, U_v = 10, U_vf = 3) with r* = 20 m for every n, so that the rows
@@ -24,7 +25,7 @@ from agent.config import ConfigError, deep_merge, parse_mapping, updated
 from agent.core.estimators import estimator_names
 from boat.presets import PRESETS
 from lab import arguments
-from lab.experiments.scenarios import DEFAULT_DIR, load, resolve, run_monte_carlo
+from lab.experiments.scenarios import DEFAULT_DIR, load, resolve
 from lab.harness.parallel import add_engine_arguments, campaign_notes, engine_from, report_failures
 from lab.harness.runner import run as run_scenario
 from lab.report.markdown import invocation, machine, markdown_table
@@ -43,8 +44,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_engine_arguments(parser)   # for the Monte Carlo part; the tick-time part runs here
     parser.add_argument("--preset", choices=sorted(PRESETS), default="otter",
                         help="hull preset overlaid on the Monte Carlo's runs (world.dynamics) for its second timing")
-    parser.add_argument("--repeats", type=arguments.positive_int, default=1,
-                        help="times each Monte Carlo is run, alternately kinematic and on the hull (medians shown)")
     parser.add_argument("--cpu-runs", type=arguments.positive_int, default=3,
                         help="runs of the Monte Carlo's --cpu-variant timed in process, each kinematic and on the hull")
     parser.add_argument("--cpu-variant", default="mckf", help="variant of the Monte Carlo file those runs come from")
@@ -127,6 +126,27 @@ class TimedWorld(World):
         self.seconds += time.process_time() - started
 
 
+def monte_carlo_pairs(variants: dict[str, Scenario], preset: str) -> list[tuple[str, Scenario, np.random.SeedSequence]]:
+    """The Monte Carlo's runs (every variant, each run's own seed, as `usv-lab scenario` draws them), each
+    kinematic and then on `preset`'s hull, side by side in one job list: a change of the machine's load in the
+    middle of the campaign then falls on both alike."""
+    jobs = []
+    for scenario in variants.values():
+        hull = on_hull(scenario, preset)
+        for seed in np.random.SeedSequence(scenario.seed).spawn(scenario.runs):
+            jobs += [("kinematic", scenario, seed), (preset, hull, seed)]
+    return jobs
+
+
+def timed_run(job: tuple[str, Scenario, np.random.SeedSequence]) -> tuple[str, float]:
+    """(label, CPU seconds of the run in the worker that ran it: time.process_time, which the other processes
+    on the machine do not inflate as they do the wall time)."""
+    label, scenario, seed = job
+    started = time.process_time()
+    run_scenario(scenario, seed)
+    return label, time.process_time() - started
+
+
 def cpu_split(scenario: Scenario, seed: np.random.SeedSequence) -> tuple[float, float, float, float]:
     """CPU seconds of one run in this process: (whole run, World.step, the agents' ticks, the rest)."""
     worlds: list[TimedWorld] = []
@@ -166,30 +186,29 @@ def run(args: argparse.Namespace) -> int:
               for fleet in fleet_scenarios(scale_spec.base, scale_variants, args.sizes, args.duration, args.seed,
                                            name)]
 
-    hull_variants = {name: on_hull(scenario, args.preset) for name, scenario in mc_variants.items()}
-    jobs = sum(s.runs for s in mc_variants.values())
-    seconds: dict[str, list[float]] = {"kinematic": [], args.preset: []}
-    with engine_from(args) as engine:
-        engine.prepare("lab.experiments.scenarios")   # a cluster's workers import before the clock runs, as a fork has
-        for repeat in range(args.repeats):   # alternately, so that a drift of the machine's load hits both
-            order = [("kinematic", mc_variants), (args.preset, hull_variants)]
-            for label, variants in order if repeat % 2 == 0 else order[::-1]:
-                with tqdm(total=jobs, unit="run", desc=f"Monte Carlo, {label}", dynamic_ncols=True) as bar:
-                    started = time.perf_counter()
-                    run_monte_carlo({mc_path.stem: variants}, engine, bar.update)
-                    seconds[label].append(time.perf_counter() - started)
+    jobs = monte_carlo_pairs(mc_variants, args.preset)
+    cpu: dict[str, list[float]] = {"kinematic": [], args.preset: []}
+
+    def keep(index: int, outcome: tuple[str, float] | None) -> None:
+        if outcome is not None:
+            cpu[outcome[0]].append(outcome[1])
+
+    with engine_from(args) as engine, tqdm(total=len(jobs), unit="run", desc="Monte Carlo", dynamic_ncols=True) as bar:
+        engine.prepare("lab.benchmarks.fleet")   # a cluster's workers import before the clock runs, as a fork has
+        started = time.perf_counter()
+        engine.map(timed_run, jobs, bar.update, lambda n: f"{jobs[n][0]} run {n // 2}", consume=keep)
+        mc_seconds = time.perf_counter() - started
         where = engine.where()
     runs = sorted({s.runs for s in mc_variants.values()})
-    kinematic, hull = (statistics.median(seconds[label]) for label in ("kinematic", args.preset))
-    mc_rows = [[mc_path.name, label, len(mc_variants), "/".join(map(str, runs)), jobs,
-                "/".join(f"{d:g}" for d in sorted({s.duration for s in mc_variants.values()})), where,
-                f"{statistics.median(times):.1f}", f"{statistics.median(times) / jobs:.2f}",
-                " ".join(f"{t:.1f}" for t in times)]
-               for label, times in seconds.items()]
+    kinematic, hull = (sum(cpu[label]) for label in ("kinematic", args.preset))
     mc_table = markdown_table(
-        ["scenario file", "vessels", "variants", "runs per variant", "runs", "simulated s per run", "ran on",
-         "wall time (s)", "wall time per run (s)", "each repeat (s)"], mc_rows)
-    mc_table = "\n".join([mc_table, "", f"Ratio {args.preset} / kinematic: **{hull / kinematic:.2f}**",
+        ["scenario file", "vessels", "variants", "runs per variant", "runs", "simulated s per run",
+         "CPU of the runs (s)", "CPU per run (s)"],
+        [[mc_path.name, label, len(mc_variants), "/".join(map(str, runs)), len(times),
+          "/".join(f"{d:g}" for d in sorted({s.duration for s in mc_variants.values()})),
+          f"{sum(times):.1f}", f"{sum(times) / max(len(times), 1):.2f}"] for label, times in cpu.items()])
+    mc_table = "\n".join([mc_table, "", f"Ratio {args.preset} / kinematic: **{hull / kinematic:.2f}**. The "
+                          f"campaign of both ({len(jobs)} runs) took {mc_seconds:.1f} s of wall time on {where}.",
                           *campaign_notes(engine)])
 
     base = mc_variants.get(args.cpu_variant)
@@ -243,13 +262,13 @@ def render(command: str, mc_table: str, cpu_table: str, tick_table: str, args: a
         "",
         "## Table II Monte Carlo",
         "",
-        "Every run of every estimator variant through the engine of `usv-lab scenario` (the same job "
-        "list, seeds and chunking; this machine's process pool unless --cluster), timed from the first job to "
-        "the last result; no pages or figures. Once with the paper's kinematic vessels (1), (2), once with "
-        f"`world.dynamics: {{preset: {args.preset}}}` overlaid on every run (docs/sea.md: Fossen's 3-DOF hull "
-        "behind its thrusters and inner loop, in calm water), nothing else changed: the same estimators, "
-        "sensors and seeds, so the ratio is what the hull costs. Each Monte Carlo ran "
-        f"{args.repeats} time(s), alternately; the wall time is the median.",
+        "Every run of every estimator variant (the seeds of `usv-lab scenario`) through its engine (this "
+        "machine's process pool unless --cluster), twice: with the paper's kinematic vessels (1), (2), and with "
+        f"`world.dynamics: {{preset: {args.preset}}}` overlaid (docs/sea.md: Fossen's 3-DOF hull behind its "
+        "thrusters and inner loop, in calm water), nothing else changed: the same estimators, sensors and "
+        "seeds, so the ratio is what the hull costs. The two versions of each run are side by side in one job "
+        "list, and each run's CPU time is taken in its worker (time.process_time): on a machine shared with "
+        "other jobs the wall time of one campaign and then the other measured mostly the change of load.",
         "",
         mc_table,
         "",
