@@ -7,7 +7,8 @@ Each thrust lies in [-R, F] (R: the reverse limit, as a magnitude). Saturation k
 driver bridge's mixer does: with mean m = X/2 and half-difference h = N/(2b), h is clipped to +-(F + R)/2,
 then m to [-R + |h|, F - |h|]. The thrust follows its demand with the first-order lag T dT/dt = T_d - T,
 integrated exactly over a step dt: T += (T_d - T)(1 - exp(-dt/T)), whose mean over the step is
-T_d + (T_0 - T_d)(T/dt)(1 - exp(-dt/T)) (`mean_over`). Arrays of shape (n,) throughout.
+T_d + (T_0 - T_d)(T/dt)(1 - exp(-dt/T)) (`mean_over`). Arrays of shape (n,) throughout, or plain floats
+(one boat; the same numbers).
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ import math
 
 import numpy as np
 
+from boat.elementwise import bound, clip
 from boat.presets import Thrusters
 
 
@@ -24,15 +26,20 @@ def allocate(thrusters: Thrusters, force: np.ndarray, moment: np.ndarray
     """(T_p, T_s, saturated): the thrust pair for the demanded (X, N), saturated turn first; `saturated` is
     True where the pair could not give (X, N) exactly. Non-finite demands give zero thrust, saturated."""
     b, f, r = thrusters.half_beam, thrusters.max_forward, thrusters.max_reverse
-    finite = np.isfinite(force) & np.isfinite(moment)
-    if not finite.all():
-        force, moment = np.where(finite, force, 0.0), np.where(finite, moment, 0.0)
+    if type(force) is float and type(moment) is float:   # one boat in plain floats
+        lost = not (math.isfinite(force) and math.isfinite(moment))
+        if lost:
+            force = moment = 0.0
+    else:
+        finite = np.isfinite(force) & np.isfinite(moment)
+        lost = ~finite
+        if not finite.all():
+            force, moment = np.where(finite, force, 0.0), np.where(finite, moment, 0.0)
     mean, half = force * 0.5, moment * (0.5 / b)
-    spread = 0.5 * (f + r)
-    half_c = np.minimum(np.maximum(half, -spread), spread)
-    room = np.abs(half_c)
-    mean_c = np.minimum(np.maximum(mean, room - r), f - room)
-    saturated = (half_c != half) | (mean_c != mean) | ~finite
+    half_c = clip(half, 0.5 * (f + r))
+    room = abs(half_c)
+    mean_c = bound(mean, room - r, f - room)
+    saturated = (half_c != half) | (mean_c != mean) | lost
     return mean_c - half_c, mean_c + half_c, saturated
 
 

@@ -17,7 +17,7 @@ Experiments (lab/experiments/):
     usv-lab sea-wind        the wind's leeway: odometry, radius and the leeway model, with and without
     usv-lab driver-loop     the driver bridge's inner loop on the Otter, the rate from a VHW compass
 Benchmarks (lab/benchmarks/):
-    usv-lab bench, fleet-bench, runtime-bench, runtime-ab, cluster-bench, sea-bench, fuzz, serial-fuzz
+    usv-lab bench, fleet-bench, runtime-bench, runtime-ab, hull-ab, cluster-bench, sea-bench, fuzz, serial-fuzz
 
 A subcommand is a module with `add_arguments(parser)` and `run(args) -> exit code`, or, for a module of
 several, `add_<name>_arguments` and `run_<name>` (SUBCOMMANDS names them `module:name`).
@@ -56,6 +56,8 @@ SUBCOMMANDS = {
                       "the same Monte Carlo campaign on the process pool and a local Dask cluster"),
     "runtime-ab": ("lab.benchmarks.runtime_ab",
                    "what one change to the runtime bought: alternating runs before and after it"),
+    "hull-ab": ("lab.benchmarks.hull_ab",
+                "what one change to the hull world bought: Table II kinematic and on the Otter, before and after"),
     "fuzz": ("lab.benchmarks.fuzz", "fuzz campaign over Zenoh: bad payloads on every key one agent reads"),
     "serial-fuzz": ("lab.benchmarks.serial_fuzz",
                     "the serial side of the fuzz campaign alone: bad lines per parser"),

@@ -13,11 +13,14 @@ only fall: d/dt = -nu^T D nu.
 substep the environment moves to its time (`advance`), the inner loop runs (every `loop_every` substeps, on
 the speed through the water u_r, as a speed log measures it, and the turn rate r),
 its (X, N) go through allocation and the thrusters' lag, then one RK4 step of the model with the thrust
-(its mean over the substep), the current and the loads held over the substep. docs/sea.md ("Hull dynamics") holds the derivation and figures.
+(its mean over the substep), the current and the loads held over the substep. Up to SMALL_FLEET hulls are
+advanced one by one in plain floats (`rk4_one`), more as arrays: the same operations, the same numbers.
+docs/sea.md ("Hull dynamics") holds the derivation and figures.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -37,6 +40,8 @@ class Model:
     inverse: np.ndarray   # (3, 3): M^-1
     linear: np.ndarray    # (3, 1): -X_u, -Y_v, -N_r
     quadratic: np.ndarray  # (3, 1): -X_|u|u, -Y_|v|v, -N_|r|r
+    columns: tuple[np.ndarray, ...] = ()   # M^-1's three columns, (3, 1) each
+    floats: tuple[float, ...] = ()   # the same as plain floats, for `rk4_one`: m11, m22, m23, M^-1 (9), d (3), d2 (3)
 
     @classmethod
     def of(cls, hull: Hull) -> Model:
@@ -45,10 +50,12 @@ class Model:
         m23 = hull.mass * hull.x_g
         m33 = hull.yaw_inertia + hull.added_mass_yaw
         inverse = np.linalg.inv(np.array([[m11, 0.0, 0.0], [0.0, m22, m23], [0.0, m23, m33]]))
-        return cls(m11, m22, m23, m33, inverse,
-                   np.array([[hull.surge_damping], [hull.sway_damping], [hull.yaw_damping]]),
-                   np.array([[hull.surge_damping_quadratic], [hull.sway_damping_quadratic],
-                             [hull.yaw_damping_quadratic]]))
+        linear = np.array([[hull.surge_damping], [hull.sway_damping], [hull.yaw_damping]])
+        quadratic = np.array([[hull.surge_damping_quadratic], [hull.sway_damping_quadratic],
+                              [hull.yaw_damping_quadratic]])
+        floats = (m11, m22, m23, *inverse.ravel().tolist(), *linear.ravel().tolist(), *quadratic.ravel().tolist())
+        columns = tuple(inverse[:, j:j + 1].copy() for j in range(3))
+        return cls(m11, m22, m23, m33, inverse, linear, quadratic, columns, tuple(float(x) for x in floats))
 
     def energy(self, u: np.ndarray, v: np.ndarray, r: np.ndarray) -> np.ndarray:
         """(1/2) nu^T M nu."""
@@ -69,7 +76,10 @@ def derivative(model: Model, state: np.ndarray, tau: np.ndarray, current: np.nda
     out[0] = c * u - s * v + current[0]
     out[1] = s * u + c * v + current[1]
     out[2] = r
-    out[3:] = model.inverse @ force
+    # M^-1 force as three products and two sums, in the order `rk4_one` takes in floats (a matrix product
+    # rounds its own way), so that a hull's numbers do not depend on how many hulls share the fleet.
+    i0, i1, i2 = model.columns
+    out[3:] = i0 * force[0] + i1 * force[1] + i2 * force[2]
     return out
 
 
@@ -80,6 +90,37 @@ def rk4(model: Model, state: np.ndarray, tau: np.ndarray, current: np.ndarray, h
     k3 = derivative(model, state + (0.5 * h) * k2, tau, current)
     k4 = derivative(model, state + h * k3, tau, current)
     return state + (h / 6.0) * (k1 + 2.0 * (k2 + k3) + k4)
+
+
+def rk4_one(model: Model, state: tuple[float, ...], tau: tuple[float, float, float], current: tuple[float, float],
+            h: float) -> tuple[float, ...]:
+    """`rk4` for one hull in plain floats: state (x, y, psi, u_r, v_r, r), tau (X, Y, N), current (c_x, c_y).
+    The same operations in the same order as `derivative`, so the same numbers (numpy's cos and sin round as
+    the C library's here; tests/test_hull.py checks); on a few hulls it costs less than numpy's calls."""
+    m11, m22, m23, i00, i01, i02, i10, i11, i12, i20, i21, i22, d0, d1, d2, q0, q1, q2 = model.floats
+    big_x, big_y, big_n = tau
+    cx, cy = current
+    cos, sin = math.cos, math.sin
+
+    def derivative_one(psi: float, u: float, v: float, r: float) -> tuple[float, ...]:
+        c, s = cos(psi), sin(psi)
+        a = m22 * v + m23 * r
+        f0 = (big_x - (d0 + q0 * abs(u)) * u) + a * r
+        f1 = (big_y - (d1 + q1 * abs(v)) * v) - m11 * u * r
+        f2 = (big_n - (d2 + q2 * abs(r)) * r) + (m11 * v - a) * u
+        return (c * u - s * v + cx, s * u + c * v + cy, r,
+                i00 * f0 + i01 * f1 + i02 * f2, i10 * f0 + i11 * f1 + i12 * f2, i20 * f0 + i21 * f1 + i22 * f2)
+
+    x, y, psi, u, v, r = state
+    half = 0.5 * h
+    a0, a1, a2, a3, a4, a5 = derivative_one(psi, u, v, r)
+    b0, b1, b2, b3, b4, b5 = derivative_one(psi + half * a2, u + half * a3, v + half * a4, r + half * a5)
+    c0, c1, c2, c3, c4, c5 = derivative_one(psi + half * b2, u + half * b3, v + half * b4, r + half * b5)
+    e0, e1, e2, e3, e4, e5 = derivative_one(psi + h * c2, u + h * c3, v + h * c4, r + h * c5)
+    w = h / 6.0   # written out, not a loop over the six: a third less time
+    return (x + w * (a0 + 2.0 * (b0 + c0) + e0), y + w * (a1 + 2.0 * (b1 + c1) + e1),
+            psi + w * (a2 + 2.0 * (b2 + c2) + e2), u + w * (a3 + 2.0 * (b3 + c3) + e3),
+            v + w * (a4 + 2.0 * (b4 + c4) + e4), r + w * (a5 + 2.0 * (b5 + c5) + e5))
 
 
 class CalmWater:
@@ -100,6 +141,12 @@ class CalmWater:
                  ) -> tuple[np.ndarray, np.ndarray]:
         zero = np.zeros_like(x)
         return zero, zero
+
+
+# Up to this many hulls advance in plain floats (`HullFleet._advance_floats`), more as arrays: one hull's
+# substep costs about 18 us in floats, a fleet's about 175 us in numpy calls whatever its size: the two meet
+# at about 12 hulls (docs/sea.md, "What it costs").
+SMALL_FLEET = 10
 
 
 class HullFleet:
@@ -126,9 +173,7 @@ class HullFleet:
         self.thrust[:, index] = 0.0
         self.demand[:, index] = 0.0
         self.loop = inner_loop.LoopState(*(np.where(np.arange(self.state.shape[1]) == index, 0.0, field)
-                                           for field in (self.loop.speed_demand, self.loop.rate_demand,
-                                                         self.loop.speed_integral, self.loop.rate_integral,
-                                                         self.loop.rate_error, self.loop.rate_slope)))
+                                           for field in self.loop))
 
     def ground_velocity(self) -> tuple[np.ndarray, np.ndarray]:
         """(vx, vy) over ground: R(psi) nu_r + c."""
@@ -147,8 +192,11 @@ class HullFleet:
         """Advance every hull from time t by `duration` (a whole number of substeps) under the command
         (speed, rate), given at time `commanded_at`."""
         boat, env, h = self.boat, self.environment, self.h
-        calm = type(env) is CalmWater   # nothing to ask: skip the calls (the same numbers, fewer of them)
         speed, rate = inner_loop.commands(boat.inner_loop, speed, rate)
+        if self.state.shape[1] <= SMALL_FLEET:
+            self._advance_floats(t, round(duration / h), speed, rate, commanded_at)
+            return
+        calm = type(env) is CalmWater   # nothing to ask: skip the calls (the same numbers, fewer of them)
         tau = np.zeros((3, self.state.shape[1]))
         for k in range(round(duration / h)):
             now = t + k * h
@@ -176,3 +224,71 @@ class HullFleet:
                 tau[2] += ln
             self.state = rk4(self.model, self.state, tau, self.current, h)
             self.substeps += 1
+
+    def _advance_floats(self, t: float, steps: int, speed: np.ndarray, rate: np.ndarray, commanded_at: float
+                        ) -> None:
+        """`advance` hull by hull in plain floats (the same operations in the same order, so the same numbers
+        as the arrays' path): on a few hulls numpy's per-call overhead costs more than the arithmetic. The
+        environment is still asked once per substep for every hull at once."""
+        boat, env, h, model = self.boat, self.environment, self.h, self.model
+        calm = type(env) is CalmWater
+        count = self.state.shape[1]
+        states = self.state.T.tolist()                 # per hull: x, y, psi, u_r, v_r, r
+        thrust, demand = self.thrust.T.tolist(), self.demand.T.tolist()
+        loops = [inner_loop.LoopState(*fields) for fields in zip(*(field.tolist() for field in self.loop))]
+        saturated_time, saturated_step = self.saturated_time.tolist(), self._saturated_step.tolist()
+        currents = self.current.T.tolist()
+        loads: list[tuple[float, float, float]] = []
+        speeds, rates = speed.tolist(), rate.tolist()
+        period = h * self.loop_every
+        for k in range(steps):
+            now = t + k * h
+            if not calm:
+                env.advance(now)
+                x, y, psi = (np.array(row) for row in zip(*(state[:3] for state in states)))
+                cx, cy = env.current(now, x, y)
+                self.current = np.array([cx, cy], dtype=float)
+                currents = self.current.T.tolist()
+                u_g, v_g = self._body_velocity_of(states, currents)
+                lx, ly, ln = env.loads(now, x, y, psi, np.array(u_g), np.array(v_g), boat.windage)
+                loads = list(zip(*(np.broadcast_to(np.asarray(load, dtype=float), (count,)).tolist()
+                                   for load in (lx, ly, ln))))
+            loop_now = self.substeps % self.loop_every == 0
+            for i in range(count):
+                state = states[i]
+                if loop_now:
+                    # The loop holds the speed through the water (a speed log's; no GNSS) and the turn rate.
+                    loops[i], force, moment = inner_loop.step(
+                        boat.inner_loop, boat.thrusters, loops[i], speeds[i], rates[i], now - commanded_at,
+                        state[3], state[5], period, checked=True)
+                    port, starboard, saturated = thrusters.allocate(boat.thrusters, force, moment)
+                    demand[i] = [port, starboard]
+                    saturated_step[i] = saturated * h
+                saturated_time[i] += saturated_step[i]
+                (port, starboard), (want_port, want_starboard) = thrust[i], demand[i]
+                mean_port = thrusters.mean_over(boat.thrusters, port, want_port, h)
+                mean_starboard = thrusters.mean_over(boat.thrusters, starboard, want_starboard, h)
+                thrust[i] = [thrusters.lag(boat.thrusters, port, want_port, h),
+                             thrusters.lag(boat.thrusters, starboard, want_starboard, h)]
+                force, moment = thrusters.forces(boat.thrusters, mean_port, mean_starboard)
+                if calm:
+                    tau = (force, 0.0, moment)
+                else:
+                    lx, ly, ln = loads[i]
+                    tau = (force + lx, ly, moment + ln)
+                states[i] = rk4_one(model, state, tau, currents[i], h)
+            self.substeps += 1
+        self.state = np.array(states).T.copy()
+        self.thrust, self.demand = np.array(thrust).T.copy(), np.array(demand).T.copy()
+        self.loop = inner_loop.LoopState(*(np.array(field) for field in zip(*loops)))
+        self.saturated_time, self._saturated_step = np.array(saturated_time), np.array(saturated_step)
+
+    @staticmethod
+    def _body_velocity_of(states: list[list[float]], currents: list[list[float]]) -> tuple[list[float], list[float]]:
+        """`body_velocity`'s (u, v) of hulls given as floats, in its order of operations."""
+        u_g, v_g = [], []
+        for (_, _, psi, u, v, _), (cx, cy) in zip(states, currents):
+            c, s = math.cos(psi), math.sin(psi)
+            u_g.append(u + c * cx + s * cy)
+            v_g.append(v - s * cx + c * cy)
+        return u_g, v_g

@@ -18,7 +18,9 @@ from scipy.optimize import fsolve
 
 from agent.core.records import Command
 from boat.presets import PRESETS, preset
-from sim_bridge.hull import CalmWater, HullFleet, Model, rk4
+from sim_bridge import hull
+from sim_bridge.environment import Environment, sea_state
+from sim_bridge.hull import CalmWater, HullFleet, Model, rk4, rk4_one
 from sim_bridge.world import World, WorldConfig
 
 G = 9.81
@@ -162,6 +164,49 @@ def test_the_mass_matrix_of_each_preset_is_symmetric_positive_definite():
         matrix = np.linalg.inv(model.inverse)
         np.testing.assert_allclose(matrix, matrix.T, atol=1e-9)
         assert np.all(np.linalg.eigvalsh(matrix) > 0)
+
+
+# ----- one hull in plain floats, many as arrays: the same numbers -----
+@pytest.mark.parametrize("name", ["otter", "heron", "wamv"])
+def test_rk4_one_in_plain_floats_equals_rk4_on_arrays(name):
+    model = Model.of(PRESETS[name].hull)
+    rng = np.random.default_rng(40)               # seed 40; also checked with 41
+    n = 300
+    state = np.vstack([rng.uniform(-50, 50, (2, n)), rng.uniform(-4, 4, (1, n)), rng.uniform(-3, 6, (1, n)),
+                       rng.uniform(-2, 2, (1, n)), rng.uniform(-1, 1, (1, n))])
+    tau = rng.uniform(-500, 500, (3, n))
+    current = rng.uniform(-0.5, 0.5, (2, n))
+    arrays = rk4(model, state, tau, current, 0.02)
+    floats = [rk4_one(model, tuple(state[:, i].tolist()), tuple(tau[:, i].tolist()), tuple(current[:, i].tolist()),
+                      0.02) for i in range(n)]
+    np.testing.assert_array_equal(np.array(floats).T, arrays)
+
+
+@pytest.mark.parametrize("sea", [None, "moderate"])
+def test_a_small_fleet_in_plain_floats_moves_as_the_same_fleet_on_arrays(monkeypatch, sea):
+    """HullFleet advances up to SMALL_FLEET hulls in plain floats: the same numbers as the arrays' path, in calm
+    water and in a sea (current, wind, waves), through stale commands, saturation and a rejoin."""
+    rng = np.random.default_rng(42)               # seed 42; also checked with 43
+    commands = [(rng.uniform(-2, 5, 3), rng.uniform(-1, 1, 3), rng.choice([0.0, 0.05, 5.0])) for _ in range(60)]
+
+    def advanced(small_fleet: int) -> HullFleet:
+        monkeypatch.setattr(hull, "SMALL_FLEET", small_fleet)
+        environment = None if sea is None else Environment(sea_state(sea), np.random.default_rng(7))
+        fleet = HullFleet(PRESETS["otter"], 3, 0.02, 2, environment)
+        for i, (x, y) in enumerate([(0.0, 0.0), (10.0, -3.0), (-4.0, 8.0)]):
+            fleet.place(i, x, y, 0.3 * i)
+        for k, (speed, rate, age) in enumerate(commands):
+            if k == 30:
+                fleet.place(1, 2.0, 2.0, 1.0)     # a vessel rejoins mid-run
+            fleet.advance(0.1 * k, 0.1, speed, rate, 0.1 * k - age)   # 5 s old: stale, the thrust cut
+        return fleet
+
+    floats, arrays = advanced(3), advanced(0)
+    assert floats.saturated_time.max() > 0       # the commands reached the thrust limit
+    for field in ("state", "thrust", "demand", "current", "saturated_time"):
+        np.testing.assert_array_equal(getattr(floats, field), getattr(arrays, field))
+    for mine, theirs in zip(floats.loop, arrays.loop):
+        np.testing.assert_array_equal(mine, theirs)
 
 
 def test_a_hull_at_rest_in_the_water_moves_with_a_uniform_current():

@@ -1,6 +1,10 @@
 """`usv-lab fleet-bench`: what the fleet simulation costs. A benchmark, not a test: it asserts no time.
 
-(a) The wall time of the whole Table II Monte Carlo, through the same process pool as `usv-lab scenario`.
+(a) The CPU time of the whole Table II Monte Carlo, through the same engine as `usv-lab scenario`, with the
+    paper's kinematic vessels and with a hull preset's dynamics overlaid on the same runs and seeds
+    (`world.dynamics: {preset: otter}`, nothing else changed), the two side by side in one job list, and
+    their ratio; then, in this process, a few of its runs alternately kinematic and on the hull, their CPU
+    time split into World.step and the agents.
 (b) The compute time of one vessel's tick (`RunTrace.tick_seconds`) for fleets of n vessels on each pair
     estimator asked for (the paper's MCKF and the agent's default by default), built from the
     Table IV base (constant-velocity target, U_v = 10, U_vf = 3) with r* = 20 m for every n, so that the rows
@@ -11,19 +15,22 @@
 from __future__ import annotations
 
 import argparse
+import statistics
 import time
 from pathlib import Path
 
 import numpy as np
 
-from agent.config import ConfigError, deep_merge, parse_mapping
+from agent.config import ConfigError, deep_merge, parse_mapping, updated
 from agent.core.estimators import estimator_names
+from boat.presets import PRESETS
 from lab import arguments
-from lab.experiments.scenarios import DEFAULT_DIR, load, resolve, run_monte_carlo
+from lab.experiments.scenarios import DEFAULT_DIR, load, resolve
 from lab.harness.parallel import add_engine_arguments, campaign_notes, engine_from, report_failures
 from lab.harness.runner import run as run_scenario
 from lab.report.markdown import invocation, machine, markdown_table
 from sim_bridge.scenario import Scenario
+from sim_bridge.world import World
 
 RADIUS = 20.0          # r* (m) of every fleet-size run
 HALF_WIDTH = 25.0      # drawn start positions lie in [-25, 25]^2 (m)
@@ -35,6 +42,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--runs", type=arguments.positive_int, default=None,
                         help="Monte Carlo runs per estimator (default: the Table II file's own)")
     add_engine_arguments(parser)   # for the Monte Carlo part; the tick-time part runs here
+    parser.add_argument("--preset", choices=sorted(PRESETS), default="otter",
+                        help="hull preset overlaid on the Monte Carlo's runs (world.dynamics) for its second timing")
+    parser.add_argument("--cpu-runs", type=arguments.positive_int, default=3,
+                        help="runs of the Monte Carlo's --cpu-variant timed in process, each kinematic and on the hull")
+    parser.add_argument("--cpu-variant", default="mckf", help="variant of the Monte Carlo file those runs come from")
     parser.add_argument("--out", type=Path, default=Path("docs/results"),
                         help="where fleet_benchmark.md goes")
     parser.add_argument("--sizes", type=arguments.positive_int, nargs="+", default=[4, 12, 50],
@@ -95,6 +107,73 @@ def fleet_scenarios(base: dict, variants: dict[str, Scenario], sizes: list[int],
 
 
 
+def on_hull(scenario: Scenario, preset: str) -> Scenario:
+    """`scenario` with every vessel on `preset`'s hull (world.dynamics) and nothing else changed: the same
+    sensors, estimators and seeds, so that a difference in time is the hull's."""
+    return updated(scenario, world=updated(scenario.world, dynamics={"preset": preset}))
+
+
+class TimedWorld(World):
+    """A World that adds the CPU time of each `step` (the motion and the next tick's readings) to `seconds`."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self.seconds = 0.0
+
+    def step(self, commands) -> None:
+        started = time.process_time()
+        super().step(commands)
+        self.seconds += time.process_time() - started
+
+
+def monte_carlo_pairs(variants: dict[str, Scenario], preset: str) -> list[tuple[str, Scenario, np.random.SeedSequence]]:
+    """The Monte Carlo's runs (every variant, each run's own seed, as `usv-lab scenario` draws them), each
+    kinematic and then on `preset`'s hull, side by side in one job list: a change of the machine's load in the
+    middle of the campaign then falls on both alike."""
+    jobs = []
+    for scenario in variants.values():
+        hull = on_hull(scenario, preset)
+        for seed in np.random.SeedSequence(scenario.seed).spawn(scenario.runs):
+            jobs += [("kinematic", scenario, seed), (preset, hull, seed)]
+    return jobs
+
+
+def timed_run(job: tuple[str, Scenario, np.random.SeedSequence]) -> tuple[str, float]:
+    """(label, CPU seconds of the run in the worker that ran it: time.process_time, which the other processes
+    on the machine do not inflate as they do the wall time)."""
+    label, scenario, seed = job
+    started = time.process_time()
+    run_scenario(scenario, seed)
+    return label, time.process_time() - started
+
+
+def cpu_split(scenario: Scenario, seed: np.random.SeedSequence) -> tuple[float, float, float, float]:
+    """CPU seconds of one run in this process: (whole run, World.step, the agents' ticks, the rest)."""
+    worlds: list[TimedWorld] = []
+
+    def make_world(config, rng) -> TimedWorld:
+        worlds.append(TimedWorld(config, rng))
+        return worlds[-1]
+
+    started = time.process_time()
+    trace = run_scenario(scenario, seed, make_world=make_world)
+    total = time.process_time() - started
+    world, agents = worlds[0].seconds, float(np.nansum(trace.tick_seconds))
+    return total, world, agents, total - world - agents
+
+
+def cpu_comparison(kinematic: Scenario, hull: Scenario, runs: int) -> dict[str, list[float]]:
+    """Medians over the scenario's first `runs` Monte Carlo seeds of `cpu_split`, kinematic and on the hull,
+    taken alternately (kinematic first on even runs, the hull first on odd ones)."""
+    seeds = np.random.SeedSequence(kinematic.seed).spawn(runs)   # run r of the Monte Carlo draws from child r
+    figures: dict[str, list[tuple[float, ...]]] = {"kinematic": [], "hull": []}
+    for r, seed in enumerate(seeds):
+        order = [("kinematic", kinematic), ("hull", hull)]
+        for label, scenario in order if r % 2 == 0 else order[::-1]:
+            figures[label].append(cpu_split(scenario, seed))
+    return {label: [statistics.median(column) for column in zip(*rows)] for label, rows in figures.items()}
+
+
 def run(args: argparse.Namespace) -> int:
     # tqdm (the optional 'lab' extra) is imported by the command that shows a bar, not by `usv-lab --help`.
     from tqdm import tqdm
@@ -107,21 +186,40 @@ def run(args: argparse.Namespace) -> int:
               for fleet in fleet_scenarios(scale_spec.base, scale_variants, args.sizes, args.duration, args.seed,
                                            name)]
 
-    jobs = sum(s.runs for s in mc_variants.values())
-    with engine_from(args) as engine, tqdm(total=jobs, unit="run", desc="Monte Carlo", dynamic_ncols=True) as bar:
-        engine.prepare("lab.experiments.scenarios")   # a cluster's workers import before the clock runs, as a fork has
+    jobs = monte_carlo_pairs(mc_variants, args.preset)
+    cpu: dict[str, list[float]] = {"kinematic": [], args.preset: []}
+
+    def keep(index: int, outcome: tuple[str, float] | None) -> None:
+        if outcome is not None:
+            cpu[outcome[0]].append(outcome[1])
+
+    with engine_from(args) as engine, tqdm(total=len(jobs), unit="run", desc="Monte Carlo", dynamic_ncols=True) as bar:
+        engine.prepare("lab.benchmarks.fleet")   # a cluster's workers import before the clock runs, as a fork has
         started = time.perf_counter()
-        run_monte_carlo({mc_path.stem: mc_variants}, engine, bar.update)
+        engine.map(timed_run, jobs, bar.update, lambda n: f"{jobs[n][0]} run {n // 2}", consume=keep)
         mc_seconds = time.perf_counter() - started
         where = engine.where()
     runs = sorted({s.runs for s in mc_variants.values()})
+    kinematic, hull = (sum(cpu[label]) for label in ("kinematic", args.preset))
     mc_table = markdown_table(
-        ["scenario file", "variants", "runs per variant", "runs", "simulated s per run", "ran on",
-         "wall time (s)", "wall time per run (s)"],
-        [[mc_path.name, len(mc_variants), "/".join(map(str, runs)), jobs,
-          "/".join(f"{d:g}" for d in sorted({s.duration for s in mc_variants.values()})), where,
-          f"{mc_seconds:.1f}", f"{mc_seconds / jobs:.2f}"]])
-    mc_table = "\n".join([mc_table, *campaign_notes(engine)])
+        ["scenario file", "vessels", "variants", "runs per variant", "runs", "simulated s per run",
+         "CPU of the runs (s)", "CPU per run (s)"],
+        [[mc_path.name, label, len(mc_variants), "/".join(map(str, runs)), len(times),
+          "/".join(f"{d:g}" for d in sorted({s.duration for s in mc_variants.values()})),
+          f"{sum(times):.1f}", f"{sum(times) / max(len(times), 1):.2f}"] for label, times in cpu.items()])
+    mc_table = "\n".join([mc_table, "", f"Ratio {args.preset} / kinematic: **{hull / kinematic:.2f}**. The "
+                          f"campaign of both ({len(jobs)} runs) took {mc_seconds:.1f} s of wall time on {where}.",
+                          *campaign_notes(engine)])
+
+    base = mc_variants.get(args.cpu_variant)
+    if base is None:
+        raise ConfigError(f"--cpu-variant: {mc_path.name} has no variant {args.cpu_variant!r}")
+    print(f"in process: {args.cpu_runs} run(s) of {args.cpu_variant}, kinematic and {args.preset} ...", flush=True)
+    split = cpu_comparison(base, on_hull(base, args.preset), args.cpu_runs)
+    cpu_table = markdown_table(
+        ["vessels", "whole run (s)", "World.step (s)", "agents' ticks (s)", "rest (s)", "whole run / kinematic"],
+        [[label, *(f"{value:.2f}" for value in figures), f"{figures[0] / split['kinematic'][0]:.2f}"]
+         for label, figures in (("kinematic", split["kinematic"]), (args.preset, split["hull"]))])
 
     rows = []
     for name, n, scenario, source, paper in fleets:
@@ -139,17 +237,18 @@ def run(args: argparse.Namespace) -> int:
         ["estimator", "n", "r* (m)", "start positions", "vessel ticks", "mean tick (ms)", "p99 tick (ms)",
          "mean fleet step (ms)", "paper Avg. Run Time (ms)", "run wall time (s)"], rows)
 
-    document = render(invocation(args), mc_table, tick_table, args, scale_path)
+    document = render(invocation(args), mc_table, cpu_table, tick_table, args, scale_path, base)
     args.out.mkdir(parents=True, exist_ok=True)
     path = args.out / "fleet_benchmark.md"
     path.write_text(document, encoding="utf-8")
-    print(f"\n{mc_table}\n\n{tick_table}\n\nwrote {path}")
+    print(f"\n{mc_table}\n\n{cpu_table}\n\n{tick_table}\n\nwrote {path}")
     return report_failures(engine)
 
 
-def render(command: str, mc_table: str, tick_table: str, args: argparse.Namespace, scale_path: Path) -> str:
+def render(command: str, mc_table: str, cpu_table: str, tick_table: str, args: argparse.Namespace,
+           scale_path: Path, base: Scenario) -> str:
     return "\n".join([
-        "# Fleet benchmark: Monte Carlo wall time and tick cost by fleet size",
+        "# Fleet benchmark: Monte Carlo CPU time, kinematic and on a hull, and tick cost by fleet size",
         "",
         "Generated by the command below; do not edit by hand. Times depend on the machine and its load.",
         "",
@@ -163,11 +262,23 @@ def render(command: str, mc_table: str, tick_table: str, args: argparse.Namespac
         "",
         "## Table II Monte Carlo",
         "",
-        "Every run of every estimator variant through the engine of `usv-lab scenario` (the same job "
-        "list, seeds and chunking; this machine's process pool unless --cluster), timed from the first job to "
-        "the last result; no pages or figures.",
+        "Every run of every estimator variant (the seeds of `usv-lab scenario`) through its engine (this "
+        "machine's process pool unless --cluster), twice: with the paper's kinematic vessels (1), (2), and with "
+        f"`world.dynamics: {{preset: {args.preset}}}` overlaid (docs/sea.md: Fossen's 3-DOF hull behind its "
+        "thrusters and inner loop, in calm water), nothing else changed: the same estimators, sensors and "
+        "seeds, so the ratio is what the hull costs. The two versions of each run are side by side in one job "
+        "list, and each run's CPU time is taken in its worker (time.process_time): on a machine shared with "
+        "other jobs the wall time of one campaign and then the other measured mostly the change of load.",
         "",
         mc_table,
+        "",
+        f"Where the time goes: {args.cpu_runs} run(s) of the variant `{base.name}` (its Monte Carlo seeds 0 to "
+        f"{args.cpu_runs - 1}), each kinematic and on the hull, alternately, one after the other in the main "
+        "process after the pool has shut down; CPU seconds (time.process_time) of the whole run, of "
+        "World.step (the motion and the next tick's readings), of the agents' ticks (the runner's "
+        "RunTrace.tick_seconds) and the rest (the runner's bookkeeping and metrics); medians over the runs.",
+        "",
+        cpu_table,
         "",
         "## Tick compute time by fleet size",
         "",
