@@ -18,7 +18,6 @@ import os
 import statistics
 import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -51,7 +50,7 @@ def measure(run_index: int) -> dict[str, float]:
     from sim_bridge.scenario import select_scenario
     from sim_bridge.world import World
 
-    class TimedWorld(World):
+    class TimedWorld(World):    # fleet.py's, here too: the revision measured may be older than it
         def __init__(self, *args, **kwargs) -> None:
             super().__init__(*args, **kwargs)
             self.seconds = 0.0
@@ -87,24 +86,10 @@ def _measure_at(root: Path, run_index: int) -> dict[str, float]:
 
 
 def compare(before: str, after: str | None, pairs: int, progress=print) -> dict:
-    from lab.benchmarks.runtime_ab import ROOT, _checkout, _git
+    """Medians of `pairs` alternating runs of each side (runtime_ab's checkouts), over three seeds in turn."""
+    from lab.benchmarks.runtime_ab import alternate
 
-    results: dict[str, list[dict[str, float]]] = {"before": [], "after": []}
-    with tempfile.TemporaryDirectory() as scratch:
-        roots = {"before": Path(scratch) / "before", "after": ROOT if after is None else Path(scratch) / "after"}
-        try:
-            _checkout(before, roots["before"])
-            if after is not None:
-                _checkout(after, roots["after"])
-            for pair in range(pairs):
-                for side in ("before", "after") if pair % 2 == 0 else ("after", "before"):
-                    results[side].append(_measure_at(roots[side], pair % 3))
-                    progress(f"hull-ab: pair {pair + 1}/{pairs}, {side}: " + ", ".join(
-                        f"{name} {value:.3g}" for name, value in results[side][-1].items()))
-        finally:
-            for root in roots.values():
-                if root != ROOT and root.exists():
-                    _git("worktree", "remove", "--force", str(root))
+    results = alternate(before, after, pairs, lambda root, pair: _measure_at(root, pair % 3), "hull-ab", progress)
     return {side: {name: statistics.median(run[name] for run in runs) for name in FIGURES}
             for side, runs in results.items()}
 

@@ -137,8 +137,10 @@ def _checkout(revision: str, folder: Path) -> Path:
     return folder
 
 
-def compare(before: str, after: str | None, pairs: int, progress=print) -> dict:
-    """Medians of `pairs` alternating runs of each side, and what they were run on."""
+def alternate(before: str, after: str | None, pairs: int, measure, label: str, progress=print
+              ) -> dict[str, list[dict[str, float]]]:
+    """`measure(root, pair)` on checkouts of `before` and `after` (None: this checkout), `pairs` times each,
+    alternating which side goes first; every result of each side, in order."""
     results: dict[str, list[dict[str, float]]] = {"before": [], "after": []}
     with tempfile.TemporaryDirectory() as scratch:
         roots = {"before": Path(scratch) / "before", "after": ROOT if after is None else Path(scratch) / "after"}
@@ -148,13 +150,19 @@ def compare(before: str, after: str | None, pairs: int, progress=print) -> dict:
                 _checkout(after, roots["after"])
             for pair in range(pairs):
                 for side in ("before", "after") if pair % 2 == 0 else ("after", "before"):
-                    results[side].append(_measure_at(roots[side]))
-                    progress(f"runtime-ab: pair {pair + 1}/{pairs}, {side}: " + ", ".join(
+                    results[side].append(measure(roots[side], pair))
+                    progress(f"{label}: pair {pair + 1}/{pairs}, {side}: " + ", ".join(
                         f"{name} {value:.3g}" for name, value in results[side][-1].items()))
         finally:
-            for side, root in roots.items():
+            for root in roots.values():
                 if root != ROOT and root.exists():
                     _git("worktree", "remove", "--force", str(root))
+    return results
+
+
+def compare(before: str, after: str | None, pairs: int, progress=print) -> dict:
+    """Medians of `pairs` alternating runs of each side, and what they were run on."""
+    results = alternate(before, after, pairs, lambda root, _: _measure_at(root), "runtime-ab", progress)
     medians = {side: {name: statistics.median(run[name] for run in runs) for name in FIGURES}
                for side, runs in results.items()}
     spread = {side: {name: [min(run[name] for run in runs), max(run[name] for run in runs)] for name in FIGURES}
