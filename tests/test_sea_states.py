@@ -8,6 +8,7 @@ import math
 import re
 from dataclasses import replace
 from itertools import combinations
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -178,3 +179,15 @@ def test_an_unknown_variant_is_refused_in_one_line(capsys):
     assert cli.main(["sea-states", "--variants", "calm,stormy", "--no-ab"]) == 2
     error = capsys.readouterr().err.strip()
     assert "\n" not in error and re.search(r"stormy: .*sea_states.yaml has kinematic, calm", error)
+
+
+def test_a_variant_of_an_issue_state_is_judged_as_that_state():
+    """Before: `wind_dvl` and `calm_moving_target` were judged on the closest approach and the limits alone, and
+    the page called 17/20 settled 'met'."""
+    sea = SimpleNamespace(world=SimpleNamespace(dynamics=object()))
+    summaries = {("states", "calm_moving_target"): _summary(settled=17), ("states", "wind_dvl"): _summary(),
+                 ("states", "odd"): _summary(settled=0)}
+    lines = sea_states._acceptance(summaries, dict.fromkeys(summaries, sea), "states", ACCEPTANCE)
+    assert lines[0].startswith("- calm_moving_target (judged as calm): **not met**: settled 17/20 >= 20/20 ✗")
+    assert lines[1].startswith("- wind_dvl (judged as wind): **met**: settled 20/20 >= 20/20 ✓")
+    assert lines[2].startswith("- odd: **met**: closest approach")       # no issue state: the checks of every state
