@@ -9,11 +9,14 @@ import socket
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 import yaml
 from conftest import bridge_counts
 
 from agent.runtime.mcap_log import read_messages
+from mission_log.reader import read_log
+from mission_log.series import truth_of
 from sim_bridge.fleet import PORT_TAKEN, Fleet
 from sim_bridge.scenario import with_duration
 
@@ -119,3 +122,31 @@ def test_an_agent_that_exits_on_its_own_fails_the_launch_and_is_named(tmp_path, 
     with pytest.raises(RuntimeError, match=r"agent of vessel 2 exited with code 2 during the mission.*clock"):
         fleet.run(timeout=120)
     assert fleet.bridge.poll() is not None and all(p.poll() is not None for p in fleet.agents.values())
+
+
+def test_the_moderate_sea_runs_as_a_real_time_fleet_of_processes_within_the_otters_limits(tmp_path):
+    """Issue 30, item 6: `usv-fleet run sea_states --variant moderate --mode realtime`: the Otter's hulls, the
+    water and the realistic sensors behind the sim bridge at the wall clock's pace, an agent process per vessel.
+    Every command stays within the preset's limits; the hulls move as hulls (from rest, no faster than the
+    Otter can go plus the water); the logs score the run."""
+    result = subprocess.run([sys.executable, "-m", "sim_bridge.fleet_cli", "run", "sea_states", "--variant", "moderate",
+                             "--mode", "realtime", "--duration", "12", "--out", str(tmp_path / "runs")],
+                            capture_output=True, text=True, check=False, timeout=240, cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    (folder,) = list((tmp_path / "runs").iterdir())
+    metrics = json.loads((folder / "metrics.json").read_text())
+    assert metrics["complete"] is True and metrics["vessels"] == ["1", "2", "3", "4"]
+    assert all(math.isfinite(metrics[k]) for k in ("mean_e_ij", "mean_e_io", "mean_e_c"))
+    for vessel in "1234":
+        commands = [m for _, m in read_log(folder / f"agent-{vessel}.mcap").topic("cmd")]
+        assert len(commands) >= 100                                  # 10 Hz over 12 s, less the start
+        surge = np.array([c["surge"] for c in commands])
+        yaw_rate = np.array([c["yaw_rate"] for c in commands])
+        assert np.all(surge <= 3.0) and np.all(surge >= -1.0) and np.all(np.abs(yaw_rate) <= 0.3)
+    truth = truth_of(read_log(folder / "sim.mcap"))
+    dt = np.diff(truth.t_ns) * 1e-9
+    for vessel, path in truth.vessels.items():
+        speed = np.linalg.norm(np.diff(path, axis=0), axis=1) / dt
+        # from rest: no kinematic jump to the commanded speed on the first tick; never beyond the Otter's
+        # 3.09 m/s through the water plus the moderate sea's current (0.3 m/s and 0.01/s shear over ~20 m)
+        assert speed[0] < 0.5 and np.nanmax(speed) < 3.09 + 0.6, (vessel, speed[:3], np.nanmax(speed))
