@@ -223,6 +223,34 @@ def test_usv_op_status_says_when_no_fleet_is_reachable(tmp_path):
     assert f"usv-op: no fleet reachable at {endpoint}" in result.stderr
 
 
+
+@pytest.mark.slow   # usv-op processes and their Zenoh sessions
+def test_usv_op_status_ends_at_once_on_ctrl_c_or_sigterm_whenever_it_comes(tmp_path):
+    """The console stops at its next look when told, wherever its loop is: before, a Ctrl-C landed as a
+    KeyboardInterrupt wherever the main thread was (a Zenoh call among them) and once left it running 20 s
+    after (CI, 2026-12-03); SIGTERM killed it without restoring the line."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from sim_bridge.fleet import free_port
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    for k, signum in enumerate([signal.SIGINT, signal.SIGTERM] * 3):
+        console = subprocess.Popen([sys.executable, "-m", "usv_op", "--connect", endpoint, "status"],
+                                   stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        shown = ""
+        while "waiting" not in shown:        # in its loop: the first screen is out
+            shown += console.stdout.read(1)
+            assert console.poll() is None, console.stderr.read()
+        time.sleep(0.13 * k)                 # a different moment of the loop each time
+        console.send_signal(signum)
+        out, err = console.communicate(timeout=10)
+        assert console.returncode == 0, (signum, err)
+        assert out.endswith("\n") and "Traceback" not in err, (signum, out[-80:], err)
+
+
 # ----- with real processes: a fleet in real time, usv-op, and raw payloads on the mission keys -----
 def _op(fleet, *args: str, timeout: float = 30.0):
     import subprocess

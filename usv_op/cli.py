@@ -207,9 +207,12 @@ def tick_rate(arrivals: list[float], now: float) -> float:
     return (len(recent) - 1) / (recent[-1] - recent[0]) if len(recent) > 1 and recent[-1] > recent[0] else 0.0
 
 
-def watch(session, once: bool, period: float = 0.5, out=print, where: str = "the configured endpoints") -> int:
-    """The status console: refreshed in place every `period` s until Ctrl-C (`once`: print once and exit 0,
-    or exit 1 saying so when no vessel answered at `where`)."""
+def watch(session, once: bool, period: float = 0.5, out=print, where: str = "the configured endpoints",
+          stop: threading.Event | None = None) -> int:
+    """The status console: refreshed in place every `period` s until `stop` is set (Ctrl-C through
+    `_stop_on_signals`); `once`: print once and exit 0, or exit 1 saying so when no vessel answered at
+    `where`. The subscriber is left to the session's close, which `_close` bounds."""
+    stop = stop or threading.Event()
     statuses: dict[str, tuple[float, Status]] = {}
     arrivals: dict[str, list[float]] = {}
 
@@ -222,37 +225,33 @@ def watch(session, once: bool, period: float = 0.5, out=print, where: str = "the
             recent.append(now)
             del recent[:max(0, len(recent) - 200)]
 
-    subscriber = session.declare_subscriber(every("status"), on_status)
+    _subscriber = session.declare_subscriber(every("status"), on_status)   # held: dropping it may undeclare
     started = time.monotonic()
-    try:
-        while True:
-            live = live_vessels(session, wait=period)
-            # the peers that live agents see (a frozen one too), from statuses that are not old themselves
-            now = time.monotonic()
-            live |= {peer for arrived, status in list(statuses.values()) if now - arrived <= LOST_AFTER
-                     for peer in status.peers}
-            heard = {v for v, times in list(arrivals.items()) if len(times) >= 3}   # enough for a rate
-            if once and not (heard and live <= heard) and time.monotonic() - started < ONCE_WAIT:
-                continue   # a new subscription takes a moment to reach every agent
-            now = time.monotonic()
-            rates = {v: tick_rate(times, now) for v, times in list(arrivals.items())}
-            if not statuses and not live:
-                if once:
-                    print(f"usv-op: no fleet reachable at {where}: no agent's status or liveliness token in "
-                          f"{ONCE_WAIT:.0f} s", file=sys.stderr)
-                    return 1
-                out(f"\x1b[H\x1b[2Jno fleet reachable at {where} (yet): waiting", end="", flush=True)
-                continue
-            lines = status_lines(dict(statuses), live, now, rates)
+    while not stop.is_set():
+        live = live_vessels(session, wait=period)
+        # the peers that live agents see (a frozen one too), from statuses that are not old themselves
+        now = time.monotonic()
+        live |= {peer for arrived, status in list(statuses.values()) if now - arrived <= LOST_AFTER
+                 for peer in status.peers}
+        heard = {v for v, times in list(arrivals.items()) if len(times) >= 3}   # enough for a rate
+        if once and not (heard and live <= heard) and time.monotonic() - started < ONCE_WAIT:
+            continue   # a new subscription takes a moment to reach every agent
+        now = time.monotonic()
+        rates = {v: tick_rate(times, now) for v, times in list(arrivals.items())}
+        if not statuses and not live:
             if once:
-                out("\n".join(lines))
-                return 0
-            out("\x1b[H\x1b[2J" + "\n".join(lines), end="", flush=True)   # home, clear: refresh in place
-    except KeyboardInterrupt:
-        out("")
-        return 0
-    finally:
-        subscriber.undeclare()
+                print(f"usv-op: no fleet reachable at {where}: no agent's status or liveliness token in "
+                      f"{ONCE_WAIT:.0f} s", file=sys.stderr)
+                return 1
+            out(f"\x1b[H\x1b[2Jno fleet reachable at {where} (yet): waiting", end="", flush=True)
+            continue
+        lines = status_lines(dict(statuses), live, now, rates)
+        if once:
+            out("\n".join(lines))
+            return 0
+        out("\x1b[H\x1b[2J" + "\n".join(lines), end="", flush=True)   # home, clear: refresh in place
+    out("")
+    return 0
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -298,7 +297,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.command == "status":
             where = ", ".join(args.connect) if args.connect else "the Zenoh configuration's endpoints"
-            code = watch(session, args.once, where=where)
+            code = watch(session, args.once, where=where, stop=_stop_on_signals())
         elif args.command == "view":
             code = serve(session, args.host, args.port, _stop_on_signals(), max_vessels=args.max_vessels)
         else:
@@ -311,7 +310,8 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _stop_on_signals() -> threading.Event:
-    """An event SIGINT and SIGTERM set (the live view's way to stop)."""
+    """An event SIGINT and SIGTERM set: the live view and the status console stop at their next look, and
+    no KeyboardInterrupt lands inside a Zenoh call (once `usv-op status` outlived a Ctrl-C by 20 s)."""
     stop = threading.Event()
     for signum in (signal.SIGINT, signal.SIGTERM):
         signal.signal(signum, lambda *_: stop.set())
