@@ -650,6 +650,7 @@ JUNK_SENDERS = 300
 FLOOD_RATE = 10000       # commands per second from one sender (at most: what one Python session puts)
 PROOF_WAIT = 16.0        # s of sim time a returning vessel is given to prove itself (and an impostor watched)
 OP_TIMEOUT = 30.0        # s a usv-op command may take (it waits 3 s for its answers)
+STATUS_LAG = 2.0         # s the harness's own statuses may trail usv-op's under a flood (20 ticks)
 
 
 @dataclass
@@ -887,7 +888,9 @@ class AttackHarness:
         thread.start()
         time.sleep(0.5)
         attack.operator.append(self.op("hold"))
-        held = bool(self.latest().get("held"))
+        # usv-op's 'applied' is a status it saw; this session's copy of the statuses can trail it under the
+        # flood (CI saw the one before the hold): the agent must show itself held, the flood still on.
+        held = _wait(lambda: bool(self.latest().get("held")), STATUS_LAG)
         done.set()
         thread.join(timeout=10)
         rate = round(sent[0] / max(1e-9, time.monotonic() - began))
