@@ -76,15 +76,16 @@ def no_sensor_reason(vessel: str, gate: InputGate, sim: bool, clock: Clock | Non
 def no_sensor_words(vessel: str, gate: InputGate, sim: bool, clock: Clock | None, waited: float) -> str | None:
     """The line to tell when no own sensor message was taken in the first `waited` seconds, or None if one was;
     if they come but their stamps are refused, that instead, with how far their clock runs from ours."""
-    if any(gate.accepted[topic] for topic in OWN_TOPICS):
+    reason = no_sensor_reason(vessel, gate, sim, clock)
+    if reason is None:
         return None
-    if gate.offsets.heard(CLOCK_SOURCE_SENSORS):
+    if reason == "refused":
         offset = gate.offsets.median(CLOCK_SOURCE_SENSORS)
         why = "" if offset is None else f": {clock_alarm_words(CLOCK_SOURCE_SENSORS, offset)}"
         refused = {k: v for k, v in gate.rejected.items() if k in ("stale", "future")}
         return (f"sensor messages arrive but none was taken in {waited:g} s{why} (refused {refused}); "
                 "commanding STOP until they are")
-    if sim and clock is None:
+    if reason == "no clock":
         return (f"no sim/clock in {waited:g} s: this agent ticks on sim time (clock: sim) and no simulation is "
                 "running (start usv-sim, or clock: wall on a boat); commanding STOP until one does")
     world = ""
