@@ -21,6 +21,7 @@ import pytest
 from conftest import wait_until
 
 from agent.config import read_yaml
+from agent.contract import CLOCK_KEY
 from agent.runtime.mcap_log import GAP_TOPIC, read_messages
 from mission_log.reader import load_run
 from sim_bridge.fleet import LOGS_LOST
@@ -67,6 +68,7 @@ class Watched:
         self.commands: dict[str, set[int]] = {}     # vessel -> stamps of its commands
         self.moving: dict[str, int] = {}            # vessel -> commands that are not STOP
         self.statuses: dict[str, list[dict]] = {}
+        self.first_tick: int | None = None          # the first sim tick this observer's session saw
         self.lock = threading.Lock()
         assert wait_until(lambda: list((disk / "runs").glob("*/bridge.yaml"))
                           or self.process.poll() is not None, timeout=60)
@@ -79,6 +81,12 @@ class Watched:
         self.session = zenoh.open(config)
         self.session.declare_subscriber("usv/*/cmd", self._on_command)
         self.session.declare_subscriber("usv/*/status", self._on_status)
+        self.session.declare_subscriber(CLOCK_KEY, self._on_clock)
+
+    def _on_clock(self, sample) -> None:
+        with self.lock:
+            if self.first_tick is None:
+                self.first_tick = json.loads(sample.payload.to_bytes())["seq"]
 
     def _on_command(self, sample) -> None:
         message = json.loads(sample.payload.to_bytes())
@@ -109,11 +117,18 @@ class Watched:
 
 
 def _ticked_all_run_long(watched: Watched) -> None:
-    """Every vessel commanded every tick (lockstep: one command per tick), and steered (not STOP) most."""
+    """Every vessel commanded every tick (lockstep: one command per tick), and steered (not STOP) most.
+
+    Counted from the first tick whose clock this observer received: the launcher's run starts before the
+    observer can connect (it needs the run folder's bridge.yaml), and on a loaded machine its subscriptions
+    can reach the router after the first commands went (CI once missed tick 0 of one vessel)."""
+    assert watched.first_tick is not None and watched.first_tick < watched.planned // 10, watched.first_tick
+    observed = set(range(watched.first_tick, watched.planned))
     for vessel in ("1", "2", "3"):
         stamps = sorted(watched.commands.get(vessel, ()))
         ticks = {round(stamp * 1e-9 / DT) for stamp in stamps}
-        assert ticks == set(range(watched.planned)), f"vessel {vessel}: {len(ticks)} of {watched.planned}"
+        assert observed <= ticks <= set(range(watched.planned)), \
+            f"vessel {vessel}: {len(ticks & observed)} of ticks {watched.first_tick}-{watched.planned - 1}"
         assert watched.moving.get(vessel, 0) > watched.planned // 2, (vessel, watched.moving)
 
 
