@@ -40,7 +40,7 @@ def control_command(c: ControlParams, dt: float, phase: float, next_phase: float
                     target_state: np.ndarray | None, own_velocity: np.ndarray,
                     estimates: dict[str, np.ndarray | None], neighbour_phases: dict[str, float],
                     obstacles: np.ndarray | None, yaw_rate_estimate: float = 0.0,
-                    sway: float = 0.0) -> tuple[Command, VelocityTerms, dict[str, bool]]:
+                    sway: float = 0.0, along: float = 0.0) -> tuple[Command, VelocityTerms, dict[str, bool]]:
     """The command for this tick: the desired offsets (27), (29) and their errors (30), (31), (32) pull
     towards the neighbours and the target, (33) adds the target's estimated velocity, (34) the avoidance,
     (35) sums and saturates; then the safety filter after (35), then (surge, yaw rate). Returns (command,
@@ -75,6 +75,9 @@ def control_command(c: ControlParams, dt: float, phase: float, next_phase: float
         # The hull goes along its heading at the surge asked and across it at the sway the wind gives it
         # (leeway): ask for the velocity less that sway, so that the sum is the velocity wanted.
         command_velocity = command_velocity - sway * np.array([-math.sin(heading), math.cos(heading)])
+    if along != 0.0:
+        # And a current's set along the heading, which the surge through the water does not include.
+        command_velocity = command_velocity - along * np.array([math.cos(heading), math.sin(heading)])
     filtered, unfiltered = False, command_velocity
     if c.safety_filter:
         command_velocity, filtered = safety_filter(command_velocity, obstacles, c.min_clearance, c.clearance_rate)

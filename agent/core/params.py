@@ -93,6 +93,9 @@ class ControlParams(StrictModel):
         None, description="the boat's astern speed limit (m/s): no command goes astern faster; None: max_speed")
     leeway_time_constant: NonNegativeFloat = Field(
         0.0, description="time constant of the leeway model the command steers against (s); 0: none")
+    set_time_constant: NonNegativeFloat = Field(
+        0.0, description="time constant of the set model (a current along the heading) the command steers "
+                         "against (s); 0: none")
     surge_lag: NonNegativeFloat = Field(
         0.0, description="the boat's surge time constant tau_u (s): the separation guard adds its coasting "
                          "distance |u| tau_u; 0: none")

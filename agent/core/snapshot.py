@@ -35,7 +35,8 @@ def state_to_json(state: VesselState) -> dict:
         "own": _history_to_json(state.own),
         "motion": {"velocity": floats(motion.velocity), "stamp": motion.stamp,
                    "position": None if motion.position is None else floats(motion.position),
-                   "yaw_rate": motion.yaw_rate, "leeway": floats(motion.leeway)},
+                   "yaw_rate": motion.yaw_rate, "leeway": floats(motion.leeway),
+                   "set": floats(motion.set), "surge": motion.surge, "surge_command": motion.surge_command},
         "tracks": {j: _track_to_json(track) for j, track in state.tracks.items()},
         "priors": {j: {"position": floats(p.position), "covariance": floats(p.covariance), "stamp": p.stamp}
                    for j, p in state.priors.items()},
@@ -60,7 +61,10 @@ def state_from_json(data: dict, params: AgentParams) -> VesselState:
         motion=OwnMotion(velocity=np.array(motion["velocity"], dtype=float), stamp=motion["stamp"],
                          position=None if motion["position"] is None else np.array(motion["position"], dtype=float),
                          yaw_rate=float(motion.get("yaw_rate", 0.0)),
-                         leeway=np.array(motion.get("leeway", (0.0, 0.0)), dtype=float)),
+                         leeway=np.array(motion.get("leeway", (0.0, 0.0)), dtype=float),
+                         set=np.array(motion.get("set", (0.0, 0.0)), dtype=float),
+                         surge=float(motion.get("surge", 0.0)),
+                         surge_command=float(motion.get("surge_command", 0.0))),
         tracks={j: _track_from_json(j, t, params, data["vessel"]) for j, t in data["tracks"].items()},
         priors={j: NeighbourPrior(np.array(p["position"], dtype=float),
                                   np.array(p["covariance"], dtype=float).reshape(2, 2), p["stamp"])

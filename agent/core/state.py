@@ -51,6 +51,10 @@ class OwnMotion:
     yaw_rate: float = 0.0      # the boat's yaw rate as the agent models it (control.yaw_lag > 0)
     # w of the leeway model sway = w . n(heading) (control.leeway_time_constant > 0; control/leeway.py)
     leeway: np.ndarray = field(default_factory=lambda: np.zeros(2))
+    # c of the set model: surge over ground less through the water = c . t(heading) (control.set_time_constant)
+    set: np.ndarray = field(default_factory=lambda: np.zeros(2))
+    surge_command: float = 0.0   # the last surge commanded (m/s), with control.set_time_constant > 0
+    surge: float = 0.0         # the boat's surge through the water as the agent models it (control.surge_lag)
 
 
 @dataclass

@@ -22,7 +22,7 @@ import numpy as np
 
 from agent.core.checks import finite_vector, obstacle_array, valid_range
 from agent.core.command import control_command
-from agent.core.control.leeway import leeway_sway, leeway_update
+from agent.core.control.leeway import leeway_sway, leeway_update, set_along, set_update
 from agent.core.control.oscillator import oscillator_step
 from agent.core.control.separation import coasting_distance, guarded_surge
 from agent.core.cooperation import fuse_reciprocal, fuse_targets, swap_velocity
@@ -38,6 +38,9 @@ SEPARATION_RANGES = 5   # the median of this many last ranges judges a localised
 # Table II ranges spreads about 0.4 m (the inliers' 0.63 m, outliers mostly voted out), and the ranges span
 # half a second of relative motion (up to ~0.5 m in formation): 2 m is well beyond both.
 RANGE_DISAGREEMENT = 2.0
+# m/s: the set model learns only while the modelled surge is this close to the command. Starting from rest
+# the hull lags the first-order model (acceleration and thrust limits) and taught it 0.4-0.6 m/s of false set.
+SET_STEADY = 0.05
 
 
 def step(params: AgentParams, state: VesselState, inputs: TickInputs) -> tuple[VesselState, TickOutput]:
@@ -125,9 +128,17 @@ def step(params: AgentParams, state: VesselState, inputs: TickInputs) -> tuple[V
             state.motion.leeway = leeway_update(state.motion.leeway, state.motion.velocity, odometry.heading,
                                                 1.0 - math.exp(-elapsed / control.leeway_time_constant))
         sway = leeway_sway(state.motion.leeway, odometry.heading)
+    along = 0.0
+    if control.set_time_constant > 0.0:
+        # A current's set along the heading: the surge over ground the odometry showed less the modelled one.
+        motion = state.motion
+        if velocity_change is not None and motion.surge > 0.0 and abs(motion.surge_command - motion.surge) <= SET_STEADY:
+            motion.set = set_update(motion.set, motion.velocity, odometry.heading, motion.surge,
+                                    1.0 - math.exp(-elapsed / control.set_time_constant))
+        along = set_along(state.motion.set, odometry.heading)
     command, terms, saturated = control_command(
         control, params.dt, state.phase, next_phase, odometry.heading, target_state, state.motion.velocity,
-        localised, neighbour_phases, obstacles, state.motion.yaw_rate, sway)
+        localised, neighbour_phases, obstacles, state.motion.yaw_rate, sway, along)
     command = _keep_apart(params, state, inputs.ranges, localised, medians, distances, estimated,
                           odometry.heading, command)
     if not (math.isfinite(command.surge) and math.isfinite(command.yaw_rate)):
@@ -138,6 +149,12 @@ def step(params: AgentParams, state: VesselState, inputs: TickInputs) -> tuple[V
         # The boat's rate over the coming period, as the first-order lag makes it of this command.
         rate = state.motion.yaw_rate
         state.motion.yaw_rate = rate + (1.0 - math.exp(-elapsed / control.yaw_lag)) * (command.yaw_rate - rate)
+    if control.set_time_constant > 0.0:
+        # The boat's surge through the water over the coming period: first-order lagged (surge_lag) or at once.
+        model = state.motion.surge
+        blend = 1.0 - math.exp(-elapsed / control.surge_lag) if control.surge_lag > 0.0 else 1.0
+        state.motion.surge = model + blend * (command.surge - model)
+        state.motion.surge_command = command.surge
     surge = command.surge
     share = Share(
         sender=state.vessel, odometry=odometry,
