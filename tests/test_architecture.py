@@ -16,6 +16,8 @@ function, under `if TYPE_CHECKING`, relative ones, and `importlib.import_module`
   (agent.core.range_noise). Never the agent process (agent.shell).
 - `boat` (hull presets, thrusters, the inner loop), shared by the sim bridge and the driver bridge, imports
   from the project only `agent.config` and `agent.angles` and itself; `agent` never imports it.
+- The ROS 2 libraries of the `ros2` extra (rosbags; mcap_ros2, the tests' decoder) are imported by
+  `mission_log.ros2_export` only: no process of the fleet needs them.
 - Layers: `mission_log` and `sim_bridge` never import `lab`; `mission_log` never imports `sim_bridge`;
   nothing outside `lab` imports `lab` (the tests may); `agent` imports none of sim_bridge, driver_bridge, lab,
   mission_log, usv_deploy.
@@ -43,6 +45,8 @@ CORE_FORBIDDEN = ("zenoh", "mcap", "matplotlib", "threading", "socket", "subproc
                   "boat", "sim_bridge", "driver_bridge", "lab", "mission_log", "usv_deploy", "usv_op")
 OURS = PACKAGES
 BOAT_ALLOWED = ("agent.config", "agent.angles", "boat")
+ROS2_LIBRARIES = ("rosbags", "mcap_ros2")
+ROS2_EXPORT = "mission_log.ros2_export"
 SHARED_FROM_AGENT = ("agent.contract", "agent.config", "agent.angles", "agent.runtime")
 CORE_VOCABULARY = ("agent.core.params", "agent.core.records", "agent.core.build", "agent.core.range_noise")
 
@@ -244,6 +248,12 @@ def test_the_layers(imports, importer, forbidden):
            f"{importer} imports none of {', '.join(forbidden)}")
 
 
+def test_only_the_ros2_export_imports_the_ros2_libraries(imports):
+    others = [found for found in imports if found.module != ROS2_EXPORT]
+    broken(others, "", lambda target: not any(within(target, name) for name in ROS2_LIBRARIES),
+           f"only {ROS2_EXPORT} imports {', '.join(ROS2_LIBRARIES)}")
+
+
 def test_only_the_lab_imports_the_lab(imports):
     outside = [found for found in imports if not within(found.module, "lab")]
     broken(outside, "", lambda target: not within(target, "lab"), "nothing outside lab imports lab")
@@ -267,6 +277,7 @@ def test_the_scan_reads_every_package(imports):
     assert ("usv_deploy.cli", "usv_deploy.certs") in seen             # inside a function (cryptography)
     assert ("usv_op.cli", "agent.contract") in seen                   # the operator speaks the contract
     assert ("sim_bridge.hull", "boat.inner_loop") in seen             # the simulator runs the boat's loop
+    assert (ROS2_EXPORT, "rosbags.rosbag2") in seen                   # inside a function (the ros2 extra)
 
 
 def test_the_scan_sees_every_kind_of_import():
