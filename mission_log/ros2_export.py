@@ -47,11 +47,17 @@ class MissingExtra(ImportError):
 def load_rosbags():
     """The rosbags modules the export needs, or MissingExtra."""
     try:
-        from rosbags.rosbag2 import StoragePlugin, Writer
+        from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer
         from rosbags.typesys import Stores, get_typestore
     except ImportError:
         raise MissingExtra(f"usv-log export --ros2 needs rosbags: {ROS2_EXTRA}") from None
-    return Writer, StoragePlugin, get_typestore(Stores.ROS2_JAZZY)
+
+    def writer(out: Path):
+        """A rosbag2 writer of MCAP storage whose chunks are zstd-compressed (as our logs are)."""
+        bag = Writer(out, version=METADATA_VERSION, storage_plugin=StoragePlugin.MCAP)
+        bag.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
+        return bag
+    return writer, get_typestore(Stores.ROS2_JAZZY)
 
 
 def namespace(vessel: str) -> str:
@@ -208,7 +214,7 @@ class Exported:
 
 def export_ros2(run: RunLog, out: Path) -> Exported:
     """Write `run` as the rosbag2 folder `out` (which must not exist). On an error nothing is left behind."""
-    Writer, StoragePlugin, typestore = load_rosbags()
+    new_writer, typestore = load_rosbags()
     out = Path(out)
     if out.exists():
         raise LogError(f"{out}: already exists; not overwriting (give another --out)")
@@ -223,7 +229,7 @@ def export_ros2(run: RunLog, out: Path) -> Exported:
     partial = partial_note(run)
     counts: Counter[str] = Counter()
     types: dict[str, str] = {}
-    writer = Writer(out, version=METADATA_VERSION, storage_plugin=StoragePlugin.MCAP)
+    writer = new_writer(out)
     connections = {}
     try:
         writer.open()

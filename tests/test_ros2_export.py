@@ -303,6 +303,7 @@ def test_the_bag_is_in_rosbag2s_mcap_profile_with_its_metadata(exported):
     assert header.profile == "ros2"
     assert {schema.encoding for schema in summary.schemas.values()} == {"ros2msg"}
     assert {channel.message_encoding for channel in summary.channels.values()} == {"cdr"}
+    assert {index.compression for index in summary.chunk_indexes} == {"zstd"}     # rosbag2's MCAP reads zstd
     info = yaml.safe_load(metadata["rosbag2"]["serialized_metadata"])
     on_disk = yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
     assert on_disk["version"] == info["version"] == 8 and on_disk["storage_identifier"] == "mcap"
