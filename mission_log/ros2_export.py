@@ -27,7 +27,8 @@ from pathlib import Path
 
 import numpy as np
 
-from mission_log.reader import LogError, RunLog, VesselLog
+from agent.shell.tick_log import log_topic
+from mission_log.reader import Log, LogError, RunLog, VesselLog
 
 ROS2_EXTRA = "pip install 'usv-circumnav[ros2]'"
 METADATA_VERSION = 8        # rosbag2's metadata of Jazzy: QoS profiles as a string, custom_data, ros_distro
@@ -178,7 +179,21 @@ def vessel_streams(log: VesselLog, make: Messages) -> list[Iterator[Item]]:
                 yield t, "/tf", TF, make.transforms([(stamp, aligned, f"{ns}/{name}", -px, -py, 0.0)
                                                      for name, (px, py), _ in found])
 
-    return [odometry(), commands(), estimates()]
+    return [guarded(odometry(), log, log_topic(log.vessel, "inputs")),
+            guarded(commands(), log, log_topic(log.vessel, "cmd")),
+            guarded(estimates(), log, log_topic(log.vessel, "estimates"))]
+
+
+def guarded(stream: Iterator[Item], log: Log, topic: str) -> Iterator[Item]:
+    """`stream`, with a message it cannot convert (a log edited or damaged by hand) turned into one LogError
+    that names the file and the topic."""
+    try:
+        yield from stream
+    except LogError as error:
+        raise LogError(f"{log.path}: {topic}: {error}") from None
+    except (KeyError, TypeError, ValueError, IndexError) as error:
+        raise LogError(f"{log.path}: {topic}: a message of a shape the export cannot read "
+                       f"({type(error).__name__}: {error})") from None
 
 
 def truth_stream(log, make: Messages) -> Iterator[Item]:
@@ -225,7 +240,7 @@ def export_ros2(run: RunLog, out: Path) -> Exported:
     make = Messages(typestore)
     streams = [s for log in run.vessels.values() for s in vessel_streams(log, make)]
     if run.sim is not None:
-        streams.append(truth_stream(run.sim, make))
+        streams.append(guarded(truth_stream(run.sim, make), run.sim, "/truth"))
     partial = partial_note(run)
     counts: Counter[str] = Counter()
     types: dict[str, str] = {}
@@ -242,6 +257,8 @@ def export_ros2(run: RunLog, out: Path) -> Exported:
                 types[topic] = kind
             writer.write(connections[topic], t, typestore.serialize_cdr(message, kind))
             counts[topic] += 1
+        if not counts:
+            raise LogError(f"{run.source}: no odometry, command, estimate or truth to export")
         writer.close()
     except BaseException:
         writer.abort()

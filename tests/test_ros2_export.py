@@ -360,6 +360,23 @@ def test_bad_paths_get_one_line_and_leave_nothing(run_folder, tmp_path):
     assert exited.value.code == 2
 
 
+def test_a_message_the_export_cannot_read_is_one_line_naming_its_file_and_topic(tmp_path):
+    for name, topic, message, says in [
+        ("bad", "usv/9/cmd", {"yaw_rate": 0.1},
+         "usv/9/cmd: a message of a shape the export cannot read (KeyError"),
+        ("early", "/9/inputs", {"odometry": {"stamp": -0.5, "position": [0.0, 0.0], "heading": 0.0}},
+         "/9/inputs: time -0.5 s cannot be a ROS 2 stamp"),
+        ("empty", "/9/summary", {"ticks": 0}, "no odometry, command, estimate or truth to export"),
+    ]:
+        folder = tmp_path / name
+        folder.mkdir()
+        with McapLog(folder / "agent-9.mcap", metadata={"vessel": "9"}) as log:
+            log.log(topic, message, log_time_ns=1_000)
+        code, printed, errors = run_cli("export", "--ros2", str(folder))
+        assert code == 2 and printed == "" and errors.count("\n") == 1 and says in errors, errors
+        assert [path.name for path in folder.iterdir()] == ["agent-9.mcap"]     # no half-written bag left
+
+
 def test_without_the_ros2_extra_the_export_says_how_to_install_it(run_folder, tmp_path, monkeypatch):
     for name in [name for name in sys.modules if name.split(".")[0] == "rosbags"] + ["rosbags"]:
         monkeypatch.setitem(sys.modules, name, None)      # importing it now raises ImportError
