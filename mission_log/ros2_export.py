@@ -83,9 +83,18 @@ class Messages:
 
     typestore: object
     types: dict = field(init=False)
+    _ids: dict[str, str] = field(default_factory=dict)    # ROS name -> the vessel id that made it
 
     def __post_init__(self) -> None:
         self.types = self.typestore.types
+
+    def name(self, vessel: str) -> str:
+        """`namespace(vessel)`, refusing two ids that make the same name in one bag (`a-b` and `a_b`)."""
+        name = namespace(vessel)
+        other = self._ids.setdefault(name, vessel)
+        if other != vessel:
+            raise LogError(f"vessels {other} and {vessel} make the same ROS 2 name {name}")
+        return name
 
     def _t(self, name: str, **fields):
         return self.types[name](**fields)
@@ -142,7 +151,7 @@ def planar(block: np.ndarray | None) -> np.ndarray:
 
 def vessel_streams(log: VesselLog, make: Messages) -> list[Iterator[Item]]:
     """The ROS 2 messages of one agent's log, one stream per source topic, each in log-time order."""
-    ns = namespace(log.vessel)
+    ns = make.name(log.vessel)
     odom, aligned, hull = f"{ns}/odom", f"{ns}/odom_aligned", f"{ns}/base_link"
 
     def odometry() -> Iterator[Item]:
@@ -166,7 +175,7 @@ def vessel_streams(log: VesselLog, make: Messages) -> list[Iterator[Item]]:
         last = None
         for t, record in log.topic("estimates"):
             stamp = ros_ns(record["time"])
-            found = [(f"estimate/{namespace(j)}", n["position"], np.reshape(n["covariance"], (2, 2)))
+            found = [(f"estimate/{make.name(j)}", n["position"], np.reshape(n["covariance"], (2, 2)))
                      for j, n in sorted(record["neighbours"].items())]
             if record.get("target_state") is not None:
                 found.append(("estimate/target", record["target_state"][:2],
@@ -201,7 +210,7 @@ def truth_stream(log, make: Messages) -> Iterator[Item]:
     for t, truth in log.messages("/truth"):
         links = []
         for vessel, state in sorted(truth["vessels"].items()):
-            child = f"truth/{namespace(vessel)}"
+            child = f"truth/{make.name(vessel)}"
             (x, y), heading = state["position"], state["heading"]
             yield t, f"/{child}", ODOMETRY, make.odometry(t, WORLD, child, x, y, heading)
             links.append((t, WORLD, child, x, y, heading))
@@ -233,10 +242,6 @@ def export_ros2(run: RunLog, out: Path) -> Exported:
     out = Path(out)
     if out.exists():
         raise LogError(f"{out}: already exists; not overwriting (give another --out)")
-    names = [namespace(v) for v in run.vessels]
-    if len(set(names)) != len(names):
-        twice = [v for v in run.vessels if names.count(namespace(v)) > 1]
-        raise LogError(f"vessels {', '.join(twice)} make the same ROS 2 name {namespace(twice[0])}")
     make = Messages(typestore)
     streams = [s for log in run.vessels.values() for s in vessel_streams(log, make)]
     if run.sim is not None:

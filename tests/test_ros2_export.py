@@ -386,11 +386,17 @@ def test_without_the_ros2_extra_the_export_says_how_to_install_it(run_folder, tm
     assert not (tmp_path / "bag").exists()
 
 
-def test_vessel_ids_become_ros_names():
+def test_vessel_ids_become_ros_names(tmp_path):
     assert [namespace(v) for v in ("1", "boat-7", "A_2")] == ["usv_1", "usv_boat_7", "usv_A_2"]
     for bad in ("a--b", "_x"):   # usv_a__b, usv__x: a ROS 2 name has no '__'
         with pytest.raises(LogError, match="no ROS 2 name"):
             namespace(bad)
+    for vessel in ("a-b", "a_b"):
+        with McapLog(tmp_path / f"agent-{vessel}.mcap", metadata={"vessel": vessel}) as log:
+            log.log(f"usv/{vessel}/cmd", {"surge": 1.0, "yaw_rate": 0.0}, log_time_ns=1_000)
+    code, _, errors = run_cli("export", "--ros2", str(tmp_path))
+    assert code == 2 and "vessels a-b and a_b make the same ROS 2 name usv_a_b\n" in errors, errors
+    assert not (tmp_path / "ros2").exists()
 
 
 @pytest.mark.slow   # a process: the command as a user types it
