@@ -1,7 +1,7 @@
 """`usv-log export --ros2`: a run's logs as a rosbag2 for ROS 2 users, written with `rosbags` (the `ros2` extra).
 
 `export_ros2(run, out)` writes the folder `out`: `metadata.yaml` (rosbag2 metadata version 8) and one MCAP file
-in rosbag2's profile (`ros2`, schemas `ros2msg`, messages `cdr`), which `ros2 bag play out` plays. Per vessel,
+in rosbag2's profile (`ros2`, schemas `ros2msg`, messages `cdr`), for `ros2 bag play out`. Per vessel,
 under its namespace `usv_<id>`: `odom` (nav_msgs/Odometry), `cmd_vel` (geometry_msgs/Twist), `estimate/<j>`
 and `estimate/target` (geometry_msgs/PoseWithCovarianceStamped); the frames of all of them on `/tf`
 (tf2_msgs/TFMessage); with the sim bridge's log, the truth on `/truth/usv_<id>` and `/truth/target`
@@ -100,8 +100,6 @@ class Messages:
         return self.types[name](**fields)
 
     def header(self, stamp_ns: int, frame: str):
-        if stamp_ns < 0:
-            raise LogError(f"stamp {stamp_ns} ns cannot be a ROS 2 stamp")
         sec, nanosec = divmod(stamp_ns, 1_000_000_000)
         stamp = self._t("builtin_interfaces/msg/Time", sec=sec, nanosec=nanosec)
         return self._t("std_msgs/msg/Header", stamp=stamp, frame_id=frame)
