@@ -46,7 +46,7 @@ from agent.runtime.process import stop_on_signals, vessel_process
 from agent.runtime.zenoh_session import ZenohSettings, zenoh_config
 from driver_bridge.bearing import BearingAdapter, CameraSettings, read_detection
 from driver_bridge.odometry import DeadReckoning, OdometrySettings, read_vhw
-from driver_bridge.serial_port import LineReader, open_serial, write_all
+from driver_bridge.serial_port import LineReader, libraries, open_serial
 from driver_bridge.thrust_loop import LoopSettings, LoopThrusters
 from driver_bridge.thrusters import (
     ZERO_THRUST,
@@ -282,9 +282,9 @@ class DriverBridge:
         self._publish(publishers, "sensor/bearing", Bearing(
             stamp_ns=self.clock_ns(), seq=self._next("bearing"), sender=self.id, bearing=vector))
 
-    def _drive(self, fd: int, now: float) -> None:
-        """One thrust line; `now` is the monotonic clock (the watchdog's)."""
-        write_all(fd, self.thrust_line(now))
+    def _drive(self, port, now: float) -> None:
+        """One thrust line to `port` (pyserial's write gives up after 1 s); `now`: the monotonic clock."""
+        port.write(self.thrust_line(now))
 
     def thrust_line(self, now: float) -> bytes:
         """The thrust line to write now: the command in force's, or a stop. `now`: the monotonic clock."""
@@ -306,13 +306,14 @@ class DriverBridge:
             if port is not None:
                 try:
                     ports[name] = open_serial(port.device, port.baud)
-                except OSError as error:
-                    for fd in ports.values():
-                        os.close(fd)
+                except (OSError, ValueError) as error:   # pyserial: SerialException (an OSError), a bad baud
+                    for opened in ports.values():
+                        opened.close()
+                    why = os.strerror(error.errno) if getattr(error, "errno", None) else str(error)
                     raise OSError(f"cannot open {DEVICES[name]} ({name}.device {port.device} at {port.baud} "
-                                  f"baud): {error.strerror or error}") from None
+                                  f"baud): {why}") from None
         handlers = {"uwb": self._on_uwb, "odometry": self._on_odometry, "camera": self._on_camera}
-        readers = {fd: handlers[name] for name, fd in ports.items() if name in handlers}
+        readers = {port: name for name, port in ports.items() if name in handlers}
         started = time.monotonic()
         try:
             with zenoh.open(zenoh_config(self.settings.zenoh)) as session:
@@ -327,24 +328,35 @@ class DriverBridge:
                     if max_seconds is not None and time.monotonic() - started > max_seconds:
                         break
                     ready, _, _ = select.select(list(readers), [], [], max(0.0, next_drive - time.monotonic()))
-                    for fd in ready:
-                        data = os.read(fd, 4096)
+                    for port in ready:
+                        data = self._read(port, readers[port])
                         if data:
-                            readers[fd](data, publishers)
+                            handlers[readers[port]](data, publishers)
                     self.report_refusals(time.monotonic())
                     if time.monotonic() >= next_drive:
                         next_drive += period
                         if self.thrusters:
                             self._drive(ports["thrusters"], time.monotonic())
                 if "thrusters" in ports:   # stopped before Zenoh's teardown, which might not end by the deadline
-                    write_all(ports["thrusters"], command_line(ZERO_THRUST))
+                    ports["thrusters"].write(command_line(ZERO_THRUST))
                 subscriber.undeclare()
                 agent.undeclare()
         finally:
-            if "thrusters" in ports:
-                write_all(ports["thrusters"], command_line(ZERO_THRUST))   # leave the boat stopped
-            for fd in ports.values():
-                os.close(fd)
+            try:
+                if "thrusters" in ports:
+                    ports["thrusters"].write(command_line(ZERO_THRUST))   # leave the boat stopped
+            finally:
+                for port in ports.values():
+                    port.close()
+
+    def _read(self, port, name: str) -> bytes:
+        """What `port` has, or an OSError that names the device: one that vanished (unplugged) reports
+        itself ready and then has nothing, or fails the read (pyserial raises either way)."""
+        try:
+            return port.read(4096)
+        except OSError as error:
+            device = getattr(self.settings, name).device
+            raise OSError(f"lost {DEVICES[name]} ({name}.device {device}): {error}") from None
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -354,6 +366,11 @@ def main(argv: list[str] | None = None) -> int:
     if isinstance(started, int):
         return started
     args, settings = started
+    try:
+        libraries()
+    except ImportError as error:   # the `driver` extra: one line, not a traceback
+        print(f"usv-driver: {error}", file=sys.stderr)
+        return 1
     bridge = DriverBridge(args.vessel, settings)
     # Within systemd's TimeoutStopSec (5 s, deploy/systemd/usv-driver@.service), so that a hang is seen in stacks.
     stop_on_signals(bridge.stopping, deadline=4.0)
