@@ -31,6 +31,8 @@ DRIVER_EXTRA = "pip install 'usv-circumnav[driver]'"
 # A decimal as a device writes it: digits, an optional fraction and exponent. Python's float() (and so
 # pynmeagps) also takes "nan", "inf", "1_000" and spaces, none of which a sensor sends.
 _DECIMAL = re.compile(r"[+-]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]{1,4})?")
+_INTEGER = re.compile(r"[0-9]{1,9}")
+_DEGREES_MINUTES = re.compile(r"[0-9]{2,3}[0-5][0-9]\.[0-9]{1,9}")   # NMEA's (d)ddmm.mmm
 _loaded: tuple[Any, Any] | None = None
 
 
@@ -126,22 +128,29 @@ def nmea_number(text: str) -> float | None:
 def read_sentence(body: bytes, msg_id: str, fields: int):
     """(pynmeagps's NMEAMessage, "") for a checked body of standard sentence `msg_id` with exactly `fields`
     fields after its address, its fields typed and named by pynmeagps's table; else (None, why):
-    `not_<msg_id>` (another sentence, or another number of fields) or `bad_number` (a number field of the
-    table that is neither empty nor a plain finite decimal)."""
+    `not_<msg_id>` (another sentence, or another number of fields) or `bad_number` (a field of the table
+    that is neither empty nor what its kind holds: a plain finite decimal, digits, (d)ddmm.mmm with minutes
+    below 60, a time hhmmss[.ss])."""
     _, nmea = libraries()
     content = _text(body)
     address, *payload = content.split(",")
     talker, found = (address[:1], address[1:]) if address[:1] == "P" else (address[:2], address[2:])
     if found != msg_id or len(payload) != fields:
         return None, f"not_{msg_id.lower()}"
-    table = nmea.NMEA_PAYLOADS_GET[msg_id]
-    if any(kind == nmea.DE and text and nmea_number(text) is None
-           for kind, text in zip(table.values(), payload)):
+    table = list(nmea.NMEA_PAYLOADS_GET[msg_id].items())
+    rules = {nmea.DE: lambda text: nmea_number(text) is not None, nmea.IN: _INTEGER.fullmatch,
+             nmea.LA: _DEGREES_MINUTES.fullmatch, nmea.LN: _DEGREES_MINUTES.fullmatch}
+    if any(text and not rules.get(kind, bool)(text) for (_, kind), text in zip(table, payload)):
         return None, "bad_number"
     try:
-        return nmea.NMEAMessage(talker, msg_id, nmea.GET, payload=payload, validate=nmea.VALNONE), ""
-    except nmea.NMEATypeError:   # a field of another kind (a time, a latitude) that is not one
+        message = nmea.NMEAMessage(talker, msg_id, nmea.GET, payload=payload, validate=nmea.VALNONE)
+    except nmea.NMEATypeError:   # a field of another kind that is not one
         return None, "bad_number"
+    # pynmeagps gives "" for a time or position it cannot read (e.g. an hour of 25), without a word
+    if any(text and kind in (nmea.TM, nmea.LA, nmea.LN) and getattr(message, name) == ""
+           for (name, kind), text in zip(table, payload)):
+        return None, "bad_number"
+    return message, ""
 
 
 class LineReader:
