@@ -190,7 +190,7 @@ def test_two_leeway_models_at_once_are_refused():
 def test_a_wind_fleet_with_the_leeway_model_round_trips_through_a_snapshot_bit_for_bit(monkeypatch):
     _, scenario = select_scenario(SEA_STATES, "wind")
     agent = scenario.agent.model_copy(update={"target": scenario.agent.target.model_copy(
-        update={"leeway_variance": 0.04})})
+        update={"leeway_variance": 0.04, "leeway_odometry": True})})
     scenario = scenario.model_copy(update={"duration": 8.0, "agent": agent})
     original = runner.run(scenario, 1)
     trips = []
@@ -208,3 +208,31 @@ def test_a_wind_fleet_with_the_leeway_model_round_trips_through_a_snapshot_bit_f
     for name in ("commands", "estimates", "relative", "positions"):
         np.testing.assert_array_equal(getattr(again, name), getattr(original, name), err_msg=name)
     assert sorted(trips) == ["1", "2", "3", "4"]
+
+
+def test_a_tick_steers_against_the_leeway_and_shares_the_odometry_with_it():
+    from agent.core.build import InitialEstimates, initial_state
+    from agent.core.records import OdometryReading, TickInputs
+
+    params = AgentParams.model_validate({"target": {"leeway_variance": 0.04, "leeway_odometry": True}})
+    state = initial_state("1", params, InitialEstimates(target=(5.0, 0.0, 0.0, 0.0)))
+    state, _ = step(params, state, TickInputs(time=0.0, odometry=OdometryReading(0.0, np.array([0.0, 0.0]), 0.0),
+                                              bearing=np.array([1.0, 0.0])))
+    assert isinstance(state.tracker, LeewayPLKF)
+    state.tracker._x[4:6] = (0.3, 0.2)
+    state, output = step(params, state, TickInputs(time=0.1, odometry=OdometryReading(0.1, np.array([0.1, 0.0]),
+                                                                                       0.0),
+                                                   bearing=np.array([1.0, 0.0])))
+    # The interval's leeway at psi = 0 is N(0) w = (0, 0.2): 0.02 m over the 0.1 s, added to the shared odometry
+    # and the pair filters' history; the target filter's own odometry stays raw.
+    np.testing.assert_allclose(output.share.odometry.position, [0.1, 0.02], atol=1e-15)
+    assert state.own.get(state.own.latest()) == pytest.approx((0.1, 0.02))
+    np.testing.assert_array_equal(state.motion.position, [0.1, 0.0])
+    # The command asks for the velocity less the sway w . n(psi) n(psi) of the w after this tick's update.
+    record = output.record
+    assert not record.saturated["formation"]
+    w = state.tracker.leeway
+    n = np.array([0.0, 1.0])
+    wanted = record.formation_velocity + record.tracking_velocity + record.avoidance_velocity
+    np.testing.assert_allclose(record.velocity_command, wanted - (w @ n) * n, atol=1e-12)
+    assert abs(w @ n) > 0.1

@@ -40,6 +40,10 @@ class TargetEstimationParams(StrictModel):
         0.0, description="initial variance of the leeway w ((m/s)^2 per axis), from the bearings; 0: none")
     leeway_process_noise: PositiveFloat = Field(
         1e-6, description="Q of the leeway w per step ((m/s)^2 per axis), with leeway_variance > 0")
+    # Measured harmful with the w the bearings give (docs/sea.md, (h)): each vessel's error in w drifts its
+    # odometry away from its neighbours', and the pair filters trust the odometry.
+    leeway_odometry: bool = Field(
+        False, description="with leeway_variance > 0, the pair filters and the share take the odometry plus N w")
 
 
 class ControlParams(StrictModel):

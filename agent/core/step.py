@@ -66,9 +66,11 @@ def step(params: AgentParams, state: VesselState, inputs: TickInputs) -> tuple[V
     position = np.asarray(odometry.position, dtype=float).reshape(2)
     elapsed = _elapsed(params, state.motion.stamp, now)
     leeway_model = params.target.leeway_variance > 0.0
-    # With the target filter's leeway model the pair filters and the share take the odometry with the leeway
-    # added; the target filter keeps the raw odometry (its own estimate must not feed back into its input).
-    over_ground = leeway_drift(state, position, odometry.heading, elapsed) if leeway_model else position
+    # With the target filter's leeway model (and leeway_odometry) the pair filters and the share take the
+    # odometry with the leeway added; the target filter keeps the raw odometry (its own estimate must not
+    # feed back into its input).
+    drifting = leeway_model and params.target.leeway_odometry
+    over_ground = leeway_drift(state, position, odometry.heading, elapsed) if drifting else position
     x, y = over_ground.tolist()
     state.own.put(now, (x, y))     # as (x, y) floats (History)
     velocity_change = own_motion(state, now, position)
@@ -174,7 +176,7 @@ def step(params: AgentParams, state: VesselState, inputs: TickInputs) -> tuple[V
         state.motion.surge = model + blend * (command.surge - model)
         state.motion.surge_command = command.surge
     surge = command.surge
-    if leeway_model:
+    if drifting:
         odometry = OdometryReading(odometry.stamp, over_ground, odometry.heading)
     share = Share(
         sender=state.vessel, odometry=odometry,
