@@ -12,6 +12,7 @@ import orjson
 import pytest
 
 import lab.harness.runner as runner
+from agent.core.build import InitialEstimates, initial_state
 from agent.core.estimators.plkf import PLKF
 from agent.core.estimators.plkf_leeway import (
     LeewayPLKF,
@@ -22,6 +23,7 @@ from agent.core.estimators.plkf_leeway import (
     marginal_map,
 )
 from agent.core.params import AgentParams, TargetEstimationParams
+from agent.core.records import OdometryReading, TickInputs
 from agent.core.snapshot import state_from_json, state_to_json
 from agent.core.step import step
 from sim_bridge.scenario import select_scenario
@@ -95,9 +97,9 @@ def _perturbation_on_circle(centre: tuple[float, float], dw: np.ndarray, du: np.
 
 def test_on_a_circle_about_the_target_the_bearings_cannot_see_the_leeway():
     """By hand, continuous time, theta = omega t, e(theta) the radial unit: N(psi) dw = (dw . e) e. For
-    dw = (a, 0) and du = -dw / 2 the position moves by int (a cos^2 theta, a sin theta cos theta) - a/2 (1, 0)
-    dt = (a / (2 omega)) sin theta e(theta), radial; for dw = (0, a), du = (0, -a/2),
-    dp0 = (-a / (2 omega), 0) by -(a / (2 omega)) cos theta e(theta). A radial change keeps every bearing: the kernel's discrete
+    dw = (a, 0) and du = -dw / 2 the position moves by int (a cos^2 theta, a sin theta cos theta) - (a/2, 0) dt
+    = (a / (2 omega)) sin theta e(theta), radial; for dw = (0, a), du = (0, -a/2), dp0 = (-a / (2 omega), 0)
+    by -(a / (2 omega)) cos theta e(theta). A radial change keeps every bearing: the kernel's discrete
     transition gives it to O(a dt), against O(a / omega) = 1.4 m off the centre."""
     a = 0.3
     for dw, du, dp0 in (((a, 0.0), (-a / 2, 0.0), (0.0, 0.0)),
@@ -211,20 +213,17 @@ def test_a_wind_fleet_with_the_leeway_model_round_trips_through_a_snapshot_bit_f
 
 
 def test_a_tick_steers_against_the_leeway_and_shares_the_odometry_with_it():
-    from agent.core.build import InitialEstimates, initial_state
-    from agent.core.records import OdometryReading, TickInputs
-
     params = AgentParams.model_validate({"target": {"leeway_variance": 0.04, "leeway_odometry": True}})
     state = initial_state("1", params, InitialEstimates(target=(5.0, 0.0, 0.0, 0.0)))
-    state, _ = step(params, state, TickInputs(time=0.0, odometry=OdometryReading(0.0, np.array([0.0, 0.0]), 0.0),
-                                              bearing=np.array([1.0, 0.0])))
+    east = np.array([1.0, 0.0])
+    state, _ = step(params, state, TickInputs(time=0.0, odometry=OdometryReading(0.0, np.zeros(2), 0.0),
+                                              bearing=east))
     assert isinstance(state.tracker, LeewayPLKF)
     state.tracker._x[4:6] = (0.3, 0.2)
-    state, output = step(params, state, TickInputs(time=0.1, odometry=OdometryReading(0.1, np.array([0.1, 0.0]),
-                                                                                       0.0),
-                                                   bearing=np.array([1.0, 0.0])))
-    # The interval's leeway at psi = 0 is N(0) w = (0, 0.2): 0.02 m over the 0.1 s, added to the shared odometry
-    # and the pair filters' history; the target filter's own odometry stays raw.
+    state, output = step(params, state, TickInputs(time=0.1, odometry=OdometryReading(0.1, 0.1 * east, 0.0),
+                                                   bearing=east))
+    # The interval's leeway at psi = 0 is N(0) w = (0, 0.2): 0.02 m over the 0.1 s, added to the shared
+    # odometry and the pair filters' history; the target filter's own odometry stays raw.
     np.testing.assert_allclose(output.share.odometry.position, [0.1, 0.02], atol=1e-15)
     assert state.own.get(state.own.latest()) == pytest.approx((0.1, 0.02))
     np.testing.assert_array_equal(state.motion.position, [0.1, 0.0])
