@@ -97,7 +97,7 @@ def _perturbation_on_circle(centre: tuple[float, float], dw: np.ndarray, du: np.
 
 def test_on_a_circle_about_the_target_the_bearings_cannot_see_the_leeway():
     """By hand, continuous time, theta = omega t, e(theta) the radial unit: N(psi) dw = (dw . e) e. For
-    dw = (a, 0) and du = -dw / 2 the position moves by int (a cos^2 theta, a sin theta cos theta) - (a/2, 0) dt
+    dw = (a, 0), du = -dw / 2 the position moves by int (a cos^2 theta, a sin theta cos theta) - (a/2, 0) dt
     = (a / (2 omega)) sin theta e(theta), radial; for dw = (0, a), du = (0, -a/2), dp0 = (-a / (2 omega), 0)
     by -(a / (2 omega)) cos theta e(theta). A radial change keeps every bearing: the kernel's discrete
     transition gives it to O(a dt), against O(a / omega) = 1.4 m off the centre."""
