@@ -239,3 +239,45 @@ def test_the_track_corrects_with_both_arms_from_the_histories_and_the_share():
     assert _track_run(share_antenna=False, own_antenna=True) > 0.3
     assert _track_run(share_antenna=True, own_antenna=False) > 0.3
     assert _track_run(share_antenna=False, own_antenna=False) > 0.3
+
+
+# ----- the whole tick -----
+
+def test_with_antennas_a_saved_and_restored_fleet_runs_on_bit_for_bit(monkeypatch):
+    """Table II's fleet with its UWB antennas off the centres, in the world and in the agents' parameters: a
+    JSON round trip of every vessel's state mid-run (the arm histories and the last offset with it) changes
+    nothing, and the shares carry the arms."""
+    from pathlib import Path
+
+    import orjson
+
+    from agent.config import updated
+    from agent.core.snapshot import state_from_json, state_to_json
+    from agent.core.step import step
+    from lab.harness import runner
+    from sim_bridge.scenario import select_scenario
+    from sim_bridge.sensors import SensorsConfig, Uwb
+
+    scenarios = Path(__file__).resolve().parents[1] / "configs" / "scenarios"
+    _, scenario = select_scenario(scenarios / "table2_estimators.yaml", "raw_range")
+    agent = updated(scenario.agent, relative=updated(scenario.agent.relative, antenna=(-0.3, 0.2)))
+    world = updated(scenario.world, sensors=SensorsConfig(uwb=Uwb(antenna=(-0.3, 0.2, 0.0))))
+    scenario = scenario.model_copy(update={"duration": 8.0, "agent": agent, "world": world})
+    original = runner.run(scenario, 5)
+    saved, arms = [], []
+
+    def step_with_a_round_trip(params, state, inputs):
+        if abs(inputs.time - 3.0) < 1e-9:
+            saved.append(state.vessel)
+            arms.append(len(state.own_arms.keys()) + sum(len(t.arms.keys()) for t in state.tracks.values()))
+            state = state_from_json(orjson.loads(orjson.dumps(state_to_json(state),
+                                                              option=orjson.OPT_SERIALIZE_NUMPY)), params)
+        state, output = step(params, state, inputs)
+        assert output.share is None or output.share.antenna == (-0.3, 0.2)
+        return state, output
+
+    monkeypatch.setattr(runner, "step", step_with_a_round_trip)
+    again = runner.run(scenario, 5)
+    for name in ("commands", "estimates", "relative", "positions"):
+        np.testing.assert_array_equal(getattr(again, name), getattr(original, name), err_msg=name)
+    assert sorted(saved) == ["1", "2", "3", "4"] and min(arms) > 0
