@@ -277,6 +277,8 @@ class NeighbourTrack:
         if self.estimator is None or self.epoch is None:
             return
         latest = self.odometry.latest()
+        # Without antennas off the centres (the paper's fleets) no offset is looked up: the loop is as it was.
+        arms = self.arms.latest() is not None or (own_arms is not None and own_arms.latest() is not None)
         for key in self.ranges.keys_after(self.epoch):
             if latest is None or key > latest:
                 mine, theirs, why = None, None, "later"     # what positions_at says, without asking
@@ -300,7 +302,7 @@ class NeighbourTrack:
                 continue
             self.spread.add(*displacement, (key - self.epoch) * 1e-6, self.observability.window)
             self.epoch, self.epoch_own, self.epoch_other = key, (mx, my), (tx, ty)
-            offset = self.offset_at(own_arms, key)
+            offset = self.offset_at(own_arms, key) if arms else None
             if self.last_range is None:
                 self.estimator.mark_range_epoch()
                 self.last_range, self.last_offset = range_now, offset or ZERO
