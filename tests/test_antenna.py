@@ -157,6 +157,7 @@ BASE = dict(stamp_ns=1, seq=0, sender="2", position=(0.0, 0.0), heading=0.0, vel
 @pytest.mark.parametrize("bad", [[math.nan, 0.0], [0.0, math.inf], [25.0, 0.0], [1.0], [1.0, 2.0, 3.0],
                                  "aft"])
 def test_a_share_with_a_bad_antenna_is_refused(bad):
+    assert ShareMessage.model_validate({**BASE, "antenna": [-0.3, 0.0]}).antenna == (-0.3, 0.0)
     with pytest.raises(ValidationError):
         ShareMessage.model_validate({**BASE, "antenna": bad})
 
