@@ -27,7 +27,7 @@ import math
 from typing import Annotated, Any, ClassVar, Literal
 
 import numpy as np
-from pydantic import Field, ValidationError, field_validator, model_validator
+from pydantic import Field, ValidationError, field_validator, model_serializer, model_validator
 
 from agent.cholesky import cholesky_succeeds
 from agent.config import StrictModel
@@ -54,6 +54,7 @@ MAX_PEERS = 256
 MAX_POSITION = 1e5        # m: positions, ranges, pair offsets and obstacle points (100 km)
 MAX_SPEED = 1e3           # m/s: velocities in a share, the surge of a command
 MAX_ANGLE = 1e6           # rad: headings, phases and yaw rates, wrapped or not (finite, and precise to 1e-10 rad)
+MAX_LEVER_ARM = 20.0      # m: each component of an antenna's lever arm from its hull's centre
 MAX_VARIANCE = MAX_POSITION**2   # m^2 (or (m/s)^2, rad^2): every entry of a covariance
 MAX_STAMP_NS = 2**63 - 1  # stamps and sequence numbers are int64 on the wire
 MAX_PAYLOAD_BYTES = 1 << 21   # 2 MiB: more than the largest valid message (a Clock's full `lost` list, ~1 MB)
@@ -67,6 +68,7 @@ Angle = Annotated[float, Field(ge=-MAX_ANGLE, le=MAX_ANGLE, allow_inf_nan=False)
 Variance = Annotated[float, Field(ge=-MAX_VARIANCE, le=MAX_VARIANCE, allow_inf_nan=False)]
 StampNs = Annotated[int, Field(ge=0, le=MAX_STAMP_NS)]
 Vec2 = tuple[Coordinate, Coordinate]
+LeverArm = tuple[Annotated[float, Field(ge=-MAX_LEVER_ARM, le=MAX_LEVER_ARM, allow_inf_nan=False)], ...]
 Velocity = tuple[SpeedComponent, SpeedComponent]
 
 
@@ -233,6 +235,9 @@ class _ShareBody(Header):
     target: tuple[Coordinate, Coordinate, SpeedComponent, SpeedComponent] | None = None
     target_covariance: tuple[Variance, ...] | None = Field(
         None, max_length=16, description="4x4, row-major: symmetric, positive semi-definite")
+    antenna: LeverArm | None = Field(
+        None, min_length=2, max_length=2,
+        description="the sender's UWB antenna (forward, left) from its hull's centre (m); absent: at it")
 
     @field_validator("target_covariance")
     @classmethod
@@ -241,6 +246,15 @@ class _ShareBody(Header):
         if problem:
             raise ValueError(f"target_covariance {problem}")
         return value
+
+    @model_serializer(mode="wrap")
+    def _antenna_only_when_given(self, handler):
+        # A share without an antenna is encoded as before the field existed, so that a receiver that predates
+        # it (extra fields are refused) still takes the shares of a sender that has none.
+        data = handler(self)
+        if self.antenna is None:
+            data.pop("antenna", None)
+        return data
 
     @model_validator(mode="after")
     def _target_with_covariance(self):

@@ -48,9 +48,10 @@ def assert_same_motion(log: dict, trace, stamps: list[int]) -> None:
 
 
 # The paper's estimator, the default, and the default on the Otter's hull in the moderate sea (current, wind,
-# waves, realistic sensors: the world's dynamics and environment run in the sim bridge as in the runner).
+# waves, realistic sensors: the world's dynamics and environment run in the sim bridge as in the runner);
+# moderate_dvl's agents share their UWB antennas' lever arms, which their pair filters take from the shares.
 @pytest.mark.parametrize("file, variant", [("table2_estimators", "mckf"), ("table2_estimators", "raw_range"),
-                                           ("sea_states", "moderate")])
+                                           ("sea_states", "moderate"), ("sea_states", "moderate_dvl")])
 def test_table_two_over_zenoh_equals_the_in_process_runner(tmp_path, file, variant):
     path = with_duration(CONFIGS / f"{file}.yaml", tmp_path, 20.0)
     _, scenario = select_scenario(path, variant)

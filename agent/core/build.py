@@ -35,4 +35,5 @@ def initial_state(vessel_id: str, params: AgentParams, initial: InitialEstimates
         tracker = target_filter(params.target, np.array(initial.target), initial.target_variance * np.eye(4),
                                 params.dt)
     return VesselState(vessel=vessel_id, own=History(params.fleet.history_ticks), motion=OwnMotion(), tracks={},
-                       priors=priors, tracker=tracker, phase=None, health=Health())
+                       priors=priors, tracker=tracker, phase=None, health=Health(),
+                       own_arms=History(params.fleet.history_ticks))

@@ -13,6 +13,7 @@ from collections.abc import Mapping
 import numpy as np
 
 from agent.cholesky import cholesky_succeeds  # noqa: F401  (the core's name for it: plkf.py)
+from agent.core.estimators.registry import MAX_LEVER_ARM
 from agent.core.records import Share
 
 FLOAT64 = np.dtype(np.float64)
@@ -87,7 +88,8 @@ def checked_share(share: object, receiver: str) -> CheckedShare | None:
             and (share.target is None or (finite_floats(share.target, (4,)) is not None
                                           and share.target_covariance is not None
                                           and _finite_4x4(share.target_covariance)))
-            and (type(share.neighbours) is dict or isinstance(share.neighbours, Mapping))):
+            and (type(share.neighbours) is dict or isinstance(share.neighbours, Mapping))
+            and (share.antenna is None or _valid_antenna(share.antenna, odometry.heading))):
         return None
     entry = share.neighbours.get(receiver)
     reciprocal = () if entry is None else pair_entry_floats(entry)
@@ -95,6 +97,13 @@ def checked_share(share: object, receiver: str) -> CheckedShare | None:
         return None
     (px, py), (vx, vy) = position, velocity
     return (px, py), (vx, vy), reciprocal
+
+
+def _valid_antenna(antenna, heading) -> bool:
+    """A lever arm (forward, left), finite and within MAX_LEVER_ARM (m), and a finite heading to turn it."""
+    arm = finite_floats(antenna, (2,))
+    return (arm is not None and all(abs(v) <= MAX_LEVER_ARM for v in arm)
+            and isinstance(heading, (int, float)) and math.isfinite(heading))
 
 
 def _finite_4x4(value) -> bool:

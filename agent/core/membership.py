@@ -89,7 +89,7 @@ def start_track(params: AgentParams, state: VesselState, track: NeighbourTrack, 
     if prior is None:
         return
     try:
-        started = track.start(prior, state.own)
+        started = track.start(prior, state.own, state.own_arms)
     except ValueError:      # a prior the filter cannot start from (not positive definite): earned nothing
         state.health.priors_refused += 1
         return

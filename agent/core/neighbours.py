@@ -25,6 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from agent.core.antenna import ZERO, antenna_offset, arm_vector
 from agent.core.checks import CheckedShare
 from agent.core.estimators import RelativePositionEstimator, make_relative_estimator
 from agent.core.estimators.base import UpdateOutcome
@@ -157,12 +158,15 @@ class NeighbourTrack:
         self.spread = PathSpread()         # the relative path at the range epochs, (41)
         self.odometry = History(history)   # j's cumulative odometry by its stamps, (x, y)
         self.ranges = History(history)     # ranges to j measured by i, by their stamps
+        # j's antenna arm vector R(psi_j) a_j by its odometry's stamps, once a share has given an antenna
+        self.arms = History(history)
         self.estimator: RelativePositionEstimator | None = None
         self.epoch: int | None = None      # stamp key the filter state refers to
         # i's and j's odometry at the epoch as (x, y) floats: every tick reads them in floats, several times
         self.epoch_own: tuple[float, float] | None = None
         self.epoch_other: tuple[float, float] | None = None
         self.last_range: float | None = None
+        self.last_offset = ZERO            # delta_ij at last_range's time (antenna.py)
         self.share: Share | None = None    # latest share received
         # That share's estimate of our pair, checked and as floats (agent/core/checks.py pair_entry_floats);
         # (): it carries none.
@@ -202,6 +206,8 @@ class NeighbourTrack:
         `checked_share` gave for the share."""
         stamp, (position, velocity, reciprocal) = share.odometry.stamp, checked
         self.odometry.put(stamp, position)
+        if share.antenna is not None or self.arms.latest() is not None:
+            self.arms.put(stamp, arm_vector(share.odometry.heading, share.antenna or ZERO))
         if self.share is None or stamp >= self.share.odometry.stamp:
             self.share, self.reciprocal, self.velocity = share, reciprocal, velocity
         self.last_heard = max(self.last_heard, stamp)
@@ -217,7 +223,7 @@ class NeighbourTrack:
             return None, None, "later" if "later" in reasons else ("gap" if "gap" in reasons else "before")
         return mine, theirs, ""
 
-    def start(self, prior: NeighbourPrior, own: History) -> str:
+    def start(self, prior: NeighbourPrior, own: History, own_arms: History | None = None) -> str:
         """Start the filter from `prior`, the initial estimate of (10), at its stamp: "started", "wait" (the
         odometry of that time has not all arrived), or "stale" (the prior's time is outside the odometry
         kept, so nothing can carry it to now)."""
@@ -247,10 +253,21 @@ class NeighbourTrack:
         if range_now is not None:
             self.estimator.mark_range_epoch()
             self.last_range = range_now
+            self.last_offset = self.offset_at(own_arms, key) or ZERO
             self.spread.add(0.0, 0.0, 0.0, self.observability.window)
         return "started"
 
-    def advance(self, own: History, now: int, unusable: Counter) -> None:
+    def offset_at(self, own_arms: History | None, key: int) -> tuple[float, float] | None:
+        """delta_ij at stamp `key` from both vessels' antenna arm vectors (antenna.py), each interpolated like
+        the odometry (a missing one counts as 0); None when neither vessel has an antenna off its centre, so
+        that the filter runs the centre-to-centre model (6) exactly as without antennas."""
+        mine = None if own_arms is None or own_arms.latest() is None else own_arms.at(key, self.gap_key)[0]
+        theirs = None if self.arms.latest() is None else self.arms.at(key, self.gap_key)[0]
+        if mine is None and theirs is None:
+            return None
+        return antenna_offset(mine or ZERO, theirs or ZERO)
+
+    def advance(self, own: History, now: int, unusable: Counter, own_arms: History | None = None) -> None:
         """Run the filter over the ranges after the epoch, in time order: the relative displacement (5), (11)
         between the epoch and the range's time predicts (15), and each range paired with the previous one
         updates, (12), (13), (14). Ranges that cannot be used are dropped and counted in `unusable` by
@@ -260,6 +277,8 @@ class NeighbourTrack:
         if self.estimator is None or self.epoch is None:
             return
         latest = self.odometry.latest()
+        # Without antennas off the centres (the paper's fleets) no offset is looked up: the loop is as it was.
+        arms = self.arms.latest() is not None or (own_arms is not None and own_arms.latest() is not None)
         for key in self.ranges.keys_after(self.epoch):
             if latest is None or key > latest:
                 mine, theirs, why = None, None, "later"     # what positions_at says, without asking
@@ -283,15 +302,19 @@ class NeighbourTrack:
                 continue
             self.spread.add(*displacement, (key - self.epoch) * 1e-6, self.observability.window)
             self.epoch, self.epoch_own, self.epoch_other = key, (mx, my), (tx, ty)
+            offset = self.offset_at(own_arms, key) if arms else None
             if self.last_range is None:
                 self.estimator.mark_range_epoch()
-                self.last_range = range_now
+                self.last_range, self.last_offset = range_now, offset or ZERO
                 continue
-            outcome = self.estimator.update(self.last_range, range_now)
+            if offset is None:
+                outcome = self.estimator.update(self.last_range, range_now)
+            else:
+                outcome = self.estimator.update_between(self.last_range, range_now, self.last_offset, offset)
             self.outcomes += ((key * 1e-6, range_now, outcome),)    # usually one: () + (x,) is (x,) itself
             self.last_iterations = outcome.iterations
             if outcome.accepted:
-                self.last_range = range_now
+                self.last_range, self.last_offset = range_now, offset or ZERO
                 self.updates += 1
             else:
                 self.rejected += 1

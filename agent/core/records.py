@@ -37,7 +37,8 @@ class Share:
     of p_jk for each neighbour k with their covariances and the time (s, the sender's clock) each refers to:
     its pair filter's epoch, the last range it used, where both vessels' odometry was measured. An estimate
     carried on to the share's stamp would carry k with k's commanded velocity, and a receiver that fuses it
-    would take that guess into its filter, tick after tick.
+    would take that guess into its filter, tick after tick. `antenna` is its UWB antenna's lever arm, which
+    with `odometry.heading` places the antenna its ranges are measured from (agent/core/antenna.py).
     """
 
     sender: str
@@ -47,6 +48,7 @@ class Share:
     target: np.ndarray | None = None                 # (4,) [p_jo; v_o]
     target_covariance: np.ndarray | None = None      # (4, 4)
     neighbours: Mapping[str, tuple[np.ndarray, np.ndarray, float]] = field(default_factory=dict)  # (p, P, stamp)
+    antenna: tuple[float, float] | None = None       # its UWB antenna (forward, left) (m); None: centre
 
 
 @dataclass(frozen=True)
@@ -154,6 +156,8 @@ def share_to_json(share: Share) -> dict:
         "target_covariance": None if share.target_covariance is None else floats(share.target_covariance),
         "neighbours": {j: {"position": floats(p), "covariance": floats(c), "stamp": float(t)}
                        for j, (p, c, t) in share.neighbours.items()},
+        # Only when there is one: a share with its antenna at the centre is written as before.
+        **({} if share.antenna is None else {"antenna": floats(share.antenna)}),
     }
 
 
@@ -168,6 +172,7 @@ def share_from_json(data: dict) -> Share:
         neighbours={j: (np.array(e["position"], dtype=float), np.array(e["covariance"], dtype=float).reshape(2, 2),
                         float(e.get("stamp", data["odometry"]["stamp"])))
                     for j, e in data["neighbours"].items()},
+        antenna=None if data.get("antenna") is None else tuple(float(v) for v in data["antenna"]),
     )
 
 

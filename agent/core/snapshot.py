@@ -34,6 +34,7 @@ def state_to_json(state: VesselState) -> dict:
         "vessel": state.vessel,
         "phase": state.phase,
         "own": _history_to_json(state.own),
+        "own_arms": _history_to_json(state.own_arms),
         "motion": {"velocity": floats(motion.velocity), "stamp": motion.stamp,
                    "position": None if motion.position is None else floats(motion.position),
                    "yaw_rate": motion.yaw_rate, "leeway": floats(motion.leeway),
@@ -77,6 +78,8 @@ def state_from_json(data: dict, params: AgentParams) -> VesselState:
         tracker=tracker,
         phase=data["phase"],
         health=Health(**data["health"]),
+        # A snapshot from before antennas has none: the antenna at the centre.
+        own_arms=_history_from_json(data.get("own_arms", []), params.fleet.history_ticks, _point),
     )
 
 
@@ -109,6 +112,8 @@ def _track_to_json(track: NeighbourTrack) -> dict:
         "epoch_own": None if track.epoch_own is None else floats(track.epoch_own),
         "epoch_other": None if track.epoch_other is None else floats(track.epoch_other),
         "last_range": track.last_range,
+        "arms": _history_to_json(track.arms),
+        "last_offset": floats(track.last_offset),
         "share": None if track.share is None else share_to_json(track.share),
         "last_heard": track.last_heard,
         "first_heard": track.first_heard,
@@ -131,6 +136,8 @@ def _track_from_json(neighbour: str, data: dict, params: AgentParams, vessel: st
     track.epoch_own = None if data["epoch_own"] is None else _point(data["epoch_own"])
     track.epoch_other = None if data["epoch_other"] is None else _point(data["epoch_other"])
     track.last_range = data["last_range"]
+    track.arms = _history_from_json(data.get("arms", []), history, _point)
+    track.last_offset = _point(data.get("last_offset", (0.0, 0.0)))
     if data["share"] is not None:
         # Checked as it was when it came in: the track keeps its estimate of our pair as checked floats.
         track.share = share_from_json(data["share"])

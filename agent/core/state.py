@@ -69,3 +69,5 @@ class VesselState:
     tracker: PLKF | None                          # the target filter, once there is a target estimate
     phase: float | None                           # phi_i of (28); None until the first tick sets it
     health: Health
+    # own antenna's arm vector R(psi) a by stamp, as `own` (agent/core/antenna.py); empty with no lever arm
+    own_arms: History = field(default_factory=lambda: History(2))

@@ -20,6 +20,7 @@ from collections import Counter
 
 import numpy as np
 
+from agent.core.antenna import ZERO, arm_vector
 from agent.core.checks import finite_vector, obstacle_array, valid_range
 from agent.core.command import control_command
 from agent.core.control.leeway import leeway_sway, leeway_update, set_along, set_update
@@ -73,6 +74,9 @@ def step(params: AgentParams, state: VesselState, inputs: TickInputs) -> tuple[V
     over_ground = leeway_drift(state, position, odometry.heading, elapsed) if drifting else position
     x, y = over_ground.tolist()
     state.own.put(now, (x, y))     # as (x, y) floats (History)
+    antenna = params.relative.antenna
+    if antenna != ZERO:
+        state.own_arms.put(now, arm_vector(odometry.heading, antenna))
     velocity_change = own_motion(state, now, position)
 
     receive_shares(params, state, inputs.shares, now)
@@ -97,7 +101,7 @@ def step(params: AgentParams, state: VesselState, inputs: TickInputs) -> tuple[V
     for j, track in state.tracks.items():
         if track.estimator is None:
             start_track(params, state, track, now)
-        track.advance(state.own, now_key, unusable)
+        track.advance(state.own, now_key, unusable, state.own_arms)
         track.fused = None
         if fuse_shared:
             fuse_reciprocal(params, state, track)
@@ -185,6 +189,7 @@ def step(params: AgentParams, state: VesselState, inputs: TickInputs) -> tuple[V
         target=None if target_state is None else _to_shared(target_state, state.motion.velocity),
         target_covariance=None if target_cov is None else swap_velocity(target_cov),
         neighbours=shared,
+        antenna=None if antenna == ZERO else (float(antenna[0]), float(antenna[1])),
     )
     record = TickRecord(
         time=now, phase=state.phase,

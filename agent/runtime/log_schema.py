@@ -63,6 +63,7 @@ class LoggedShare(StrictModel):
     target: Vector4 | None = Field(description="[p_jo; v_o], None before the sender has a target estimate")
     target_covariance: Matrix4 | None
     neighbours: dict[str, SharedEstimate]
+    antenna: Vector2 | None = Field(None, description="the sender's UWB antenna (forward, left) (m)")
 
 
 class Inputs(StrictModel):
@@ -209,6 +210,8 @@ class TrackState(StrictModel):
     epoch_own: Vector2 | None = Field(description="this vessel's odometry at the epoch (m)")
     epoch_other: Vector2 | None = Field(description="the neighbour's odometry at the epoch (m)")
     last_range: float | None
+    arms: list[StampedVector] = Field([], description="the neighbour's antenna arm R(psi) a by stamp (m)")
+    last_offset: Vector2 = Field((0.0, 0.0), description="the antennas' offset delta_ij at last_range (m)")
     share: LoggedShare | None
     last_heard: float = Field(description="s")
     first_heard: float = Field(description="s")
@@ -239,6 +242,7 @@ class CoreState(StrictModel):
     vessel: str
     phase: float | None
     own: list[StampedVector] = Field(description="own cumulative odometry by stamp")
+    own_arms: list[StampedVector] = Field([], description="own antenna arm vector R(psi) a by stamp (m)")
     motion: OwnMotionState
     tracks: dict[str, TrackState]
     priors: dict[str, PendingPrior] = Field(description="initial estimates of neighbours not yet started")

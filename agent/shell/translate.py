@@ -34,6 +34,7 @@ def share_from_message(message: ShareMessage | ReceivedShare,
         neighbours={j: (np.array(e.position, dtype=float), _unpack2(e.covariance),
                         seconds(message.stamp_ns if e.stamp_ns is None else e.stamp_ns))
                     for j, e in neighbours.items()},
+        antenna=None if message.antenna is None else (float(message.antenna[0]), float(message.antenna[1])),
     )
 
 
@@ -49,6 +50,8 @@ def message_from_share(share: Share, seq: int) -> ShareMessage:
         "neighbours": {j: {"position": np.asarray(p, dtype=float).tolist(), "covariance": _pack2(c),
                            "stamp_ns": nanoseconds(t)}
                        for j, (p, c, t) in share.neighbours.items()},
+        # Absent when at the centre: a receiver that predates the field reads the share as before.
+        **({} if share.antenna is None else {"antenna": [float(v) for v in share.antenna]}),
     })
 
 

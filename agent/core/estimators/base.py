@@ -4,6 +4,7 @@ For the pair (i, j), state p_ij = p_i - p_j in R^2, (10):
 - `predict(displacement)` moves the state by the relative displacement delta~_ij of (13) over one odometry
   interval, (15), and accumulates it since the last range epoch;
 - `update(range_prev, range_now)` corrects with a range pair (the subclass's measurement model);
+  `update_between` with ranges between antennas off the hulls' centres (the raw-range filter's model);
 - `position`, `covariance`, `moments`, `diagnostics` read; `reset`, `assimilate`, `mark_range_epoch`,
   `export_state` / `restore_state` (agent/core/snapshot.py) manage it.
 Inputs are checked before they touch the state: a non-finite displacement, or a range that is non-finite,
@@ -179,6 +180,13 @@ class RelativePositionEstimator(ABC):
     def update(self, range_prev: float, range_now: float) -> UpdateOutcome:
         """Correct with the range pair (r~_{k-1}, r~_k) and the displacement accumulated since r~_{k-1}
         (the range of the last accepted update, or of `mark_range_epoch`)."""
+
+    def update_between(self, range_prev: float, range_now: float, offset_prev: tuple[float, float],
+                       offset_now: tuple[float, float]) -> UpdateOutcome:
+        """`update` with ranges measured between antennas: r~ = |p + delta| + noise, delta the antennas'
+        offset at each range's time (agent/core/antenna.py). A filter whose model has no antennas (the paper's
+        pseudo-linear five) ignores the offsets and corrects as `update` does."""
+        return self.update(range_prev, range_now)
 
     def _settle(self, saved: tuple[float, ...], outcome: UpdateOutcome) -> UpdateOutcome:
         """After a correction: keep it if the state is finite and its covariance SPD, else put `saved` back

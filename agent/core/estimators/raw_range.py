@@ -15,6 +15,8 @@ class `RawRange` (prediction (15) in the base) only holds them. Contract:
   linearised at p^- (Masreliez 1975), p^+ = p^- + P H^T psi(e), P^+ = P - P H^T psi'(e) H P, psi the score
   of f_h = f * N(0, h); a monitor of the residuals' fit (`fix_lost`) drops a fix (`refix`: phase 1 again).
 - With `bias_variance` > 0 the range bias b is a state estimated with p (H = (u^T, 1)).
+- Ranges between antennas off the hulls' centres (`update_between`): r = |p + delta| + b + noise with the
+  known offset delta of each range (agent/core/antenna.py) in the window's anchors and the linearisation.
 - `range_prev` of `update` is used once, for the first range of a sequence; `assimilate` while not fixed
   replaces the prior the window is solved with.
 """
@@ -81,6 +83,7 @@ class RawRangeParams(EstimatorParams):
                          "state")
 
 
+REJECTED_OFFSET = "antenna offset is not finite"
 # Sandwich covariance: pseudo-ranges at I_f a batch's score moments are shrunk towards, and the length of
 # the tracking phase's running means (ranges).
 SANDWICH_PRIOR = 20
@@ -200,7 +203,8 @@ def carried(s: RawRangeState, dx: float, dy: float, inflation: float) -> RawRang
                    mirror=None if s.mirror is None else (s.mirror[0] + dx, s.mirror[1] + dy))
 
 
-def moment_matched(m: Moments, s: RawRangeState, r: float, model: NoiseModel, shrink: bool = True
+def moment_matched(m: Moments, s: RawRangeState, r: float, model: NoiseModel, shrink: bool = True,
+                   offset: tuple[float, float] | None = None
                    ) -> tuple[Moments, tuple[float, float, float], tuple[float, float, float, float],
                               tuple[float, float, float, float]] | None:
     """The moment-matching update of N((p, b), P) by one range r = |p| + b + noise, linearised at p^-:
@@ -208,14 +212,17 @@ def moment_matched(m: Moments, s: RawRangeState, r: float, model: NoiseModel, sh
     range's curvature (v^T P v / |p|)^2 / 2 (docs/estimation.md §8):
         (p, b)^+ = (p, b)^- + k psi(e),    P^+ = P - k k^T psi'(e) I / I_f
     with I / I_f the sandwich share (while fixed on the mixture, its running means are updated first). Without
-    b, H = u^T and the b terms are 0; without `shrink` only the mean moves. Returns (m+, sandwich+, bias+,
-    (-ln f_h(e), psi', e, h)), or None at the origin, where u is undefined."""
+    b, H = u^T and the b terms are 0; without `shrink` only the mean moves. A range between antennas
+    (`offset` delta, agent/core/antenna.py) is r = |p + delta| + b + noise: d and u are taken at p^- + delta,
+    H is the same. Returns (m+, sandwich+, bias+, (-ln f_h(e), psi', e, h)), or None at the origin, where u
+    is undefined."""
     px, py, p11, p12, p22 = m
     b, pxb, pyb, pbb = s.bias
-    d = math.hypot(px, py)
+    ax, ay = (px, py) if offset is None else (px + offset[0], py + offset[1])
+    d = math.hypot(ax, ay)
     if d < MIN_DISTANCE:
         return None
-    ux, uy = px / d, py / d
+    ux, uy = ax / d, ay / d
     hx = p11 * ux + p12 * uy + pxb               # P H^T
     hy = p12 * ux + p22 * uy + pyb
     hb = pxb * ux + pyb * uy + pbb
@@ -243,10 +250,11 @@ def moment_matched(m: Moments, s: RawRangeState, r: float, model: NoiseModel, sh
     return (px, py, p11, p12, p22), sandwich, (b, pxb, pyb, pbb), (nll, dpsi, innovation, h)
 
 
-def tracked(m: Moments, s: RawRangeState, r: float, p: RawRangeParams,
-            model: NoiseModel) -> tuple[Moments, RawRangeState, UpdateOutcome]:
-    """Phase 2: the moment-matching update by one range, then the monitor (`fix_lost`)."""
-    step = moment_matched(m, s, r, model)
+def tracked(m: Moments, s: RawRangeState, r: float, p: RawRangeParams, model: NoiseModel,
+            offset: tuple[float, float] | None = None) -> tuple[Moments, RawRangeState, UpdateOutcome]:
+    """Phase 2: the moment-matching update by one range (between antennas at `offset`, if given), then the
+    monitor (`fix_lost`)."""
+    step = moment_matched(m, s, r, model, offset=offset)
     if step is None:
         return m, s, UpdateOutcome(accepted=True, reason="at the origin: range direction undefined")
     m, sandwich, bias, (nll, dpsi, innovation, h) = step
@@ -282,14 +290,23 @@ def refix(m: Moments, s: RawRangeState, p: RawRangeParams) -> tuple[Moments, Raw
 
 
 def collected(m: Moments, s: RawRangeState, pair: tuple[float, float, float], range_prev: float, r: float,
-              p: RawRangeParams, model: NoiseModel) -> tuple[Moments, RawRangeState, UpdateOutcome]:
+              p: RawRangeParams, model: NoiseModel,
+              offsets: tuple[tuple[float, float], tuple[float, float]] | None = None
+              ) -> tuple[Moments, RawRangeState, UpdateOutcome]:
     """Phase 1: keep the range (first also `range_prev`, the range of the epoch `mark_range_epoch` declared,
-    before the pair's displacement `pair` = (dx, dy, ticks)); solve the window when due (`batch_fixed`)."""
+    before the pair's displacement `pair` = (dx, dy, ticks)); solve the window when due (`batch_fixed`).
+    Ranges between antennas (`offsets`: delta at range_prev's time and at r's) are kept with D + delta: the
+    batch's p_m = p - (D_now - D_m) then becomes the antennas' p_m + delta_m, exactly."""
     cx, cy = s.cumulative
     window = s.window
+    if offsets is None:
+        (qx, qy), (ox, oy) = (cx, cy), (cx, cy)
+    else:
+        (before, now) = offsets
+        (qx, qy), (ox, oy) = (cx + before[0], cy + before[1]), (cx + now[0], cy + now[1])
     if not window and s.solves == 0 and not math.isnan(range_prev) and pair[2] > 0:
-        window = ((range_prev, cx - pair[0], cy - pair[1]),)
-    window = (*window, (r, cx, cy))
+        window = ((range_prev, qx - pair[0], qy - pair[1]),)
+    window = (*window, (r, ox, oy))
     if len(window) > p.window:
         window = window[len(window) - p.window:]
     unsolved, unsolved_ticks = s.unsolved + 1, s.unsolved_ticks + pair[2]
@@ -305,7 +322,8 @@ def collected(m: Moments, s: RawRangeState, pair: tuple[float, float, float], ra
         if s.solves == 0:
             # Before the first solve the range moves the estimate as in tracking, so that it does not stand
             # still for seconds at one range a second; the covariance stays the prior's (estimation.md §8).
-            step = moment_matched(m, s, r, model, shrink=False)
+            offset = None if offsets is None else offsets[1]
+            step = moment_matched(m, s, r, model, shrink=False, offset=offset)
             if step is not None:
                 m, sandwich, bias, _ = step
                 s = s._replace(sandwich=sandwich, bias=bias)
@@ -465,6 +483,21 @@ class RawRange(RelativePositionEstimator):
 
     # ----- correction -----
     def update(self, range_prev: float, range_now: float) -> UpdateOutcome:
+        return self._corrected(range_prev, range_now, None)
+
+    def update_between(self, range_prev: float, range_now: float, offset_prev: tuple[float, float],
+                       offset_now: tuple[float, float]) -> UpdateOutcome:
+        """`update` on ranges between antennas, r = |p + delta| + b + noise: the offsets enter the window's
+        anchors and the tracking linearisation exactly (`collected`, `moment_matched`)."""
+        offsets = ((float(offset_prev[0]), float(offset_prev[1])),
+                   (float(offset_now[0]), float(offset_now[1])))
+        if not all(map(math.isfinite, (*offsets[0], *offsets[1]))):
+            self._diag.rejected += 1
+            return self._record(UpdateOutcome(accepted=False, reason=REJECTED_OFFSET))
+        return self._corrected(range_prev, range_now, offsets)
+
+    def _corrected(self, range_prev: float, range_now: float,
+                   offsets: tuple[tuple[float, float], tuple[float, float]] | None) -> UpdateOutcome:
         # Both ranges are checked, as in every estimator, though only the first pair uses range_prev.
         r = _as_range(range_now, self.relative.max_range)
         first = _as_range(range_prev, self.relative.max_range)
@@ -473,10 +506,11 @@ class RawRange(RelativePositionEstimator):
             return self._record(UpdateOutcome(accepted=False, reason=REJECTED_RANGE))
         saved = self.moments()
         if self._state.fixed:
-            m, s, outcome = tracked(saved, self._state, r, self.params, self._model)
+            m, s, outcome = tracked(saved, self._state, r, self.params, self._model,
+                                    None if offsets is None else offsets[1])
         else:
             pair = (self._pair_dx, self._pair_dy, self._pair_steps)
-            m, s, outcome = collected(saved, self._state, pair, first, r, self.params, self._model)
+            m, s, outcome = collected(saved, self._state, pair, first, r, self.params, self._model, offsets)
         self._px, self._py, self._p11, self._p12, self._p22 = m
         self._state = s
         return self._settle(saved, outcome)

@@ -11,13 +11,16 @@ from __future__ import annotations
 
 import importlib
 import pkgutil
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 from pydantic import Field, SerializeAsAny, ValidationError, field_validator, model_validator
 from pydantic_core import PydanticCustomError
 
 from agent.config import PositiveFloat, StrictModel
 from agent.core.observability import ObservabilityParams
+
+MAX_LEVER_ARM = 20.0     # m: the largest antenna lever arm component (the wire contract's bound too)
+LeverArmComponent = Annotated[float, Field(ge=-MAX_LEVER_ARM, le=MAX_LEVER_ARM, allow_inf_nan=False)]
 
 
 class EstimatorParams(StrictModel):
@@ -129,6 +132,8 @@ class RelativeEstimationParams(StrictModel):
         "predicted", description="ranges R_z of (14) is evaluated at: predicted from the estimate (the "
                                  "paper's) or measured (docs/estimation.md)")
     max_range: PositiveFloat = Field(1000.0, description="ranges beyond this are rejected as invalid")
+    antenna: tuple[LeverArmComponent, LeverArmComponent] = Field(
+        (0.0, 0.0), description="own UWB antenna (forward, left) from the hull's centre (m), in the share")
     observability: ObservabilityParams = ObservabilityParams()
 
     @model_validator(mode="before")
