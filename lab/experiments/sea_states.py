@@ -73,6 +73,14 @@ AB_PLAN = [("calm", "gain cut"), ("calm", "heading loop"), ("calm", "limits"),
            ("moderate", "gain cut"), ("moderate", "heading loop"), ("moderate", "odometry noise"),
            ("moderate", "limits"), ("moderate", "coasting")]
 ALL = "with all"
+# Measures the file switches on per state, with their A/B as named variants (`<state>_no_<measure>`, or
+# `wind_target_leeway`): named in the state's description only, never switched on by `with_all`.
+FILE_MEASURES = {
+    "leeway model": ("control", "leeway_time_constant"),
+    "set model": ("control", "set_time_constant"),
+    "leeway from the target": ("target", "leeway_variance"),
+    "antenna offset": ("relative", "antenna"),
+}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -305,7 +313,10 @@ def _describe(s: Scenario) -> str:
     words = "the paper's sensors" if sensors.is_paper else f"odometry {sensors.odometry.kind}" + (
         ", UWB antennas and faults" if sensors.uwb is not None else "") + (
         ", camera" if sensors.camera is not None else "")
-    measures = [m for m in MEASURES if file_has(s, m)] or ["none"]
+    default = AgentParams()
+    measures = [m for m in MEASURES if file_has(s, m)] + [
+        m for m, (section, field) in FILE_MEASURES.items()
+        if getattr(getattr(s.agent, section), field) != getattr(getattr(default, section), field)] or ["none"]
     return (f"{world.dynamics.preset} hull, {sea}, {words}; {circle}; estimator "
             f"{s.agent.relative.estimator.name}; the agent's measures on: {', '.join(measures)}")
 
