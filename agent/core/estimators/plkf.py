@@ -92,6 +92,18 @@ def plkf_update(x: np.ndarray, P: np.ndarray, bearing: np.ndarray, bearing_varia
     return x_post, 0.5 * (P_post + P_post.T), float(q @ G_measured @ x[:2]), s
 
 
+def valid_fused(state, covariance) -> tuple[np.ndarray, np.ndarray] | None:
+    """A fused target estimate [p; v] (4) and its covariance, symmetrised, when both are finite and the
+    covariance is positive-definite; None otherwise."""
+    x = np.array(state, dtype=float).reshape(4)
+    P = np.asarray(covariance, dtype=float).reshape(4, 4)
+    P = 0.5 * (P + P.T)
+    values = finite_floats(P, (4, 4))
+    if finite_floats(x, (4,)) is None or values is None or not cholesky_succeeds(values, 4):
+        return None
+    return x, P
+
+
 class PLKF:
     """Target tracker of one vessel: the relative state x_io to the target from bearings (9) alone;
     `predict` is (24), `update` is (25), or (26) without a bearing.
@@ -175,14 +187,11 @@ class PLKF:
     def assimilate(self, state: np.ndarray, covariance: np.ndarray) -> bool:
         """Replace the estimate by a fused one (cooperative fusion with the neighbours' estimates).
         Refused (False, counted) unless finite and symmetric positive-definite."""
-        x = np.asarray(state, dtype=float).reshape(4)
-        P = np.asarray(covariance, dtype=float).reshape(4, 4)
-        P = 0.5 * (P + P.T)
-        values = finite_floats(P, (4, 4))
-        if not (finite_floats(x, (4,)) is not None and values is not None and cholesky_succeeds(values, 4)):
+        fused = valid_fused(state, covariance)
+        if fused is None:
             self.rejected += 1
             return False
-        self._x, self._P = x.copy(), P
+        self._x, self._P = fused
         self.range_unobserved = False      # the range now comes from the neighbours' estimates too
         return True
 

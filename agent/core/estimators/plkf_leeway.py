@@ -25,8 +25,8 @@ import math
 
 import numpy as np
 
-from agent.core.checks import cholesky_succeeds, finite_floats
-from agent.core.estimators.plkf import PLKF
+from agent.core.checks import finite_floats
+from agent.core.estimators.plkf import PLKF, valid_fused
 from agent.core.params import TargetEstimationParams
 
 
@@ -145,13 +145,11 @@ class LeewayPLKF(PLKF):
     def assimilate(self, state: np.ndarray, covariance: np.ndarray) -> bool:
         """Take a fused leeway-free marginal [p; v - N w] back (`condition_on_marginal`). Refused (False,
         counted) unless finite and symmetric positive-definite, or when the conditioning fails."""
-        y = np.asarray(state, dtype=float).reshape(4)
-        P_y = np.asarray(covariance, dtype=float).reshape(4, 4)
-        P_y = 0.5 * (P_y + P_y.T)
-        values = finite_floats(P_y, (4, 4))
-        if not (finite_floats(y, (4,)) is not None and values is not None and cholesky_succeeds(values, 4)):
+        fused = valid_fused(state, covariance)
+        if fused is None:
             self.rejected += 1
             return False
+        y, P_y = fused
         try:
             x, P = condition_on_marginal(self._x, self._P, marginal_map(self._heading()), y, P_y)
         except np.linalg.LinAlgError:
