@@ -11,6 +11,9 @@ the ports and to Zenoh, so swapping a device means swapping an adapter.
     usv/<id>/cmd (Cmd)  -------->  ThrusterAdapter -> $THR lines to the motor controller, `rate_hz` times a second
                                    or LoopThrusters (thrusters.control: inner_loop, closed on the
                                    speed log and yaw) -> $THR lines at the loop's `loop_hz`
+    or, instead of the speed log and the thrusters, an ArduPilot autopilot (`mavlink`, mavlink_vehicle.py):
+    usv/<id>/cmd (Cmd)  <------->  MavlinkVehicle  -> GUIDED set points; its ATTITUDE and LOCAL_POSITION_NED
+                                                      -> usv/<id>/sensor/odom
 
 The watchdog is the adapter's: with no fresh command the thrusters get zero. Stamps are wall time (the
 clock the agents run on at sea). One thread reads the ports (select); the Zenoh callback only stores the
@@ -41,10 +44,12 @@ import zenoh
 from pydantic import Field, model_validator
 
 from agent.config import PositiveFloat, StrictModel
-from agent.contract import LIVELINESS, Bearing, Cmd, Ranges, decode, encode, key
+from agent.contract import LIVELINESS, Bearing, Cmd, Odometry, Ranges, decode, encode, key
 from agent.runtime.process import stop_on_signals, vessel_process
 from agent.runtime.zenoh_session import ZenohSettings, zenoh_config
 from driver_bridge.bearing import BearingAdapter, CameraSettings, read_detection
+from driver_bridge.mavlink_link import MissingExtra, open_link
+from driver_bridge.mavlink_vehicle import MavlinkSettings, MavlinkVehicle
 from driver_bridge.odometry import DeadReckoning, OdometrySettings, read_vhw
 from driver_bridge.serial_port import LineReader, open_serial, write_all
 from driver_bridge.thrust_loop import LoopSettings, LoopThrusters
@@ -59,6 +64,7 @@ from driver_bridge.thrusters import (
 from driver_bridge.uwb import NLinkParser, UwbSettings
 
 REPORT_SECONDS = 10.0   # the most often the refusals are said on stderr
+VEHICLE_PERIOD = 0.01   # s: how often the autopilot's link is served (each message keeps its own rate)
 
 
 class Port(StrictModel):
@@ -119,10 +125,14 @@ class DriverSettings(StrictModel):
     odometry: OdometryPort | None = None
     camera: CameraPort | None = None
     thrusters: ThrusterPort | None = None
+    mavlink: MavlinkSettings | None = Field(None, description="an ArduPilot autopilot: it drives the vessel and "
+                                            "gives its odometry (docs/boats.md)")
     commands: CommandWindow = CommandWindow()
 
     @model_validator(mode="after")
     def _measured(self) -> DriverSettings:
+        if self.mavlink is not None and (self.thrusters is not None or self.odometry is not None):
+            raise ValueError("mavlink drives the vessel and gives its odometry: leave out thrusters and odometry")
         if self.thrusters is not None and self.thrusters.control == "inner_loop" and self.odometry is None:
             raise ValueError("thrusters.control 'inner_loop' closes its loop on the speed log and yaw: "
                              "it needs the odometry port")
@@ -145,6 +155,8 @@ class DriverBridge:
         self.dead_reckoning = DeadReckoning(settings.odometry.dead_reckoning) if settings.odometry else None
         self.camera = BearingAdapter(settings.camera.camera) if settings.camera else None
         self.thrusters = self._thrusters(settings)
+        self.vehicle: MavlinkVehicle | None = None   # made when its link opens (it needs the link's encoder)
+        self._autopilot_heading: float | None = None
         self.published: Counter[str] = Counter()
         self.refused: Counter[str] = Counter()
         self.lines = {"odometry": LineReader(), "camera": LineReader()}
@@ -168,7 +180,7 @@ class DriverBridge:
     def refusals(self) -> dict[str, dict[str, int]]:
         """Everything refused so far, by where and why (what the closing line and the reports say)."""
         counts = {"refused": dict(self.refused)}
-        for name in ("uwb", "dead_reckoning", "camera", "thrusters"):
+        for name in ("uwb", "dead_reckoning", "camera", "thrusters", "vehicle"):
             adapter = getattr(self, name)
             if adapter is not None and adapter.rejected:
                 counts[f"{name}_refused"] = dict(adapter.rejected)
@@ -271,16 +283,42 @@ class DriverBridge:
         if detection is None:
             self.refused[f"camera_{reason}"] += 1
             return
-        state = self.dead_reckoning.state if self.dead_reckoning else None
-        if state is None:
+        heading = self._heading
+        if heading is None:
             self.refused["bearing_without_heading"] += 1   # a bearing needs the common heading
             return
         column, row = detection
-        vector = self.camera.bearing(column, row, state.heading)
+        vector = self.camera.bearing(column, row, heading)
         if vector is None and column is not None:
             return   # refused by the adapter (counted there)
         self._publish(publishers, "sensor/bearing", Bearing(
             stamp_ns=self.clock_ns(), seq=self._next("bearing"), sender=self.id, bearing=vector))
+
+    @property
+    def _heading(self) -> float | None:
+        """The vessel's heading in the common reference, from the speed log's compass or the autopilot."""
+        if self.dead_reckoning is not None and self.dead_reckoning.state is not None:
+            return self.dead_reckoning.state.heading
+        return self._autopilot_heading
+
+    def _on_mavlink(self, link, publishers) -> None:
+        for msg in self._guarded("mavlink", link.messages):
+            odometry = self._guarded("mavlink", self.vehicle.receive, msg, self.clock_ns(), time.monotonic())
+            if isinstance(odometry, Odometry):
+                self._autopilot_heading = odometry.heading
+                self._publish(publishers, "sensor/odom", odometry)
+
+    def _drive_vehicle(self, link, mono: float) -> None:
+        """The agent's command (or its leaving) to the autopilot, then whatever is due on the link."""
+        with self._command_lock:
+            command, left, self._agent_left = self._command, self._agent_left, False
+        if left:
+            self.vehicle.agent_left(mono)
+        if command is not None and command is not self._applied:
+            self._applied = command
+            self.vehicle.command(command.surge, command.yaw_rate, mono)
+        for msg in self._guarded("mavlink", self.vehicle.tick, self.clock_ns(), mono):
+            self._guarded("mavlink", link.send, msg)
 
     def _drive(self, fd: int, now: float) -> None:
         """One thrust line; `now` is the monotonic clock (the watchdog's)."""
@@ -313,6 +351,7 @@ class DriverBridge:
                                   f"baud): {error.strerror or error}") from None
         handlers = {"uwb": self._on_uwb, "odometry": self._on_odometry, "camera": self._on_camera}
         readers = {fd: handlers[name] for name, fd in ports.items() if name in handlers}
+        link = self._open_vehicle(ports)
         started = time.monotonic()
         try:
             with zenoh.open(zenoh_config(self.settings.zenoh)) as session:
@@ -321,13 +360,18 @@ class DriverBridge:
                 subscriber = session.declare_subscriber(key(self.id, "cmd"), self._on_command)
                 agent = session.liveliness().declare_subscriber(key(self.id, LIVELINESS), self._on_agent_liveliness,
                                                                  history=True)
-                period = 1.0 / self.settings.thrusters.lines_per_second() if self.thrusters else 0.1
+                period = (1.0 / self.settings.thrusters.lines_per_second() if self.thrusters
+                          else VEHICLE_PERIOD if link else 0.1)
+                waits = list(readers) + ([link.fd] if link else [])
                 next_drive = time.monotonic()
                 while not self.stopping.is_set():
                     if max_seconds is not None and time.monotonic() - started > max_seconds:
                         break
-                    ready, _, _ = select.select(list(readers), [], [], max(0.0, next_drive - time.monotonic()))
+                    ready, _, _ = select.select(waits, [], [], max(0.0, next_drive - time.monotonic()))
                     for fd in ready:
+                        if link is not None and fd == link.fd:
+                            self._on_mavlink(link, publishers)
+                            continue
                         data = os.read(fd, 4096)
                         if data:
                             readers[fd](data, publishers)
@@ -336,6 +380,11 @@ class DriverBridge:
                         next_drive += period
                         if self.thrusters:
                             self._drive(ports["thrusters"], time.monotonic())
+                        elif link is not None:
+                            self._drive_vehicle(link, time.monotonic())
+                if link is not None:   # leave the boat stopped and holding, as the thrusters' last line does
+                    for msg in self.vehicle.stop(time.monotonic()):
+                        self._guarded("mavlink", link.send, msg)
                 if "thrusters" in ports:   # stopped before Zenoh's teardown, which might not end by the deadline
                     write_all(ports["thrusters"], command_line(ZERO_THRUST))
                 subscriber.undeclare()
@@ -345,6 +394,24 @@ class DriverBridge:
                 write_all(ports["thrusters"], command_line(ZERO_THRUST))   # leave the boat stopped
             for fd in ports.values():
                 os.close(fd)
+            if link is not None:
+                link.close()
+
+    def _open_vehicle(self, ports: dict):
+        """The autopilot's link and its MavlinkVehicle, or None without `mavlink`; OSError naming it if not."""
+        s = self.settings.mavlink
+        if s is None:
+            return None
+        try:
+            link = open_link(s.url, s.baud, s.own_system, s.own_component)
+        except (MissingExtra, OSError, ValueError) as error:
+            for fd in ports.values():
+                os.close(fd)
+            text = str(error) if isinstance(error, MissingExtra) else (
+                f"cannot open the autopilot's link (mavlink.url {s.url}): {getattr(error, 'strerror', None) or error}")
+            raise OSError(text) from None
+        self.vehicle = MavlinkVehicle(s, link.mav, self.id, lambda line: self._report(f"usv-driver {self.id}: {line}"))
+        return link
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -365,6 +432,9 @@ def main(argv: list[str] | None = None) -> int:
     counts = {"published": dict(bridge.published), "refused": dict(bridge.refused)} | bridge.refusals()
     if bridge.thrusters is not None and bridge.thrusters.events:
         counts["thruster_events"] = dict(bridge.thrusters.events)
+    if bridge.vehicle is not None:
+        counts["mavlink_sent"] = dict(bridge.vehicle.sent)
+        counts["mavlink_events"] = dict(bridge.vehicle.events)
     print(f"usv-driver {args.vessel}: stopped; {counts}", file=sys.stderr)
     return 0
 

@@ -16,6 +16,8 @@ function, under `if TYPE_CHECKING`, relative ones, and `importlib.import_module`
   (agent.core.range_noise). Never the agent process (agent.shell).
 - `boat` (hull presets, thrusters, the inner loop), shared by the sim bridge and the driver bridge, imports
   from the project only `agent.config` and `agent.angles` and itself; `agent` never imports it.
+- pymavlink (the optional extra `driver`) is imported by the MAVLink link (driver_bridge.mavlink_link) and
+  the ArduPilot stand-in (sim_bridge.ardupilot_standin) only: the agent, and every other module, runs without it.
 - Layers: `mission_log` and `sim_bridge` never import `lab`; `mission_log` never imports `sim_bridge`;
   nothing outside `lab` imports `lab` (the tests may); `agent` imports none of sim_bridge, driver_bridge, lab,
   mission_log, usv_deploy.
@@ -45,6 +47,7 @@ OURS = PACKAGES
 BOAT_ALLOWED = ("agent.config", "agent.angles", "boat")
 SHARED_FROM_AGENT = ("agent.contract", "agent.config", "agent.angles", "agent.runtime")
 CORE_VOCABULARY = ("agent.core.params", "agent.core.records", "agent.core.build", "agent.core.range_noise")
+PYMAVLINK_USERS = ("driver_bridge.mavlink_link", "sim_bridge.ardupilot_standin")
 
 
 @dataclass(frozen=True)
@@ -244,6 +247,12 @@ def test_the_layers(imports, importer, forbidden):
            f"{importer} imports none of {', '.join(forbidden)}")
 
 
+def test_only_the_mavlink_link_and_the_standin_import_pymavlink(imports):
+    others = [found for found in imports if not any(within(found.module, user) for user in PYMAVLINK_USERS)]
+    broken(others, "", lambda target: not within(target, "pymavlink"),
+           f"only {', '.join(PYMAVLINK_USERS)} import pymavlink (the optional extra 'driver')")
+
+
 def test_only_the_lab_imports_the_lab(imports):
     outside = [found for found in imports if not within(found.module, "lab")]
     broken(outside, "", lambda target: not within(target, "lab"), "nothing outside lab imports lab")
@@ -267,6 +276,7 @@ def test_the_scan_reads_every_package(imports):
     assert ("usv_deploy.cli", "usv_deploy.certs") in seen             # inside a function (cryptography)
     assert ("usv_op.cli", "agent.contract") in seen                   # the operator speaks the contract
     assert ("sim_bridge.hull", "boat.inner_loop") in seen             # the simulator runs the boat's loop
+    assert ("driver_bridge.mavlink_link", "pymavlink") in seen        # inside a function (the extra)
 
 
 def test_the_scan_sees_every_kind_of_import():

@@ -1,0 +1,253 @@
+"""The MAVLink vehicle adapter (driver_bridge/mavlink_vehicle.py) and the ArduPilot stand-in
+(sim_bridge/ardupilot_standin.py), in process: every message goes through real MAVLink 2 bytes (pymavlink's
+encoder and parser), no socket. ArduPilot's documented values are written here by hand from its page
+"Rover Commands in Guided Mode" (ardupilot.org/dev/docs/mavlink-rover-commands.html)."""
+
+from __future__ import annotations
+
+import math
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from pymavlink.dialects.v20 import ardupilotmega as mavlink2
+
+from driver_bridge.mavlink_vehicle import MavlinkSettings, MavlinkVehicle
+from driver_bridge.node import DriverSettings
+from sim_bridge.ardupilot_standin import Standin
+
+# From ArduPilot's page, by hand: "Use Vel+Yaw Rate : 0b010111100111 / 0x05E7 / 1511 (decimal)"; the frame
+# "MAV_FRAME_BODY_NED (8)": velocities relative to the vehicle's heading; the custom modes of Rover/mode.h.
+DOC_VELOCITY_YAW_RATE = 1511
+DOC_BODY_NED = 8
+GUIDED, HOLD = 15, 4
+
+
+def wire(messages, system: int = 1, component: int = 1) -> list:
+    """`messages` packed by a sender with these ids and parsed back, as the other end receives them."""
+    sender = mavlink2.MAVLink(None, srcSystem=system, srcComponent=component)
+    parser = mavlink2.MAVLink(None)
+    parser.robust_parsing = True
+    data = b"".join(message.pack(sender) for message in messages)
+    return parser.parse_buffer(data) or []
+
+
+def autopilot(system: int = 1) -> mavlink2.MAVLink:
+    return mavlink2.MAVLink(None, srcSystem=system, srcComponent=1)
+
+
+def vehicle(**settings) -> tuple[MavlinkVehicle, list[str]]:
+    said: list[str] = []
+    made = MavlinkVehicle(MavlinkSettings(url="udpout:127.0.0.1:1", **settings),
+                          mavlink2.MAVLink(None, srcSystem=1, srcComponent=191), "1", said.append)
+    return made, said
+
+
+def heartbeat(mode: int, armed: bool, system: int = 1):
+    return wire([autopilot(system).heartbeat_encode(11, 3, 1 | (128 if armed else 0), mode, 4)], system)[0]
+
+
+def sent(messages, kind: str) -> list:
+    return [m for m in wire(messages, 1, 191) if m.get_type() == kind]
+
+
+def test_the_set_point_is_ardupilots_velocity_and_yaw_rate_in_the_body_frame():
+    """(u, r) = (1.5 m/s, 0.2 rad/s counter-clockwise) becomes vx 1.5, vy 0 and a yaw rate of -0.2 (ArduPilot's
+    example: yaw_rate +0.174 'rotates clock-wise'), with the documented type mask and frame."""
+    adapter, _ = vehicle()
+    adapter.receive(heartbeat(GUIDED, True), 0, 0.0)
+    adapter.command(1.5, 0.2, 0.0)
+    (setpoint,) = sent(adapter.tick(1, 0.0), "SET_POSITION_TARGET_LOCAL_NED")
+    assert setpoint.type_mask == DOC_VELOCITY_YAW_RATE == 0x05E7 == 0b010111100111
+    assert setpoint.coordinate_frame == DOC_BODY_NED
+    assert (setpoint.target_system, setpoint.target_component) == (1, 1)
+    assert (setpoint.vx, setpoint.vy, setpoint.vz) == (1.5, 0.0, 0.0)
+    assert setpoint.yaw_rate == pytest.approx(-0.2)
+    # The same bits by MAVLink's own names (pymavlink's enum): positions, vz, accelerations and yaw ignored.
+    names = {entry.name for bit, entry in mavlink2.enums["POSITION_TARGET_TYPEMASK"].items()
+             if not entry.name.endswith("ENUM_END") and setpoint.type_mask & bit}
+    assert names == {f"POSITION_TARGET_TYPEMASK_{n}_IGNORE" for n in ("X", "Y", "Z", "VZ", "AX", "AY", "AZ", "YAW")}
+
+
+def test_set_points_go_at_the_agents_rate_and_stop_when_the_command_is_stale():
+    adapter, _ = vehicle(rate_hz=10.0, command_timeout=0.5)
+    adapter.receive(heartbeat(GUIDED, True), 0, 0.0)
+    adapter.command(1.0, 0.0, 0.0)
+    times = np.arange(0.0, 1.0, 0.01)
+    setpoints = [(t, m) for t in times for m in sent(adapter.tick(0, float(t)), "SET_POSITION_TARGET_LOCAL_NED")]
+    assert len(setpoints) == 10                                   # 10 Hz over one second
+    assert [m.vx for t, m in setpoints if t <= 0.5] == [1.0] * 6  # fresh: the command
+    assert [m.vx for t, m in setpoints if t > 0.5] == [0.0] * 4   # older than 0.5 s: stop
+
+
+def test_when_the_agent_leaves_the_vessel_gets_zero_velocity_then_hold():
+    adapter, _ = vehicle()
+    adapter.receive(heartbeat(GUIDED, True), 0, 0.0)
+    adapter.command(2.0, 0.1, 0.0)
+    adapter.tick(0, 0.0)
+    adapter.agent_left(0.05)
+    out = [m for t in np.arange(0.1, 0.5, 0.01) for m in wire(adapter.tick(0, float(t)), 1, 191)]
+    kinds = [m.get_type() for m in out if m.get_type() != "HEARTBEAT" and m.get_type() != "TIMESYNC"]
+    first_hold = next(k for k, m in enumerate(out) if m.get_type() == "COMMAND_LONG" and m.command == 176)
+    setpoints = [m for m in out[:first_hold] if m.get_type() == "SET_POSITION_TARGET_LOCAL_NED"]
+    assert setpoints and all(m.vx == 0.0 and m.yaw_rate == 0.0 for m in setpoints), kinds
+    assert out[first_hold].param2 == HOLD and out[first_hold].param1 == 1   # custom mode HOLD
+    # Once HOLD is seen, no more requests.
+    adapter.receive(heartbeat(HOLD, True), 0, 0.6)
+    later = [m for t in np.arange(0.6, 2.0, 0.05) for m in sent(adapter.tick(0, float(t)), "COMMAND_LONG")]
+    assert later == []
+
+
+def test_guided_and_arming_are_requested_while_commands_flow_and_a_refusal_is_one_line():
+    adapter, said = vehicle(arm=True)
+    adapter.receive(heartbeat(0, False), 0, 0.0)     # MANUAL, disarmed
+    adapter.command(1.0, 0.0, 0.0)
+    commands = sent(adapter.tick(0, 0.0), "COMMAND_LONG")
+    assert {(m.command, m.param1, m.param2) for m in commands} >= {(176, 1.0, 15.0), (400, 1.0, 0.0)}
+    for _ in range(3):
+        ack = wire([autopilot().command_ack_encode(176, 4)])[0]   # MAV_RESULT_FAILED
+        adapter.receive(ack, 0, 0.1)
+    assert adapter.rejected["mode_refused"] == 3
+    refusals = [line for line in said if "refused" in line]
+    assert refusals == ["the autopilot refused mode (command 176): FAILED "
+                        "(GUIDED needs a position estimate: docs/boats.md)"]
+    quiet, quiet_said = vehicle(arm=False)
+    quiet.receive(heartbeat(GUIDED, False), 0, 0.0)
+    quiet.command(1.0, 0.0, 0.0)
+    quiet.tick(0, 0.0)
+    quiet.tick(0, 0.5)
+    assert sum("disarmed: the agent's commands move nothing" in line for line in quiet_said) == 1
+
+
+def test_odometry_is_the_autopilots_state_on_the_vessels_clock():
+    """TIMESYNC: our request stamped ts1 = 1000 s, the autopilot's boot clock 5 s, our clock 1000.002 s at the
+    reply: offset = 1000.001 - 5 s. Then LOCAL_POSITION_NED at boot 6 s (3 m north, 4 m east) and 7 s (3 N,
+    6 E) with the bow east (ATTITUDE yaw pi/2): 2 m east of the first, heading 0 (east), stamps mapped."""
+    adapter, _ = vehicle(position_variance_per_m=0.01, heading_variance=0.002)
+    adapter.receive(heartbeat(GUIDED, True), 0, 0.0)
+    ap = autopilot()
+    adapter.receive(wire([ap.timesync_encode(5_000_000_000, 1_000_000_000_000)])[0], 1_000_002_000_000, 0.0)
+    assert adapter.offset_ns == 1_000_001_000_000 - 5_000_000_000
+    adapter.receive(wire([ap.attitude_encode(5990, 0.0, 0.0, math.pi / 2, 0.0, 0.0, -0.1)])[0], 0, 0.1)
+    first = adapter.receive(wire([ap.local_position_ned_encode(6000, 3.0, 4.0, 0.0, 0, 0, 0)])[0], 0, 0.1)
+    second = adapter.receive(wire([ap.local_position_ned_encode(7000, 3.0, 6.0, 0.0, 0, 0, 0)])[0], 0, 0.2)
+    assert first.position == (0.0, 0.0) and second.position == (pytest.approx(2.0), pytest.approx(0.0))
+    assert first.stamp_ns == 6_000_000_000 + adapter.offset_ns
+    assert second.stamp_ns - first.stamp_ns == 1_000_000_000
+    assert second.heading == pytest.approx(0.0, abs=1e-6) and (first.seq, second.seq) == (0, 1)
+    assert second.covariance == (pytest.approx(0.02), 0, 0, 0, pytest.approx(0.02), 0, 0, 0, 0.002)
+    assert adapter.yaw_rate() == pytest.approx(0.1)   # ATTITUDE's yawspeed is clockwise
+
+
+def test_a_lost_link_stops_odometry_and_is_said_once():
+    adapter, said = vehicle(link_timeout=3.0)
+    ap = autopilot()
+    adapter.receive(heartbeat(GUIDED, True), 0, 0.0)
+    adapter.receive(wire([ap.timesync_encode(1, 1)])[0], 2, 0.0)
+    adapter.receive(wire([ap.attitude_encode(0, 0, 0, 0.0, 0, 0, 0)])[0], 0, 0.0)
+    assert adapter.receive(wire([ap.local_position_ned_encode(10, 0, 0, 0, 0, 0, 0)])[0], 0, 1.0) is not None
+    for t in (3.5, 4.0, 5.0):
+        adapter.tick(0, t)
+    assert adapter.receive(wire([ap.local_position_ned_encode(4000, 1, 0, 0, 0, 0, 0)])[0], 0, 5.0) is None
+    assert sum("link lost" in line for line in said) == 1 and adapter.events["link_lost"] == 1
+    adapter.receive(heartbeat(GUIDED, True), 0, 6.0)
+    assert adapter.receive(wire([ap.local_position_ned_encode(6000, 1, 0, 0, 0, 0, 0)])[0], 0, 6.0) is not None
+    assert sum("link up" in line for line in said) == 2
+
+
+def test_bad_mavlink_is_counted_and_refused_never_raised():
+    """Garbage bytes, another system's heartbeats and a flood of the right one's, over seeded random runs:
+    nothing raises, each is counted, and the real autopilot's state still gets through."""
+    rng = np.random.default_rng(31)
+    for _ in range(50):
+        adapter, _ = vehicle()
+        garbage = rng.integers(0, 256, size=int(rng.integers(1, 400)), dtype=np.uint8).tobytes()
+        parser = mavlink2.MAVLink(None)
+        parser.robust_parsing = True
+        messages = parser.parse_buffer(garbage) or []
+        for message in messages:
+            adapter.receive(message, 0, 0.0)
+        assert adapter.rejected["bad_data"] + adapter.rejected["wrong_system"] >= len(messages) > 0
+        adapter.receive(heartbeat(GUIDED, True, system=7), 0, 1.0)   # not our autopilot
+        assert adapter.mode is None and adapter.rejected["wrong_system"] >= 1
+        for k in range(20):                                           # 20 in 0.1 s: 19 too many
+            adapter.receive(heartbeat(GUIDED, True), 0, 2.0 + k * 0.005)
+        assert adapter.rejected["heartbeat_flood"] == 19 and (adapter.mode, adapter.armed) == (GUIDED, True)
+
+
+def test_the_driver_config_takes_mavlink_instead_of_the_thrusters_and_the_speed_log():
+    settings = DriverSettings.model_validate({"mavlink": {"url": "udpin:0.0.0.0:14550"}})
+    assert settings.mavlink.rate_hz == 10.0 and settings.mavlink.arm is False
+    with pytest.raises(ValueError, match="mavlink drives the vessel and gives its odometry"):
+        DriverSettings.model_validate({"mavlink": {"url": "udpin:0.0.0.0:14550"},
+                                       "thrusters": {"device": "/dev/null", "hull": {
+                                           "max_thrust": 1, "half_beam": 1, "surge_drag": 1, "yaw_drag": 1}}})
+
+
+def test_without_pymavlink_the_link_is_one_clear_line():
+    code = ("import sys; sys.modules['pymavlink'] = None\n"
+            "from driver_bridge.mavlink_link import MissingExtra, open_link\n"
+            "try:\n    open_link('udpout:127.0.0.1:9', 115200, 1, 191)\n"
+            "except MissingExtra as error:\n    print(error)\n")
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=True)
+    assert result.stdout.strip() == ("the MAVLink vehicle needs pymavlink, in the optional extra 'driver': "
+                                     "pip install 'usv-circumnav[driver]'")
+
+
+# ----- the stand-in -----
+def standin(**options) -> Standin:
+    clock = [0.0]
+    made = Standin(mavlink2.MAVLink(None, srcSystem=1, srcComponent=1), clock=lambda: clock[0], **options)
+    return made
+
+
+def gcs() -> mavlink2.MAVLink:
+    return mavlink2.MAVLink(None, srcSystem=1, srcComponent=191)
+
+
+def guided_and_armed(boat: Standin, now: float = 0.0) -> None:
+    g = gcs()
+    acks = [boat.receive(m, now) for m in wire([g.command_long_encode(1, 1, 176, 0, 1, GUIDED, 0, 0, 0, 0, 0),
+                                                g.command_long_encode(1, 1, 400, 0, 1, 0, 0, 0, 0, 0, 0)], 1, 191)]
+    assert [m.result for ack in acks for m in ack] == [0, 0]
+
+
+def setpoint(u: float, r: float, mask: int = DOC_VELOCITY_YAW_RATE, frame: int = DOC_BODY_NED, target: int = 1):
+    return wire([gcs().set_position_target_local_ned_encode(0, target, 1, frame, mask, 0, 0, 0, u, 0, 0, 0, 0, 0,
+                                                            0, -r)], 1, 191)[0]
+
+
+def test_the_standin_turns_a_set_point_into_the_closed_form_arc():
+    """u = 1 m/s, r = 0.2 rad/s counter-clockwise for 2 s from the origin, bow north: a circle of radius 5 about
+    (-5, 0) east-north, 0.4 rad round it: east -5 + 5 cos 0.4, north 5 sin 0.4; NED yaw -0.4 (with r as the
+    message's float32 carries it)."""
+    boat = standin()
+    guided_and_armed(boat)
+    boat.receive(setpoint(1.0, 0.2), 0.0)
+    for t in np.arange(0.0, 2.0 + 1e-9, 0.01):
+        boat.step(float(t))
+    r = float(np.float32(0.2))
+    assert boat.east == pytest.approx(-1 / r + math.cos(2 * r) / r, abs=1e-9)
+    assert boat.north == pytest.approx(math.sin(2 * r) / r, abs=1e-9)
+    assert boat.yaw == pytest.approx(-2 * r, abs=1e-12)
+    attitude = [m for m in wire(boat.step(2.25)) if m.get_type() == "ATTITUDE"]
+    assert attitude and attitude[0].yawspeed == pytest.approx(-0.2)
+
+
+def test_the_standin_stops_after_guid_timeout_and_refuses_what_ardupilot_would():
+    boat = standin(guid_timeout=3.0)
+    boat.receive(setpoint(1.0, 0.0), 0.0)                     # not GUIDED yet: ignored
+    assert boat.counts["setpoint_not_guided"] == 1
+    guided_and_armed(boat)
+    boat.receive(setpoint(1.0, 0.0), 0.0)
+    boat.step(2.9)
+    assert boat.u == 1.0
+    boat.step(3.1)
+    assert boat.u == 0.0 and boat.counts["guided_timeout"] == 1
+    boat.receive(setpoint(1.0, 0.0, mask=3580), 3.2)           # "Use Position": not modelled, counted
+    boat.receive(setpoint(1.0, 0.0, target=9), 3.2)            # another vehicle's
+    assert boat.counts["setpoint_unsupported"] == 1 and boat.counts["wrong_target"] == 1
+    blind = standin(position=False)
+    (ack,) = blind.receive(wire([gcs().command_long_encode(1, 1, 176, 0, 1, GUIDED, 0, 0, 0, 0, 0)], 1, 191)[0], 0)
+    assert ack.result == 4 and blind.mode != GUIDED            # MAV_RESULT_FAILED
