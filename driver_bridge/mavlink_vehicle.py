@@ -2,9 +2,9 @@
 
 `MavlinkVehicle` holds no socket: `receive(msg, now_ns, mono)` takes one parsed message, `tick(now_ns, mono)`
 gives the messages to send now, built with the pymavlink encoder `mav` it is given (mavlink_link.py opens it).
-- Out: HEARTBEAT at 1 Hz (an onboard controller); SET_POSITION_TARGET_LOCAL_NED at `rate_hz` in
-  MAV_FRAME_BODY_NED with VELOCITY_YAW_RATE (only vx, vy and the yaw rate used): vx = u, vy = 0, yaw_rate =
-  -r (NED yaw is clockwise); MAV_CMD_DO_SET_MODE to GUIDED (and `arm`: MAV_CMD_COMPONENT_ARM_DISARM) while
+- Out: HEARTBEAT at 1 Hz (an onboard controller); SET_POSITION_TARGET_LOCAL_NED on each command (the
+  agent's rate; the last repeated at `min_rate_hz` at least) in MAV_FRAME_BODY_NED with VELOCITY_YAW_RATE
+  (only vx, vy and the yaw rate used): vx = u, vy = 0, yaw_rate = -r (NED yaw is clockwise); MAV_CMD_DO_SET_MODE to GUIDED (and `arm`: MAV_CMD_COMPONENT_ARM_DISARM) while
   commands flow; MAV_CMD_SET_MESSAGE_INTERVAL for ATTITUDE and LOCAL_POSITION_NED at `stream_hz`; TIMESYNC.
 - In: HEARTBEAT (mode, armed), COMMAND_ACK (a refusal said in one line), ATTITUDE (yaw, yaw rate),
   LOCAL_POSITION_NED (north, east), TIMESYNC (the autopilot's boot clock against ours).
@@ -62,7 +62,8 @@ class MavlinkSettings(StrictModel):
     own_system: int = Field(1, ge=1, le=255, description="our system id (a companion computer shares the "
                             "vehicle's)")
     own_component: int = Field(191, ge=1, le=255, description="our component id (191: onboard computer)")
-    rate_hz: PositiveFloat = Field(10.0, le=50.0, description="set points per second (the agent's rate)")
+    min_rate_hz: PositiveFloat = Field(
+        2.0, le=50.0, description="set points per second at least: each command goes at once, the last repeated")
     stream_hz: PositiveFloat = Field(10.0, le=50.0, description="ATTITUDE and LOCAL_POSITION_NED per second")
     command_timeout: PositiveFloat = Field(0.5, description="zero set points when the agent's command is older (s)")
     link_timeout: PositiveFloat = Field(3.0, description="link lost after this long without a heartbeat (s)")
@@ -97,6 +98,8 @@ class MavlinkVehicle:
         self._next = {"heartbeat": -math.inf, "setpoint": -math.inf, "timesync": -math.inf, "mode": -math.inf,
                       "arm": -math.inf, "streams": -math.inf}
         self._said_disarmed = False
+        self._fresh = False        # a command (or the agent's leaving) not yet sent
+        self._timed_out = False
         self._replies: list = []   # answers owed to the autopilot (its TIMESYNC requests)
 
     # ----- the agent's side -----
@@ -106,12 +109,14 @@ class MavlinkVehicle:
             surge = yaw_rate = 0.0   # taken as a stop
         self._command = (surge, yaw_rate, mono)
         self._agent_gone_at = None
+        self._fresh, self._timed_out = True, False
 
     def agent_left(self, mono: float) -> None:
         """The agent's session ended: zero set points now, HOLD after HOLD_AFTER."""
         self._command = None
         if self._agent_gone_at is None:
             self._agent_gone_at = mono
+            self._fresh = True
             self.events["agent_left"] += 1
 
     # ----- what to send -----
@@ -129,13 +134,21 @@ class MavlinkVehicle:
             interval = 1e6 / s.stream_hz
             out += [self._long(MAV_CMD_SET_MESSAGE_INTERVAL, ATTITUDE_ID, interval),
                     self._long(MAV_CMD_SET_MESSAGE_INTERVAL, LOCAL_POSITION_NED_ID, interval)]
-        if not self._due("setpoint", mono, 1.0 / s.rate_hz):
+        gone = self._agent_gone_at
+        if (gone is not None and mono - gone >= HOLD_AFTER and self.linked and self.mode != ROVER_MODES["HOLD"]
+                and self._due("mode", mono, REQUEST_GAP)):
+            out.append(self._long(MAV_CMD_DO_SET_MODE, MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, ROVER_MODES["HOLD"]))
+        if self._fresh:   # a new command (or the agent gone) goes at once; the period restarts from it
+            self._fresh = False
+            self._next["setpoint"] = mono + 1.0 / s.min_rate_hz
+        elif not self._due("setpoint", mono, 1.0 / s.min_rate_hz):
             return self._count(out)
         command = self._command
         if command is not None and mono - command[2] > s.command_timeout:
             command = None
-            self.events["command_timeout"] += 1
-        gone = self._agent_gone_at
+            if not self._timed_out:
+                self.events["command_timeout"] += 1
+            self._timed_out = True
         if command is not None:
             u, r, _ = command
             if self.linked and self.mode != ROVER_MODES["GUIDED"] and self._due("mode", mono, REQUEST_GAP):
@@ -150,9 +163,6 @@ class MavlinkVehicle:
         else:
             u = r = 0.0
         out.append(self.setpoint(u, r, mono))
-        if (gone is not None and mono - gone >= HOLD_AFTER and self.linked and self.mode != ROVER_MODES["HOLD"]
-                and self._due("mode", mono, REQUEST_GAP)):
-            out.append(self._long(MAV_CMD_DO_SET_MODE, MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, ROVER_MODES["HOLD"]))
         return self._count(out)
 
     def stop(self, mono: float) -> list:

@@ -157,6 +157,7 @@ class DriverBridge:
         self.thrusters = self._thrusters(settings)
         self.vehicle: MavlinkVehicle | None = None   # made when its link opens (it needs the link's encoder)
         self._autopilot_heading: float | None = None
+        self._wake: tuple[int, int] | None = None    # a pipe that wakes the loop for a command (autopilot only)
         self.published: Counter[str] = Counter()
         self.refused: Counter[str] = Counter()
         self.lines = {"odometry": LineReader(), "camera": LineReader()}
@@ -231,6 +232,15 @@ class DriverBridge:
                 self.refused[f"command_{reason}"] += 1
             else:
                 self._command = message
+        self._wake_loop()
+
+    def _wake_loop(self) -> None:
+        """With an autopilot, a command goes out as it comes: the loop's select is woken for it."""
+        if self._wake is not None:
+            try:
+                os.write(self._wake[1], b"!")
+            except OSError:   # the pipe is full: the loop is awake already (or closed: it is stopping)
+                pass
 
     def _on_agent_liveliness(self, sample) -> None:
         """The agent's session ended (its token went away): the command in force goes with it."""
@@ -239,6 +249,7 @@ class DriverBridge:
                 self._command = None
                 self.command_gate.forget()
                 self._agent_left = True
+            self._wake_loop()
 
     def _publish(self, publishers, topic: str, message) -> None:
         publishers[topic].put(encode(message))
@@ -362,7 +373,7 @@ class DriverBridge:
                                                                  history=True)
                 period = (1.0 / self.settings.thrusters.lines_per_second() if self.thrusters
                           else VEHICLE_PERIOD if link else 0.1)
-                waits = list(readers) + ([link.fd] if link else [])
+                waits = list(readers) + ([link.fd, self._wake[0]] if link else [])
                 next_drive = time.monotonic()
                 while not self.stopping.is_set():
                     if max_seconds is not None and time.monotonic() - started > max_seconds:
@@ -371,6 +382,10 @@ class DriverBridge:
                     for fd in ready:
                         if link is not None and fd == link.fd:
                             self._on_mavlink(link, publishers)
+                            continue
+                        if self._wake is not None and fd == self._wake[0]:
+                            os.read(fd, 4096)
+                            self._drive_vehicle(link, time.monotonic())
                             continue
                         data = os.read(fd, 4096)
                         if data:
@@ -396,6 +411,10 @@ class DriverBridge:
                 os.close(fd)
             if link is not None:
                 link.close()
+            if self._wake is not None:
+                for fd in self._wake:
+                    os.close(fd)
+                self._wake = None
 
     def _open_vehicle(self, ports: dict):
         """The autopilot's link and its MavlinkVehicle, or None without `mavlink`; OSError naming it if not."""
@@ -410,6 +429,9 @@ class DriverBridge:
             text = str(error) if isinstance(error, MissingExtra) else (
                 f"cannot open the autopilot's link (mavlink.url {s.url}): {getattr(error, 'strerror', None) or error}")
             raise OSError(text) from None
+        self._wake = os.pipe()
+        for fd in self._wake:
+            os.set_blocking(fd, False)
         self.vehicle = MavlinkVehicle(s, link.mav, self.id, lambda line: self._report(f"usv-driver {self.id}: {line}"))
         return link
 

@@ -14,7 +14,8 @@ moves a kinematic hull: heading and position follow the commanded (u, r) exactly
 - Streams: ATTITUDE and LOCAL_POSITION_NED at 4 Hz until MAV_CMD_SET_MESSAGE_INTERVAL or
   REQUEST_DATA_STREAM (POSITION, EXTRA1, ALL) sets them; TIMESYNC answered with its boot time (ns).
 - Counted, never raised: bad_data, wrong_target, and every refusal. --record FILE: one JSON line per set
-  point taken and per mode or arming change, with the monotonic time (s) it happened.
+  point taken (with the wall clock's ns, for latency) and per mode or arming change, with the monotonic time
+  (s) it happened.
 Not modelled: hull dynamics and ArduPilot's speed and turn-rate controllers, the EKF and its errors, RC,
 failsafes, missions, parameters. docs/boats.md, "ArduPilot over MAVLink".
 """
@@ -149,7 +150,7 @@ class Standin:
         u = msg.vx if frame in BODY_FRAMES else msg.vx * math.cos(self.yaw) + msg.vy * math.sin(self.yaw)
         self.setpoint = (u, -msg.yaw_rate, now)
         self.counts["setpoints"] += 1
-        self._note("setpoint", now, u=u, r=-msg.yaw_rate, boot_ms=msg.time_boot_ms)
+        self._note("setpoint", now, u=u, r=-msg.yaw_rate, wall_ns=time.time_ns())
         return []
 
     # ----- the hull and what goes out -----

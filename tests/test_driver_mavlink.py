@@ -70,15 +70,20 @@ def test_the_set_point_is_ardupilots_velocity_and_yaw_rate_in_the_body_frame():
     assert names == {f"POSITION_TARGET_TYPEMASK_{n}_IGNORE" for n in ("X", "Y", "Z", "VZ", "AX", "AY", "AZ", "YAW")}
 
 
-def test_set_points_go_at_the_agents_rate_and_stop_when_the_command_is_stale():
-    adapter, _ = vehicle(rate_hz=10.0, command_timeout=0.5)
+def test_each_command_goes_at_once_the_last_is_repeated_and_a_stale_one_becomes_a_stop():
+    """Commands every 0.1 s for 0.5 s: one set point each, as they come; then none: the last repeated at
+    min_rate_hz (2 Hz) until it is older than command_timeout (0.5 s), then zero."""
+    adapter, _ = vehicle(min_rate_hz=2.0, command_timeout=0.5)
     adapter.receive(heartbeat(GUIDED, True), 0, 0.0)
-    adapter.command(1.0, 0.0, 0.0)
-    times = np.arange(0.0, 1.0, 0.01)
-    setpoints = [(t, m) for t in times for m in sent(adapter.tick(0, float(t)), "SET_POSITION_TARGET_LOCAL_NED")]
-    assert len(setpoints) == 10                                   # 10 Hz over one second
-    assert [m.vx for t, m in setpoints if t <= 0.5] == [1.0] * 6  # fresh: the command
-    assert [m.vx for t, m in setpoints if t > 0.5] == [0.0] * 4   # older than 0.5 s: stop
+    setpoints = []
+    for t in np.round(np.arange(0.0, 2.0, 0.01), 2):
+        if t <= 0.45 and round(t * 100) % 10 == 0:
+            adapter.command(1.0 + t, 0.0, float(t))
+        setpoints += [(t, m.vx) for m in sent(adapter.tick(0, float(t)), "SET_POSITION_TARGET_LOCAL_NED")]
+    expected = [(t, pytest.approx(1.0 + t)) for t in (0.0, 0.1, 0.2, 0.3, 0.4)]
+    expected += [(0.9, pytest.approx(1.4)), (1.4, 0.0), (1.9, 0.0)]    # 0.4 + 0.5 s: repeated; then stale
+    assert setpoints == expected
+    assert adapter.events["command_timeout"] == 1
 
 
 def test_when_the_agent_leaves_the_vessel_gets_zero_velocity_then_hold():
@@ -178,7 +183,7 @@ def test_bad_mavlink_is_counted_and_refused_never_raised():
 
 def test_the_driver_config_takes_mavlink_instead_of_the_thrusters_and_the_speed_log():
     settings = DriverSettings.model_validate({"mavlink": {"url": "udpin:0.0.0.0:14550"}})
-    assert settings.mavlink.rate_hz == 10.0 and settings.mavlink.arm is False
+    assert settings.mavlink.min_rate_hz == 2.0 and settings.mavlink.arm is False
     with pytest.raises(ValueError, match="mavlink drives the vessel and gives its odometry"):
         DriverSettings.model_validate({"mavlink": {"url": "udpin:0.0.0.0:14550"},
                                        "thrusters": {"device": "/dev/null", "hull": {
