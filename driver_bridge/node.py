@@ -2,8 +2,8 @@
 
 It does on a boat what the sim bridge does in simulation, for one vessel: it reads the serial devices,
 publishes the contract's sensor messages under `usv/<id>/sensor/...`, and turns the agent's commands into
-thrust. Each hardware side is one adapter (uwb, odometry, bearing, thrusters); this file only wires them to
-the ports and to Zenoh, so swapping a device means swapping an adapter.
+thrust. Each hardware side is one adapter (uwb, odometry, bearing, thrusters or an autopilot); this file
+only wires them to the ports and to Zenoh, so swapping a device means swapping an adapter.
 
     UWB module  --NLink frames-->  NLinkParser     -> usv/<id>/sensor/uwb      (Ranges)
     speed log   --$..VHW------->   DeadReckoning   -> usv/<id>/sensor/odom     (Odometry)
@@ -11,21 +11,18 @@ the ports and to Zenoh, so swapping a device means swapping an adapter.
     usv/<id>/cmd (Cmd)  -------->  ThrusterAdapter -> $THR lines to the motor controller, `rate_hz` times a second
                                    or LoopThrusters (thrusters.control: inner_loop, closed on the
                                    speed log and yaw) -> $THR lines at the loop's `loop_hz`
-    or, instead of the speed log and the thrusters, an ArduPilot autopilot (`mavlink`, mavlink_vehicle.py):
-    usv/<id>/cmd (Cmd)  <------->  MavlinkVehicle  -> GUIDED set points; its ATTITUDE and LOCAL_POSITION_NED
-                                                      -> usv/<id>/sensor/odom
+    usv/<id>/cmd, autopilot <-> MavlinkVehicle (`mavlink`): GUIDED set points; its state -> sensor/odom
 
 The watchdog is the adapter's: with no fresh command the thrusters get zero. Stamps are wall time (the
 clock the agents run on at sea). One thread reads the ports (select); the Zenoh callback only stores the
-latest command. SIGINT and SIGTERM stop it, with a last zero-thrust line.
+latest command (and wakes the loop for an autopilot). SIGINT and SIGTERM stop it, with a last zero-thrust
+line (an autopilot: a zero set point and HOLD).
 
 No line or frame ends the process: that would take the watchdog's stop with it. Each adapter bounds what
 it produces to the contract (odometry.py, uwb.py, bearing.py) and counts what it refuses by reason; each
 sentence, frame and command is handled under a last-resort guard that counts an unexpected error as
 `<port>_failed` and goes on. What was refused is said on stderr at most every REPORT_SECONDS, and in full
-at the end.
-
-More: docs/contract.md, "The driver bridge in detail", `driver_bridge/node.py`.
+at the end. More: docs/contract.md, "The driver bridge in detail"; docs/boats.md.
 """
 
 from __future__ import annotations

@@ -190,14 +190,17 @@ def test_the_driver_config_takes_mavlink_instead_of_the_thrusters_and_the_speed_
                                            "max_thrust": 1, "half_beam": 1, "surge_drag": 1, "yaw_drag": 1}}})
 
 
-def test_without_pymavlink_the_link_is_one_clear_line():
+def test_without_pymavlink_the_driver_says_so_in_one_line(tmp_path):
+    """`usv-driver` with a mavlink vehicle where pymavlink is not installed (hidden from the child's imports)."""
+    config = tmp_path / "driver.yaml"
+    config.write_text("mavlink: {url: 'udpout:127.0.0.1:9'}\n")
     code = ("import sys; sys.modules['pymavlink'] = None\n"
-            "from driver_bridge.mavlink_link import MissingExtra, open_link\n"
-            "try:\n    open_link('udpout:127.0.0.1:9', 115200, 1, 191)\n"
-            "except MissingExtra as error:\n    print(error)\n")
-    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=True)
-    assert result.stdout.strip() == ("the MAVLink vehicle needs pymavlink, in the optional extra 'driver': "
-                                     "pip install 'usv-circumnav[driver]'")
+            "from driver_bridge.node import main\n"
+            f"sys.exit(main(['--vessel', '1', '--config', {str(config)!r}]))\n")
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=False)
+    assert result.returncode == 1 and "Traceback" not in result.stderr
+    assert result.stderr.strip() == ("usv-driver: the MAVLink vehicle needs pymavlink, in the optional extra "
+                                     "'driver': pip install 'usv-circumnav[driver]'")
 
 
 # ----- the stand-in -----
