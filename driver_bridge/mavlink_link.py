@@ -33,8 +33,12 @@ def mavlink_module():
 class Link:
     def __init__(self, url: str, baud: int, system: int, component: int) -> None:
         mavutil, _ = mavlink_module()
-        self.connection = mavutil.mavlink_connection(url, baud=baud, source_system=system,
-                                                     source_component=component, autoreconnect=True)
+        try:
+            self.connection = mavutil.mavlink_connection(url, baud=baud, source_system=system,
+                                                         source_component=component, autoreconnect=True)
+        except ImportError as error:   # mavutil opens a serial device with pyserial, which it does not require
+            raise MissingExtra(f"a serial MAVLink link ({url}) needs pyserial: pip install pyserial "
+                               f"({error.msg})") from None
         self.mav = self.connection.mav
         self.fd = self.connection.fd
 

@@ -13,8 +13,8 @@ stamped at the LOCAL_POSITION_NED's time_boot_ms + the offset measured by TIMESY
 midpoint, the shortest of the last OFFSET_SAMPLES); covariance diag(q d, q d, h): d the path length.
 Stops: a command older than `command_timeout`: zero set points; the agent gone: zero set points, then HOLD.
 Link: no heartbeat for `link_timeout`: no odometry, said once, and its return. Refused and counted in
-`rejected`, never raised: bad_data, wrong_system, heartbeat_flood, non_finite, out_of_range, mode_refused,
-arm_refused, odometry_without_clock. More: docs/boats.md, "ArduPilot over MAVLink".
+`rejected`, never raised: bad_data, wrong_system, heartbeat_flood, non_finite, out_of_range, stamp_ahead,
+mode_refused, ... The autopilot's clock going back (a reboot) drops the offset until a new TIMESYNC. More: docs/boats.md, "ArduPilot over MAVLink".
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ from pydantic import Field
 
 from agent.angles import wrap_angle
 from agent.config import NonNegativeFloat, PositiveFloat, StrictModel
-from agent.contract import MAX_POSITION, MAX_VARIANCE, Odometry
+from agent.contract import MAX_POSITION, MAX_STAMP_NS, MAX_VARIANCE, Odometry
 
 # MAVLink common (mavlink.io, common.xml). POSITION_TARGET_TYPEMASK: a set bit means "ignore this field".
 X_IGNORE, Y_IGNORE, Z_IGNORE = 1, 2, 4
@@ -50,6 +50,8 @@ MODE_NAMES = {number: name for name, number in ROVER_MODES.items()}
 OFFSET_SAMPLES = 10          # TIMESYNC round trips kept; the shortest gives the offset
 HEARTBEAT_MIN_GAP = 0.2      # s: ArduPilot beats at 1 Hz; heartbeats closer together are a flood
 REQUEST_GAP = 1.0            # s: between two requests of a mode, arming or stream rates
+REBOOT_MS = 1000             # time_boot_ms this far behind the last odometry's: the autopilot rebooted
+AHEAD_NS, STALE_NS = 200_000_000, 2_000_000_000   # an odometry stamp further ahead of our clock, or behind
 HOLD_AFTER = 0.2             # s of zero set points before HOLD, when the agent is gone
 
 
@@ -92,6 +94,7 @@ class MavlinkVehicle:
         self._origin: tuple[float, float] | None = None
         self._last: tuple[float, float, int] | None = None   # east, north (m) and stamp (ns) of the last odometry
         self._distance = 0.0
+        self._boot_ms: int | None = None       # time_boot_ms of the last odometry
         self.odometry_seq = 0
         self._command: tuple[float, float, float] | None = None   # u, r, monotonic s
         self._agent_gone_at: float | None = None
@@ -256,7 +259,7 @@ class MavlinkVehicle:
             self._replies.append(self.mav.timesync_encode(now_ns, msg.ts1))
             return
         rtt = now_ns - msg.ts1
-        if not 0 <= rtt <= 10**9:   # not a reply to a request of the last second (or a forged one)
+        if not 0 <= rtt <= 10**9 or msg.tc1 < 0:   # no reply to a request of the last second (or forged)
             self.rejected["timesync_unmatched"] += 1
             return
         self._round_trips.append((rtt, (msg.ts1 + now_ns) // 2 - msg.tc1))
@@ -270,6 +273,8 @@ class MavlinkVehicle:
 
     def _on_local_position_ned(self, msg, now_ns: int, mono: float) -> Odometry | None:
         s = self.settings
+        if self._boot_ms is not None and msg.time_boot_ms < self._boot_ms - REBOOT_MS:
+            self._rebooted()   # its clock went back: a new boot, a new offset and EKF origin
         if not self.linked:
             self.rejected["odometry_without_link"] += 1
             return None
@@ -280,10 +285,14 @@ class MavlinkVehicle:
             self.rejected["non_finite"] += 1
             return None
         stamp = msg.time_boot_ms * 1_000_000 + self.offset_ns
-        if self._origin is None:
-            self._origin = (msg.y, msg.x)
+        if not now_ns - STALE_NS <= stamp <= now_ns + AHEAD_NS:   # made after it came, or long before
+            self.rejected["stamp_ahead" if stamp > now_ns else "stamp_stale"] += 1
+            return None
+        if self._origin is None:   # the first position, or the first since a reboot: the path goes on from there
+            last_east, last_north = self._last[:2] if self._last is not None else (0.0, 0.0)
+            self._origin = (msg.y - last_east, msg.x - last_north)
         east, north = msg.y - self._origin[0], msg.x - self._origin[1]
-        if not (abs(east) <= MAX_POSITION and abs(north) <= MAX_POSITION and stamp > 0):
+        if not (abs(east) <= MAX_POSITION and abs(north) <= MAX_POSITION and 0 < stamp <= MAX_STAMP_NS):
             self.rejected["out_of_range"] += 1
             return None
         if self._last is not None:
@@ -296,8 +305,17 @@ class MavlinkVehicle:
         odometry = Odometry(stamp_ns=stamp, seq=self.odometry_seq, sender=self.sender, position=(east, north),
                             heading=heading, covariance=(p, 0.0, 0.0, 0.0, p, 0.0, 0.0, 0.0, s.heading_variance))
         self._last = (east, north, stamp)
+        self._boot_ms = msg.time_boot_ms
         self.odometry_seq += 1
         return odometry
+
+    def _rebooted(self) -> None:
+        self.events["autopilot_rebooted"] += 1
+        self.report("the autopilot's clock went back (a reboot?): odometry waits for a new clock offset, "
+                    "then goes on from its last position")
+        self.offset_ns, self._origin, self._boot_ms = None, None, None
+        self._round_trips.clear()
+        self._next["streams"] = self._next["timesync"] = -math.inf
 
     def yaw_rate(self) -> float | None:
         """The IMU's yaw rate, counter-clockwise (rad/s), from the last ATTITUDE."""

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
+from agent.contract import Odometry, decode, encode
 from driver_bridge.mavlink_vehicle import MavlinkSettings, MavlinkVehicle
 from driver_bridge.node import DriverSettings
 from sim_bridge.ardupilot_standin import Standin
@@ -135,8 +136,10 @@ def test_odometry_is_the_autopilots_state_on_the_vessels_clock():
     adapter.receive(wire([ap.timesync_encode(5_000_000_000, 1_000_000_000_000)])[0], 1_000_002_000_000, 0.0)
     assert adapter.offset_ns == 1_000_001_000_000 - 5_000_000_000
     adapter.receive(wire([ap.attitude_encode(5990, 0.0, 0.0, math.pi / 2, 0.0, 0.0, -0.1)])[0], 0, 0.1)
-    first = adapter.receive(wire([ap.local_position_ned_encode(6000, 3.0, 4.0, 0.0, 0, 0, 0)])[0], 0, 0.1)
-    second = adapter.receive(wire([ap.local_position_ned_encode(7000, 3.0, 6.0, 0.0, 0, 0, 0)])[0], 0, 0.2)
+    arrival = 1_000_002_000_000 + 1_001_000_000   # each comes 1 ms after it was made
+    first = adapter.receive(wire([ap.local_position_ned_encode(6000, 3.0, 4.0, 0.0, 0, 0, 0)])[0], arrival, 0.1)
+    second = adapter.receive(wire([ap.local_position_ned_encode(7000, 3.0, 6.0, 0.0, 0, 0, 0)])[0],
+                             arrival + 10**9, 0.2)
     assert first.position == (0.0, 0.0) and second.position == (pytest.approx(2.0), pytest.approx(0.0))
     assert first.stamp_ns == 6_000_000_000 + adapter.offset_ns
     assert second.stamp_ns - first.stamp_ns == 1_000_000_000
@@ -151,13 +154,15 @@ def test_a_lost_link_stops_odometry_and_is_said_once():
     adapter.receive(heartbeat(GUIDED, True), 0, 0.0)
     adapter.receive(wire([ap.timesync_encode(1, 1)])[0], 2, 0.0)
     adapter.receive(wire([ap.attitude_encode(0, 0, 0, 0.0, 0, 0, 0)])[0], 0, 0.0)
-    assert adapter.receive(wire([ap.local_position_ned_encode(10, 0, 0, 0, 0, 0, 0)])[0], 0, 1.0) is not None
+    # The offset is 0: the autopilot's boot clock is ours; each message comes 1 ms after it was made.
+    position = lambda ms, north: wire([ap.local_position_ned_encode(ms, north, 0, 0, 0, 0, 0)])[0]  # noqa: E731
+    assert adapter.receive(position(10, 0), 11_000_000, 1.0) is not None
     for t in (3.5, 4.0, 5.0):
         adapter.tick(0, t)
-    assert adapter.receive(wire([ap.local_position_ned_encode(4000, 1, 0, 0, 0, 0, 0)])[0], 0, 5.0) is None
+    assert adapter.receive(position(4000, 1), 4_001_000_000, 5.0) is None
     assert sum("link lost" in line for line in said) == 1 and adapter.events["link_lost"] == 1
     adapter.receive(heartbeat(GUIDED, True), 0, 6.0)
-    assert adapter.receive(wire([ap.local_position_ned_encode(6000, 1, 0, 0, 0, 0, 0)])[0], 0, 6.0) is not None
+    assert adapter.receive(position(6000, 1), 6_001_000_000, 6.0) is not None
     assert sum("link up" in line for line in said) == 2
 
 
@@ -259,3 +264,91 @@ def test_the_standin_stops_after_guid_timeout_and_refuses_what_ardupilot_would()
     blind = standin(position=False)
     (ack,) = blind.receive(wire([gcs().command_long_encode(1, 1, 176, 0, 1, GUIDED, 0, 0, 0, 0, 0)], 1, 191)[0], 0)
     assert ack.result == 4 and blind.mode != GUIDED            # MAV_RESULT_FAILED
+
+
+def random_float(rng: np.random.Generator) -> float:
+    special = (math.nan, math.inf, -math.inf, 1e38, -1e38, 3.4e38, 0.0, -0.0, 1e-45)
+    return float(rng.choice(special)) if rng.random() < 0.3 else float(rng.normal(0.0, 10.0 ** rng.integers(0, 6)))
+
+
+def random_message(rng: np.random.Generator, ap: mavlink2.MAVLink, boot_ms: int):
+    """One message of a kind the adapter reads, with fields anywhere their wire types allow."""
+    kind = rng.integers(0, 6)
+    f = lambda: random_float(rng)   # noqa: E731
+    if kind == 0:
+        return ap.heartbeat_encode(11, 3, int(rng.integers(0, 256)), int(rng.integers(0, 2**32)), 4)
+    if kind == 1:
+        return ap.attitude_encode(int(rng.integers(0, 2**32)), f(), f(), f(), f(), f(), f())
+    if kind == 2:
+        return ap.local_position_ned_encode(int(rng.integers(0, 2**32)), f(), f(), f(), f(), f(), f())
+    if kind == 3:
+        return ap.timesync_encode(int(rng.integers(-2**63, 2**63, dtype=np.int64)),
+                                  int(rng.integers(-2**63, 2**63, dtype=np.int64)))
+    if kind == 4:
+        return ap.command_ack_encode(int(rng.choice([176, 400, 511, 0, 65535])), int(rng.integers(0, 256)))
+    return ap.local_position_ned_encode(boot_ms, float(rng.normal(0, 50)),
+                                        float(rng.normal(0, 50)), 0.0, 0.0, 0.0, 0.0)
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_any_autopilot_input_gives_odometry_within_the_contract_and_finite_set_points(seed):
+    """A seeded storm of garbage and of well-formed messages with any field values (NaN, infinities, 3.4e38,
+    int64 extremes in TIMESYNC), good ones in between, and agent commands, some non-finite: nothing raises,
+    every odometry message the adapter gives passes the contract's own checks once encoded and decoded, and
+    every set point it sends is finite."""
+    rng = np.random.default_rng(seed)
+    adapter, _ = vehicle()
+    ap = autopilot()
+    published = setpoints = 0
+    clock_ns = 1_700_000_000 * 10**9
+    for step in range(3000):
+        mono = step * 0.01
+        now_ns = clock_ns + step * 10_000_000
+        if step % 500 == 0:   # a good round trip now and then, so that odometry can flow
+            adapter.receive(heartbeat(GUIDED, True), now_ns, mono)
+            adapter.receive(wire([ap.timesync_encode(10**9 + step * 10**7, now_ns - 10**6)])[0], now_ns, mono)
+        if rng.random() < 0.1:
+            garbage = rng.integers(0, 256, size=int(rng.integers(1, 100)), dtype=np.uint8).tobytes()
+            parser = mavlink2.MAVLink(None)
+            parser.robust_parsing = True
+            messages = parser.parse_buffer(garbage) or []
+        else:
+            messages = wire([random_message(rng, ap, 1000 + step * 10)])
+        for message in messages:
+            odometry = adapter.receive(message, now_ns, mono)
+            if odometry is not None:
+                decoded, reason = decode(Odometry, encode(odometry))
+                assert decoded is not None, reason
+                published += 1
+        if rng.random() < 0.1:
+            adapter.command(random_float(rng), random_float(rng), mono)
+        for message in sent(adapter.tick(now_ns, mono), "SET_POSITION_TARGET_LOCAL_NED"):
+            assert math.isfinite(message.vx) and math.isfinite(message.yaw_rate)
+            setpoints += 1
+    assert published > 10 and setpoints > 10
+
+
+def test_an_autopilot_reboot_pauses_odometry_until_a_new_offset_then_it_goes_on_from_where_it_was():
+    """Offset 0; positions at boot 10 s (0 m north) and 11 s (1 m). The autopilot reboots: its next position
+    is stamped 0.5 s since boot, 50 m north of a new EKF origin: refused, said, the offset dropped. A new
+    TIMESYNC round trip (boot 0.6 s at our 12.099 s) gives offset 11.499 s; then 50 m and 52 m north of the
+    new origin are 1 m and 3 m north on the same path, stamped after the last."""
+    adapter, said = vehicle()
+    ap = autopilot()
+    position = lambda ms, north: wire([ap.local_position_ned_encode(ms, north, 0, 0, 0, 0, 0)])[0]  # noqa: E731
+    adapter.receive(heartbeat(GUIDED, True), 0, 0.0)
+    adapter.receive(wire([ap.timesync_encode(1, 1)])[0], 2, 0.0)
+    adapter.receive(wire([ap.attitude_encode(0, 0, 0, 0.0, 0, 0, 0)])[0], 0, 0.0)
+    before = [adapter.receive(position(ms, north), ms * 10**6 + 10**6, 0.5) for ms, north in ((10_000, 0),
+                                                                                             (11_000, 1))]
+    assert [o.position for o in before] == [(0.0, 0.0), (0.0, 1.0)]
+    assert adapter.receive(position(500, 50), 12_001_000_000, 1.0) is None
+    assert adapter.events["autopilot_rebooted"] == 1 and adapter.offset_ns is None
+    assert sum("clock went back" in line for line in said) == 1
+    adapter.receive(wire([ap.timesync_encode(600_000_000, 12_098_000_000)])[0], 12_100_000_000, 1.1)
+    assert adapter.offset_ns == 11_499_000_000
+    after = [adapter.receive(position(ms, north), ms * 10**6 + 11_500_000_000, 1.2) for ms, north in ((700, 50),
+                                                                                                      (800, 52))]
+    assert [o.position for o in after] == [(0.0, 1.0), (0.0, 3.0)]
+    assert [o.stamp_ns for o in after] == [12_199_000_000, 12_299_000_000]
+    assert after[0].stamp_ns > before[-1].stamp_ns and [o.seq for o in after] == [2, 3]

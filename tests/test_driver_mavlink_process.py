@@ -98,6 +98,7 @@ def test_an_agent_drives_the_standin_through_the_driver_and_its_death_puts_the_b
                                           for r in records(record)), 10), records(record)[-5:]
             hold = next(r["t"] for r in records(record) if r["kind"] == "mode" and r["mode"] == "HOLD"
                         and r["t"] > killed)
+            time.sleep(2.0)   # a heartbeat (1 Hz) tells the driver of the HOLD before it is stopped
         agent_lines = agent.stdout.read().split("\n")
         stamps = {int(seq) % 50: [] for seq in range(50)}
         for line in agent_lines:
