@@ -14,8 +14,8 @@ moves a kinematic hull: heading and position follow the commanded (u, r) exactly
 - Streams: ATTITUDE and LOCAL_POSITION_NED at 4 Hz until MAV_CMD_SET_MESSAGE_INTERVAL or
   REQUEST_DATA_STREAM (POSITION, EXTRA1, ALL) sets them; TIMESYNC answered with its boot time (ns).
 - Counted, never raised: bad_data, wrong_target, and every refusal. --record FILE: one JSON line per set
-  point taken (with the wall clock's ns, for latency) and per mode or arming change, with the monotonic time
-  (s) it happened.
+  point taken (with the wall clock's ns, for latency) and per mode change, refusal or arming, with the
+  monotonic time (s) it happened.
 Not modelled: hull dynamics and ArduPilot's speed and turn-rate controllers, the EKF and its errors, RC,
 failsafes, missions, parameters. docs/boats.md, "ArduPilot over MAVLink".
 """
@@ -77,6 +77,7 @@ class Standin:
             return UNSUPPORTED
         if mode == GUIDED and not self.position:
             self.counts["mode_refused_no_position"] += 1
+            self._note("mode_refused", now, mode=MODES[mode], why="no position estimate")
             return FAILED
         if mode != self.mode:
             self.mode = mode

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import signal
 import socket
 import subprocess
@@ -147,3 +148,38 @@ def test_an_agent_drives_the_standin_through_the_driver_and_its_death_puts_the_b
     p50, p99 = np.percentile(latencies, [50, 99])
     print(f"set points {rate:.2f}/s over {span:.1f} s; added latency p50 {p50 * 1e3:.1f} ms, p99 "
           f"{p99 * 1e3:.1f} ms ({len(latencies)}); HOLD {hold - killed:.3f} s after SIGKILL")
+
+
+def test_an_autopilot_without_a_position_refuses_guided_and_the_driver_says_it_in_one_line(tmp_path):
+    """The stand-in with --no-position (ArduPilot refuses GUIDED without a position estimate): an agent's
+    commands make the driver ask for GUIDED once a second; the refusal is said once, then counted."""
+    udp, zenoh_port = free_port(), free_port()
+    config = tmp_path / "driver.yaml"
+    config.write_text(yaml.safe_dump({"zenoh": {"listen": [f"tcp/127.0.0.1:{zenoh_port}"]},
+                                      "mavlink": {"url": f"udpout:127.0.0.1:{udp}", "arm": True}}))
+    record = tmp_path / "standin.jsonl"
+    standin = subprocess.Popen([sys.executable, "-m", "sim_bridge.ardupilot_standin", "--listen",
+                                f"udpin:127.0.0.1:{udp}", "--no-position", "--record", str(record)],
+                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    driver = subprocess.Popen([sys.executable, "-m", "driver_bridge", "--vessel", "1", "--config", str(config)],
+                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    agent = None
+    try:
+        agent = subprocess.Popen([sys.executable, "-c", AGENT, f"tcp/127.0.0.1:{zenoh_port}"],
+                                 stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT, text=True)
+        assert wait_until(lambda: sum(r["kind"] == "mode_refused" for r in records(record)) >= 3, 60)
+        for process in (driver, standin):
+            process.send_signal(signal.SIGTERM)
+        driver_output, _ = driver.communicate(timeout=20)
+        standin_output, _ = standin.communicate(timeout=20)
+    finally:
+        for process in (agent, driver, standin):
+            if process is not None and process.poll() is None:
+                process.kill()
+    assert driver.returncode == 0 and "Traceback" not in driver_output, driver_output
+    said = [line for line in driver_output.splitlines() if "refused mode" in line]
+    assert said == ["usv-driver 1: the autopilot refused mode (command 176): FAILED (GUIDED needs a position "
+                    "estimate: docs/boats.md)"], driver_output
+    refused = int(re.search(r"'mode_refused': (\d+)", driver_output).group(1))
+    standin_refused = int(re.search(r"'mode_refused_no_position': (\d+)", standin_output).group(1))
+    assert refused >= 2 and standin_refused >= refused, (driver_output, standin_output)
