@@ -1,7 +1,8 @@
 """`usv-ardupilot-standin`: one simulated boat that speaks MAVLink as ArduPilot Rover documents it, for tests.
 
 It serves one MAVLink link (pymavlink URL, e.g. udpin:127.0.0.1:14550: it answers whoever spoke last) and
-moves a kinematic hull: heading and position follow the commanded (u, r) exactly (boat.sway.arc_step).
+moves a kinematic hull: heading and position follow the commanded (u, r) exactly (boat.sway.arc_step), or
+with --preset a boat preset's hull, thrusters and inner loop (sim_bridge/hull.py) take (u, r) as commands.
 - HEARTBEAT at 1 Hz: MAV_TYPE_SURFACE_BOAT, MAV_AUTOPILOT_ARDUPILOTMEGA, the Rover mode in custom_mode and
   the armed flag; it boots in MANUAL, disarmed.
 - Modes MANUAL, HOLD and GUIDED (MAV_CMD_DO_SET_MODE or SET_MODE; others: MAV_RESULT_UNSUPPORTED); with
@@ -16,8 +17,8 @@ moves a kinematic hull: heading and position follow the commanded (u, r) exactly
 - Counted, never raised: bad_data, wrong_target, and every refusal. --record FILE: one JSON line per set
   point taken (with the wall clock's ns, for latency) and per mode change, refusal or arming, with the
   monotonic time (s) it happened.
-Not modelled: hull dynamics and ArduPilot's speed and turn-rate controllers, the EKF and its errors, RC,
-failsafes, missions, parameters. docs/boats.md, "ArduPilot over MAVLink".
+Not modelled: ArduPilot's own speed and turn-rate controllers (the preset's loop stands in), the EKF and
+its errors, RC, failsafes, missions, parameters. docs/boats.md, "ArduPilot over MAVLink".
 """
 
 from __future__ import annotations
@@ -33,8 +34,12 @@ import threading
 import time
 from collections import Counter
 
+import numpy as np
+
 from agent.angles import wrap_angle
+from boat.presets import preset as boat_preset
 from boat.sway import arc_step
+from sim_bridge.hull import HullFleet
 
 MANUAL, HOLD, GUIDED = 0, 4, 15
 MODES = {MANUAL: "MANUAL", HOLD: "HOLD", GUIDED: "GUIDED"}
@@ -45,11 +50,12 @@ ATTITUDE_ID, LOCAL_POSITION_NED_ID = 30, 32
 STREAM_OF = {6: (LOCAL_POSITION_NED_ID,), 10: (ATTITUDE_ID,), 0: (ATTITUDE_ID, LOCAL_POSITION_NED_ID)}
 DEFAULT_INTERVAL = 0.25   # s: 4 Hz until asked otherwise (our choice; ArduPilot's SRx_ parameters set it)
 STEP = 0.005              # s: the loop's period
+HULL_STEP = 0.02          # s: the hull's substep with --preset (the sim's default dynamics step)
 
 
 class Standin:
     def __init__(self, mav, system: int = 1, component: int = 1, guid_timeout: float = 3.0,
-                 position: bool = True, record=None, clock=time.monotonic) -> None:
+                 position: bool = True, record=None, clock=time.monotonic, preset: str | None = None) -> None:
         self.mav, self.system, self.component = mav, system, component
         self.guid_timeout, self.position, self.record, self.clock = guid_timeout, position, record, clock
         self.boot = clock()
@@ -62,6 +68,10 @@ class Standin:
         self.intervals = {ATTITUDE_ID: DEFAULT_INTERVAL, LOCAL_POSITION_NED_ID: DEFAULT_INTERVAL}
         self.due = {ATTITUDE_ID: self.boot, LOCAL_POSITION_NED_ID: self.boot, "heartbeat": self.boot}
         self.stepped = self.boot
+        self.hulls = None
+        if preset is not None:   # x east, y north, psi counter-clockwise from east: bow north at the origin
+            self.hulls = HullFleet(boat_preset(preset), 1, HULL_STEP, 1)
+            self.hulls.place(0, 0.0, 0.0, math.pi / 2)
 
     def boot_ms(self, now: float) -> int:
         return int((now - self.boot) * 1000) & 0xFFFFFFFF
@@ -158,7 +168,13 @@ class Standin:
     def step(self, now: float) -> list:
         """Move the hull to `now` under what it does, decide what it does next; the messages due."""
         dt = now - self.stepped
-        if dt > 0:
+        if self.hulls is not None:
+            while self.stepped + HULL_STEP <= now:   # the preset's hull under its inner loop, (u, r) held
+                self.hulls.advance(self.stepped, HULL_STEP, np.array([self.u]), np.array([self.r]), self.stepped)
+                self.stepped += HULL_STEP
+            east, north, psi = self.hulls.state[:3, 0]
+            self.east, self.north, self.yaw = float(east), float(north), wrap_angle(math.pi / 2 - float(psi))
+        elif dt > 0:
             heading = math.pi / 2 - self.yaw          # counter-clockwise from east
             turn = self.r * dt
             east, north = arc_step(self.east, self.north, heading, turn, self.u * dt, 0.0)
@@ -183,13 +199,20 @@ class Standin:
                 continue
             self.due[message] = max(self.due[message] + interval, now)
             ms = self.boot_ms(now)
+            north_speed, east_speed, rate = self.motion()
             if message == ATTITUDE_ID:
-                out.append(self.mav.attitude_encode(ms, 0.0, 0.0, self.yaw, 0.0, 0.0, -self.r))
+                out.append(self.mav.attitude_encode(ms, 0.0, 0.0, self.yaw, 0.0, 0.0, -rate))
             else:
-                c, s = math.cos(self.yaw), math.sin(self.yaw)
-                out.append(self.mav.local_position_ned_encode(ms, self.north, self.east, 0.0, self.u * c,
-                                                              self.u * s, 0.0))
+                out.append(self.mav.local_position_ned_encode(ms, self.north, self.east, 0.0, north_speed,
+                                                              east_speed, 0.0))
         return out
+
+    def motion(self) -> tuple[float, float, float]:
+        """Velocity north and east (m/s) and yaw rate (rad/s, counter-clockwise) over ground now."""
+        if self.hulls is None:
+            return self.u * math.cos(self.yaw), self.u * math.sin(self.yaw), self.r
+        vx, vy = self.hulls.ground_velocity()
+        return float(vy[0]), float(vx[0]), float(self.hulls.state[5, 0])
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -198,6 +221,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--system", type=int, default=1, help="its MAVLink system id")
     parser.add_argument("--guid-timeout", type=float, default=3.0, help="GUID_TIMEOUT (s)")
     parser.add_argument("--no-position", action="store_true", help="no position estimate: GUIDED refused")
+    parser.add_argument("--preset", default=None, help="a boat preset's hull and inner loop (otter, heron, "
+                        "wamv) instead of the kinematic hull")
     parser.add_argument("--record", default=None, help="JSON lines of set points and mode changes")
     parser.add_argument("--seconds", type=float, default=None, help="stop after this long")
     args = parser.parse_args(argv)
@@ -213,7 +238,8 @@ def main(argv: list[str] | None = None) -> int:
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stopping.set())
     record = open(args.record, "a", encoding="utf-8") if args.record else None
-    standin = Standin(connection.mav, args.system, 1, args.guid_timeout, not args.no_position, record)
+    standin = Standin(connection.mav, args.system, 1, args.guid_timeout, not args.no_position, record,
+                      preset=args.preset)
     spoken = False   # an udpin link has nobody to send to until someone speaks
     try:
         while not stopping.is_set() and (args.seconds is None or time.monotonic() - standin.boot < args.seconds):

@@ -352,3 +352,29 @@ def test_an_autopilot_reboot_pauses_odometry_until_a_new_offset_then_it_goes_on_
     assert [o.position for o in after] == [(0.0, 1.0), (0.0, 3.0)]
     assert [o.stamp_ns for o in after] == [12_199_000_000, 12_299_000_000]
     assert after[0].stamp_ns > before[-1].stamp_ns and [o.seq for o in after] == [2, 3]
+
+
+def test_the_standin_with_a_preset_drives_that_hull_through_its_inner_loop():
+    """--preset otter: 1 m/s ahead (set points every second) from rest, bow north: after 30 s the Otter runs
+    north at the commanded speed on a straight line; then 0.2 rad/s: it turns counter-clockwise (NED yaw
+    falls, ATTITUDE's yawspeed negative); then no set point: GUID_TIMEOUT's stop brakes it."""
+    boat = standin(preset="otter")
+    guided_and_armed(boat)
+    for second in range(30):
+        boat.receive(setpoint(1.0, 0.0), float(second))
+        for t in np.arange(second, second + 1, 0.02):
+            boat.step(float(t))
+    north, east, rate = boat.motion()
+    assert north == pytest.approx(1.0, abs=0.03) and abs(east) < 1e-9 and abs(boat.east) < 1e-9
+    assert boat.north > 20 and abs(boat.yaw) < 1e-9
+    yaw = boat.yaw
+    for second in range(30, 45):
+        boat.receive(setpoint(1.0, 0.2), float(second))
+        for t in np.arange(second, second + 1, 0.02):
+            boat.step(float(t))
+    assert boat.motion()[2] == pytest.approx(0.2, abs=0.02) and boat.yaw < yaw
+    attitude = [m for m in wire(boat.step(45.3)) if m.get_type() == "ATTITUDE"]
+    assert attitude and attitude[0].yawspeed < -0.15
+    for t in np.arange(45.3, 70.0, 0.02):
+        boat.step(float(t))
+    assert boat.counts["guided_timeout"] == 1 and math.hypot(*boat.motion()[:2]) < 0.1
