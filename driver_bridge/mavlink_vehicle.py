@@ -5,7 +5,8 @@ gives the messages to send now, built with the pymavlink encoder `mav` it is giv
 - Out: HEARTBEAT at 1 Hz (an onboard controller); SET_POSITION_TARGET_LOCAL_NED on each command (the
   agent's rate; the last repeated at `min_rate_hz` at least) in MAV_FRAME_BODY_NED with VELOCITY_YAW_RATE
   (only vx, vy and the yaw rate used): vx = u, vy = 0, yaw_rate = -r (NED yaw is clockwise); MAV_CMD_DO_SET_MODE to GUIDED (and `arm`: MAV_CMD_COMPONENT_ARM_DISARM) while
-  commands flow; MAV_CMD_SET_MESSAGE_INTERVAL for ATTITUDE and LOCAL_POSITION_NED at `stream_hz`; TIMESYNC.
+  commands flow; MAV_CMD_SET_MESSAGE_INTERVAL for ATTITUDE and LOCAL_POSITION_NED at `stream_hz` (refused:
+  REQUEST_DATA_STREAM); TIMESYNC.
 - In: HEARTBEAT (mode, armed), COMMAND_ACK (a refusal said in one line), ATTITUDE (yaw, yaw rate),
   LOCAL_POSITION_NED (north, east), TIMESYNC (the autopilot's boot clock against ours).
 Odometry: x east, y north from the first position, heading = pi/2 - yaw (counter-clockwise from east),
@@ -43,6 +44,7 @@ MAV_TYPE_ONBOARD_CONTROLLER, MAV_AUTOPILOT_INVALID, MAV_STATE_ACTIVE = 18, 8, 4
 MAV_RESULT = {0: "ACCEPTED", 1: "TEMPORARILY_REJECTED", 2: "DENIED", 3: "UNSUPPORTED", 4: "FAILED",
               5: "IN_PROGRESS", 6: "CANCELLED"}
 ATTITUDE_ID, LOCAL_POSITION_NED_ID = 30, 32
+STREAM_POSITION, STREAM_EXTRA1 = 6, 10   # MAV_DATA_STREAM groups: LOCAL_POSITION_NED, ATTITUDE
 # ArduPilot Rover's custom modes (Rover/mode.h).
 ROVER_MODES = {"MANUAL": 0, "ACRO": 1, "HOLD": 4, "LOITER": 5, "AUTO": 10, "RTL": 11, "GUIDED": 15}
 MODE_NAMES = {number: name for name, number in ROVER_MODES.items()}
@@ -103,6 +105,8 @@ class MavlinkVehicle:
         self._said_disarmed = False
         self._fresh = False        # a command (or the agent's leaving) not yet sent
         self._timed_out = False
+        self._legacy_streams = False   # SET_MESSAGE_INTERVAL refused: REQUEST_DATA_STREAM instead
+        self._asked_mode: int | None = None
         self._replies: list = []   # answers owed to the autopilot (its TIMESYNC requests)
 
     # ----- the agent's side -----
@@ -134,9 +138,14 @@ class MavlinkVehicle:
         if self._due("timesync", mono, 1.0):
             out.append(mav.timesync_encode(0, now_ns))
         if self.linked and self._due("streams", mono, 10.0):
-            interval = 1e6 / s.stream_hz
-            out += [self._long(MAV_CMD_SET_MESSAGE_INTERVAL, ATTITUDE_ID, interval),
-                    self._long(MAV_CMD_SET_MESSAGE_INTERVAL, LOCAL_POSITION_NED_ID, interval)]
+            if self._legacy_streams:   # before ArduPilot 4.0: the stream groups holding the two messages
+                rate = max(1, round(s.stream_hz))
+                out += [mav.request_data_stream_encode(s.system, s.component, stream, rate, 1)
+                        for stream in (STREAM_POSITION, STREAM_EXTRA1)]
+            else:
+                interval = 1e6 / s.stream_hz
+                out += [self._long(MAV_CMD_SET_MESSAGE_INTERVAL, ATTITUDE_ID, interval),
+                        self._long(MAV_CMD_SET_MESSAGE_INTERVAL, LOCAL_POSITION_NED_ID, interval)]
         gone = self._agent_gone_at
         if (gone is not None and mono - gone >= HOLD_AFTER and self.linked and self.mode != ROVER_MODES["HOLD"]
                 and self._due("mode", mono, REQUEST_GAP)):
@@ -182,6 +191,8 @@ class MavlinkVehicle:
             0.0, 0.0, 0.0, surge, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, -yaw_rate)
 
     def _long(self, command: int, *params: float):
+        if command == MAV_CMD_DO_SET_MODE:
+            self._asked_mode = int(params[1])
         p = (list(params) + [0.0] * 7)[:7]
         return self.mav.command_long_encode(self.settings.system, self.settings.component, command, 0, *p)
 
@@ -250,9 +261,14 @@ class MavlinkVehicle:
             return
         if not self.rejected[what]:
             result = MAV_RESULT.get(msg.result, str(msg.result))
+            guided = what == "mode_refused" and self._asked_mode == ROVER_MODES["GUIDED"]
             self.report(f"the autopilot refused {what.split('_')[0]} (command {msg.command}): {result}"
-                        + (" (GUIDED needs a position estimate: docs/boats.md)" if what == "mode_refused" else ""))
+                        + (" (GUIDED needs a position estimate: docs/boats.md)" if guided else "")
+                        + ("; asking with REQUEST_DATA_STREAM" if what == "stream_refused" else ""))
         self.rejected[what] += 1
+        if what == "stream_refused" and not self._legacy_streams:
+            self._legacy_streams = True            # ask again at once, the old way
+            self._next["streams"] = -math.inf
 
     def _on_timesync(self, msg, now_ns: int, mono: float) -> None:
         if msg.tc1 == 0:   # the autopilot asks: our time, its stamp echoed

@@ -378,3 +378,18 @@ def test_the_standin_with_a_preset_drives_that_hull_through_its_inner_loop():
     for t in np.arange(45.3, 70.0, 0.02):
         boat.step(float(t))
     assert boat.counts["guided_timeout"] == 1 and math.hypot(*boat.motion()[:2]) < 0.1
+
+
+def test_stream_rates_are_asked_by_message_and_by_the_old_stream_groups_when_that_is_refused():
+    """SET_MESSAGE_INTERVAL for ATTITUDE (30) and LOCAL_POSITION_NED (32) at 1e6 / stream_hz us; an
+    autopilot older than ArduPilot 4.0 answers UNSUPPORTED: then REQUEST_DATA_STREAM for the POSITION (6)
+    and EXTRA1 (10) groups at once, and said once."""
+    adapter, said = vehicle(stream_hz=5.0)
+    adapter.receive(heartbeat(0, False), 0, 0.0)
+    asked = sent(adapter.tick(0, 0.0), "COMMAND_LONG")
+    assert {(m.command, m.param1, m.param2) for m in asked} == {(511, 30.0, 200_000.0), (511, 32.0, 200_000.0)}
+    adapter.receive(wire([autopilot().command_ack_encode(511, 3)])[0], 0, 0.1)
+    groups = sent(adapter.tick(0, 0.1), "REQUEST_DATA_STREAM")
+    assert {(m.req_stream_id, m.req_message_rate, m.start_stop) for m in groups} == {(6, 5, 1), (10, 5, 1)}
+    assert [line for line in said if "refused" in line] == [
+        "the autopilot refused stream (command 511): UNSUPPORTED; asking with REQUEST_DATA_STREAM"]
