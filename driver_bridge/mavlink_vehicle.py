@@ -28,7 +28,7 @@ from pydantic import Field
 
 from agent.angles import wrap_angle
 from agent.config import NonNegativeFloat, PositiveFloat, StrictModel
-from agent.contract import MAX_POSITION, MAX_STAMP_NS, MAX_VARIANCE, Odometry
+from agent.contract import MAX_POSITION, MAX_SPEED, MAX_STAMP_NS, MAX_VARIANCE, Odometry
 
 # MAVLink common (mavlink.io, common.xml). POSITION_TARGET_TYPEMASK: a set bit means "ignore this field".
 X_IGNORE, Y_IGNORE, Z_IGNORE = 1, 2, 4
@@ -111,9 +111,9 @@ class MavlinkVehicle:
 
     # ----- the agent's side -----
     def command(self, surge: float, yaw_rate: float, mono: float) -> None:
-        if not (math.isfinite(surge) and math.isfinite(yaw_rate)):
-            self.rejected["non_finite"] += 1
-            surge = yaw_rate = 0.0   # taken as a stop
+        if not (abs(surge) <= MAX_SPEED and abs(yaw_rate) <= MAX_SPEED):   # NaN fails too
+            self.rejected["command_out_of_range"] += 1
+            surge = yaw_rate = 0.0   # taken as a stop (and a float32 on the wire never overflows)
         self._command = (surge, yaw_rate, mono)
         self._agent_gone_at = None
         self._fresh, self._timed_out = True, False
