@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
-from agent.contract import Odometry, decode, encode
+from agent.contract import Bearing, Odometry, decode, encode
 from driver_bridge.mavlink_vehicle import MavlinkSettings, MavlinkVehicle
-from driver_bridge.node import DriverSettings
+from driver_bridge.node import DriverBridge, DriverSettings
 from sim_bridge.ardupilot_standin import Standin
 
 # From ArduPilot's page, by hand: "Use Vel+Yaw Rate : 0b010111100111 / 0x05E7 / 1511 (decimal)"; the frame
@@ -394,3 +394,46 @@ def test_stream_rates_are_asked_by_message_and_by_the_old_stream_groups_when_tha
     assert {(m.req_stream_id, m.req_message_rate, m.start_stop) for m in groups} == {(6, 5, 1), (10, 5, 1)}
     assert [line for line in said if "refused" in line] == [
         "the autopilot refused stream (command 511): UNSUPPORTED; asking with REQUEST_DATA_STREAM"]
+
+
+class FakeLink:
+    """What the driver's loop reads from the autopilot's link: messages already parsed."""
+
+    def __init__(self, messages: list) -> None:
+        self.pending = messages
+
+    def messages(self) -> list:
+        out, self.pending = self.pending, []
+        return out
+
+
+class Sink:
+    def __init__(self, topic: str, into: list) -> None:
+        self.topic, self.into = topic, into
+
+    def put(self, payload: bytes) -> None:
+        self.into.append((self.topic, payload))
+
+
+def test_the_driver_publishes_the_autopilots_odometry_and_bearings_take_its_heading():
+    """DriverBridge with `mavlink` and a camera: the autopilot's state (bow east: ATTITUDE yaw pi/2) becomes
+    usv/1/sensor/odom through the bridge's own handler, and a detection at the image centre then gives the
+    bearing of a target due east: the unit vector from the target to the vessel points west."""
+    settings = DriverSettings.model_validate({"mavlink": {"url": "udpout:127.0.0.1:9"}, "camera": {
+        "device": "/dev/null", "camera": {"fx": 500.0, "cx": 320.0, "width": 640}}})
+    now_ns = 1_700_000_000 * 10**9
+    bridge = DriverBridge("1", settings, clock_ns=lambda: now_ns, report=lambda line: None)
+    bridge.vehicle = MavlinkVehicle(settings.mavlink, mavlink2.MAVLink(None, 1, 191), "1")
+    published: list = []
+    publishers = {topic: Sink(topic, published) for topic in ("sensor/odom", "sensor/bearing", "sensor/uwb")}
+    ap = autopilot()
+    bridge._detection(b"DET,320,", publishers)
+    assert published == [] and bridge.refused["bearing_without_heading"] == 1
+    bridge._on_mavlink(FakeLink([heartbeat(GUIDED, True), wire([ap.timesync_encode(10**9, now_ns - 10**6)])[0],
+                                 wire([ap.attitude_encode(1000, 0, 0, math.pi / 2, 0, 0, 0)])[0],
+                                 wire([ap.local_position_ned_encode(1000, 0, 0, 0, 0, 0, 0)])[0]]), publishers)
+    bridge._detection(b"DET,320,", publishers)
+    (odom_topic, odom), (bearing_topic, bearing) = published
+    assert odom_topic == "sensor/odom" and decode(Odometry, odom)[0].heading == pytest.approx(0.0, abs=1e-7)
+    assert bearing_topic == "sensor/bearing"
+    assert decode(Bearing, bearing)[0].bearing == (pytest.approx(-1.0), pytest.approx(0.0, abs=1e-7))
