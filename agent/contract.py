@@ -16,6 +16,7 @@ semi-definite, int64 stamps) and the JSON schema written into logs. Keys:
     usv/<id>/alive           (liveliness token of the agent)
     sim/clock                Clock         sim bridge -> all sim time, one message per tick
     mission/all, mission/<id> MissionCommand operator -> agents   start, hold, resume, set (radius, yaw rate)
+    usv/<id>/truth/gnss      GnssFix       driver -> scoring GNSS fixes of a field trial; no agent reads it
 
 docs/contract.md is the page a driver-bridge author follows.
 """
@@ -34,6 +35,7 @@ from agent.config import StrictModel
 FLEET_PREFIX = "usv"
 CLOCK_KEY = "sim/clock"
 TRUTH_KEY = "sim/truth"  # a simulation's ground truth each tick, in real time only: for viewers, no agent reads it
+GNSS_TRUTH_TOPIC = "truth/gnss"  # usv/<id>/truth/gnss: GNSS fixes to score a field trial; no agent reads it
 MISSION_PREFIX = "mission"
 MISSION_ALL = "all"      # mission/all: every vessel; mission/<id>: one
 MAX_RADIUS = 1e4         # m: the largest circle a mission command may ask for
@@ -129,6 +131,11 @@ def key(vessel: str, topic: str) -> str:
     if topic not in TOPICS and topic != LIVELINESS:
         raise ValueError(f"unknown topic {topic!r}; known: {', '.join([*TOPICS, LIVELINESS])}")
     return f"{FLEET_PREFIX}/{vessel}/{topic}"
+
+
+def gnss_truth_key(vessel: str) -> str:
+    """`usv/<vessel>/truth/gnss`: the driver's GNSS fixes (GnssFix), outside every agent's subscriptions."""
+    return f"{FLEET_PREFIX}/{vessel}/{GNSS_TRUTH_TOPIC}"
 
 
 def every(topic: str) -> str:
@@ -399,6 +406,20 @@ class Clock(StrictModel):
             return None
         lost = {sender for sender, to in self.lost if to == receiver}
         return {j for j in self.senders if j != receiver and j not in lost}
+
+
+class GnssFix(Header):
+    """A GNSS receiver's fix (NMEA GGA) of the vessel's antenna: truth for scoring a field trial, never an
+    input of the agent (tests/test_architecture.py). stamp_ns: when the driver read it (the fleet's clock)."""
+    latitude: float = Field(ge=-90, le=90, allow_inf_nan=False, description="WGS 84, north positive (deg)")
+    longitude: float = Field(ge=-180, le=180, allow_inf_nan=False, description="WGS 84, east positive (deg)")
+    altitude: Coordinate | None = Field(None, description="antenna above mean sea level (m); null: not given")
+    quality: int = Field(ge=1, le=9, description="GGA fix quality: 1 GNSS, 2 DGNSS, 4 RTK fixed, 5 RTK float")
+    satellites: int | None = Field(None, ge=0, le=999, description="satellites used; null: not given")
+    hdop: float | None = Field(None, ge=0, le=100, allow_inf_nan=False, description="horizontal dilution")
+    utc_time: float | None = Field(None, ge=0, lt=86401, allow_inf_nan=False,
+                                   description="the receiver's UTC time of day of the fix (s); null: none")
+    antenna: Vec2 = Field((0.0, 0.0), description="antenna from the vessel's reference: ahead, left (m)")
 
 
 TOPICS: dict[str, type[StrictModel]] = {

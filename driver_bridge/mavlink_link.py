@@ -36,9 +36,9 @@ class Link:
         try:
             self.connection = mavutil.mavlink_connection(url, baud=baud, source_system=system,
                                                          source_component=component, autoreconnect=True)
-        except ImportError as error:   # mavutil opens a serial device with pyserial, which it does not require
-            raise MissingExtra(f"a serial MAVLink link ({url}) needs pyserial: pip install pyserial "
-                               f"({error.msg})") from None
+        except ImportError as error:   # mavutil opens a serial device with pyserial (the extra's, not its own)
+            raise MissingExtra(f"a serial MAVLink link ({url}) needs pyserial, in the optional extra 'driver': "
+                               f"pip install 'usv-circumnav[driver]' ({error.msg})") from None
         self.mav = self.connection.mav
         self.fd = self.connection.fd
 

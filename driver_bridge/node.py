@@ -2,12 +2,12 @@
 
 It does on a boat what the sim bridge does in simulation, for one vessel: it reads the serial devices,
 publishes the contract's sensor messages under `usv/<id>/sensor/...`, and turns the agent's commands into
-thrust. Each hardware side is one adapter (uwb, odometry, bearing, thrusters or an autopilot); this file
-only wires them to the ports and to Zenoh, so swapping a device means swapping an adapter.
+thrust. Each device (an autopilot too) is one adapter; this file only wires them to the ports and to Zenoh.
 
     UWB module  --NLink frames-->  NLinkParser     -> usv/<id>/sensor/uwb      (Ranges)
     speed log   --$..VHW------->   DeadReckoning   -> usv/<id>/sensor/odom     (Odometry)
     detector    --$DET--------->   BearingAdapter  -> usv/<id>/sensor/bearing  (Bearing, with the odometry's heading)
+    GNSS        --$..GGA------->   GnssAdapter     -> usv/<id>/truth/gnss      (GnssFix: truth, no agent reads it)
     usv/<id>/cmd (Cmd)  -------->  ThrusterAdapter -> $THR lines to the motor controller, `rate_hz` times a second
                                    or LoopThrusters (thrusters.control: inner_loop, closed on the
                                    speed log and yaw) -> $THR lines at the loop's `loop_hz`
@@ -41,14 +41,15 @@ import zenoh
 from pydantic import Field, model_validator
 
 from agent.config import PositiveFloat, StrictModel
-from agent.contract import LIVELINESS, Bearing, Cmd, Odometry, Ranges, decode, encode, key
+from agent.contract import LIVELINESS, Bearing, Cmd, Odometry, Ranges, decode, encode, gnss_truth_key, key
 from agent.runtime.process import stop_on_signals, vessel_process
 from agent.runtime.zenoh_session import ZenohSettings, zenoh_config
 from driver_bridge.bearing import BearingAdapter, CameraSettings, read_detection
+from driver_bridge.gnss import GnssAdapter, ReceiverSettings
 from driver_bridge.mavlink_link import MissingExtra, open_link
 from driver_bridge.mavlink_vehicle import MavlinkSettings, MavlinkVehicle
 from driver_bridge.odometry import DeadReckoning, OdometrySettings, read_vhw
-from driver_bridge.serial_port import LineReader, open_serial, write_all
+from driver_bridge.serial_port import LineReader, libraries, open_serial
 from driver_bridge.thrust_loop import LoopSettings, LoopThrusters
 from driver_bridge.thrusters import (
     ZERO_THRUST,
@@ -71,7 +72,7 @@ class Port(StrictModel):
 
 # What each device is, for a line that says which one could not be opened.
 DEVICES = {"uwb": "the UWB module", "odometry": "the speed log and compass", "camera": "the camera",
-           "thrusters": "the thrusters' controller"}
+           "thrusters": "the thrusters' controller", "gnss": "the GNSS receiver"}
 
 
 class UwbPort(Port):
@@ -88,6 +89,12 @@ class OdometryPort(Port):
 
 class CameraPort(Port):
     camera: CameraSettings
+
+
+class GnssPort(Port):
+    # 9600: the NMEA output rate u-blox receivers start at (NMEA 0183's own 4800 is too slow for 5 Hz GGA).
+    baud: int = Field(9_600, gt=0)
+    receiver: ReceiverSettings = ReceiverSettings()
 
 
 THR_LINE_BITS = 10 * len(b"$THR,+0.000,+0.000*00\r\n")   # one thrust line at 8N1
@@ -122,6 +129,7 @@ class DriverSettings(StrictModel):
     odometry: OdometryPort | None = None
     camera: CameraPort | None = None
     thrusters: ThrusterPort | None = None
+    gnss: GnssPort | None = Field(None, description="a GNSS receiver's GGA, published as truth for scoring only")
     mavlink: MavlinkSettings | None = Field(None, description="an ArduPilot autopilot: it drives the vessel and "
                                             "gives its odometry (docs/boats.md)")
     commands: CommandWindow = CommandWindow()
@@ -151,13 +159,14 @@ class DriverBridge:
         self.uwb = NLinkParser(settings.uwb.module) if settings.uwb else None
         self.dead_reckoning = DeadReckoning(settings.odometry.dead_reckoning) if settings.odometry else None
         self.camera = BearingAdapter(settings.camera.camera) if settings.camera else None
+        self.gnss = GnssAdapter(settings.gnss.receiver) if settings.gnss else None
         self.thrusters = self._thrusters(settings)
         self.vehicle: MavlinkVehicle | None = None   # made when its link opens (it needs the link's encoder)
         self._autopilot_heading: float | None = None
         self._wake: tuple[int, int] | None = None    # a pipe that wakes the loop for a command (autopilot only)
         self.published: Counter[str] = Counter()
         self.refused: Counter[str] = Counter()
-        self.lines = {"odometry": LineReader(), "camera": LineReader()}
+        self.lines = {"odometry": LineReader(), "camera": LineReader(), "gnss": LineReader()}
         self._seq: Counter[str] = Counter()
         self._command_lock = threading.Lock()
         self.command_gate = CommandGate(settings.commands)
@@ -178,7 +187,7 @@ class DriverBridge:
     def refusals(self) -> dict[str, dict[str, int]]:
         """Everything refused so far, by where and why (what the closing line and the reports say)."""
         counts = {"refused": dict(self.refused)}
-        for name in ("uwb", "dead_reckoning", "camera", "thrusters", "vehicle"):
+        for name in ("uwb", "dead_reckoning", "camera", "thrusters", "gnss", "vehicle"):
             adapter = getattr(self, name)
             if adapter is not None and adapter.rejected:
                 counts[f"{name}_refused"] = dict(adapter.rejected)
@@ -302,6 +311,16 @@ class DriverBridge:
         self._publish(publishers, "sensor/bearing", Bearing(
             stamp_ns=self.clock_ns(), seq=self._next("bearing"), sender=self.id, bearing=vector))
 
+    def _on_gnss(self, data: bytes, publishers) -> None:
+        bodies = self._guarded("gnss", self.lines["gnss"].feed, data)
+        self._each("gnss", bodies, self._gga, publishers)
+
+    def _gga(self, body: bytes, publishers) -> None:
+        fix = self.gnss.fix(body, self.clock_ns(), self._seq["gnss"], self.id)   # refusals counted there
+        if fix is not None:
+            self._next("gnss")
+            self._publish(publishers, "truth/gnss", fix)
+
     @property
     def _heading(self) -> float | None:
         """The vessel's heading in the common reference, from the speed log's compass or the autopilot."""
@@ -328,9 +347,9 @@ class DriverBridge:
         for msg in self._guarded("mavlink", self.vehicle.tick, self.clock_ns(), mono):
             self._guarded("mavlink", link.send, msg)
 
-    def _drive(self, fd: int, now: float) -> None:
-        """One thrust line; `now` is the monotonic clock (the watchdog's)."""
-        write_all(fd, self.thrust_line(now))
+    def _drive(self, port, now: float) -> None:
+        """One thrust line to `port` (pyserial's write gives up after 1 s); `now`: the monotonic clock."""
+        port.write(self.thrust_line(now))
 
     def thrust_line(self, now: float) -> bytes:
         """The thrust line to write now: the command in force's, or a stop. `now`: the monotonic clock."""
@@ -347,24 +366,28 @@ class DriverBridge:
     # ----- the loop -----
     def run(self, max_seconds: float | None = None) -> None:
         ports = {}
-        for name in ("uwb", "odometry", "camera", "thrusters"):
+        for name in ("uwb", "odometry", "camera", "thrusters", "gnss"):
             port = getattr(self.settings, name)
             if port is not None:
                 try:
                     ports[name] = open_serial(port.device, port.baud)
-                except OSError as error:
-                    for fd in ports.values():
-                        os.close(fd)
+                except (OSError, ValueError) as error:   # pyserial: SerialException (an OSError), a bad baud
+                    for opened in ports.values():
+                        opened.close()
+                    why = os.strerror(error.errno) if getattr(error, "errno", None) else str(error)
                     raise OSError(f"cannot open {DEVICES[name]} ({name}.device {port.device} at {port.baud} "
-                                  f"baud): {error.strerror or error}") from None
-        handlers = {"uwb": self._on_uwb, "odometry": self._on_odometry, "camera": self._on_camera}
-        readers = {fd: handlers[name] for name, fd in ports.items() if name in handlers}
+                                  f"baud): {why}") from None
+        handlers = {"uwb": self._on_uwb, "odometry": self._on_odometry, "camera": self._on_camera,
+                    "gnss": self._on_gnss}
+        readers = {port: name for name, port in ports.items() if name in handlers}
         link = self._open_vehicle(ports)
         started = time.monotonic()
         try:
             with zenoh.open(zenoh_config(self.settings.zenoh)) as session:
                 publishers = {t: session.declare_publisher(key(self.id, t))
                               for t in ("sensor/uwb", "sensor/odom", "sensor/bearing")}
+                if self.gnss is not None:   # truth: a key outside every agent's subscriptions
+                    publishers["truth/gnss"] = session.declare_publisher(gnss_truth_key(self.id))
                 subscriber = session.declare_subscriber(key(self.id, "cmd"), self._on_command)
                 agent = session.liveliness().declare_subscriber(key(self.id, LIVELINESS), self._on_agent_liveliness,
                                                                  history=True)
@@ -376,17 +399,17 @@ class DriverBridge:
                     if max_seconds is not None and time.monotonic() - started > max_seconds:
                         break
                     ready, _, _ = select.select(waits, [], [], max(0.0, next_drive - time.monotonic()))
-                    for fd in ready:
-                        if link is not None and fd == link.fd:
+                    for port in ready:   # a serial port, or the autopilot's link or wake-up pipe (descriptors)
+                        if link is not None and port == link.fd:
                             self._on_mavlink(link, publishers)
                             continue
-                        if self._wake is not None and fd == self._wake[0]:
-                            os.read(fd, 4096)
+                        if self._wake is not None and port == self._wake[0]:
+                            os.read(port, 4096)
                             self._drive_vehicle(link, time.monotonic())
                             continue
-                        data = os.read(fd, 4096)
+                        data = self._read(port, readers[port])
                         if data:
-                            readers[fd](data, publishers)
+                            handlers[readers[port]](data, publishers)
                     self.report_refusals(time.monotonic())
                     if time.monotonic() >= next_drive:
                         next_drive += period
@@ -398,20 +421,31 @@ class DriverBridge:
                     for msg in self.vehicle.stop(time.monotonic()):
                         self._guarded("mavlink", link.send, msg)
                 if "thrusters" in ports:   # stopped before Zenoh's teardown, which might not end by the deadline
-                    write_all(ports["thrusters"], command_line(ZERO_THRUST))
+                    ports["thrusters"].write(command_line(ZERO_THRUST))
                 subscriber.undeclare()
                 agent.undeclare()
         finally:
-            if "thrusters" in ports:
-                write_all(ports["thrusters"], command_line(ZERO_THRUST))   # leave the boat stopped
-            for fd in ports.values():
-                os.close(fd)
-            if link is not None:
-                link.close()
-            if self._wake is not None:
-                for fd in self._wake:
-                    os.close(fd)
-                self._wake = None
+            try:
+                if "thrusters" in ports:
+                    ports["thrusters"].write(command_line(ZERO_THRUST))   # leave the boat stopped
+            finally:
+                for port in ports.values():
+                    port.close()
+                if link is not None:
+                    link.close()
+                if self._wake is not None:
+                    for fd in self._wake:
+                        os.close(fd)
+                    self._wake = None
+
+    def _read(self, port, name: str) -> bytes:
+        """What `port` has, or an OSError that names the device: one that vanished (unplugged) reports
+        itself ready and then has nothing, or fails the read (pyserial raises either way)."""
+        try:
+            return port.read(4096)
+        except OSError as error:
+            device = getattr(self.settings, name).device
+            raise OSError(f"lost {DEVICES[name]} ({name}.device {device}): {error}") from None
 
     def _open_vehicle(self, ports: dict):
         """The autopilot's link and its MavlinkVehicle, or None without `mavlink`; OSError naming it if not."""
@@ -421,8 +455,8 @@ class DriverBridge:
         try:
             link = open_link(s.url, s.baud, s.own_system, s.own_component)
         except (MissingExtra, OSError, ValueError) as error:
-            for fd in ports.values():
-                os.close(fd)
+            for port in ports.values():
+                port.close()
             text = str(error) if isinstance(error, MissingExtra) else (
                 f"cannot open the autopilot's link (mavlink.url {s.url}): {getattr(error, 'strerror', None) or error}")
             raise OSError(text) from None
@@ -440,6 +474,11 @@ def main(argv: list[str] | None = None) -> int:
     if isinstance(started, int):
         return started
     args, settings = started
+    try:
+        libraries()
+    except ImportError as error:   # the `driver` extra: one line, not a traceback
+        print(f"usv-driver: {error}", file=sys.stderr)
+        return 1
     bridge = DriverBridge(args.vessel, settings)
     # Within systemd's TimeoutStopSec (5 s, deploy/systemd/usv-driver@.service), so that a hang is seen in stacks.
     stop_on_signals(bridge.stopping, deadline=4.0)
@@ -449,6 +488,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"usv-driver: {error}", file=sys.stderr)
         return 1
     counts = {"published": dict(bridge.published), "refused": dict(bridge.refused)} | bridge.refusals()
+    if bridge.gnss is not None and bridge.gnss.passed_over:
+        counts["gnss_other_sentences"] = bridge.gnss.passed_over
     if bridge.thrusters is not None and bridge.thrusters.events:
         counts["thruster_events"] = dict(bridge.thrusters.events)
     if bridge.vehicle is not None:

@@ -15,7 +15,7 @@ heading to the second (or, with a yaw rate input, a turn of the trapezoid of the
 distance = trapezoid of the two speeds times dt, on the arc's chord (boat.sway.arc_step, exact for a steady
 turn). With `sway_preset` the hull's sideslip (boat/sway.py) joins the log's surge on the same arc.
 
-`parse_vhw` reads NMEA 0183 VHW, "water speed and heading"
+`parse_vhw` reads NMEA 0183 VHW, "water speed and heading", through pynmeagps
 (https://gpsd.gitlab.io/gpsd/NMEA.html#_vhw_water_speed_and_heading):
 `$--VHW,<heading true, deg>,T,<heading magnetic, deg>,M,<speed, knots>,N,<speed, km/h>,K*hh`.
 
@@ -39,7 +39,7 @@ from agent.contract import (MAX_ANGLE, MAX_POSITION, MAX_SPEED, MAX_STAMP_NS, MA
                             nanoseconds)
 from boat import sway
 from boat.presets import PRESETS
-from driver_bridge.serial_port import nmea_number
+from driver_bridge.serial_port import read_sentence
 
 KNOT = 1852.0 / 3600.0  # m/s
 
@@ -177,23 +177,24 @@ def parse_vhw(body: bytes) -> tuple[float, float] | None:
 
 
 def read_vhw(body: bytes) -> tuple[tuple[float, float] | None, str]:
-    """(sample, "") or (None, why): `not_vhw` (another sentence, or the wrong fields), `bad_number` (a field
-    that is no finite decimal), `no_speed` (neither knots nor km/h given), `heading_out_of_range` (a true
-    heading outside [0, 360] degrees). The speed's size is judged by DeadReckoning (its max_speed)."""
-    fields = body.decode("ascii", "replace").split(",")
-    if len(fields) != 9 or not fields[0].endswith("VHW") or fields[2] != "T":
+    """(sample, "") or (None, why): `not_vhw` (another sentence, or the wrong fields), `bad_number` (a number
+    field, used or not, that is no finite decimal), `no_speed` (neither knots nor km/h given),
+    `heading_out_of_range` (a true heading outside [0, 360] degrees). The fields are pynmeagps's (VHW's
+    table: hdgT, hdgM, spdN, spdK and their units). The speed's size is judged by DeadReckoning."""
+    message, why = read_sentence(body, "VHW", 8)
+    if message is None:
+        return None, why
+    if message.hgdTu != "T":   # sic: pynmeagps's name for the true heading's unit
         return None, "not_vhw"
-    heading = nmea_number(fields[1])
-    if fields[5] and fields[6] == "N":
-        speed = nmea_number(fields[5])
-        speed = None if speed is None else speed * KNOT
-    elif fields[7] and fields[8] == "K":
-        speed = nmea_number(fields[7])
-        speed = None if speed is None else speed / 3.6
+    if message.spdN != "" and message.spdNu == "N":
+        speed = message.spdN * KNOT
+    elif message.spdK != "" and message.spdKu == "K":
+        speed = message.spdK / 3.6
     else:
         return None, "no_speed"
-    if heading is None or speed is None:
+    if message.hdgT == "":
         return None, "bad_number"
+    heading = message.hdgT
     if not 0.0 <= heading <= 360.0:
         return None, "heading_out_of_range"
     return (speed, math.radians(heading)), ""

@@ -5,6 +5,8 @@
     usv-log plot RUN... [--out DIR]   trajectories, errors, ranges and residuals as PNG files
     usv-log replay LOG --out FILE [--set key=value ...] [--params FILE] [--start SECONDS]
                                       a vessel's recorded inputs through the core again
+    usv-log export --ros2 RUN... [--out DIR]
+                                      the logs as a rosbag2 (MCAP) that `ros2 bag play` plays
 
 RUN is a run folder (every *.mcap in it) or MCAP files; the parts of a rotated log (agent-1.mcap,
 agent-1.part0001.mcap, ...) read as one log. Reports are Markdown on standard output, with times in seconds
@@ -24,6 +26,7 @@ from mission_log.metrics import metrics_markdown, run_metrics
 from mission_log.plots import plot_run
 from mission_log.reader import LogError, load_run
 from mission_log.replay import parse_assignments, replay
+from mission_log.ros2_export import MissingExtra, default_out, export_ros2
 from mission_log.summary import run_summary, summary_markdown
 
 
@@ -106,6 +109,19 @@ def replay_command(args) -> int:
     return 0
 
 
+def export_command(args) -> int:
+    run = _load(args.run)
+    out = args.out or default_out(args.run[0])
+    result = export_ros2(run, out)
+    print(f"usv-log export: {sum(result.counts.values())} messages on {len(result.counts)} topics -> {result.out}")
+    for topic in sorted(result.counts):
+        print(f"  {topic}  {result.types[topic]}  {result.counts[topic]}")
+    if result.partial is not None:
+        print(f"usv-log export: partial: {result.partial} (written in the bag's custom_data, usv_partial)",
+              file=sys.stderr)
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="usv-log", description="Post-mission analysis of the fleet's MCAP logs.")
     commands = parser.add_subparsers(dest="command", required=True)
@@ -135,6 +151,16 @@ def build_parser() -> argparse.ArgumentParser:
                        help="start from the last state the agent saved before this time (s after its first "
                             "tick) instead of the beginning")
     again.set_defaults(handler=replay_command)
+    export = commands.add_parser("export", help="the logs in another format: --ros2, a rosbag2 for ROS 2's tools")
+    export.add_argument("run", nargs="+", type=Path, help="a run folder, or MCAP files")
+    form = export.add_mutually_exclusive_group(required=True)
+    form.add_argument("--ros2", action="store_true",
+                      help="a rosbag2 folder (MCAP storage, CDR): odometry, commands, estimates, TF and the truth "
+                           "(needs the ros2 extra: pip install 'usv-circumnav[ros2]')")
+    export.add_argument("--out", type=Path, default=None,
+                        help="the bag's folder, which must not exist (default: ros2/ in the run folder, numbered "
+                             "rather than overwriting)")
+    export.set_defaults(handler=export_command)
     return parser
 
 
@@ -142,7 +168,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.handler(args)
-    except (LogError, ConfigError) as error:
+    except (LogError, ConfigError, MissingExtra) as error:
         print(f"usv-log: {error}", file=sys.stderr)
         return 2
 

@@ -16,8 +16,15 @@ function, under `if TYPE_CHECKING`, relative ones, and `importlib.import_module`
   (agent.core.range_noise). Never the agent process (agent.shell).
 - `boat` (hull presets, thrusters, the inner loop), shared by the sim bridge and the driver bridge, imports
   from the project only `agent.config` and `agent.angles` and itself; `agent` never imports it.
-- pymavlink (the optional extra `driver`) is imported by the MAVLink link (driver_bridge.mavlink_link) and
-  the ArduPilot stand-in (sim_bridge.ardupilot_standin) only: the agent, and every other module, runs without it.
+- The ROS 2 libraries of the `ros2` extra (rosbags; mcap_ros2, the tests' decoder) are imported by
+  `mission_log.ros2_export` only: no process of the fleet needs them.
+- The `driver` extra's libraries stay at the boat's edge: pyserial's `serial` and `pynmeagps` are imported by
+  `driver_bridge` alone, pymavlink by the MAVLink link (driver_bridge.mavlink_link) and the ArduPilot stand-in
+  (sim_bridge.ardupilot_standin) alone. The agent, the rest of the simulator, the lab, the logs and the
+  operator's station install and run without them.
+- No agent reads the GNSS truth: outside `agent.contract`, which defines them, no module of `agent` names
+  GnssFix, gnss_truth_key or GNSS_TRUTH_TOPIC, nor writes a string with `truth/` in it (a key), and none of
+  the key expressions the agent subscribes to matches `usv/<id>/truth/gnss`.
 - Layers: `mission_log` and `sim_bridge` never import `lab`; `mission_log` never imports `sim_bridge`;
   nothing outside `lab` imports `lab` (the tests may); `agent` imports none of sim_bridge, driver_bridge, lab,
   mission_log, usv_deploy.
@@ -45,9 +52,14 @@ CORE_FORBIDDEN = ("zenoh", "mcap", "matplotlib", "threading", "socket", "subproc
                   "boat", "sim_bridge", "driver_bridge", "lab", "mission_log", "usv_deploy", "usv_op")
 OURS = PACKAGES
 BOAT_ALLOWED = ("agent.config", "agent.angles", "boat")
+ROS2_LIBRARIES = ("rosbags", "mcap_ros2")
+ROS2_EXPORT = "mission_log.ros2_export"
 SHARED_FROM_AGENT = ("agent.contract", "agent.config", "agent.angles", "agent.runtime")
 CORE_VOCABULARY = ("agent.core.params", "agent.core.records", "agent.core.build", "agent.core.range_noise")
-PYMAVLINK_USERS = ("driver_bridge.mavlink_link", "sim_bridge.ardupilot_standin")
+# pyproject.toml's `driver` extra, by import name: the only modules that may import each library.
+DRIVER_LIBRARIES = {"serial": ("driver_bridge",), "pynmeagps": ("driver_bridge",),
+                    "pymavlink": ("driver_bridge.mavlink_link", "sim_bridge.ardupilot_standin")}
+GNSS_TRUTH_NAMES = ("GnssFix", "gnss_truth_key", "GNSS_TRUTH_TOPIC")
 
 
 @dataclass(frozen=True)
@@ -247,10 +259,64 @@ def test_the_layers(imports, importer, forbidden):
            f"{importer} imports none of {', '.join(forbidden)}")
 
 
-def test_only_the_mavlink_link_and_the_standin_import_pymavlink(imports):
-    others = [found for found in imports if not any(within(found.module, user) for user in PYMAVLINK_USERS)]
-    broken(others, "", lambda target: not within(target, "pymavlink"),
-           f"only {', '.join(PYMAVLINK_USERS)} import pymavlink (the optional extra 'driver')")
+def test_only_the_ros2_export_imports_the_ros2_libraries(imports):
+    others = [found for found in imports if found.module != ROS2_EXPORT]
+    broken(others, "", lambda target: not any(within(target, name) for name in ROS2_LIBRARIES),
+           f"only {ROS2_EXPORT} imports {', '.join(ROS2_LIBRARIES)}")
+
+
+@pytest.mark.parametrize("library, users", DRIVER_LIBRARIES.items())
+def test_only_the_driver_bridge_imports_the_driver_extras_libraries(imports, library, users):
+    others = [found for found in imports if not any(within(found.module, user) for user in users)]
+    broken(others, "", lambda target: not within(target, library),
+           f"only {' and '.join(users)} may import {library} (the `driver` extra)")
+
+
+def truth_readers(source: str, path: str) -> list[str]:
+    """Where `source` names the GNSS truth or writes a key with `truth/` in it: "path:line what"."""
+    found = []
+    for node in ast.walk(ast.parse(source)):
+        name = (node.id if isinstance(node, ast.Name) else node.attr if isinstance(node, ast.Attribute)
+                else node.name if isinstance(node, ast.alias) else None)
+        if name is not None and name.split(".")[-1] in GNSS_TRUTH_NAMES:
+            found.append(f"{path}:{node.lineno} names {name}")
+        elif isinstance(node, ast.Constant) and isinstance(node.value, str) and "truth/" in node.value:
+            found.append(f"{path}:{node.lineno} writes {node.value[:60]!r}")
+    return found
+
+
+def test_no_agent_module_reads_the_gnss_truth():
+    files = sorted(path for path in (ROOT / "agent").rglob("*.py") if "__pycache__" not in path.parts)
+    assert len(files) > 20 and ROOT / "agent" / "shell" / "node.py" in files
+    found = [where for path in files if path != ROOT / "agent" / "contract.py"
+             for where in truth_readers(path.read_text(encoding="utf-8"), str(path.relative_to(ROOT)))]
+    assert not found, "no agent module reads the GNSS truth, but:\n" + "\n".join(found)
+
+
+def test_the_truth_check_finds_a_made_up_reader():
+    source = ("from agent.contract import GnssFix\nimport agent.contract as c\n"
+              "k = c.gnss_truth_key('1')\nsession.declare_subscriber('usv/*/truth/**', on)\n")
+    found = truth_readers(source, "x.py")
+    assert [where.split(" ", 1)[0] for where in found] == ["x.py:1", "x.py:3", "x.py:4"], found
+
+
+def test_no_key_the_agent_subscribes_to_matches_the_gnss_truth():
+    """The agent's subscriptions (agent/shell/node.py: its own sensors, every share, mission commands, the
+    sim clock and the liveliness tokens), as zenoh key expressions, against the truth key."""
+    import zenoh
+
+    from agent.contract import CLOCK_KEY, FLEET_PREFIX, LIVELINESS, MISSION_PREFIX, every, gnss_truth_key
+    source = (ROOT / "agent" / "shell" / "node.py").read_text(encoding="utf-8")
+    subscribed = ['f"{FLEET_PREFIX}/{self.id}/sensor/*"', 'every("share")', 'f"{MISSION_PREFIX}/*"',
+                  "CLOCK_KEY", "every(LIVELINESS)"]
+    assert source.count("declare_subscriber(") == len(subscribed), "a subscription was added: list it here"
+    assert all(f"declare_subscriber({expression}" in source for expression in subscribed)
+    vessel = "1"
+    expressions = [f"{FLEET_PREFIX}/{vessel}/sensor/*", every("share"), f"{MISSION_PREFIX}/*", CLOCK_KEY,
+                   every(LIVELINESS)]
+    truth = zenoh.KeyExpr(gnss_truth_key(vessel))
+    assert not [e for e in expressions if zenoh.KeyExpr(e).intersects(truth)]
+    assert zenoh.KeyExpr(f"{FLEET_PREFIX}/*/**").intersects(truth)   # the check can see a match
 
 
 def test_only_the_lab_imports_the_lab(imports):
@@ -276,7 +342,9 @@ def test_the_scan_reads_every_package(imports):
     assert ("usv_deploy.cli", "usv_deploy.certs") in seen             # inside a function (cryptography)
     assert ("usv_op.cli", "agent.contract") in seen                   # the operator speaks the contract
     assert ("sim_bridge.hull", "boat.inner_loop") in seen             # the simulator runs the boat's loop
-    assert ("driver_bridge.mavlink_link", "pymavlink") in seen        # inside a function (the extra)
+    assert (ROS2_EXPORT, "rosbags.rosbag2") in seen                   # inside a function (the ros2 extra)
+    assert ("driver_bridge.serial_port", "serial") in seen            # inside a function (the driver extra)
+    assert ("driver_bridge.mavlink_link", "pymavlink") in seen        # inside a function (the driver extra)
 
 
 def test_the_scan_sees_every_kind_of_import():

@@ -87,7 +87,8 @@ def test_detections_through_a_pty():
         lines = LineReader()
         bodies = pump(reader, lines.feed, timeout_s=2.0, want=2)
     finally:
-        for fd in (reader, slave, master):
+        reader.close()   # a pyserial port
+        for fd in (slave, master):
             os.close(fd)
     # Checksums by hand: XOR of "DET,520.0," = 0x7C and of "DET,," = 0x55; the third one is wrong.
     assert nmea_sentence("DET,520.0,") == b"$DET,520.0,*7C\r\n" and lines.rejected == {"bad_checksum": 1}

@@ -6,14 +6,19 @@ encoder and parser), no socket. ArduPilot's documented values are written here b
 from __future__ import annotations
 
 import math
+import os
+import pty
+import select
 import subprocess
 import sys
+import time
 
 import numpy as np
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
 from agent.contract import Bearing, Odometry, decode, encode
+from driver_bridge.mavlink_link import MissingExtra, open_link
 from driver_bridge.mavlink_vehicle import MavlinkSettings, MavlinkVehicle
 from driver_bridge.node import DriverBridge, DriverSettings
 from sim_bridge.ardupilot_standin import Standin
@@ -206,6 +211,43 @@ def test_without_pymavlink_the_driver_says_so_in_one_line(tmp_path):
     assert result.returncode == 1 and "Traceback" not in result.stderr
     assert result.stderr.strip() == ("usv-driver: the MAVLink vehicle needs pymavlink, in the optional extra "
                                      "'driver': pip install 'usv-circumnav[driver]'")
+
+
+def test_a_serial_link_opens_through_pyserial_and_carries_mavlink_both_ways():
+    """A serial autopilot (a pseudo-terminal here): pymavlink's mavutil opens it with the extra's pyserial."""
+    master, slave = pty.openpty()
+    link = open_link(os.ttyname(slave), 57_600, 255, 191)
+    try:
+        assert type(link.connection.port).__module__ == "serial.serialposix"
+        os.write(master, autopilot().heartbeat_encode(11, 3, 1, GUIDED, 4).pack(autopilot()))
+        got, deadline = [], time.monotonic() + 10.0
+        while not got and time.monotonic() < deadline:
+            if select.select([link.fd], [], [], 0.2)[0]:
+                got = link.messages()
+        assert [(m.get_type(), m.get_srcSystem(), m.custom_mode) for m in got] == [("HEARTBEAT", 1, GUIDED)]
+        link.send(link.mav.heartbeat_encode(6, 8, 0, 0, 0))
+        parser, seen, deadline = mavlink2.MAVLink(None), [], time.monotonic() + 10.0
+        while not seen and time.monotonic() < deadline:
+            if select.select([master], [], [], 0.2)[0]:
+                seen = parser.parse_buffer(os.read(master, 4096)) or []
+        assert [(m.get_type(), m.get_srcSystem(), m.get_srcComponent(), m.type) for m in seen] == [
+            ("HEARTBEAT", 255, 191, 6)]
+    finally:
+        link.close()
+        os.close(master)
+        os.close(slave)
+
+
+def test_a_serial_link_without_pyserial_is_one_line_naming_the_extra(monkeypatch):
+    monkeypatch.setitem(sys.modules, "serial", None)   # mavutil imports pyserial only for a serial device
+    master, slave = pty.openpty()
+    try:
+        with pytest.raises(MissingExtra, match=r"needs pyserial, in the optional extra 'driver': "
+                                               r"pip install 'usv-circumnav\[driver\]'"):
+            open_link(os.ttyname(slave), 57_600, 255, 191)
+    finally:
+        os.close(master)
+        os.close(slave)
 
 
 # ----- the stand-in -----

@@ -329,6 +329,51 @@ def test_a_driver_stopped_under_way_leaves_the_thrusters_stopped(tmp_path):
     assert "Timeout (" not in output, output
 
 
+def test_a_serial_device_that_vanishes_under_way_ends_the_driver_with_one_line_and_the_thrusters_stopped(
+        tmp_path):
+    """The speed log unplugged while the agent commands full ahead (its pseudo-terminal's other end closed:
+    the port reports itself ready and has nothing, as a USB adapter pulled out does). Before pyserial the
+    driver read nothing forever, at full CPU, never saying so; now it stops with one line naming the device
+    (systemd's Restart=always opens it again), and the last thrust line is a stop."""
+    log_master, log_slave = os.openpty()
+    device = os.ttyname(log_slave)
+    extra = {"odometry": {"device": device, "baud": 4800}}
+    try:
+        with thruster_driver(tmp_path, extra) as (driver, thrusters, port):
+            agent = RealAgent(port)
+            try:
+                thrusters.read_until(lambda line: line.startswith(FULL_AHEAD), seconds=15,
+                                     what="the agent's thrust")
+                os.close(log_master)
+                log_master = None
+                output, _ = driver.communicate(timeout=20)
+                lines = thrusters.read(0.3)
+            finally:
+                agent.leave()
+    finally:
+        for fd in (log_master, log_slave):
+            if fd is not None:
+                os.close(fd)
+    assert driver.returncode == 1 and "Traceback" not in output, output
+    assert output.splitlines()[-1].startswith(
+        f"usv-driver: lost the speed log and compass (odometry.device {device}): "), output
+    assert lines and lines[-1].startswith(STOPPED), lines
+
+
+def test_without_the_driver_extra_the_driver_says_what_to_install_in_one_line(tmp_path):
+    config = tmp_path / "driver.yaml"
+    config.write_text(yaml.safe_dump({"thrusters": {"device": "/dev/null", "hull": {
+        "max_thrust": 100.0, "half_beam": 0.5, "surge_drag": 50.0, "yaw_drag": 20.0}}}))
+    for library in ("serial", "pynmeagps"):
+        hide = (f"import sys; sys.modules[{library!r}] = None; from driver_bridge.node import main; "
+                f"sys.exit(main(['--vessel', '1', '--config', {str(config)!r}]))")
+        result = subprocess.run([sys.executable, "-c", hide], capture_output=True, text=True, check=False,
+                                timeout=60)
+        assert result.returncode == 1 and result.stderr == (
+            f"usv-driver: the driver bridge needs pyserial and pynmeagps ({library} is missing): "
+            "pip install 'usv-circumnav[driver]'\n"), result.stderr
+
+
 def test_a_storm_of_bad_serial_lines_leaves_the_driver_alive_its_watchdog_working_and_its_odometry_flowing(
         tmp_path):
     """A few hundred bad sentences on the speed log's port (lab/benchmarks/serial_fuzz.py's classes, seed 5, and bursts),

@@ -131,7 +131,8 @@ def test_vhw_samples_through_a_pty():
                  + xor_sentence("IIVHW,90.0,T,,M,10.0,N,,K") + xor_sentence("IIVHW,90.0,T,,M,,N,18.0,K"))
         bodies = pump(reader, lines.feed, timeout_s=2.0, want=3)
     finally:
-        for fd in (reader, slave, master):
+        reader.close()   # a pyserial port
+        for fd in (slave, master):
             os.close(fd)
     assert lines.rejected == {"bad_checksum": 1}
     odometry = DeadReckoning(OdometrySettings(**COMPASS))

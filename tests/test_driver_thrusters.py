@@ -99,7 +99,8 @@ def test_command_lines_through_a_pty():
         while received.count(b"\n") < 2 and (chunk := read_available(master, 2.0)):
             received += chunk
     finally:
-        for fd in (port, slave, master):
+        port.close()   # a pyserial port
+        for fd in (slave, master):
             os.close(fd)
     first, second = received.splitlines(keepends=True)
     match = LINE.match(first)

@@ -77,11 +77,12 @@ def parser(**extra) -> NLinkParser:
 
 @pytest.fixture
 def pty():
-    """(writer end, reader fd opened raw by our serial helper) of a real pseudo-terminal."""
+    """(writer end, reader port opened raw by our serial helper) of a real pseudo-terminal."""
     master, slave = os.openpty()
     reader = open_serial(os.ttyname(slave), 921_600)
     yield master, reader
-    for fd in (reader, slave, master):
+    reader.close()   # a pyserial port
+    for fd in (slave, master):
         os.close(fd)
 
 

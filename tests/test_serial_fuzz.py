@@ -49,6 +49,8 @@ def test_a_serial_fuzz_storm_raises_nothing_and_nothing_beyond_the_contract_gets
     assert det["camera:outside_image"] > 0 and det["camera_bad_number"] > 0, det
     cmd = results["cmd"].reasons()
     assert cmd["command_malformed"] > 0 and cmd["command_other_vessel"] > 0, cmd
+    gga = results["gga"].reasons()   # the GNSS truth: numbers, hemispheres and the contract's bounds met
+    assert gga["gnss:bad_number"] > 0 and gga["gnss:out_of_range"] > 0 and gga["gnss:bad_hemisphere"] > 0, gga
 
 
 @pytest.mark.slow

@@ -7,10 +7,10 @@ import numpy as np
 from pydantic import Field
 
 from agent.config import PositiveFloat, StrictModel
-from agent.core.estimators.plkf import PLKF
 from agent.core.neighbours import History, NeighbourPrior
 from agent.core.params import AgentParams
 from agent.core.state import Health, OwnMotion, VesselState
+from agent.core.target import target_filter
 
 
 class InitialEstimates(StrictModel):
@@ -32,6 +32,7 @@ def initial_state(vessel_id: str, params: AgentParams, initial: InitialEstimates
               for j, p in initial.neighbours.items()}
     tracker = None
     if initial.target is not None:
-        tracker = PLKF(params.target, np.array(initial.target), initial.target_variance * np.eye(4), dt=params.dt)
+        tracker = target_filter(params.target, np.array(initial.target), initial.target_variance * np.eye(4),
+                                params.dt)
     return VesselState(vessel=vessel_id, own=History(params.fleet.history_ticks), motion=OwnMotion(), tracks={},
                        priors=priors, tracker=tracker, phase=None, health=Health())

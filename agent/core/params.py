@@ -34,6 +34,16 @@ class TargetEstimationParams(StrictModel):
     initial_range_guess: PositiveFloat = Field(
         10.0, description="range assumed along the first bearing when no initial target estimate is given (m)"
     )
+    # The wind's leeway as two more states, seen in the bearings to a ground-fixed target (plkf_leeway.py):
+    # for water-referenced odometry (a speed log), which does not see the hull's sideways drift.
+    leeway_variance: NonNegativeFloat = Field(
+        0.0, description="initial variance of the leeway w ((m/s)^2 per axis), from the bearings; 0: none")
+    leeway_process_noise: PositiveFloat = Field(
+        1e-6, description="Q of the leeway w per step ((m/s)^2 per axis), with leeway_variance > 0")
+    # Measured harmful with the w the bearings give (docs/sea.md, (h)): each vessel's error in w drifts its
+    # odometry away from its neighbours', and the pair filters trust the odometry.
+    leeway_odometry: bool = Field(
+        False, description="with leeway_variance > 0, the pair filters and the share take the odometry plus N w")
 
 
 class ControlParams(StrictModel):
@@ -168,6 +178,9 @@ class AgentParams(StrictModel):
             raise ValueError(f"control.separation_rate * dt must be at most 0.5 (is "
                              f"{self.control.separation_rate * self.dt:g}): both vessels of a pair closing "
                              "faster would pass the separation guard's distance within one period")
+        if self.target.leeway_variance > 0.0 and self.control.leeway_time_constant > 0.0:
+            raise ValueError("target.leeway_variance and control.leeway_time_constant are two leeway models "
+                             "(from the bearings, for a speed log; from the odometry, for a DVL): choose one")
         return self
 
 

@@ -17,6 +17,7 @@ import numpy as np
 from agent.core.checks import checked_share
 from agent.core.estimators import make_relative_estimator
 from agent.core.estimators.plkf import PLKF
+from agent.core.estimators.plkf_leeway import LeewayPLKF
 from agent.core.neighbours import History, NeighbourPrior, NeighbourTrack, PairTiming
 from agent.core.params import AgentParams
 from agent.core.records import floats, share_from_json, share_to_json
@@ -36,7 +37,8 @@ def state_to_json(state: VesselState) -> dict:
         "motion": {"velocity": floats(motion.velocity), "stamp": motion.stamp,
                    "position": None if motion.position is None else floats(motion.position),
                    "yaw_rate": motion.yaw_rate, "leeway": floats(motion.leeway),
-                   "set": floats(motion.set), "surge": motion.surge, "surge_command": motion.surge_command},
+                   "set": floats(motion.set), "surge": motion.surge, "surge_command": motion.surge_command,
+                   "drift": floats(motion.drift)},
         "tracks": {j: _track_to_json(track) for j, track in state.tracks.items()},
         "priors": {j: {"position": floats(p.position), "covariance": floats(p.covariance), "stamp": p.stamp}
                    for j, p in state.priors.items()},
@@ -53,7 +55,9 @@ def state_from_json(data: dict, params: AgentParams) -> VesselState:
     motion = data["motion"]
     tracker = None
     if data["tracker"] is not None:
-        tracker = PLKF(params.target, np.zeros(4), np.eye(4), dt=params.dt)
+        # The leeway model's filter says its heading (plkf_leeway.py); the PLKF's does not.
+        kind = LeewayPLKF if "heading" in data["tracker"] else PLKF
+        tracker = kind(params.target, np.zeros(4), np.eye(4), dt=params.dt)
         tracker.restore_state(data["tracker"])
     return VesselState(
         vessel=data["vessel"],
@@ -64,7 +68,8 @@ def state_from_json(data: dict, params: AgentParams) -> VesselState:
                          leeway=np.array(motion.get("leeway", (0.0, 0.0)), dtype=float),
                          set=np.array(motion.get("set", (0.0, 0.0)), dtype=float),
                          surge=float(motion.get("surge", 0.0)),
-                         surge_command=float(motion.get("surge_command", 0.0))),
+                         surge_command=float(motion.get("surge_command", 0.0)),
+                         drift=np.array(motion.get("drift", (0.0, 0.0)), dtype=float)),
         tracks={j: _track_from_json(j, t, params, data["vessel"]) for j, t in data["tracks"].items()},
         priors={j: NeighbourPrior(np.array(p["position"], dtype=float),
                                   np.array(p["covariance"], dtype=float).reshape(2, 2), p["stamp"])

@@ -55,6 +55,8 @@ class OwnMotion:
     set: np.ndarray = field(default_factory=lambda: np.zeros(2))
     surge_command: float = 0.0   # the last surge commanded (m/s), with control.set_time_constant > 0
     surge: float = 0.0         # the boat's surge through the water as the agent models it (control.surge_lag)
+    # the leeway's displacement summed over the odometry's intervals (target.leeway_variance > 0; target.py)
+    drift: np.ndarray = field(default_factory=lambda: np.zeros(2))
 
 
 @dataclass

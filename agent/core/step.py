@@ -29,9 +29,18 @@ from agent.core.cooperation import fuse_reciprocal, fuse_targets, swap_velocity
 from agent.core.membership import forget_silent, receive_shares, start_track, store_ranges
 from agent.core.neighbours import NeighbourTrack, stamp_key
 from agent.core.params import AgentParams
-from agent.core.records import STOP, Command, NeighbourRecord, Share, TickInputs, TickOutput, TickRecord
+from agent.core.records import (
+    STOP,
+    Command,
+    NeighbourRecord,
+    OdometryReading,
+    Share,
+    TickInputs,
+    TickOutput,
+    TickRecord,
+)
 from agent.core.state import VesselState
-from agent.core.target import own_motion, track_target
+from agent.core.target import leeway_drift, leeway_estimate, own_motion, track_target
 
 SEPARATION_RANGES = 5   # the median of this many last ranges judges a localised neighbour, outliers aside
 # |p^_ij| further than this from that median (m): the estimate is wrong, not localised. The median of five
@@ -56,7 +65,13 @@ def step(params: AgentParams, state: VesselState, inputs: TickInputs) -> tuple[V
         return state, TickOutput(STOP, None, None)
     position = np.asarray(odometry.position, dtype=float).reshape(2)
     elapsed = _elapsed(params, state.motion.stamp, now)
-    x, y = position.tolist()
+    leeway_model = params.target.leeway_variance > 0.0
+    # With the target filter's leeway model (and leeway_odometry) the pair filters and the share take the
+    # odometry with the leeway added; the target filter keeps the raw odometry (its own estimate must not
+    # feed back into its input).
+    drifting = leeway_model and params.target.leeway_odometry
+    over_ground = leeway_drift(state, position, odometry.heading, elapsed) if drifting else position
+    x, y = over_ground.tolist()
     state.own.put(now, (x, y))     # as (x, y) floats (History)
     velocity_change = own_motion(state, now, position)
 
@@ -108,7 +123,8 @@ def step(params: AgentParams, state: VesselState, inputs: TickInputs) -> tuple[V
     health.ranges_gap += unusable["gap"]
 
     bearing = _bearing(state, inputs.bearing)
-    target_state, target_cov, bearing_outcome = track_target(params, state, bearing, velocity_change)
+    target_state, target_cov, bearing_outcome = track_target(params, state, bearing, velocity_change,
+                                                             odometry.heading)
     if target_state is not None and params.fleet.fuse_target_estimates:
         target_state, target_cov = fuse_targets(params, state, lent, now)
     if state.phase is None:
@@ -122,7 +138,11 @@ def step(params: AgentParams, state: VesselState, inputs: TickInputs) -> tuple[V
     if malformed:
         health.bad_obstacles += 1
     sway = 0.0
-    if control.leeway_time_constant > 0.0:
+    if leeway_model:
+        # The leeway the target filter sees in the bearings (a speed log cannot see it), steered against.
+        w = leeway_estimate(state)
+        sway = 0.0 if w is None else leeway_sway(w, odometry.heading)
+    elif control.leeway_time_constant > 0.0:
         # The wind's leeway: the sway over ground the odometry showed over the last period, fitted by heading.
         if velocity_change is not None:
             state.motion.leeway = leeway_update(state.motion.leeway, state.motion.velocity, odometry.heading,
@@ -156,6 +176,8 @@ def step(params: AgentParams, state: VesselState, inputs: TickInputs) -> tuple[V
         state.motion.surge = model + blend * (command.surge - model)
         state.motion.surge_command = command.surge
     surge = command.surge
+    if drifting:
+        odometry = OdometryReading(odometry.stamp, over_ground, odometry.heading)
     share = Share(
         sender=state.vessel, odometry=odometry,
         velocity=np.array([surge * math.cos(odometry.heading), surge * math.sin(odometry.heading)]),

@@ -8,7 +8,8 @@ calls, with a clock of the campaign's own (100 ms a line) so that a run repeats 
 - `nlink`: the UWB module's NLink Node_Frame2/Node_Frame3 binary frames -> `usv/<id>/sensor/uwb`;
 - `det`: the detector's `$DET` sentences -> `usv/<id>/sensor/bearing` (one VHW sentence first: the heading);
 - `cmd`: what the driver reads from Zenoh, `usv/<id>/cmd` payloads -> the command gate -> the `$THR` line
-  written to the motor controller (the driver parses no `$THR`: it writes them).
+  written to the motor controller (the driver parses no `$THR`: it writes them);
+- `gga`: a GNSS receiver's NMEA GGA sentences -> `usv/<id>/truth/gnss` (GnssFix, truth no agent reads).
 
 Lines and frames come from one seeded numpy Generator, in the classes listed in docs/reliability.md §4
 (`classes_for` says which apply).
@@ -36,9 +37,17 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from agent.contract import MAX_POSITION, Bearing, Odometry, Ranges, decode
+from agent.contract import MAX_POSITION, Bearing, GnssFix, Odometry, Ranges, decode
 from driver_bridge.bearing import CameraSettings
-from driver_bridge.node import CameraPort, DriverBridge, DriverSettings, OdometryPort, ThrusterPort, UwbPort
+from driver_bridge.node import (
+    CameraPort,
+    DriverBridge,
+    DriverSettings,
+    GnssPort,
+    OdometryPort,
+    ThrusterPort,
+    UwbPort,
+)
 from driver_bridge.odometry import KNOT, OdometrySettings
 from driver_bridge.serial_port import LineReader, nmea_checksum
 from driver_bridge.thrusters import ThrusterSettings
@@ -47,7 +56,7 @@ from lab import arguments
 from lab.report.markdown import invocation, markdown_table
 
 VESSEL = "1"
-PARSERS = ("vhw", "nlink", "det", "cmd")
+PARSERS = ("vhw", "nlink", "det", "cmd", "gga")   # gga last: the others' lines stay those of their seed
 CLASSES = ("random_bytes", "extreme_numbers", "non_finite", "truncated", "wrong_fields", "overlong",
            "garbage_payload", "burst", "walk")
 PEERS = {2: "2", 3: "3"}
@@ -171,6 +180,8 @@ class SerialLines:
         if self.parser == "vhw":
             heading = (self.heading + float(rng.normal(0, 5))) % 360 if heading is None else heading
             return sentence(f"IIVHW,{heading:.1f},T,,M,{rng.uniform(0, 10):.2f},N,,K")
+        if self.parser == "gga":
+            return sentence(self._gga_body(quality=int(rng.choice([1, 2, 4, 5]))))
         if self.parser == "det":
             if rng.random() < 0.1:
                 return sentence("DET,,")
@@ -247,6 +258,20 @@ class SerialLines:
             return sentence(f"IIVHW,{self.heading:.1f},T,,M,{knots:.3f},N,,K")
         good = f"IIVHW,{self.heading:.1f},T,{self.heading:.1f},M,5.0,N,9.3,K"
         return self._text_lines(cls, good, [1, 3, 5, 7])
+
+    def _gga_body(self, quality: int = 1) -> str:
+        """A GGA body anywhere on Earth, minutes below 60, as receivers write it."""
+        rng = self.rng
+        lat, lon = float(rng.uniform(0, 90)), float(rng.uniform(0, 180))
+        minutes = [min((degrees % 1) * 60, 59.99999) for degrees in (lat, lon)]   # never 60.00000 rounded
+        hhmmss = f"{int(rng.integers(24)):02d}{int(rng.integers(60)):02d}{float(rng.uniform(0, 59.99)):05.2f}"
+        return (f"GPGGA,{hhmmss},{int(lat):02d}{minutes[0]:08.5f},{self._pick(('N', 'S'))},"
+                f"{int(lon):03d}{minutes[1]:08.5f},{self._pick(('E', 'W'))},{quality},"
+                f"{int(rng.integers(4, 30)):02d},{rng.uniform(0.5, 5):.2f},{rng.uniform(-100, 3000):.1f},M,"
+                f"{rng.uniform(-100, 100):.1f},M,,")
+
+    def _gga(self, cls: str) -> bytes:
+        return self._text_lines(cls, self._gga_body(), [1, 2, 4, 6, 7, 8, 9, 11])
 
     def _det(self, cls: str) -> bytes:
         return self._text_lines(cls, "DET,320.0,240.0", [1, 2])
@@ -345,10 +370,11 @@ class _Campaign:
                                   camera=CameraPort(device="fuzz", camera=CAMERA)),
             "nlink": DriverSettings(uwb=UwbPort(device="fuzz", module=UwbSettings(peers=PEERS))),
             "cmd": DriverSettings(thrusters=ThrusterPort(device="fuzz", hull=HULL)),
+            "gga": DriverSettings(gnss=GnssPort(device="fuzz")),
         }[parser]
         self.bridge = DriverBridge(VESSEL, settings, clock_ns=self.clock_ns, report=self.reported.append)
         self.publishers = {topic: _Publisher(topic, self.out)
-                           for topic in ("sensor/odom", "sensor/uwb", "sensor/bearing")}
+                           for topic in ("sensor/odom", "sensor/uwb", "sensor/bearing", "truth/gnss")}
         self.results = ParserResults(parser)
         self.lines = SerialLines(parser, rng, now_ns=lambda: self.now_ns + STEP_NS)
         if parser == "det":   # the bearing needs a heading: one good VHW sentence first
@@ -375,6 +401,8 @@ class _Campaign:
                 bridge._on_camera(data, self.publishers)
             elif self.parser == "nlink":
                 bridge._on_uwb(data, self.publishers)
+            elif self.parser == "gga":
+                bridge._on_gnss(data, self.publishers)
             else:
                 bridge._on_command(_Sample(data))
                 self._check_thrust(bridge.thrust_line(self.monotonic))
@@ -384,7 +412,8 @@ class _Campaign:
 
     def _check_out(self) -> None:
         for topic, payload in self.out:
-            model = {"sensor/odom": Odometry, "sensor/uwb": Ranges, "sensor/bearing": Bearing}[topic]
+            model = {"sensor/odom": Odometry, "sensor/uwb": Ranges, "sensor/bearing": Bearing,
+                     "truth/gnss": GnssFix}[topic]
             message, reason = decode(model, payload)
             problem = reason or self._beyond(message)
             if problem:
@@ -485,7 +514,7 @@ class _Campaign:
     def after_storm(self) -> None:
         """Good lines alone: how many are published; for cmd, then silence: does the watchdog stop?"""
         results = self.results
-        if self.parser in ("vhw", "det"):
+        if self.parser in ("vhw", "det", "gga"):
             self.feed(b"\r\n")   # end whatever unfinished line the storm left
         if self.parser == "vhw":
             # Turn home first (not counted): at the edge the turn's arc may still bulge out, and be refused.
@@ -545,10 +574,10 @@ def render_serial_section(results: dict[str, ParserResults], command: str) -> st
                         "watchdog stops", "seconds"],
                        verdict),
         "",
-        "`published`: messages out (odometry, ranges, bearings) or `$THR` lines that move the thrusters",
-        "(cmd), good lines included. `beyond the contract`: a message that fails the contract or lies beyond",
-        "this bridge's bounds (positions within 1e5 m, ranges within max_range to known peers, unit",
-        "bearings), or a `$THR` line without a valid checksum or beyond [-1, 1].",
+        "`published`: messages out (odometry, ranges, bearings, GNSS fixes) or `$THR` lines that move the",
+        "thrusters (cmd), good lines included. `beyond the contract`: a message that fails the contract or",
+        "lies beyond this bridge's bounds (positions within 1e5 m, ranges within max_range to known peers,",
+        "unit bearings), or a `$THR` line without a valid checksum or beyond [-1, 1].",
         "",
         "### Lines per parser and class",
         "",

@@ -64,7 +64,7 @@ def plkf_update(x: np.ndarray, P: np.ndarray, bearing: np.ndarray, bearing_varia
       correlation; the innovation still uses the measured bearing.
 
     Returns (x+, P+, innovation, innovation variance) with the innovation along q, the unit normal of the
-    bearing the gain uses.
+    bearing the gain uses. x may hold more states after [p; v] (the leeway's, plkf_leeway.py): H is 0 there.
     """
     # The element-wise pieces (G = I - u u^T, H, q q^T) are built from floats, the same numbers numpy's eye and
     # outer give; the matrix products stay numpy's.
@@ -78,13 +78,15 @@ def plkf_update(x: np.ndarray, P: np.ndarray, bearing: np.ndarray, bearing_varia
     G_measured = np.array([[1.0 - b0 * b0, 0.0 - b0 * b1], [0.0 - b1 * b0, 1.0 - b1 * b1]])
     g00, g01, g10, g11 = 1.0 - u0 * u0, 0.0 - u0 * u1, 0.0 - u1 * u0, 1.0 - u1 * u1
     G = np.array([[g00, g01], [g10, g11]])
-    H = np.array([[g00, g01, 0.0, 0.0], [g10, g11, 0.0, 0.0]])
+    n = len(x)
+    H = (np.array([[g00, g01, 0.0, 0.0], [g10, g11, 0.0, 0.0]]) if n == 4
+         else np.array([[g00, g01] + [0.0] * (n - 2), [g10, g11] + [0.0] * (n - 2)]))
     Rz = (r * r * bearing_variance) * (G @ G.T)
     q0, q1 = -u1, u0
     q = np.array([q0, q1])
     s = float(q @ P[:2, :2] @ q) + r * r * bearing_variance
     K = P @ H.T @ np.array([[q0 * q0, q0 * q1], [q1 * q0, q1 * q1]]) / s
-    I_KH = _I4 - K @ H
+    I_KH = (_I4 if n == 4 else np.eye(n)) - K @ H
     x_post = x - K @ (G_measured @ x[:2])
     P_post = I_KH @ P @ I_KH.T + K @ Rz @ K.T
     return x_post, 0.5 * (P_post + P_post.T), float(q @ G_measured @ x[:2]), s
@@ -131,7 +133,7 @@ class PLKF:
         to at least g^2 = `initial_range_guess`^2, what the start assumed, and across it to at least
         (g^2 + r^2) R_b, the spread of a bearing at a range that uncertain (R_z of (25) holds r^2 R_b for the
         estimate's r alone). Rank-one additions: still symmetric positive definite."""
-        P = self._P.copy()
+        P = self._marginal_covariance()
         if not self.range_unobserved:
             return P
         distance = math.hypot(float(self._x[0]), float(self._x[1]))
@@ -144,6 +146,10 @@ class PLKF:
                 if deficit > 0.0:
                     P[:2, :2] += deficit * np.outer(direction, direction)
         return P
+
+    def _marginal_covariance(self) -> np.ndarray:
+        """The covariance of [p_io; v_io] (a copy): the filter's own P here."""
+        return self._P.copy()
 
     def reset(self, state: np.ndarray, covariance: np.ndarray | None = None) -> None:
         x = np.asarray(state, dtype=float).reshape(4).copy()
@@ -212,7 +218,7 @@ class PLKF:
             self._x, self._P, b / norm, self.params.bearing_variance, self.params.min_range,
             self.params.gain_bearing,
         )
-        if finite_floats(x, (4,)) is None or finite_floats(P, (4, 4)) is None:
+        if finite_floats(x, self._x.shape) is None or finite_floats(P, self._P.shape) is None:
             self.rejected += 1
             return BearingOutcome(accepted=False, reason="update produced a non-finite state")
         self._x, self._P = x, P
