@@ -2,7 +2,7 @@
 
 It does on a boat what the sim bridge does in simulation, for one vessel: it reads the serial devices,
 publishes the contract's sensor messages under `usv/<id>/sensor/...`, and turns the agent's commands into
-thrust. Each device is one adapter; this file only wires them to the ports and to Zenoh.
+thrust. Each device (an autopilot too) is one adapter; this file only wires them to the ports and to Zenoh.
 
     UWB module  --NLink frames-->  NLinkParser     -> usv/<id>/sensor/uwb      (Ranges)
     speed log   --$..VHW------->   DeadReckoning   -> usv/<id>/sensor/odom     (Odometry)
@@ -11,18 +11,18 @@ thrust. Each device is one adapter; this file only wires them to the ports and t
     usv/<id>/cmd (Cmd)  -------->  ThrusterAdapter -> $THR lines to the motor controller, `rate_hz` times a second
                                    or LoopThrusters (thrusters.control: inner_loop, closed on the
                                    speed log and yaw) -> $THR lines at the loop's `loop_hz`
+    usv/<id>/cmd, autopilot <-> MavlinkVehicle (`mavlink`): GUIDED set points; its state -> sensor/odom
 
 The watchdog is the adapter's: with no fresh command the thrusters get zero. Stamps are wall time (the
 clock the agents run on at sea). One thread reads the ports (select); the Zenoh callback only stores the
-latest command. SIGINT and SIGTERM stop it, with a last zero-thrust line.
+latest command (and wakes the loop for an autopilot). SIGINT and SIGTERM stop it, with a last zero-thrust
+line (an autopilot: a zero set point and HOLD).
 
 No line or frame ends the process: that would take the watchdog's stop with it. Each adapter bounds what
 it produces to the contract (odometry.py, uwb.py, bearing.py) and counts what it refuses by reason; each
 sentence, frame and command is handled under a last-resort guard that counts an unexpected error as
 `<port>_failed` and goes on. What was refused is said on stderr at most every REPORT_SECONDS, and in full
-at the end.
-
-More: docs/contract.md, "The driver bridge in detail", `driver_bridge/node.py`.
+at the end. More: docs/contract.md, "The driver bridge in detail"; docs/boats.md.
 """
 
 from __future__ import annotations
@@ -41,11 +41,13 @@ import zenoh
 from pydantic import Field, model_validator
 
 from agent.config import PositiveFloat, StrictModel
-from agent.contract import LIVELINESS, Bearing, Cmd, Ranges, decode, encode, gnss_truth_key, key
+from agent.contract import LIVELINESS, Bearing, Cmd, Odometry, Ranges, decode, encode, gnss_truth_key, key
 from agent.runtime.process import stop_on_signals, vessel_process
 from agent.runtime.zenoh_session import ZenohSettings, zenoh_config
 from driver_bridge.bearing import BearingAdapter, CameraSettings, read_detection
 from driver_bridge.gnss import GnssAdapter, ReceiverSettings
+from driver_bridge.mavlink_link import MissingExtra, open_link
+from driver_bridge.mavlink_vehicle import MavlinkSettings, MavlinkVehicle
 from driver_bridge.odometry import DeadReckoning, OdometrySettings, read_vhw
 from driver_bridge.serial_port import LineReader, libraries, open_serial
 from driver_bridge.thrust_loop import LoopSettings, LoopThrusters
@@ -60,6 +62,7 @@ from driver_bridge.thrusters import (
 from driver_bridge.uwb import NLinkParser, UwbSettings
 
 REPORT_SECONDS = 10.0   # the most often the refusals are said on stderr
+VEHICLE_PERIOD = 0.01   # s: how often the autopilot's link is served (each message keeps its own rate)
 
 
 class Port(StrictModel):
@@ -127,10 +130,14 @@ class DriverSettings(StrictModel):
     camera: CameraPort | None = None
     thrusters: ThrusterPort | None = None
     gnss: GnssPort | None = Field(None, description="a GNSS receiver's GGA, published as truth for scoring only")
+    mavlink: MavlinkSettings | None = Field(None, description="an ArduPilot autopilot: it drives the vessel and "
+                                            "gives its odometry (docs/boats.md)")
     commands: CommandWindow = CommandWindow()
 
     @model_validator(mode="after")
     def _measured(self) -> DriverSettings:
+        if self.mavlink is not None and (self.thrusters is not None or self.odometry is not None):
+            raise ValueError("mavlink drives the vessel and gives its odometry: leave out thrusters and odometry")
         if self.thrusters is not None and self.thrusters.control == "inner_loop" and self.odometry is None:
             raise ValueError("thrusters.control 'inner_loop' closes its loop on the speed log and yaw: "
                              "it needs the odometry port")
@@ -154,6 +161,9 @@ class DriverBridge:
         self.camera = BearingAdapter(settings.camera.camera) if settings.camera else None
         self.gnss = GnssAdapter(settings.gnss.receiver) if settings.gnss else None
         self.thrusters = self._thrusters(settings)
+        self.vehicle: MavlinkVehicle | None = None   # made when its link opens (it needs the link's encoder)
+        self._autopilot_heading: float | None = None
+        self._wake: tuple[int, int] | None = None    # a pipe that wakes the loop for a command (autopilot only)
         self.published: Counter[str] = Counter()
         self.refused: Counter[str] = Counter()
         self.lines = {"odometry": LineReader(), "camera": LineReader(), "gnss": LineReader()}
@@ -177,7 +187,7 @@ class DriverBridge:
     def refusals(self) -> dict[str, dict[str, int]]:
         """Everything refused so far, by where and why (what the closing line and the reports say)."""
         counts = {"refused": dict(self.refused)}
-        for name in ("uwb", "dead_reckoning", "camera", "thrusters", "gnss"):
+        for name in ("uwb", "dead_reckoning", "camera", "thrusters", "gnss", "vehicle"):
             adapter = getattr(self, name)
             if adapter is not None and adapter.rejected:
                 counts[f"{name}_refused"] = dict(adapter.rejected)
@@ -228,6 +238,15 @@ class DriverBridge:
                 self.refused[f"command_{reason}"] += 1
             else:
                 self._command = message
+        self._wake_loop()
+
+    def _wake_loop(self) -> None:
+        """With an autopilot, a command goes out as it comes: the loop's select is woken for it."""
+        if self._wake is not None:
+            try:
+                os.write(self._wake[1], b"!")
+            except OSError:   # the pipe is full: the loop is awake already (or closed: it is stopping)
+                pass
 
     def _on_agent_liveliness(self, sample) -> None:
         """The agent's session ended (its token went away): the command in force goes with it."""
@@ -236,6 +255,7 @@ class DriverBridge:
                 self._command = None
                 self.command_gate.forget()
                 self._agent_left = True
+            self._wake_loop()
 
     def _publish(self, publishers, topic: str, message) -> None:
         publishers[topic].put(encode(message))
@@ -280,12 +300,12 @@ class DriverBridge:
         if detection is None:
             self.refused[f"camera_{reason}"] += 1
             return
-        state = self.dead_reckoning.state if self.dead_reckoning else None
-        if state is None:
+        heading = self._heading
+        if heading is None:
             self.refused["bearing_without_heading"] += 1   # a bearing needs the common heading
             return
         column, row = detection
-        vector = self.camera.bearing(column, row, state.heading)
+        vector = self.camera.bearing(column, row, heading)
         if vector is None and column is not None:
             return   # refused by the adapter (counted there)
         self._publish(publishers, "sensor/bearing", Bearing(
@@ -300,6 +320,32 @@ class DriverBridge:
         if fix is not None:
             self._next("gnss")
             self._publish(publishers, "truth/gnss", fix)
+
+    @property
+    def _heading(self) -> float | None:
+        """The vessel's heading in the common reference, from the speed log's compass or the autopilot."""
+        if self.dead_reckoning is not None and self.dead_reckoning.state is not None:
+            return self.dead_reckoning.state.heading
+        return self._autopilot_heading
+
+    def _on_mavlink(self, link, publishers) -> None:
+        for msg in self._guarded("mavlink", link.messages):
+            odometry = self._guarded("mavlink", self.vehicle.receive, msg, self.clock_ns(), time.monotonic())
+            if isinstance(odometry, Odometry):
+                self._autopilot_heading = odometry.heading
+                self._publish(publishers, "sensor/odom", odometry)
+
+    def _drive_vehicle(self, link, mono: float) -> None:
+        """The agent's command (or its leaving) to the autopilot, then whatever is due on the link."""
+        with self._command_lock:
+            command, left, self._agent_left = self._command, self._agent_left, False
+        if left:
+            self.vehicle.agent_left(mono)
+        if command is not None and command is not self._applied:
+            self._applied = command
+            self.vehicle.command(command.surge, command.yaw_rate, mono)
+        for msg in self._guarded("mavlink", self.vehicle.tick, self.clock_ns(), mono):
+            self._guarded("mavlink", link.send, msg)
 
     def _drive(self, port, now: float) -> None:
         """One thrust line to `port` (pyserial's write gives up after 1 s); `now`: the monotonic clock."""
@@ -334,6 +380,7 @@ class DriverBridge:
         handlers = {"uwb": self._on_uwb, "odometry": self._on_odometry, "camera": self._on_camera,
                     "gnss": self._on_gnss}
         readers = {port: name for name, port in ports.items() if name in handlers}
+        link = self._open_vehicle(ports)
         started = time.monotonic()
         try:
             with zenoh.open(zenoh_config(self.settings.zenoh)) as session:
@@ -344,13 +391,22 @@ class DriverBridge:
                 subscriber = session.declare_subscriber(key(self.id, "cmd"), self._on_command)
                 agent = session.liveliness().declare_subscriber(key(self.id, LIVELINESS), self._on_agent_liveliness,
                                                                  history=True)
-                period = 1.0 / self.settings.thrusters.lines_per_second() if self.thrusters else 0.1
+                period = (1.0 / self.settings.thrusters.lines_per_second() if self.thrusters
+                          else VEHICLE_PERIOD if link else 0.1)
+                waits = list(readers) + ([link.fd, self._wake[0]] if link else [])
                 next_drive = time.monotonic()
                 while not self.stopping.is_set():
                     if max_seconds is not None and time.monotonic() - started > max_seconds:
                         break
-                    ready, _, _ = select.select(list(readers), [], [], max(0.0, next_drive - time.monotonic()))
-                    for port in ready:
+                    ready, _, _ = select.select(waits, [], [], max(0.0, next_drive - time.monotonic()))
+                    for port in ready:   # a serial port, or the autopilot's link or wake-up pipe (descriptors)
+                        if link is not None and port == link.fd:
+                            self._on_mavlink(link, publishers)
+                            continue
+                        if self._wake is not None and port == self._wake[0]:
+                            os.read(port, 4096)
+                            self._drive_vehicle(link, time.monotonic())
+                            continue
                         data = self._read(port, readers[port])
                         if data:
                             handlers[readers[port]](data, publishers)
@@ -359,6 +415,11 @@ class DriverBridge:
                         next_drive += period
                         if self.thrusters:
                             self._drive(ports["thrusters"], time.monotonic())
+                        elif link is not None:
+                            self._drive_vehicle(link, time.monotonic())
+                if link is not None:   # leave the boat stopped and holding, as the thrusters' last line does
+                    for msg in self.vehicle.stop(time.monotonic()):
+                        self._guarded("mavlink", link.send, msg)
                 if "thrusters" in ports:   # stopped before Zenoh's teardown, which might not end by the deadline
                     ports["thrusters"].write(command_line(ZERO_THRUST))
                 subscriber.undeclare()
@@ -370,6 +431,12 @@ class DriverBridge:
             finally:
                 for port in ports.values():
                     port.close()
+                if link is not None:
+                    link.close()
+                if self._wake is not None:
+                    for fd in self._wake:
+                        os.close(fd)
+                    self._wake = None
 
     def _read(self, port, name: str) -> bytes:
         """What `port` has, or an OSError that names the device: one that vanished (unplugged) reports
@@ -379,6 +446,25 @@ class DriverBridge:
         except OSError as error:
             device = getattr(self.settings, name).device
             raise OSError(f"lost {DEVICES[name]} ({name}.device {device}): {error}") from None
+
+    def _open_vehicle(self, ports: dict):
+        """The autopilot's link and its MavlinkVehicle, or None without `mavlink`; OSError naming it if not."""
+        s = self.settings.mavlink
+        if s is None:
+            return None
+        try:
+            link = open_link(s.url, s.baud, s.own_system, s.own_component)
+        except (MissingExtra, OSError, ValueError) as error:
+            for port in ports.values():
+                port.close()
+            text = str(error) if isinstance(error, MissingExtra) else (
+                f"cannot open the autopilot's link (mavlink.url {s.url}): {getattr(error, 'strerror', None) or error}")
+            raise OSError(text) from None
+        self._wake = os.pipe()
+        for fd in self._wake:
+            os.set_blocking(fd, False)
+        self.vehicle = MavlinkVehicle(s, link.mav, self.id, lambda line: self._report(f"usv-driver {self.id}: {line}"))
+        return link
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -406,6 +492,9 @@ def main(argv: list[str] | None = None) -> int:
         counts["gnss_other_sentences"] = bridge.gnss.passed_over
     if bridge.thrusters is not None and bridge.thrusters.events:
         counts["thruster_events"] = dict(bridge.thrusters.events)
+    if bridge.vehicle is not None:
+        counts["mavlink_sent"] = dict(bridge.vehicle.sent)
+        counts["mavlink_events"] = dict(bridge.vehicle.events)
     print(f"usv-driver {args.vessel}: stopped; {counts}", file=sys.stderr)
     return 0
 

@@ -18,8 +18,10 @@ function, under `if TYPE_CHECKING`, relative ones, and `importlib.import_module`
   from the project only `agent.config` and `agent.angles` and itself; `agent` never imports it.
 - The ROS 2 libraries of the `ros2` extra (rosbags; mcap_ros2, the tests' decoder) are imported by
   `mission_log.ros2_export` only: no process of the fleet needs them.
-- The `driver` extra's libraries (pyserial's `serial`, `pynmeagps`) are imported by `driver_bridge` alone: the
-  agent, the simulator, the lab, the logs and the operator's station install and run without them.
+- The `driver` extra's libraries stay at the boat's edge: pyserial's `serial` and `pynmeagps` are imported by
+  `driver_bridge` alone, pymavlink by the MAVLink link (driver_bridge.mavlink_link) and the ArduPilot stand-in
+  (sim_bridge.ardupilot_standin) alone. The agent, the rest of the simulator, the lab, the logs and the
+  operator's station install and run without them.
 - No agent reads the GNSS truth: outside `agent.contract`, which defines them, no module of `agent` names
   GnssFix, gnss_truth_key or GNSS_TRUTH_TOPIC, nor writes a string with `truth/` in it (a key), and none of
   the key expressions the agent subscribes to matches `usv/<id>/truth/gnss`.
@@ -54,7 +56,9 @@ ROS2_LIBRARIES = ("rosbags", "mcap_ros2")
 ROS2_EXPORT = "mission_log.ros2_export"
 SHARED_FROM_AGENT = ("agent.contract", "agent.config", "agent.angles", "agent.runtime")
 CORE_VOCABULARY = ("agent.core.params", "agent.core.records", "agent.core.build", "agent.core.range_noise")
-DRIVER_LIBRARIES = ("serial", "pynmeagps")   # pyproject.toml's `driver` extra
+# pyproject.toml's `driver` extra, by import name: the only modules that may import each library.
+DRIVER_LIBRARIES = {"serial": ("driver_bridge",), "pynmeagps": ("driver_bridge",),
+                    "pymavlink": ("driver_bridge.mavlink_link", "sim_bridge.ardupilot_standin")}
 GNSS_TRUTH_NAMES = ("GnssFix", "gnss_truth_key", "GNSS_TRUTH_TOPIC")
 
 
@@ -261,10 +265,11 @@ def test_only_the_ros2_export_imports_the_ros2_libraries(imports):
            f"only {ROS2_EXPORT} imports {', '.join(ROS2_LIBRARIES)}")
 
 
-def test_only_the_driver_bridge_imports_the_driver_extras_libraries(imports):
-    outside = [found for found in imports if not within(found.module, "driver_bridge")]
-    broken(outside, "", lambda target: not any(within(target, name) for name in DRIVER_LIBRARIES),
-           f"only driver_bridge imports {', '.join(DRIVER_LIBRARIES)} (the `driver` extra)")
+@pytest.mark.parametrize("library, users", DRIVER_LIBRARIES.items())
+def test_only_the_driver_bridge_imports_the_driver_extras_libraries(imports, library, users):
+    others = [found for found in imports if not any(within(found.module, user) for user in users)]
+    broken(others, "", lambda target: not within(target, library),
+           f"only {' and '.join(users)} may import {library} (the `driver` extra)")
 
 
 def truth_readers(source: str, path: str) -> list[str]:
@@ -339,6 +344,7 @@ def test_the_scan_reads_every_package(imports):
     assert ("sim_bridge.hull", "boat.inner_loop") in seen             # the simulator runs the boat's loop
     assert (ROS2_EXPORT, "rosbags.rosbag2") in seen                   # inside a function (the ros2 extra)
     assert ("driver_bridge.serial_port", "serial") in seen            # inside a function (the driver extra)
+    assert ("driver_bridge.mavlink_link", "pymavlink") in seen        # inside a function (the driver extra)
 
 
 def test_the_scan_sees_every_kind_of_import():

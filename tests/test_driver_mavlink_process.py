@@ -1,0 +1,185 @@
+"""The MAVLink vehicle end to end: `usv-ardupilot-standin` and `usv-driver` as processes over real UDP, an
+agent's commands and liveliness over Zenoh from a third process, which is then killed."""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+import signal
+import socket
+import subprocess
+import sys
+import textwrap
+import time
+
+import numpy as np
+import pytest
+import yaml
+import zenoh
+from conftest import wait_until
+from pymavlink.dialects.v20 import ardupilotmega as mavlink2
+
+from agent.contract import Odometry, decode
+from agent.runtime.zenoh_session import ZenohSettings, zenoh_config
+from sim_bridge.fleet import free_port
+
+pytestmark = pytest.mark.slow   # three processes, UDP and Zenoh
+
+# The agent: a liveliness token, and at 10 Hz 1 m/s ahead turning at r_k = 0.2 + 1e-4 (k mod 50) rad/s, so
+# that each set point the stand-in takes names the command (and its stamp) it came from.
+AGENT = textwrap.dedent("""
+    import itertools, sys, time
+    import zenoh
+    from agent.contract import Cmd, encode
+    from agent.runtime.zenoh_session import ZenohSettings, zenoh_config
+    session = zenoh.open(zenoh_config(ZenohSettings(connect=[sys.argv[1]])))
+    token = session.liveliness().declare_token("usv/1/alive")
+    publisher = session.declare_publisher("usv/1/cmd")
+    print("ready", flush=True)
+    for seq in itertools.count():
+        stamp = time.time_ns()
+        publisher.put(encode(Cmd(stamp_ns=stamp, seq=seq, sender="1", surge=1.0, yaw_rate=0.2 + 1e-4 * (seq % 50))))
+        print(seq, stamp, flush=True)
+        time.sleep(0.1)
+""")
+
+
+def records(path) -> list[dict]:
+    try:
+        return [json.loads(line) for line in path.read_text().splitlines() if line.endswith("}")]
+    except FileNotFoundError:
+        return []
+
+
+def test_an_agent_drives_the_standin_through_the_driver_and_its_death_puts_the_boat_in_hold(tmp_path):
+    udp, zenoh_port = free_port(), free_port()
+    record = tmp_path / "standin.jsonl"
+    config = tmp_path / "driver.yaml"
+    config.write_text(yaml.safe_dump({"zenoh": {"listen": [f"tcp/127.0.0.1:{zenoh_port}"]},
+                                      "mavlink": {"url": f"udpout:127.0.0.1:{udp}", "arm": True}}))
+    standin = subprocess.Popen([sys.executable, "-m", "sim_bridge.ardupilot_standin", "--listen",
+                                f"udpin:127.0.0.1:{udp}", "--record", str(record)],
+                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    driver = subprocess.Popen([sys.executable, "-m", "driver_bridge", "--vessel", "1", "--config", str(config)],
+                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    agent = None
+    odometry: list[Odometry] = []
+
+    def on_odometry(sample) -> None:
+        message, reason = decode(Odometry, sample.payload.to_bytes())
+        assert message is not None, reason
+        odometry.append(message)
+
+    try:
+        with zenoh.open(zenoh_config(ZenohSettings(connect=[f"tcp/127.0.0.1:{zenoh_port}"]))) as session:
+            session.declare_subscriber("usv/1/sensor/odom", on_odometry)
+            assert wait_until(lambda: odometry, 30), "no odometry from the driver"
+            agent = subprocess.Popen([sys.executable, "-c", AGENT, f"tcp/127.0.0.1:{zenoh_port}"],
+                                     stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+            assert agent.stdout.readline().strip() == "ready"
+
+            def moving() -> list[dict]:
+                return [r for r in records(record) if r["kind"] == "setpoint" and r["u"] == 1.0]
+
+            assert wait_until(lambda: len(moving()) >= 40, 60), records(record)[-5:]
+            # Bad bytes and another vehicle's command at the stand-in's port: counted there, nothing else.
+            with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as bad:
+                rng = np.random.default_rng(31)
+                for _ in range(20):
+                    bad.sendto(rng.integers(0, 256, 200, dtype=np.uint8).tobytes(), ("127.0.0.1", udp))
+                other = mavlink2.MAVLink(None, srcSystem=1, srcComponent=191)
+                bad.sendto(other.command_long_encode(9, 1, 176, 0, 1, 4, 0, 0, 0, 0, 0).pack(other),
+                           ("127.0.0.1", udp))
+            time.sleep(1.0)
+            window = list(odometry)
+            agent.send_signal(signal.SIGKILL)
+            killed = time.monotonic()
+            assert wait_until(lambda: any(r["kind"] == "mode" and r["mode"] == "HOLD" and r["t"] > killed
+                                          for r in records(record)), 10), records(record)[-5:]
+            hold = next(r["t"] for r in records(record) if r["kind"] == "mode" and r["mode"] == "HOLD"
+                        and r["t"] > killed)
+            time.sleep(2.0)   # a heartbeat (1 Hz) tells the driver of the HOLD before it is stopped
+        agent_lines = agent.stdout.read().split("\n")
+        stamps = {int(seq) % 50: [] for seq in range(50)}
+        for line in agent_lines:
+            if line.count(" ") == 1:
+                seq, stamp = map(int, line.split())
+                stamps[seq % 50].append(stamp)
+        for process in (driver, standin):
+            process.send_signal(signal.SIGTERM)
+        driver_output, _ = driver.communicate(timeout=20)
+        standin_output, _ = standin.communicate(timeout=20)
+    finally:
+        for process in (agent, driver, standin):
+            if process is not None and process.poll() is None:
+                process.kill()
+    assert driver.returncode == 0 and standin.returncode == 0, (driver_output, standin_output)
+    log = records(record)
+    modes = [r["mode"] for r in log if r["kind"] == "mode"]
+    assert modes[:1] == ["GUIDED"] and "HOLD" in modes, modes
+    assert hold - killed < 1.0, f"HOLD {hold - killed:.2f} s after the agent was killed"
+
+    # Commands reach the stand-in at the agent's rate: one set point per command while it lived.
+    moving = [r for r in log if r["kind"] == "setpoint" and r["u"] == 1.0]
+    span = moving[-1]["t"] - moving[0]["t"]
+    rate = (len(moving) - 1) / span
+    assert 8.0 <= rate <= 12.0, rate
+    # Each set point's added latency: from its command's stamp to the stand-in taking it.
+    latencies = []
+    for r in moving:
+        k = round((r["r"] - 0.2) / 1e-4)
+        sent = [s for s in stamps[k] if s <= r["wall_ns"]]
+        if sent:
+            latencies.append((r["wall_ns"] - max(sent)) * 1e-9)
+    assert len(latencies) >= 0.9 * len(moving)
+
+    # The hull moved as commanded: 1 m/s along the odometry, turning at 0.2 to 0.205 rad/s (counter-clockwise).
+    steady = [o for o in window if o.stamp_ns > window[-1].stamp_ns - 3_000_000_000]
+    speeds, rates = [], []
+    for a, b in zip(steady, steady[1:]):
+        dt = (b.stamp_ns - a.stamp_ns) * 1e-9
+        speeds.append(math.dist(a.position, b.position) / dt)
+        rates.append(math.remainder(b.heading - a.heading, math.tau) / dt)
+    assert len(speeds) >= 20 and np.median(speeds) == pytest.approx(1.0, abs=0.02), speeds
+    assert 0.195 <= np.median(rates) <= 0.21, rates
+    assert "'bad_data':" in standin_output and "'wrong_target': 1" in standin_output, standin_output
+    assert "autopilot: HOLD, armed" in driver_output, driver_output
+    p50, p99 = np.percentile(latencies, [50, 99])
+    print(f"set points {rate:.2f}/s over {span:.1f} s; added latency p50 {p50 * 1e3:.1f} ms, p99 "
+          f"{p99 * 1e3:.1f} ms ({len(latencies)}); HOLD {hold - killed:.3f} s after SIGKILL")
+
+
+def test_an_autopilot_without_a_position_refuses_guided_and_the_driver_says_it_in_one_line(tmp_path):
+    """The stand-in with --no-position (ArduPilot refuses GUIDED without a position estimate): an agent's
+    commands make the driver ask for GUIDED once a second; the refusal is said once, then counted."""
+    udp, zenoh_port = free_port(), free_port()
+    config = tmp_path / "driver.yaml"
+    config.write_text(yaml.safe_dump({"zenoh": {"listen": [f"tcp/127.0.0.1:{zenoh_port}"]},
+                                      "mavlink": {"url": f"udpout:127.0.0.1:{udp}", "arm": True}}))
+    record = tmp_path / "standin.jsonl"
+    standin = subprocess.Popen([sys.executable, "-m", "sim_bridge.ardupilot_standin", "--listen",
+                                f"udpin:127.0.0.1:{udp}", "--no-position", "--record", str(record)],
+                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    driver = subprocess.Popen([sys.executable, "-m", "driver_bridge", "--vessel", "1", "--config", str(config)],
+                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    agent = None
+    try:
+        agent = subprocess.Popen([sys.executable, "-c", AGENT, f"tcp/127.0.0.1:{zenoh_port}"],
+                                 stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT, text=True)
+        assert wait_until(lambda: sum(r["kind"] == "mode_refused" for r in records(record)) >= 3, 60)
+        for process in (driver, standin):
+            process.send_signal(signal.SIGTERM)
+        driver_output, _ = driver.communicate(timeout=20)
+        standin_output, _ = standin.communicate(timeout=20)
+    finally:
+        for process in (agent, driver, standin):
+            if process is not None and process.poll() is None:
+                process.kill()
+    assert driver.returncode == 0 and "Traceback" not in driver_output, driver_output
+    said = [line for line in driver_output.splitlines() if "refused mode" in line]
+    assert said == ["usv-driver 1: the autopilot refused mode (command 176): FAILED (GUIDED needs a position "
+                    "estimate: docs/boats.md)"], driver_output
+    refused = int(re.search(r"'mode_refused': (\d+)", driver_output).group(1))
+    standin_refused = int(re.search(r"'mode_refused_no_position': (\d+)", standin_output).group(1))
+    assert refused >= 2 and standin_refused >= refused, (driver_output, standin_output)
