@@ -30,7 +30,7 @@ README = ROOT / "README.md"
 BIN = Path(sys.executable).parent
 
 # Each console command and the function behind it, as pyproject.toml installs them.
-SCRIPTS = dict(re.findall(r'^(usv-[a-z]+) = "([\w.]+:\w+)"', (ROOT / "pyproject.toml").read_text(), re.M))
+SCRIPTS = dict(re.findall(r'^(usv-[a-z-]+) = "([\w.]+:\w+)"', (ROOT / "pyproject.toml").read_text(), re.M))
 STARTS = ("python -m ", "make ", "source ", ".venv/bin/")
 
 # What the walk-through fills in; anything else in capitals, brackets or alternatives is a placeholder.
