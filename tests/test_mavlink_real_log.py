@@ -33,8 +33,8 @@ def replay() -> dict:
     link = open_link(str(LOG), 115_200, 1, 1)
     vehicle = MavlinkVehicle(MavlinkSettings(url=str(LOG)), link.mav, "rov")
     # The log's autopilot asks the ground station for the time (TIMESYNC tc1 = 0, ts1 = its boot clock in ns
-    # as it sent); the answers are not in it. Each ask is handed to the adapter as the answer to a request of ours
-    # made as it came (round trip 0): the offset is then the receive stamp minus the autopilot's clock.
+    # as it sent); the answers are not in it. Each ask is handed to the adapter as the answer to a request of
+    # ours made as it came (round trip 0): the offset is then the receive stamp minus the autopilot's clock.
     answer = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
     parser = mavlink2.MAVLink(None)
     out = {"messages": 0, "positions": 0, "odometry": [], "attitude": {}, "used_attitude": [], "global": {},
