@@ -96,8 +96,8 @@ class GnssPort(Port):
     # 9600: the NMEA output rate u-blox receivers start at (NMEA 0183's own 4800 is too slow for 5 Hz GGA).
     baud: int = Field(9_600, gt=0)
     receiver: ReceiverSettings = ReceiverSettings()
-    log: str | None = Field(None, description="an MCAP file the fixes are also written to: usv-log metrics scores "
-                                              "a field trial from it (docs/logs.md)")
+    log: str | None = Field(None, description="an MCAP file the fixes also go to: usv-log metrics scores a "
+                                              "field trial from it (docs/logs.md)")
 
 
 THR_LINE_BITS = 10 * len(b"$THR,+0.000,+0.000*00\r\n")   # one thrust line at 8N1
@@ -334,8 +334,8 @@ class DriverBridge:
         if path is None or self.gnss_log is not None:
             return
         try:
-            self.gnss_log = McapLog(path, metadata={"gnss_of": self.id},
-                                    announce=lambda line: self._report(f"usv-driver {self.id}: GNSS log: {line}"))
+            self.gnss_log = McapLog(path, metadata={"gnss_of": self.id}, announce=lambda line: self._report(
+                f"usv-driver {self.id}: GNSS log: {line}"))
         except OSError as error:
             raise OSError(f"cannot write the GNSS log (gnss.log {path}): {error.strerror or error}") from None
 

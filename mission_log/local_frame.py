@@ -46,5 +46,6 @@ class LocalFrame:
     def to_geodetic(self, east, north) -> tuple[np.ndarray, np.ndarray]:
         """Latitude, longitude (deg) of local points (m) on the tangent plane."""
         e, n = np.asarray(east, dtype=float), np.asarray(north, dtype=float)
-        lat, lon, _ = _pymap3d().enu2geodetic(e, n, np.zeros(e.shape), self.latitude, self.longitude, self.height)
+        lat, lon, _ = _pymap3d().enu2geodetic(e, n, np.zeros(e.shape),
+                                              self.latitude, self.longitude, self.height)
         return np.asarray(lat, dtype=float), np.asarray(lon, dtype=float)

@@ -32,10 +32,10 @@ HDOP = 0.8
 
 
 class SimulatedReceiver(StrictModel):
-    origin: tuple[float, float] = Field(description="the local frame's origin: latitude, longitude (deg, WGS 84)")
-    sigma: NonNegativeFloat = Field(1.5, description="each fix's noise, east and north each (m): 1.5 GNSS, 0.02 RTK")
-    quality: Literal[1, 2, 4, 5] = Field(1, description="the GGA fix quality: 1 GNSS, 2 DGNSS, 4 RTK fixed, 5 RTK float")
-    antenna: Vec2 = Field((0.0, 0.0), description="antenna from the vessel's reference point: ahead, left (m)")
+    origin: tuple[float, float] = Field(description="the local frame's origin: latitude, longitude (deg)")
+    sigma: NonNegativeFloat = Field(1.5, description="noise east and north each (m): 1.5 GNSS, 0.02 RTK")
+    quality: Literal[1, 2, 4, 5] = Field(1, description="GGA quality: 1 GNSS, 2 DGNSS, 4 RTK fixed, 5 float")
+    antenna: Vec2 = Field((0.0, 0.0), description="antenna from the vessel's reference: ahead, left (m)")
 
 
 def plain(origin: tuple[float, float], **more) -> SimulatedReceiver:
@@ -66,9 +66,10 @@ def _utc(seconds: float) -> str:
     return f"{hours:02d}{minutes:02d}{rest // 100:02d}.{rest % 100:02d}"
 
 
-def gga_sentence(latitude: float, longitude: float, utc_seconds: float, quality: int = 1, altitude: float = 0.0,
-                 satellites: int = SATELLITES, hdop: float = HDOP, talker: str = "GN") -> bytes:
-    """One GGA sentence, `$` to CR LF, of a fix at `latitude`, `longitude` (deg) and `utc_seconds` (of the day)."""
+def gga_sentence(latitude: float, longitude: float, utc_seconds: float, quality: int = 1,
+                 altitude: float = 0.0, satellites: int = SATELLITES, hdop: float = HDOP,
+                 talker: str = "GN") -> bytes:
+    """One GGA sentence, `$` to CR LF, of a fix at `latitude`, `longitude` (deg), `utc_seconds` of the day."""
     body = (f"{talker}GGA,{_utc(utc_seconds)},{_angle(latitude, 2)},{'N' if latitude >= 0 else 'S'},"
             f"{_angle(longitude, 3)},{'E' if longitude >= 0 else 'W'},{quality},{satellites:02d},{hdop:.1f},"
             f"{altitude:.1f},M,0.0,M,,")
@@ -86,6 +87,7 @@ def simulated_gga(position, heading: float, utc_seconds: float, receiver: Simula
                   random: np.random.Generator) -> bytes:
     """The GGA of a vessel at local `position` (m: east, north) and `heading` (rad, counter-clockwise from
     east): its antenna's point plus N(0, sigma^2) east and north, draws taken from `random`."""
-    east, north = antenna_position(position, heading, receiver.antenna) + random.normal(0.0, receiver.sigma, 2)
+    noise = random.normal(0.0, receiver.sigma, 2)
+    east, north = antenna_position(position, heading, receiver.antenna) + noise
     latitude, longitude = LocalFrame(*receiver.origin).to_geodetic(east, north)
     return gga_sentence(float(latitude), float(longitude), utc_seconds, receiver.quality)

@@ -98,7 +98,8 @@ def test_the_fixes_published_are_written_to_the_gnss_log_that_usv_log_reads(tmp_
     from mission_log.reader import load_run
 
     path = tmp_path / "gnss-1.mcap"
-    settings = DriverSettings(gnss=GnssPort(device="/dev/null", receiver={"antenna": [0.4, -0.1]}, log=str(path)))
+    settings = DriverSettings(gnss=GnssPort(device="/dev/null", receiver={"antenna": [0.4, -0.1]},
+                                            log=str(path)))
     clock = iter(range(NOW_NS, NOW_NS + 10**10, 200_000_000))
     bridge = DriverBridge("1", settings, clock_ns=lambda: next(clock))
     bridge.open_gnss_log()

@@ -1,5 +1,6 @@
-"""The simulator's GNSS receiver (sim_bridge/simulated_gnss.py) and the local frame (mission_log/local_frame.py):
-GGA sentences and metres <-> degrees against values worked by hand, through the driver's own GGA reader."""
+"""The simulator's GNSS receiver (sim_bridge/simulated_gnss.py) and the local frame
+(mission_log/local_frame.py): GGA sentences and metres <-> degrees against values worked by hand, through the
+driver's own GGA reader."""
 
 from __future__ import annotations
 
