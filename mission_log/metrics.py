@@ -1,7 +1,7 @@
 """Metrics of a mission: the paper's, from truth and estimates, and self-consistency ones from the logs alone.
 
-The paper's metrics (Sec. VI), from a run's truth and the vessels' estimates (the in-process runner's trace
-or the sim bridge's and agents' logs):
+The paper's metrics (Sec. VI), from a run's truth (the sim's, or a field trial's GNSS: mission_log.gnss_truth)
+and the vessels' estimates (the in-process runner's trace, or the logs):
 - e_ij^p(k) = max_i max_j |p^_ij - p_ij|: worst inter-vessel estimate;
 - e_io^p(k) = max_i |p^_io - p_io|, e_io^v(k) = max_i |v^_io - v_io|: worst target estimate.
   From the logs, at the true time each estimate refers to (mission_log.series.estimate_errors);
@@ -12,9 +12,6 @@ or the sim bridge's and agents' logs):
   seconds from the mission's start (mission_log.reader.mission_start_ns);
 - the mean tick compute time.
 "Mean" in the tables is the time average over the whole run, as in the paper's Tables II-IV.
-
-The truth is the sim bridge's (`/truth`) or, on a field trial, the vessels' and the target's GNSS fixes
-(mission_log.gnss_truth): the same functions score both.
 
 Without ground truth (a real boat without GNSS logs) nothing can be compared with the truth, so the figures
 are self-consistency ones that need only the agents' logs:
