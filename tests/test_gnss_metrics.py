@@ -228,6 +228,17 @@ def test_bad_gnss_runs_get_one_clear_error(tmp_path, capsys):
         gnss_truth(load_run(tagged))
     assert cli.main(["metrics", str(tagged)]) == 2
     assert "usv-log: the target's tag is off" in capsys.readouterr().err
+    # malformed fixes (a hand-edited or damaged log) are left out; a log of nothing else is one clear error
+    broken = tmp_path / "broken"
+    broken.mkdir()
+    fix_log(broken, "1", [(0, 0.001, 0.0), (TICK_NS, math.nan, 0.0)])
+    fix_log(broken, "target", [(k * TICK_NS, 0.0, 0.0) for k in range(3)])
+    with McapLog(broken / "gnss-1b.mcap", metadata={"gnss_of": "1"}) as log:
+        log.log("usv/1/truth/gnss", {"latitude": "north", "longitude": 0.0, "antenna": "x"}, 2 * TICK_NS)
+    assert np.isfinite(gnss_truth(load_run(broken)).vessels["1"]).all(axis=1).tolist() == [True, False, False]
+    (broken / "gnss-1.mcap").unlink()
+    with pytest.raises(LogError, match=r"no readable GNSS fix of 1"):
+        gnss_truth(load_run(broken))
     for bad in ("91,0", "north"):
         with pytest.raises(SystemExit):
             cli.main(["metrics", str(tagged), "--target-at", bad])
