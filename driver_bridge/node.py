@@ -42,6 +42,7 @@ from pydantic import Field, model_validator
 
 from agent.config import PositiveFloat, StrictModel
 from agent.contract import LIVELINESS, Bearing, Cmd, Odometry, Ranges, decode, encode, gnss_truth_key, key
+from agent.runtime.mcap_log import McapLog
 from agent.runtime.process import stop_on_signals, vessel_process
 from agent.runtime.zenoh_session import ZenohSettings, zenoh_config
 from driver_bridge.bearing import BearingAdapter, CameraSettings, read_detection
@@ -95,6 +96,8 @@ class GnssPort(Port):
     # 9600: the NMEA output rate u-blox receivers start at (NMEA 0183's own 4800 is too slow for 5 Hz GGA).
     baud: int = Field(9_600, gt=0)
     receiver: ReceiverSettings = ReceiverSettings()
+    log: str | None = Field(None, description="an MCAP file the fixes also go to: usv-log metrics scores a "
+                                              "field trial from it (docs/logs.md)")
 
 
 THR_LINE_BITS = 10 * len(b"$THR,+0.000,+0.000*00\r\n")   # one thrust line at 8N1
@@ -160,6 +163,7 @@ class DriverBridge:
         self.dead_reckoning = DeadReckoning(settings.odometry.dead_reckoning) if settings.odometry else None
         self.camera = BearingAdapter(settings.camera.camera) if settings.camera else None
         self.gnss = GnssAdapter(settings.gnss.receiver) if settings.gnss else None
+        self.gnss_log: McapLog | None = None   # opened by open_gnss_log (run), when gnss.log is set
         self.thrusters = self._thrusters(settings)
         self.vehicle: MavlinkVehicle | None = None   # made when its link opens (it needs the link's encoder)
         self._autopilot_heading: float | None = None
@@ -320,6 +324,20 @@ class DriverBridge:
         if fix is not None:
             self._next("gnss")
             self._publish(publishers, "truth/gnss", fix)
+            if self.gnss_log is not None:   # a write's OSError is said once by the log and counted there
+                self.gnss_log.log(gnss_truth_key(self.id), fix, fix.stamp_ns)
+
+    def open_gnss_log(self) -> None:
+        """The GNSS log of `gnss.log`, beside the agent's on the boat's computer (docs/logs.md), or an OSError
+        that names it."""
+        path = self.settings.gnss.log if self.settings.gnss is not None else None
+        if path is None or self.gnss_log is not None:
+            return
+        try:
+            self.gnss_log = McapLog(path, metadata={"gnss_of": self.id}, announce=lambda line: self._report(
+                f"usv-driver {self.id}: GNSS log: {line}"))
+        except OSError as error:
+            raise OSError(f"cannot write the GNSS log (gnss.log {path}): {error.strerror or error}") from None
 
     @property
     def _heading(self) -> float | None:
@@ -383,6 +401,7 @@ class DriverBridge:
         link = self._open_vehicle(ports)
         started = time.monotonic()
         try:
+            self.open_gnss_log()
             with zenoh.open(zenoh_config(self.settings.zenoh)) as session:
                 publishers = {t: session.declare_publisher(key(self.id, t))
                               for t in ("sensor/uwb", "sensor/odom", "sensor/bearing")}
@@ -433,6 +452,8 @@ class DriverBridge:
                     port.close()
                 if link is not None:
                     link.close()
+                if self.gnss_log is not None:
+                    self.gnss_log.close()
                 if self._wake is not None:
                     for fd in self._wake:
                         os.close(fd)

@@ -1,7 +1,9 @@
 """`usv-log`: post-mission analysis of MCAP logs (also `python -m mission_log`).
 
     usv-log summary RUN...            what the logs hold: counts, rates, gaps, refusals, overruns, health
-    usv-log metrics RUN...            the paper's metrics with ground truth, self-consistency without
+    usv-log metrics RUN... [--truth sim|gnss] [--target-at LAT,LON] [--target-gnss ID]
+                                      the paper's metrics with ground truth (the sim's, or a field trial's
+                                      GNSS fixes), self-consistency without
     usv-log plot RUN... [--out DIR]   trajectories, errors, ranges and residuals as PNG files
     usv-log replay LOG --out FILE [--set key=value ...] [--params FILE] [--start SECONDS]
                                       a vessel's recorded inputs through the core again
@@ -22,6 +24,7 @@ from pathlib import Path
 
 from agent.config import ConfigError, deep_merge, load_yaml
 from agent.core.params import AgentParams
+from mission_log.local_frame import MissingField
 from mission_log.metrics import metrics_markdown, run_metrics
 from mission_log.plots import plot_run
 from mission_log.reader import LogError, load_run
@@ -61,10 +64,21 @@ def summary_command(args) -> int:
 
 def metrics_command(args) -> int:
     run = _load(args.run)
-    result = run_metrics(run, args.radius)
+    result = run_metrics(run, args.radius, args.truth, args.target_gnss, args.target_at)
     print(metrics_markdown(result, run.source), end="")
     _write_json(args.json, result)
     return 0
+
+
+def latitude_longitude(text: str) -> tuple[float, float]:
+    """`LAT,LON` in degrees (WGS 84), or an argparse error that says what is wrong."""
+    try:
+        lat, lon = (float(part) for part in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: want LAT,LON in degrees, e.g. 59.91,10.75") from None
+    if not (abs(lat) <= 90 and abs(lon) <= 180):
+        raise argparse.ArgumentTypeError(f"{text!r}: latitude within 90 and longitude within 180 degrees")
+    return lat, lon
 
 
 def plot_command(args) -> int:
@@ -132,6 +146,13 @@ def build_parser() -> argparse.ArgumentParser:
     metrics = commands.add_parser("metrics", help="the paper's metrics (with truth) and self-consistency figures")
     _run_arguments(metrics)
     metrics.add_argument("--radius", type=float, default=None, help="r* (default: from the agents' settings)")
+    metrics.add_argument("--truth", choices=("sim", "gnss"), default=None,
+                         help="the ground truth: the sim bridge's, or the GNSS logs' (default: the sim's "
+                              "when its log is there, else the GNSS logs')")
+    metrics.add_argument("--target-at", type=latitude_longitude, default=None, metavar="LAT,LON",
+                         help="with GNSS: the target's surveyed position (default: its tag's GNSS log)")
+    metrics.add_argument("--target-gnss", default="target", metavar="ID",
+                         help="with GNSS: the id of the target tag's GNSS log; every other is a vessel's")
     metrics.set_defaults(handler=metrics_command)
     plot = commands.add_parser("plot", help="PNG figures: trajectories, errors, ranges and residuals")
     plot.add_argument("run", nargs="+", type=Path, help="a run folder, or MCAP files")
@@ -168,7 +189,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.handler(args)
-    except (LogError, ConfigError, MissingExtra) as error:
+    except (LogError, ConfigError, MissingExtra, MissingField) as error:
         print(f"usv-log: {error}", file=sys.stderr)
         return 2
 

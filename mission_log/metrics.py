@@ -1,7 +1,7 @@
 """Metrics of a mission: the paper's, from truth and estimates, and self-consistency ones from the logs alone.
 
-The paper's metrics (Sec. VI), from a run's truth and the vessels' estimates (the in-process runner's trace
-or the sim bridge's and agents' logs):
+The paper's metrics (Sec. VI), from a run's truth (the sim's, or a field trial's GNSS: mission_log.gnss_truth)
+and the vessels' estimates (the in-process runner's trace, or the logs):
 - e_ij^p(k) = max_i max_j |p^_ij - p_ij|: worst inter-vessel estimate;
 - e_io^p(k) = max_i |p^_io - p_io|, e_io^v(k) = max_i |v^_io - v_io|: worst target estimate.
   From the logs, at the true time each estimate refers to (mission_log.series.estimate_errors);
@@ -13,8 +13,8 @@ or the sim bridge's and agents' logs):
 - the mean tick compute time.
 "Mean" in the tables is the time average over the whole run, as in the paper's Tables II-IV.
 
-Without ground truth (a real boat) nothing can be compared with the truth, so the figures are
-self-consistency ones that need only the agents' logs:
+Without ground truth (a real boat without GNSS logs) nothing can be compared with the truth, so the figures
+are self-consistency ones that need only the agents' logs:
 - normalised innovation squared (NIS) of each filter's updates: innovation^2 / predicted variance. A
   consistent filter averages 1, and 95 % of its updates fall under the chi-square(1) 95 % point (3.84).
   The MCKF's mean weight says how much it discounted (1: not at all);
@@ -34,8 +34,9 @@ from itertools import combinations
 import numpy as np
 from scipy.stats import chi2
 
-from mission_log.reader import RunLog, mission_start_ns, radius_schedule
-from mission_log.series import beliefs_of, centroid_error, estimate_errors, truth_of
+from mission_log.gnss_truth import TARGET, gnss_truth
+from mission_log.reader import LogError, RunLog, mission_start_ns, radius_schedule
+from mission_log.series import TruthSeries, beliefs_of, centroid_error, estimate_errors, truth_of
 
 NIS_BOUND_95 = float(chi2.ppf(0.95, 1))
 SETTLING_BAND = 0.10
@@ -96,12 +97,13 @@ def summarise(time, e_ij, e_io, e_io_velocity, e_c, radii, radius, tick_seconds)
 
 
 
-def truth_metrics(run: RunLog, radius: float | None = None) -> dict:
+def truth_metrics(run: RunLog, radius: float | None = None, truth: TruthSeries | None = None) -> dict:
     """The paper's metrics from the logs: worst e_ij and e_io over the vessels at each tick (each estimate
     against the truth at its true time, see the module's docstring), e_c, settling time (s from the
-    mission's start), and their means. Needs the sim bridge's log. `radius`: judge settling against this r*
-    throughout; None: against each vessel's r* in force at each tick, from its statuses."""
-    truth = truth_of(run.sim)
+    mission's start), and their means. `truth`: the run's ground truth (None: the sim bridge's). `radius`:
+    judge settling against this r* throughout; None: against each vessel's r* in force at each tick, from
+    its statuses."""
+    truth = truth_of(run.sim) if truth is None else truth
     start_ns = mission_start_ns(run)
     vessels = list(truth.vessels)
     n = len(truth.t_ns)
@@ -201,11 +203,32 @@ def agreement(run: RunLog) -> dict:
     return {"pairs": pairs, "targets": targets}
 
 
-def run_metrics(run: RunLog, radius: float | None = None) -> dict:
-    """Everything `usv-log metrics` reports: truth metrics when the sim bridge's log is there (settling
-    against `radius`, or the r* in force at each moment if None), and the self-consistency figures always."""
+def truth_source(run: RunLog, wanted: str | None = None) -> str | None:
+    """Which truth scores the run: `wanted` ("sim" or "gnss"), or by default the sim bridge's when its log is
+    there, else the GNSS logs' when there are any; None without either."""
+    if wanted == "sim" and not run.has_truth:
+        raise LogError(f"{run.source}: --truth sim, but no sim bridge log with /truth among the files")
+    if wanted == "gnss" and not run.gnss:
+        raise LogError(f"{run.source}: --truth gnss, but no GNSS log (the driver bridge's gnss.log) among "
+                       "the files")
+    return wanted or ("sim" if run.has_truth else "gnss" if run.gnss else None)
+
+
+def run_metrics(run: RunLog, radius: float | None = None, truth: str | None = None, target_id: str = TARGET,
+                target_at: tuple[float, float] | None = None) -> dict:
+    """Everything `usv-log metrics` reports: truth metrics when the run has a truth (`truth`: "sim", "gnss" or
+    None for truth_source's choice; with GNSS the target is `target_id`'s log or surveyed at `target_at`;
+    settling against `radius`, or the r* in force at each moment if None), and the self-consistency figures
+    always."""
+    source = truth_source(run, truth)
+    scored = None
+    if source is not None:
+        series = gnss_truth(run, target_id, target_at) if source == "gnss" else None
+        scored = truth_metrics(run, radius, series) | {"source": source}
+        if source == "gnss":
+            scored["target"] = "surveyed" if target_at is not None else f"tagged ({target_id})"
     return {
-        "truth": truth_metrics(run, radius) if run.has_truth else None,
+        "truth": scored,
         "innovations": innovation_statistics(run),
         "agreement": agreement(run),
     }
@@ -219,11 +242,15 @@ def metrics_markdown(result: dict, source: str) -> str:
     lines = [f"# Metrics of {source}", ""]
     truth = result["truth"]
     if truth is None:
-        lines += [("**No ground truth** (no sim bridge log with `/truth` among the files): the paper's metrics "
-                  "need it. What follows checks the estimates against each other instead."), ""]
+        lines += [("**No ground truth** (no sim bridge log with `/truth` and no GNSS log among the files): "
+                   "the paper's metrics need it. "
+                   "What follows checks the estimates against each other instead."), ""]
     else:
         settling = "never" if truth["settling_time"] is None else f"{truth['settling_time']:.1f} s after the start"
-        lines += ["## Against the ground truth (the paper's metrics)", "",
+        origin = ("the sim bridge's" if truth.get("source", "sim") == "sim" else
+                  f"the GNSS fixes (the target {truth.get('target')}; the fixes' own noise is in these "
+                  "figures)")
+        lines += ["## Against the ground truth (the paper's metrics)", "", f"Truth: {origin}.", "",
                   f"{len(truth['vessels'])} vessels, {truth['ticks']} ticks, {circle_words(truth)}", "",
                   "| mean e_ij (m) | mean e_io (m) | mean e_c (m) | settling time |", "|---|---|---|---|",
                   (f"| {_cell(truth['mean_e_ij'])} | {_cell(truth['mean_e_io'])} | {_cell(truth['mean_e_c'])} | "

@@ -1,7 +1,8 @@
 """A mission's logs, read into memory: one `VesselLog` per agent and, in simulation, the sim bridge's.
 
 `load_run(paths)` takes a run folder (every `*.mcap` in it) or MCAP files. An agent's file is recognised by
-its `vessel` metadata, the sim bridge's by its `/truth` topic. A file cut short (its process was killed) is
+its `vessel` metadata, the sim bridge's by its `/truth` topic, a GNSS log (the driver bridge's `gnss.log`:
+one vessel's or the target's fixes) by its `usv/<id>/truth/gnss` topic. A file cut short (its process was killed) is
 read up to its last complete chunk and marked `unfinished`; a file that is not an MCAP at all is an error
 that names it, and so is a file whose log format version (its `usv-log-format` metadata) this reader does not
 know. A file without that record was written before the version was recorded: it is read as version 1,
@@ -29,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
+from agent.contract import FLEET_PREFIX, GNSS_TRUTH_TOPIC
 from agent.runtime.mcap_log import FORMAT_RECORD, PART_RECORD, read_messages, read_metadata
 from agent.shell.tick_log import log_topic
 
@@ -81,6 +83,7 @@ class RunLog:
     source: str
     vessels: dict[str, VesselLog] = field(default_factory=dict)
     sim: Log | None = None
+    gnss: dict[str, Log] = field(default_factory=dict)   # vessel or target id -> its GNSS fixes (field trials)
 
     @property
     def has_truth(self) -> bool:
@@ -88,7 +91,7 @@ class RunLog:
 
     @property
     def logs(self) -> list[Log]:
-        return [log for log in [*self.vessels.values(), self.sim] if log is not None]
+        return [log for log in [*self.vessels.values(), self.sim, *self.gnss.values()] if log is not None]
 
     @property
     def unfinished(self) -> list[Path]:
@@ -166,6 +169,16 @@ def _concatenated(logs: list[Log]) -> dict[str, list[tuple[int, dict]]]:
 def _span(log: Log) -> tuple[int, int] | None:
     times = [t for messages in log.topics.values() for t, _ in messages]
     return (min(times), max(times)) if times else None
+
+
+def gnss_owner(log: Log) -> str | None:
+    """The id whose GNSS fixes `log` holds (its `usv/<id>/truth/gnss` topic), or None."""
+    head, tail = f"{FLEET_PREFIX}/", f"/{GNSS_TRUTH_TOPIC}"
+    owners = {t[len(head):-len(tail)] for t, found in log.topics.items()
+              if found and t.startswith(head) and t.endswith(tail)}
+    if len(owners) > 1:
+        raise LogError(f"{log.path}: the GNSS fixes of several vessels in one log ({', '.join(sorted(owners))})")
+    return owners.pop() if owners else None
 
 
 def join_sessions(logs: list[VesselLog]) -> VesselLog:
@@ -258,10 +271,17 @@ def load_run(paths: list[Path] | Path) -> RunLog:
             sessions[log.vessel].append(log)
         elif log.messages("/truth"):
             run.sim = log
+        elif (owner := gnss_owner(log)) is not None:
+            earlier = run.gnss.get(owner)   # a restarted driver's logs: one track, sorted by time when read
+            run.gnss[owner] = log if earlier is None else Log(earlier.path, earlier.metadata,
+                                                               _concatenated([earlier, log]),
+                                                               earlier.unfinished or log.unfinished,
+                                                               earlier.format_version,
+                                                               parts=[*earlier.parts, *log.parts])
     for vessel, logs in sessions.items():
         run.vessels[vessel] = join_sessions(logs)
-    if not run.vessels and run.sim is None:
-        raise LogError(f"{run.source}: neither an agent's log nor the sim bridge's")
+    if not run.vessels and run.sim is None and not run.gnss:
+        raise LogError(f"{run.source}: neither an agent's log, the sim bridge's nor a GNSS log")
     return run
 
 

@@ -22,6 +22,8 @@ function, under `if TYPE_CHECKING`, relative ones, and `importlib.import_module`
   `driver_bridge` alone, pymavlink by the MAVLink link (driver_bridge.mavlink_link) and the ArduPilot stand-in
   (sim_bridge.ardupilot_standin) alone. The agent, the rest of the simulator, the lab, the logs and the
   operator's station install and run without them.
+- The `field` extra's pymap3d (latitude and longitude to metres) is imported by `mission_log.local_frame`
+  alone: the simulator's GNSS and the scoring of a field trial go through it.
 - No agent reads the GNSS truth: outside `agent.contract`, which defines them, no module of `agent` names
   GnssFix, gnss_truth_key or GNSS_TRUTH_TOPIC, nor writes a string with `truth/` in it (a key), and none of
   the key expressions the agent subscribes to matches `usv/<id>/truth/gnss`.
@@ -59,6 +61,7 @@ CORE_VOCABULARY = ("agent.core.params", "agent.core.records", "agent.core.build"
 # pyproject.toml's `driver` extra, by import name: the only modules that may import each library.
 DRIVER_LIBRARIES = {"serial": ("driver_bridge",), "pynmeagps": ("driver_bridge",),
                     "pymavlink": ("driver_bridge.mavlink_link", "sim_bridge.ardupilot_standin")}
+FIELD_LIBRARY, FIELD_USER = "pymap3d", "mission_log.local_frame"
 GNSS_TRUTH_NAMES = ("GnssFix", "gnss_truth_key", "GNSS_TRUTH_TOPIC")
 
 
@@ -272,6 +275,12 @@ def test_only_the_driver_bridge_imports_the_driver_extras_libraries(imports, lib
            f"only {' and '.join(users)} may import {library} (the `driver` extra)")
 
 
+def test_only_the_local_frame_imports_the_field_extras_library(imports):
+    others = [found for found in imports if found.module != FIELD_USER]
+    broken(others, "", lambda target: not within(target, FIELD_LIBRARY),
+           f"only {FIELD_USER} may import {FIELD_LIBRARY} (the `field` extra)")
+
+
 def truth_readers(source: str, path: str) -> list[str]:
     """Where `source` names the GNSS truth or writes a key with `truth/` in it: "path:line what"."""
     found = []
@@ -345,6 +354,7 @@ def test_the_scan_reads_every_package(imports):
     assert (ROS2_EXPORT, "rosbags.rosbag2") in seen                   # inside a function (the ros2 extra)
     assert ("driver_bridge.serial_port", "serial") in seen            # inside a function (the driver extra)
     assert ("driver_bridge.mavlink_link", "pymavlink") in seen        # inside a function (the driver extra)
+    assert (FIELD_USER, FIELD_LIBRARY) in seen                        # inside a function (the field extra)
 
 
 def test_the_scan_sees_every_kind_of_import():

@@ -92,6 +92,37 @@ def test_bad_fixes_are_refused_by_reason_and_other_sentences_passed_over():
     assert bridge.gnss.passed_over == 3
 
 
+def test_the_fixes_published_are_written_to_the_gnss_log_that_usv_log_reads(tmp_path):
+    """gnss.log: every fix published goes to the driver's own MCAP log on the truth key, with its antenna;
+    refused sentences do not; usv-log reads the file as vessel 1's GNSS track."""
+    from mission_log.reader import load_run
+
+    path = tmp_path / "gnss-1.mcap"
+    settings = DriverSettings(gnss=GnssPort(device="/dev/null", receiver={"antenna": [0.4, -0.1]},
+                                            log=str(path)))
+    clock = iter(range(NOW_NS, NOW_NS + 10**10, 200_000_000))
+    bridge = DriverBridge("1", settings, clock_ns=lambda: next(clock))
+    bridge.open_gnss_log()
+    truth = Publisher()
+    for body in (GGA, "GPGGA,092725.00,,,,,0,00,99.99,,,,,,", GGA.replace("092725.00", "092725.20")):
+        bridge._on_gnss(xor_sentence(body), {"truth/gnss": truth})
+    bridge.gnss_log.close()
+    run = load_run(tmp_path)
+    assert list(run.gnss) == ["1"] and not run.vessels and run.sim is None
+    logged = run.gnss["1"].messages("usv/1/truth/gnss")
+    published = [decode(GnssFix, payload)[0] for payload in truth.payloads]
+    assert [(t, GnssFix.model_validate(m)) for t, m in logged] == [(f.stamp_ns, f) for f in published]
+    assert [m["utc_time"] for _, m in logged] == [34045.0, pytest.approx(34045.2)]
+    assert logged[0][1]["antenna"] == [0.4, -0.1] and run.gnss["1"].metadata == {"gnss_of": "1"}
+
+
+def test_a_gnss_log_that_cannot_be_written_is_one_line_naming_it(tmp_path):
+    (tmp_path / "file").write_text("")
+    settings = DriverSettings(gnss=GnssPort(device="/dev/null", log=str(tmp_path / "file" / "gnss.mcap")))
+    with pytest.raises(OSError, match=r"cannot write the GNSS log \(gnss.log .*file/gnss.mcap\): "):
+        DriverBridge("1", settings).open_gnss_log()
+
+
 @pytest.mark.slow
 def test_the_driver_publishes_gnss_fixes_as_truth_over_zenoh_and_no_sensor_key_carries_them(tmp_path):
     master, slave = os.openpty()
@@ -99,7 +130,8 @@ def test_the_driver_publishes_gnss_fixes_as_truth_over_zenoh_and_no_sensor_key_c
     config = tmp_path / "driver.yaml"
     config.write_text(yaml.safe_dump({"zenoh": {"listen": [f"tcp/127.0.0.1:{port}"]},
                                       "gnss": {"device": os.ttyname(slave), "baud": 38400,
-                                               "receiver": {"antenna": [0.5, 0.0]}}}))
+                                               "receiver": {"antenna": [0.5, 0.0]},
+                                               "log": str(tmp_path / "gnss-1.mcap")}}))
     command = [sys.executable, "-m", "driver_bridge", "--vessel", "1", "--config", str(config)]
     driver = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     truth, sensors = [], []
@@ -127,4 +159,9 @@ def test_the_driver_publishes_gnss_fixes_as_truth_over_zenoh_and_no_sensor_key_c
     assert reason == "" and fix.sender == "1" and fix.antenna == (0.5, 0.0)
     assert fix.latitude == pytest.approx(47.285233167, abs=1e-9) and abs(fix.stamp_ns - time.time_ns()) < 60e9
     assert sensors == []
+    from mission_log.reader import load_run
+    run = load_run(tmp_path / "gnss-1.mcap")
+    assert not run.unfinished                                       # closed on SIGTERM
+    logged = run.gnss["1"].messages("usv/1/truth/gnss")
+    assert [GnssFix.model_validate(m) for _, m in logged] == [decode(GnssFix, p)[0] for p in truth]
     assert "'truth/gnss':" in output and "'gnss_other_sentences':" in output, output
