@@ -369,7 +369,6 @@ class _Campaign:
 
     def after_storm(self) -> None:
         """Good traffic alone, the agent commanding: a second to settle, then AFTER_STORM positions."""
-        self.send(bytes(300))   # whatever partial frame the storm left is ended by bytes no frame starts with
         for k in range(SETTLE_STEPS + AFTER_STORM):
             if k % 5 == 0:
                 self.command(*AGENT)
