@@ -83,7 +83,7 @@ def test_each_hostile_input_is_counted_once_under_its_reason_and_good_frames_go_
     assert delta(before) == {"wrong_system": 1} and vehicle.mode == GUIDED
 
     before = refused()
-    c.send(ap.pack([ap.heartbeat(HOLD, False) for _ in range(50)]))   # within 20 ms of the last one taken
+    c.send(ap.pack([ap.heartbeat(HOLD, False) for _ in range(50)]))   # at the instant of the last one taken
     assert delta(before) == {"heartbeat_flood": 50} and (vehicle.mode, vehicle.armed) == (GUIDED, True)
 
     before = refused()
