@@ -346,9 +346,11 @@ class DriverBridge:
             return self.dead_reckoning.state.heading
         return self._autopilot_heading
 
-    def _on_mavlink(self, link, publishers) -> None:
+    def _on_mavlink(self, link, publishers, mono: float | None = None) -> None:
+        """What the link has, through the vehicle; `mono`: the monotonic clock (a fuzz campaign's own)."""
         for msg in self._guarded("mavlink", link.messages):
-            odometry = self._guarded("mavlink", self.vehicle.receive, msg, self.clock_ns(), time.monotonic())
+            now = time.monotonic() if mono is None else mono
+            odometry = self._guarded("mavlink", self.vehicle.receive, msg, self.clock_ns(), now)
             if isinstance(odometry, Odometry):
                 self._autopilot_heading = odometry.heading
                 self._publish(publishers, "sensor/odom", odometry)

@@ -17,7 +17,8 @@ Experiments (lab/experiments/):
     usv-lab sea-wind        the wind's leeway: odometry, radius and the leeway model, with and without
     usv-lab driver-loop     the driver bridge's inner loop on the Otter, the rate from a VHW compass
 Benchmarks (lab/benchmarks/):
-    usv-lab bench, fleet-bench, runtime-bench, runtime-ab, hull-ab, cluster-bench, sea-bench, fuzz, serial-fuzz
+    usv-lab bench, fleet-bench, runtime-bench, runtime-ab, hull-ab, cluster-bench, sea-bench, fuzz,
+    serial-fuzz, mavlink-fuzz
 
 A subcommand is a module with `add_arguments(parser)` and `run(args) -> exit code`, or, for a module of
 several, `add_<name>_arguments` and `run_<name>` (SUBCOMMANDS names them `module:name`).
@@ -61,6 +62,8 @@ SUBCOMMANDS = {
     "fuzz": ("lab.benchmarks.fuzz", "fuzz campaign over Zenoh: bad payloads on every key one agent reads"),
     "serial-fuzz": ("lab.benchmarks.serial_fuzz",
                     "the serial side of the fuzz campaign alone: bad lines per parser"),
+    "mavlink-fuzz": ("lab.benchmarks.mavlink_fuzz",
+                     "the MAVLink side of the fuzz campaign: hostile datagrams at the driver's link"),
     "sea-bench": ("lab.benchmarks.sea",
                   "the fleet in the sea mode against the ideal simulation, seed by seed"),
     "sea-agent-ab": ("lab.experiments.sea_agent_ab",

@@ -3,14 +3,17 @@ agent's commands and liveliness over Zenoh from a third process, which is then k
 
 from __future__ import annotations
 
+import ast
 import json
 import math
 import re
+import select
 import signal
 import socket
 import subprocess
 import sys
 import textwrap
+import threading
 import time
 
 import numpy as np
@@ -183,3 +186,109 @@ def test_an_autopilot_without_a_position_refuses_guided_and_the_driver_says_it_i
     refused = int(re.search(r"'mode_refused': (\d+)", driver_output).group(1))
     standin_refused = int(re.search(r"'mode_refused_no_position': (\d+)", standin_output).group(1))
     assert refused >= 2 and standin_refused >= refused, (driver_output, standin_output)
+
+
+class Relay(threading.Thread):
+    """The wire between the driver and the stand-in (a UDP socket each way through here), so that a test can
+    put bytes into the autopilot's own stream to the driver."""
+
+    def __init__(self, standin_port: int) -> None:
+        super().__init__(daemon=True)
+        self.standin = ("127.0.0.1", standin_port)
+        self.socket = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.socket.bind(("127.0.0.1", 0))
+        self.port = self.socket.getsockname()[1]
+        self.driver: tuple[str, int] | None = None
+        self.stopping = threading.Event()
+
+    def run(self) -> None:
+        while not self.stopping.is_set():
+            if not select.select([self.socket], [], [], 0.1)[0]:
+                continue
+            data, address = self.socket.recvfrom(65536)
+            if address == self.standin:
+                if self.driver is not None:
+                    self.socket.sendto(data, self.driver)
+            else:
+                self.driver = address
+                self.socket.sendto(data, self.standin)
+
+    def inject(self, data: bytes) -> None:
+        self.socket.sendto(data, self.driver)
+
+
+def hostile_datagram(rng: np.random.Generator) -> bytes:
+    """Garbage, a heartbeat with a bad CRC, another system's heartbeat, a flood of the autopilot's own
+    heartbeats saying HOLD and disarmed, or a COMMAND_ACK refusing the mode."""
+    autopilot = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
+    kind = int(rng.integers(5))
+    if kind == 0:
+        return rng.bytes(int(rng.integers(1, 300)))
+    if kind == 1:
+        frame = bytearray(autopilot.heartbeat_encode(11, 3, 129, 15, 4).pack(autopilot))
+        frame[int(rng.integers(1, len(frame)))] ^= int(rng.integers(1, 256))
+        return bytes(frame)
+    if kind == 2:
+        stranger = mavlink2.MAVLink(None, srcSystem=int(rng.integers(2, 256)), srcComponent=1)
+        return stranger.heartbeat_encode(11, 3, 1, 4, 4).pack(stranger)
+    if kind == 3:
+        return b"".join(autopilot.heartbeat_encode(11, 3, 1, 4, 4).pack(autopilot) for _ in range(50))
+    return autopilot.command_ack_encode(176, 2).pack(autopilot)
+
+
+def test_a_storm_of_bad_mavlink_at_the_driver_is_counted_and_the_boat_stays_commanded(tmp_path):
+    """2,000 hostile datagrams (seed 36) into the driver's link while an agent commands: half in the
+    autopilot's own stream, half from another address. The driver keeps running, the stand-in keeps taking
+    the agent's set points during and after the storm, and the driver's closing line counts each kind."""
+    udp, zenoh_port = free_port(), free_port()
+    relay = Relay(udp)
+    relay.start()
+    record = tmp_path / "standin.jsonl"
+    config = tmp_path / "driver.yaml"
+    config.write_text(yaml.safe_dump({"zenoh": {"listen": [f"tcp/127.0.0.1:{zenoh_port}"]},
+                                      "mavlink": {"url": f"udpout:127.0.0.1:{relay.port}", "arm": True}}))
+    standin = subprocess.Popen([sys.executable, "-m", "sim_bridge.ardupilot_standin", "--listen",
+                                f"udpin:127.0.0.1:{udp}", "--record", str(record)],
+                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    driver = subprocess.Popen([sys.executable, "-m", "driver_bridge", "--vessel", "1", "--config",
+                               str(config)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    agent = subprocess.Popen([sys.executable, "-c", AGENT, f"tcp/127.0.0.1:{zenoh_port}"],
+                             stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT, text=True)
+
+    def moving() -> list[float]:
+        return [r["t"] for r in records(record) if r["kind"] == "setpoint" and r["u"] == 1.0]
+
+    try:
+        assert wait_until(lambda: len(moving()) >= 20 and relay.driver is not None, 60), records(record)[-5:]
+        rng = np.random.default_rng(36)
+        started = time.monotonic()   # the stand-in's clock: CLOCK_MONOTONIC is the machine's
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as stranger:
+            for k in range(2000):
+                data = hostile_datagram(rng)
+                if k % 2:
+                    relay.inject(data)
+                else:
+                    stranger.sendto(data, relay.driver)
+                time.sleep(0.001)
+        ended = time.monotonic()
+        assert driver.poll() is None
+        assert wait_until(lambda: sum(t > ended for t in moving()) >= 20, 30), records(record)[-5:]
+        during = sum(started < t < ended for t in moving())
+        for process in (driver, standin):
+            process.send_signal(signal.SIGTERM)
+        driver_output, _ = driver.communicate(timeout=20)
+        standin.communicate(timeout=20)
+    finally:
+        relay.stopping.set()
+        for process in (agent, driver, standin):
+            if process.poll() is None:
+                process.kill()
+    assert driver.returncode == 0 and "Traceback" not in driver_output, driver_output
+    assert during > 0, "no set point reached the stand-in during the storm"
+    closing = next(line for line in driver_output.splitlines() if "stopped;" in line)
+    counts = ast.literal_eval(closing.split("stopped; ", 1)[1])
+    refused = counts["vehicle_refused"]
+    assert all(refused.get(reason, 0) > 0 for reason in ("bad_data", "wrong_system", "heartbeat_flood",
+                                                          "mode_refused")), refused
+    assert "mavlink_failed" not in counts["refused"], counts
+    assert sum("refused mode (command 176): DENIED" in line for line in driver_output.splitlines()) == 1

@@ -45,7 +45,7 @@ import zenoh
 from agent.core.params import AgentParams
 from agent.runtime.zenoh_session import ZenohSettings, zenoh_config
 from lab import arguments
-from lab.benchmarks import serial_fuzz
+from lab.benchmarks import mavlink_fuzz, serial_fuzz
 from lab.report.markdown import invocation, machine, markdown_table
 
 VESSEL = "1"
@@ -528,6 +528,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--serial-lines", type=arguments.positive_int, default=20000,
                         help="bad lines or frames per parser of the driver bridge (lab/benchmarks/serial_fuzz.py), "
                              "a section of the page")
+    parser.add_argument("--mavlink-datagrams", type=arguments.positive_int, default=20000,
+                        help="hostile datagrams at the driver's autopilot link (lab/benchmarks/mavlink_fuzz.py), "
+                             "a section of the page")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -543,15 +546,17 @@ def run(args: argparse.Namespace) -> int:
 
     results = run_campaign(per_key=args.per_key, seed=args.seed, progress=progress)
     serial_section, serial_sound = serial_fuzz.page_section(args.serial_lines, args.seed, invocation(args))
+    mavlink_section, mavlink_sound = mavlink_fuzz.page_section(args.mavlink_datagrams, args.seed,
+                                                               invocation(args))
     print("attacks on the mission keys and liveliness ...", flush=True)
     attacks = run_attacks(progress=lambda name: print(f"  {name}", flush=True))
     args.out.mkdir(parents=True, exist_ok=True)
     path = args.out / "fuzz.md"
     path.write_text(render(invocation(args), results, baseline) + "\n".join(render_attacks(attacks)) + "\n"
-                    + serial_section)
+                    + serial_section + "\n" + mavlink_section)
     print(f"wrote {path}")
     sound = (results.alive_at_end and results.exit_code == 0 and not results.bad_commands
-             and results.after_storm_moving > 0 and serial_sound)
+             and results.after_storm_moving > 0 and serial_sound and mavlink_sound)
     guarded = (attacks.alive_at_end and attacks.exit_code == 0 and not attacks.bad_commands
                and all(a.verdict and a.operator_applied for a in attacks.attacks))
     return 0 if sound and guarded else 1
