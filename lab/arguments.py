@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import math
+from pathlib import Path
 
 
 def _integer(text: str) -> int:
@@ -50,3 +51,12 @@ def positive_float(text: str) -> float:
     if value <= 0:
         raise argparse.ArgumentTypeError(f"must be positive, got {text}")
     return value
+
+
+def folder(text: str) -> Path:
+    """A folder results go to: one that exists, or a path where it can be made. An existing file is refused
+    at once, not after the work whose results it would have held."""
+    path = Path(text)
+    if path.exists() and not path.is_dir():
+        raise argparse.ArgumentTypeError(f"{text} is a file, not a folder (the page's name is the command's own)")
+    return path

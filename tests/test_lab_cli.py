@@ -3,6 +3,7 @@ and every `usv-lab COMMAND` the README and docs/ tell a user to run is one of th
 
 from __future__ import annotations
 
+import argparse
 import re
 import subprocess
 import sys
@@ -10,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from lab import cli
+from lab import arguments, cli
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -39,6 +40,32 @@ def test_an_unknown_subcommand_is_refused_in_one_line(capsys):
         cli.main(["no-such-command"])
     assert done.value.code == 2
     assert "invalid choice: 'no-such-command'" in capsys.readouterr().err
+
+
+def _out_type(name: str):
+    parser = argparse.ArgumentParser()
+    cli.entry_points(cli.SUBCOMMANDS[name][0])[0](parser)
+    return next((action.type for action in parser._actions if action.dest == "out"), None)
+
+
+# The subcommands whose --out is the folder their page goes into.
+FOLDER_OUTS = sorted(name for name in cli.SUBCOMMANDS if _out_type(name) is arguments.folder)
+
+
+def test_a_results_folder_that_is_a_file_is_refused_before_any_work(tmp_path, capsys):
+    """`--out` of the commands that write a page into a folder: a file there is refused by argparse at once
+    (`usv-lab fuzz --out docs/results/fuzz.md` used to fail with a traceback after five minutes of campaign)."""
+    page = tmp_path / "fuzz.md"
+    page.write_text("an earlier page\n")
+    assert {"fuzz", "bench", "fleet-bench", "runtime-bench"} <= set(FOLDER_OUTS), FOLDER_OUTS
+    for name in FOLDER_OUTS:
+        with pytest.raises(SystemExit) as done:
+            cli.main([name, "--out", str(page)])
+        assert done.value.code == 2, name
+        err = capsys.readouterr().err
+        assert f"argument --out: {page} is a file, not a folder" in err, (name, err)
+        assert err.strip().splitlines()[-1].startswith(f"usv-lab {name}: error:"), err
+    assert page.read_text() == "an earlier page\n"
 
 
 def documented_commands() -> set[tuple[str, str]]:

@@ -48,7 +48,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--runs", type=arguments.positive_int, default=4, help="Monte Carlo runs of every variant")
     parser.add_argument("--workers", type=arguments.positive_int, default=os.cpu_count() or 1,
                         help="worker processes of the pool, and of the local Dask cluster")
-    parser.add_argument("--out", type=Path, default=Path("docs/results"), help="where cluster_benchmark.md goes")
+    parser.add_argument("--out", type=arguments.folder, default=Path("docs/results"), help="where cluster_benchmark.md goes")
     parser.add_argument("--scenarios-dir", type=Path, default=DEFAULT_DIR, help="where the scenario files are")
     parser.add_argument("--memory-runs", type=arguments.positive_int, default=100,
                         help="N of the client-memory part: Experiment 1 with N and 8N runs")

@@ -59,7 +59,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=arguments.seed, default=7, help="seed of every random number")
     parser.add_argument("--updates", type=arguments.positive_int, default=3000, help="updates per repeat")
     parser.add_argument("--repeats", type=arguments.positive_int, default=5, help="repeats of every measurement")
-    parser.add_argument("--out", type=Path, default=Path("docs/results"), help="where benchmark.md goes")
+    parser.add_argument("--out", type=arguments.folder, default=Path("docs/results"), help="where benchmark.md goes")
 
 
 # ----------------------------------------------------------------------------------------------------------

@@ -47,7 +47,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--cpu-runs", type=arguments.positive_int, default=3,
                         help="runs of the Monte Carlo's --cpu-variant timed in process, each kinematic and on the hull")
     parser.add_argument("--cpu-variant", default="mckf", help="variant of the Monte Carlo file those runs come from")
-    parser.add_argument("--out", type=Path, default=Path("docs/results"),
+    parser.add_argument("--out", type=arguments.folder, default=Path("docs/results"),
                         help="where fleet_benchmark.md goes")
     parser.add_argument("--sizes", type=arguments.positive_int, nargs="+", default=[4, 12, 50],
                         help="fleet sizes n of the tick-time part")

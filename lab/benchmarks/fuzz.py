@@ -524,7 +524,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--per-key", type=arguments.positive_int, default=20000,
                         help="bad payloads per subscribed key (floods included)")
     parser.add_argument("--seed", type=arguments.seed, default=1, help="seed of the payloads' Generator")
-    parser.add_argument("--out", type=Path, default=Path("docs/results"), help="where fuzz.md goes")
+    parser.add_argument("--out", type=arguments.folder, default=Path("docs/results"), help="where fuzz.md goes")
     parser.add_argument("--serial-lines", type=arguments.positive_int, default=20000,
                         help="bad lines or frames per parser of the driver bridge (lab/benchmarks/serial_fuzz.py), "
                              "a section of the page")

@@ -62,7 +62,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="fleet sizes of the latency runs (variants n<size>_r5 of table4_scale)")
     parser.add_argument("--floor-ticks", type=arguments.positive_int, default=1000,
                         help="ticks of the transport floor (lab/benchmarks/transport_floor.py)")
-    parser.add_argument("--out", type=Path, default=Path("docs/results"), help="where runtime_benchmark.md goes")
+    parser.add_argument("--out", type=arguments.folder, default=Path("docs/results"), help="where runtime_benchmark.md goes")
     parser.add_argument("--scenarios-dir", type=Path, default=DEFAULT_DIR, help="where the scenario files are")
 
 

@@ -63,7 +63,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--pairs", type=arguments.positive_int, default=4, help="before/after pairs of runs")
     parser.add_argument("--record", type=Path, default=Path("docs/results/runtime_changes.json"),
                         help="JSON record the result is appended to")
-    parser.add_argument("--out", type=Path, default=Path("docs/results"), help="where runtime_changes.md goes")
+    parser.add_argument("--out", type=arguments.folder, default=Path("docs/results"), help="where runtime_changes.md goes")
 
 
 # ----------------------------------------------------------------------------------------------- one side

@@ -42,7 +42,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--runs", type=arguments.positive_int, default=None, help="Monte Carlo runs per noise model")
     parser.add_argument("--seed", type=arguments.seed, default=None, help="root seed of every random number")
     add_engine_arguments(parser)
-    parser.add_argument("--out", type=Path, default=Path("docs/results"), help="where tables and plots go")
+    parser.add_argument("--out", type=arguments.folder, default=Path("docs/results"), help="where tables and plots go")
     parser.add_argument("--no-diagnosis", action="store_true", help="skip the R_z level sweep")
 
 

@@ -16,6 +16,7 @@ import numpy as np
 
 from agent.core.records import Command
 from boat.presets import PRESETS, steady_speed
+from lab import arguments
 from sim_bridge.hull import HullFleet, Model, rk4
 from sim_bridge.world import World, WorldConfig
 
@@ -98,7 +99,7 @@ def plot(out: Path) -> None:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--out", type=Path, default=Path("docs/results"), help="folder for inner_loop_steps.png")
+    parser.add_argument("--out", type=arguments.folder, default=Path("docs/results"), help="folder for inner_loop_steps.png")
 
 
 def run(args: argparse.Namespace) -> int:
