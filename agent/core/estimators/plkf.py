@@ -195,15 +195,19 @@ class PLKF:
         self.range_unobserved = False      # the range now comes from the neighbours' estimates too
         return True
 
+    def _velocity_change(self, own_velocity_change) -> tuple[np.ndarray | None, bool]:
+        """The own velocity change as a 2-vector, or None (refused and counted) when it is not finite."""
+        if own_velocity_change is None:
+            return None, True
+        dv = np.asarray(own_velocity_change, dtype=float).reshape(2)
+        if finite_floats(dv, (2,)) is None:
+            self.rejected += 1
+            return None, False
+        return dv, True
+
     def predict(self, own_velocity_change: np.ndarray | None = None) -> bool:
         """Time update (24). A non-finite velocity change is refused (counted) and the step uses none."""
-        accepted = True
-        if own_velocity_change is not None:
-            dv = np.asarray(own_velocity_change, dtype=float).reshape(2)
-            if finite_floats(dv, (2,)) is None:
-                self.rejected += 1
-                dv, accepted = None, False
-            own_velocity_change = dv
+        own_velocity_change, accepted = self._velocity_change(own_velocity_change)
         self._x, self._P = plkf_predict(self._x, self._P, self._A, self._Q, own_velocity_change)
         self.predictions += 1
         return accepted

@@ -166,13 +166,7 @@ class LeewayPLKF(PLKF):
         """Time update with the own velocity change and the compass heading at the end of the interval; a
         non-finite one of either is refused (counted): the step then uses no velocity change, or keeps the
         last heading."""
-        accepted = True
-        if own_velocity_change is not None:
-            dv = np.asarray(own_velocity_change, dtype=float).reshape(2)
-            if finite_floats(dv, (2,)) is None:
-                self.rejected += 1
-                dv, accepted = None, False
-            own_velocity_change = dv
+        own_velocity_change, accepted = self._velocity_change(own_velocity_change)
         after = self.heading
         if heading is not None:
             if math.isfinite(heading):
