@@ -55,6 +55,20 @@ def records(path) -> list[dict]:
         return []
 
 
+def stop(driver, standin) -> tuple[str, str]:
+    """SIGTERM to the driver and the stand-in; what each printed."""
+    for process in (driver, standin):
+        process.send_signal(signal.SIGTERM)
+    return driver.communicate(timeout=20)[0], standin.communicate(timeout=20)[0]
+
+
+def kill_left(*processes) -> None:
+    """Kill what is still running (a failed test's processes)."""
+    for process in processes:
+        if process is not None and process.poll() is None:
+            process.kill()
+
+
 def test_an_agent_drives_the_standin_through_the_driver_and_its_death_puts_the_boat_in_hold(tmp_path):
     udp, zenoh_port = free_port(), free_port()
     record = tmp_path / "standin.jsonl"
@@ -109,14 +123,9 @@ def test_an_agent_drives_the_standin_through_the_driver_and_its_death_puts_the_b
             if line.count(" ") == 1:
                 seq, stamp = map(int, line.split())
                 stamps[seq % 50].append(stamp)
-        for process in (driver, standin):
-            process.send_signal(signal.SIGTERM)
-        driver_output, _ = driver.communicate(timeout=20)
-        standin_output, _ = standin.communicate(timeout=20)
+        driver_output, standin_output = stop(driver, standin)
     finally:
-        for process in (agent, driver, standin):
-            if process is not None and process.poll() is None:
-                process.kill()
+        kill_left(agent, driver, standin)
     assert driver.returncode == 0 and standin.returncode == 0, (driver_output, standin_output)
     log = records(record)
     modes = [r["mode"] for r in log if r["kind"] == "mode"]
@@ -171,14 +180,9 @@ def test_an_autopilot_without_a_position_refuses_guided_and_the_driver_says_it_i
         agent = subprocess.Popen([sys.executable, "-c", AGENT, f"tcp/127.0.0.1:{zenoh_port}"],
                                  stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT, text=True)
         assert wait_until(lambda: sum(r["kind"] == "mode_refused" for r in records(record)) >= 3, 60)
-        for process in (driver, standin):
-            process.send_signal(signal.SIGTERM)
-        driver_output, _ = driver.communicate(timeout=20)
-        standin_output, _ = standin.communicate(timeout=20)
+        driver_output, standin_output = stop(driver, standin)
     finally:
-        for process in (agent, driver, standin):
-            if process is not None and process.poll() is None:
-                process.kill()
+        kill_left(agent, driver, standin)
     assert driver.returncode == 0 and "Traceback" not in driver_output, driver_output
     said = [line for line in driver_output.splitlines() if "refused mode" in line]
     assert said == ["usv-driver 1: the autopilot refused mode (command 176): FAILED (GUIDED needs a position "
@@ -274,15 +278,10 @@ def test_a_storm_of_bad_mavlink_at_the_driver_is_counted_and_the_boat_stays_comm
         assert driver.poll() is None
         assert wait_until(lambda: sum(t > ended for t in moving()) >= 20, 30), records(record)[-5:]
         during = sum(started < t < ended for t in moving())
-        for process in (driver, standin):
-            process.send_signal(signal.SIGTERM)
-        driver_output, _ = driver.communicate(timeout=20)
-        standin.communicate(timeout=20)
+        driver_output, _ = stop(driver, standin)
     finally:
         relay.stopping.set()
-        for process in (agent, driver, standin):
-            if process.poll() is None:
-                process.kill()
+        kill_left(agent, driver, standin)
     assert driver.returncode == 0 and "Traceback" not in driver_output, driver_output
     assert during > 0, "no set point reached the stand-in during the storm"
     closing = next(line for line in driver_output.splitlines() if "stopped;" in line)
