@@ -93,7 +93,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-cold", action="store_true", help="leave out the cold start")
     parser.add_argument("--no-ab", action="store_true", help="leave out the A/B of the agent's measures")
     add_engine_arguments(parser)
-    parser.add_argument("--out", type=Path, default=DEFAULT_PAGE, help="the page; figures go to its stem/")
+    parser.add_argument("--out", type=arguments.page, default=DEFAULT_PAGE, help="the page; figures go to its stem/")
 
 
 # ----------------------------------------------------------------------------------------------------------
