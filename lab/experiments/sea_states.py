@@ -27,6 +27,7 @@ from lab.experiments.sea_agent import COPING, ODOMETRY
 from lab.experiments.sea_figures import (
     ACCEPTANCE,
     COLD_ACCEPTANCE,
+    COLD_STATES,
     EVERY_STATE,
     StateSummary,
     command_limits,
@@ -164,7 +165,7 @@ def rows(args: argparse.Namespace) -> dict[tuple[str, str, str], Scenario]:
     table = {("states", name, ""): s for name, s in found.items()}
     if not args.no_cold:
         for name, s in found.items():
-            if s.world.dynamics is None or name in COLD_ACCEPTANCE:
+            if s.world.dynamics is None or name in COLD_STATES:
                 table["cold", name, ""] = cold(s, args.duration)
     if not args.no_ab:
         for state, measure in AB_PLAN:
