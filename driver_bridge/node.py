@@ -409,9 +409,12 @@ class DriverBridge:
                               for t in ("sensor/uwb", "sensor/odom", "sensor/bearing")}
                 if self.gnss is not None:   # truth: a key outside every agent's subscriptions
                     publishers["truth/gnss"] = session.declare_publisher(gnss_truth_key(self.id))
-                subscriber = session.declare_subscriber(key(self.id, "cmd"), self._on_command)
-                agent = session.liveliness().declare_subscriber(key(self.id, LIVELINESS), self._on_agent_liveliness,
-                                                                 history=True)
+                # the agent's commands only where something drives: a GNSS tag (or a GNSS-only driver beside an
+                # autopilot's) would count commands it has no use for as refused
+                listening = [] if self.thrusters is None and link is None else [
+                    session.declare_subscriber(key(self.id, "cmd"), self._on_command),
+                    session.liveliness().declare_subscriber(key(self.id, LIVELINESS), self._on_agent_liveliness,
+                                                            history=True)]
                 period = (1.0 / self.settings.thrusters.lines_per_second() if self.thrusters
                           else VEHICLE_PERIOD if link else 0.1)
                 waits = list(readers) + ([link.fd, self._wake[0]] if link else [])
@@ -443,8 +446,8 @@ class DriverBridge:
                         self._guarded("mavlink", link.send, msg)
                 if "thrusters" in ports:   # stopped before Zenoh's teardown, which might not end by the deadline
                     ports["thrusters"].write(command_line(ZERO_THRUST))
-                subscriber.undeclare()
-                agent.undeclare()
+                for entity in listening:
+                    entity.undeclare()
         finally:
             try:
                 if "thrusters" in ports:
