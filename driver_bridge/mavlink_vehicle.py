@@ -81,7 +81,7 @@ class MavlinkSettings(StrictModel):
     link_timeout: PositiveFloat = Field(3.0, description="link lost after this long without a heartbeat (s)")
     arm: bool = Field(False, description="arm the vehicle when commands flow; false: a disarmed vehicle is said")
     position_variance_per_m: NonNegativeFloat = Field(
-        1e-4, description="odometry error the agent assumes: per axis, m^2 per metre travelled")
+        1e-4, description="odometry error the agent assumes: per axis, m^2 per metre (GNSS EKF ~2e-3: docs/boats.md)")
     heading_variance: NonNegativeFloat = Field(1e-4, description="odometry error the agent assumes: yaw (rad^2)")
     control: Literal["guided", "acro"] = Field(
         "guided", description="'guided': GUIDED velocity set points (needs a position fix); 'acro': ACRO sticks")

@@ -233,3 +233,37 @@ def test_the_standins_odometry_through_the_adapter_gives_the_agents_odometry():
                                       unknown, unknown, 1)
     got = adapter.receive(wire([msg])[0], vessel_ns(t0 + 3.1) + 1, t0 + 3.1)
     assert got.position == pytest.approx(last.position) and adapter.events["estimate_reset"] == 1
+
+
+def test_any_odometry_message_is_taken_within_the_contract_or_refused_and_counted():
+    """ODOMETRY with fields anywhere their wire types allow (NaN, infinities, 3.4e38, any frame, any
+    quaternion, any time): never an exception, and whatever is taken is valid odometry (the contract's model
+    checks it as it is made)."""
+    rng = np.random.default_rng(331)
+    adapter, _ = vehicle(odometry="odometry")
+    adapter.receive(heartbeat(GUIDED, True), NOW_NS, 0.0)
+    adapter.offset_ns = NOW_NS
+    ap = autopilot()
+    special = (math.nan, math.inf, -math.inf, 3.4e38, -3.4e38, 0.0, 1.0)
+
+    def f() -> float:
+        return float(rng.choice(special)) if rng.random() < 0.2 else float(rng.normal(0.0, 10.0 ** rng.integers(0, 5)))
+
+    taken = 0
+    for k in range(3000):
+        q = [f() for _ in range(4)] if rng.random() < 0.5 else yaw_quaternion(float(rng.uniform(-10, 10)))
+        frame = int(rng.choice([1, 4] if rng.random() < 0.8 else [20, 0, 8, 12, 21, 255]))
+        child = int(rng.choice([1, 4, 8, 12, 20, 21] if rng.random() < 0.8 else [0, 2, 255]))
+        time_usec = int(rng.choice([k * 10_000] * 4 + [int(rng.integers(0, 2**63)), 10**15 + k]))
+        nan21 = [f() for _ in range(21)]
+        msg = wire([ap.odometry_encode(time_usec, frame, child, f(), f(), f(), q, f(), f(), f(), f(), f(), f(),
+                                       nan21, nan21, int(rng.integers(0, 256)))])[0]
+        got = adapter.receive(msg, NOW_NS + k * 10_000_000, 0.01 * k)
+        if got is not None:
+            taken += 1
+            assert all(math.isfinite(v) for v in (*got.position, got.heading))
+        yaw_rate = adapter.yaw_rate()
+        assert yaw_rate is None or math.isfinite(yaw_rate)
+    refused = {k: v for k, v in adapter.rejected.items() if v}
+    print(f"ODOMETRY fuzz: {taken} taken, refused {refused}")
+    assert taken > 0 and {"odometry_frame", "non_finite", "odometry_quaternion"} <= set(refused), refused
