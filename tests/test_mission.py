@@ -198,7 +198,7 @@ def test_the_status_console_shows_each_vessel_its_rate_hold_and_last_answer():
                   mission=[MissionAck(sender="op", seq=4, command="hold", applied=True, stamp_ns=5)])
     lines = status_lines({"2": (9.5, held)}, {"2", "3"}, now=10.0, rates={"2": 10.0})
     assert lines[1].split()[:7] == ["2", "yes", "0.5", "10.0", "HOLD", "0.00", "0.000"]
-    assert " 4 1: observable " in lines[1] and lines[1].endswith("hold from op: applied")
+    assert " 4 -                1: observable " in lines[1] and lines[1].endswith("hold from op: applied")
     assert lines[2].startswith("3 ") and lines[2].endswith("(no status yet)")
     assert tick_rate([0.0, 0.1, 0.2, 0.3, 0.4], now=0.45) == pytest.approx(10.0)
     assert tick_rate([0.0, 5.0, 5.5], now=6.0) == pytest.approx(2.0)      # only the last two seconds
