@@ -468,3 +468,24 @@ def test_usv_op_says_a_bad_value_in_one_line_as_typed():
         with pytest.raises(ConfigError) as raised:
             _command(args, NOW_NS)
         assert str(raised.value).startswith(said) and "pydantic" not in str(raised.value)
+
+
+@pytest.mark.parametrize("where", ["open_session", "send"])
+def test_a_ctrl_c_before_the_consoles_handler_is_one_line_and_code_130(where, monkeypatch, capsys):
+    """While the session opens, or while a command is out (no handler of its own), a Ctrl-C used to end
+    usv-op with a KeyboardInterrupt traceback."""
+    from usv_op import cli as op_cli
+
+    class Session:
+        def close(self):
+            pass
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(op_cli, "open_session", interrupted if where == "open_session" else lambda *a, **k: Session())
+    monkeypatch.setattr(op_cli, "fleet_clock", lambda session: (lambda: 0.0))
+    monkeypatch.setattr(op_cli, "send", interrupted)
+    assert op_cli.main(["--connect", "tcp/127.0.0.1:1", "hold"]) == 130
+    captured = capsys.readouterr()
+    assert captured.err == "usv-op: interrupted\n" and captured.out == ""

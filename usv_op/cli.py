@@ -293,6 +293,16 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    try:
+        return _run(args)
+    except KeyboardInterrupt:
+        # A Ctrl-C before the console's own handler is in place (while the session opens, or during a
+        # command's send): one line and the shell's code for it, not a traceback.
+        print("usv-op: interrupted", file=sys.stderr)
+        return 130
+
+
+def _run(args: argparse.Namespace) -> int:
     if args.command == "layout":
         try:
             print(json.dumps(json.loads(fleet_layout(args.vessels)), indent=2))
