@@ -45,6 +45,7 @@ def state_to_json(state: VesselState) -> dict:
                    for j, p in state.priors.items()},
         "tracker": None if state.tracker is None else state.tracker.export_state(),
         "health": state.health.as_dict(),
+        "recent_ranges": {j: [list(pair) for pair in kept] for j, kept in state.recent_ranges.items()},
     }
 
 
@@ -80,6 +81,7 @@ def state_from_json(data: dict, params: AgentParams) -> VesselState:
         health=Health(**data["health"]),
         # A snapshot from before antennas has none: the antenna at the centre.
         own_arms=_history_from_json(data.get("own_arms", []), params.fleet.history_ticks, _point),
+        recent_ranges={j: [(float(t), float(r)) for t, r in kept] for j, kept in data.get("recent_ranges", {}).items()},
     )
 
 

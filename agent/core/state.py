@@ -71,3 +71,5 @@ class VesselState:
     health: Health
     # own antenna's arm vector R(psi) a by stamp, as `own` (agent/core/antenna.py); empty with no lever arm
     own_arms: History = field(default_factory=lambda: History(2))
+    # the last raw ranges (stamp s, range m) to each id ranged, tracked or not: the range guard's (step.py)
+    recent_ranges: dict[str, list[tuple[float, float]]] = field(default_factory=dict)

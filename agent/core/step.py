@@ -25,7 +25,7 @@ from agent.core.checks import finite_vector, obstacle_array, valid_range
 from agent.core.command import control_command
 from agent.core.control.leeway import leeway_sway, leeway_update, set_along, set_update
 from agent.core.control.oscillator import oscillator_step
-from agent.core.control.separation import coasting_distance, guarded_surge
+from agent.core.control.separation import coasting_distance, guarded_surge, range_allowance
 from agent.core.cooperation import fuse_reciprocal, fuse_targets, swap_velocity
 from agent.core.membership import forget_silent, receive_shares, start_track, store_ranges
 from agent.core.neighbours import NeighbourTrack, stamp_key
@@ -51,6 +51,13 @@ RANGE_DISAGREEMENT = 2.0
 # m/s: the set model learns only while the modelled surge is this close to the command. Starting from rest
 # the hull lags the first-order model (acceleration and thrust limits) and taught it 0.4-0.6 m/s of false set.
 SET_STEADY = 0.05
+# The range guard (`_keep_apart`, docs/equations.md D18): a neighbour without a pair estimate is judged by the
+# second smallest of its last five raw ranges (outliers are mostly long; a short one is rarely alone), no
+# older than a second, and the surge is at most RANGE_GUARD_RATE per metre of it beyond the guard's distance.
+RANGE_GUARD_COUNT = 5
+RANGE_GUARD_RANK = 1
+RANGE_GUARD_AGE = 1.0     # s
+RANGE_GUARD_RATE = 0.4    # 1/s: 0.04 per tick, slow enough for the lag of the order statistic (D18)
 
 
 def step(params: AgentParams, state: VesselState, inputs: TickInputs) -> tuple[VesselState, TickOutput]:
@@ -83,6 +90,7 @@ def step(params: AgentParams, state: VesselState, inputs: TickInputs) -> tuple[V
     for stamp, ranges in inputs.earlier_ranges:
         store_ranges(params, state, ranges, stamp)
     store_ranges(params, state, inputs.ranges, now if inputs.range_stamp is None else inputs.range_stamp)
+    _remember_ranges(params, state, inputs.ranges, now)
     forget_silent(params, state, now)
     # One pass over the tracks: each pair filter advances over the new ranges and is fused with j's estimate,
     # then its estimate at now, whether it is localised, its record and what the share tells j of it. (Each
@@ -164,7 +172,7 @@ def step(params: AgentParams, state: VesselState, inputs: TickInputs) -> tuple[V
         control, params.dt, state.phase, next_phase, odometry.heading, target_state, state.motion.velocity,
         localised, neighbour_phases, obstacles, state.motion.yaw_rate, sway, along)
     command = _keep_apart(params, state, inputs.ranges, localised, medians, distances, estimated,
-                          odometry.heading, command)
+                          odometry.heading, command, now)
     if not (math.isfinite(command.surge) and math.isfinite(command.yaw_rate)):
         # Never publish a non-finite command, whatever went wrong upstream.
         health.non_finite_commands += 1
@@ -244,7 +252,7 @@ def _recent_range(track: NeighbourTrack) -> float | None:
 
 def _keep_apart(params: AgentParams, state: VesselState, ranges, localised: dict[str, np.ndarray],
                 medians: dict[str, float | None], distances: dict[str, float],
-                estimated: list[tuple[float, float]], heading: float, command: Command) -> Command:
+                estimated: list[tuple[float, float]], heading: float, command: Command, now: float) -> Command:
     """The last guard, after (31): no command moves the vessel into a neighbour.
 
     Every neighbour in `estimated` bounds the surge by its estimate p^_ij: the motion over the period,
@@ -261,7 +269,11 @@ def _keep_apart(params: AgentParams, state: VesselState, ranges, localised: dict
     unlocalised neighbour closer than `min_separation` by its raw range, or a localised one whose last
     `SEPARATION_RANGES` ranges' median is under `min_separation` while its estimate is not (a stray UWB
     range must not stop the formation, but an estimate that has gone wrong must not hide a neighbour that
-    is really close). Counted in `separation_stops`, whether the surge was stopped or only cut."""
+    is really close).
+    A neighbour without a pair estimate (its track waits on a target route, or it is not tracked: silent,
+    or not yet heard) bounds the surge, either way, by its last raw ranges alone (`_range_allowances`): both
+    vessels of such a pair close at most 2 x 0.04 (q - D)^+ a tick. Counted in `separation_stops`, whether
+    the surge was stopped or only cut."""
     control = params.control
     limit = control.min_separation
     too_close = False
@@ -279,10 +291,36 @@ def _keep_apart(params: AgentParams, state: VesselState, ranges, localised: dict
         guard += coasting_distance(math.hypot(*state.motion.velocity.tolist()), control.surge_lag)
     surge = 0.0 if too_close else guarded_surge(command.surge, heading, command.yaw_rate, params.dt,
                                                 estimated, guard, control.separation_rate)
+    if surge != 0.0:
+        allowed = min(_range_allowances(state, distances, limit + control.separation_margin, now), default=math.inf)
+        surge = min(max(surge, -allowed), allowed)
     if surge == command.surge:
         return command
     state.health.separation_stops += 1
     return Command(surge, command.yaw_rate)
+
+
+def _remember_ranges(params: AgentParams, state: VesselState, ranges, now: float) -> None:
+    """Keep the last `RANGE_GUARD_COUNT` valid raw ranges to each id ranged, tracked or not; forget an id
+    not ranged for `RANGE_GUARD_AGE`."""
+    kept = state.recent_ranges
+    for j, value in ranges.items():
+        if valid_range(value, params.relative.max_range):
+            kept[j] = (kept.get(j, []) + [(now, float(value))])[-RANGE_GUARD_COUNT:]
+    for j in [j for j, pairs in kept.items() if pairs[-1][0] < now - RANGE_GUARD_AGE]:
+        del kept[j]
+
+
+def _range_allowances(state: VesselState, distances: dict[str, float], guard_distance: float, now: float):
+    """The surge each neighbour without a pair estimate allows (`range_allowance`). A neighbour with an
+    estimate (in `distances`) is left to the estimate's guard, one whose initial estimate waits in
+    `state.priors` too (its filter starts with its first share, the next tick)."""
+    for j, pairs in state.recent_ranges.items():
+        if j in distances or j in state.priors:
+            continue
+        recent = [r for t, r in pairs if t >= now - RANGE_GUARD_AGE]
+        if recent:
+            yield range_allowance(recent, RANGE_GUARD_RANK, guard_distance, RANGE_GUARD_RATE)
 
 
 def _bearing(state: VesselState, bearing) -> np.ndarray | None:

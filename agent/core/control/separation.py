@@ -73,3 +73,10 @@ def coasting_distance(speed: float, surge_lag: float) -> float:
     """How far a boat at `speed` (m/s) whose surge follows the command with a first-order lag of time
     constant `surge_lag` (s) runs after a stop command: int_0^inf |u| e^{-t/tau} dt = |u| tau (m)."""
     return abs(speed) * surge_lag
+
+
+def range_allowance(ranges: list[float], rank: int, guard_distance: float, rate: float) -> float:
+    """The surge (m/s, either way) allowed near a neighbour known by its ranges alone: rate (q - D)^+,
+    q the `rank`-th smallest (0: the smallest) of its last `ranges`, or their smallest if there are fewer."""
+    ordered = sorted(ranges)
+    return rate * max((ordered[rank] if len(ordered) > rank else ordered[0]) - guard_distance, 0.0)
