@@ -53,6 +53,8 @@ SUBCOMMANDS = {
     "fleet-bench": ("lab.benchmarks.fleet", "Table II Monte Carlo wall time, tick cost by fleet size"),
     "runtime-bench": ("lab.benchmarks.runtime",
                       "Zenoh runtime: sensor-to-command latency, lockstep real-time factor, memory"),
+    "share-bench": ("lab.benchmarks.shares",
+                    "shares broadcast against per pair: bytes and decode CPU per agent per tick, by fleet size"),
     "cluster-bench": ("lab.benchmarks.cluster",
                       "the same Monte Carlo campaign on the process pool and a local Dask cluster"),
     "runtime-ab": ("lab.benchmarks.runtime_ab",

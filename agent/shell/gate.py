@@ -6,9 +6,9 @@ its own rate, and each set is a measurement at its own time), never blocks on I/
 last few reasons kept for the log). `snapshot(now)` turns what is fresh into the tick's `TickInputs`.
 
 What is refused, in the order it is checked (the cheap checks come before decoding):
-- a key the agent does not read (`unexpected_key`), a share from a vessel whose liveliness token is not
-  live (`unknown_sender`: a share alone never makes a neighbour), a new sender beyond MAX_PEERS
-  (`too_many_peers`);
+- a key the agent does not read (`unexpected_key`; a share to another vessel too), a share from a vessel
+  whose liveliness token is not live (`unknown_sender`: a share alone never makes a neighbour), a new sender
+  beyond MAX_PEERS (`too_many_peers`); shares of both formats are judged alike, one stamp mark per sender;
 - more than `max_rate` messages per second on one key, with bursts of `burst` (`rate_limited`, a token
   bucket per key, so a flood costs a dictionary look-up per message and no decoding);
 - an undecodable or invalid payload (`malformed`: wrong types, NaN, inf, values beyond the contract's
@@ -47,6 +47,7 @@ from agent.contract import (
     decode,
     nanoseconds,
     seconds,
+    share_key,
     vessel_of,
 )
 from agent.core.records import Share, TickInputs
@@ -198,6 +199,11 @@ class InputGate:
     def _offer(self, key: str, payload, now: float | None) -> bool:
         vessel = vessel_of(key)
         topic = key.split("/", 2)[2] if vessel is not None else ""
+        per_pair = topic.startswith("share/")
+        if per_pair:   # format 2: a share to one receiver, usv/<sender>/share/<receiver>
+            if topic != f"share/{self.id}":
+                return self._refuse("unexpected_key", key)
+            topic = "share"
         model = TOPICS.get(topic)
         if topic == "share" and vessel == self.id:
             return False  # our own share, echoed by a subscription to every vessel's
@@ -223,6 +229,8 @@ class InputGate:
         mine = None
         if topic == "share":
             mine, reason = message.estimate_for(self.id)
+            if per_pair and len(message.neighbours) > (self.id in message.neighbours):
+                reason = "ShareMessage: neighbours: a share to one receiver carries other vessels' estimates"
             if reason:
                 return self._refuse("malformed", f"{key}: {reason}")
         if message.sender != vessel:
@@ -375,7 +383,8 @@ class InputGate:
             self._held_count.pop(vessel, None)
             for mark in [k for k in self._last_stamp if k[1] == vessel]:
                 del self._last_stamp[mark]
-            self._buckets.pop(f"usv/{vessel}/share", None)
+            self._buckets.pop(share_key(vessel), None)
+            self._buckets.pop(share_key(vessel, self.id), None)
             self._senders.discard(vessel)
             self.offsets.forget(vessel)
 
