@@ -17,7 +17,7 @@ Experiments (lab/experiments/):
     usv-lab sea-wind        the wind's leeway: odometry, radius and the leeway model, with and without
     usv-lab driver-loop     the driver bridge's inner loop on the Otter, the rate from a VHW compass
 Benchmarks (lab/benchmarks/):
-    usv-lab bench, fleet-bench, runtime-bench, runtime-ab, hull-ab, cluster-bench, sea-bench, fuzz,
+    usv-lab bench, fleet-bench, runtime-bench, runtime-ab, hull-ab, cluster-bench, share-bench, sea-bench, fuzz,
     serial-fuzz, mavlink-fuzz
 
 A subcommand is a module with `add_arguments(parser)` and `run(args) -> exit code`, or, for a module of
