@@ -179,3 +179,80 @@ def test_per_pair_shares_command_bit_for_bit_what_broadcast_shares_command_and_c
     # Every agent gets every other's share of every tick but the last, in either format.
     assert per_pair.share_messages == broadcast.share_messages == n * (n - 1) * (ticks - 1)
     assert per_pair.share_bytes < 0.7 * broadcast.share_bytes
+
+
+@pytest.mark.slow
+@pytest.mark.filterwarnings("ignore:.*unfinished MCAP")
+def test_a_fleet_over_zenoh_with_one_agent_on_format_1_equals_the_in_process_runner(tmp_path, monkeypatch):
+    """The transition's first step (docs/contract.md, "Share format"): vessel 2 sends format 1 on usv/2/share,
+    the others format 2, every agent hears both; in lockstep the fleet's processes still command what the
+    in-process runner commands, to 1e-9, and every agent estimates its three neighbours."""
+    from test_lockstep import logged
+
+    import sim_bridge.fleet as fleet_module
+    from lab.harness.runner import run
+    from sim_bridge.fleet import launch
+
+    configs = fleet_module.agent_configs
+
+    def one_on_format_1(*args, **kwargs):
+        made = configs(*args, **kwargs)
+        made["2"]["share_format"] = 1
+        return made
+
+    monkeypatch.setattr(fleet_module, "agent_configs", one_on_format_1)
+    path = with_duration(SCENARIOS / "table2_estimators.yaml", tmp_path, 10.0)
+    _, scenario = select_scenario(path, "mckf")
+    trace = run(scenario)
+    folder = launch(path, "mckf", tmp_path / "runs", seed=None)
+    assert "share_format: 1" in (next(folder.glob("agent-2.yaml"))).read_text()
+    log = logged(folder, trace.vessels)
+    stamps = sorted(log["truth"])
+    assert len(stamps) == len(trace.time) == 101
+    for k, stamp in enumerate(stamps):
+        for n, i in enumerate(trace.vessels):
+            np.testing.assert_allclose(log["cmd"][i][stamp], trace.commands[k, n], rtol=0, atol=1e-9)
+            np.testing.assert_allclose(log["target"][i][stamp], trace.estimates[k, n], rtol=0, atol=1e-9)
+    assert all(len(log["relative"][i][stamps[-1]]) == 3 for i in trace.vessels)
+
+
+class StubChannel:
+    def __init__(self, topic: str, schema=None) -> None:
+        self.topic, self.logged = topic, []
+
+    def log(self, payload: bytes) -> None:
+        self.logged.append(json.loads(payload))
+
+
+class StubSdk:
+    Channel = StubChannel
+
+
+class Sample:
+    def __init__(self, key_expr: str, data: bytes) -> None:
+        self.key_expr, self.payload = key_expr, self
+        self.data = data
+
+    def to_bytes(self) -> bytes:
+        return self.data
+
+
+def test_the_operators_view_draws_every_estimate_of_a_share_sent_per_pair():
+    from usv_op.view import LiveView
+    view = LiveView(StubSdk())
+    rng = np.random.default_rng(4)
+
+    def children() -> set[str]:
+        return {t["child_frame_id"] for t in view._channels["/2/tf"].logged[-1]["transforms"]}
+
+    for tick, others in enumerate((["1", "3", "4"], ["1", "3"])):
+        message = random_share(rng, "2", others, stamp_ns=NOW_NS + tick * 10**8)
+        for j, payload in encode_per_pair(message, others).items():
+            view.on_share(Sample(share_key("2", j), payload))
+    # Tick 1's estimates, and 4's of tick 0 (the share before): 4 dropped out after it.
+    assert children() >= {"vessel/2/estimate/1", "vessel/2/estimate/3", "vessel/2/estimate/4"}
+    message = random_share(rng, "2", ["1"], stamp_ns=NOW_NS + 2 * 10**8)
+    view.on_share(Sample(share_key("2", "1"), encode_per_pair(message, ["1"])["1"]))
+    assert "vessel/2/estimate/4" not in children() and "vessel/2/estimate/1" in children()
+    view.on_share(Sample(share_key("2"), encode(random_share(rng, "2", ["1", "3"], stamp_ns=NOW_NS))))   # older
+    assert view.refused == 0 and len(view._beliefs) == 1
