@@ -170,6 +170,7 @@ class InputGate:
         # Present from the start at 0: the status's health carries them, and a plot of an absent field is empty.
         self.rejected: Counter[str] = Counter(dict.fromkeys(ALWAYS_COUNTED, 0))
         self.accepted: Counter[str] = Counter()
+        self.received: Counter[str] = Counter(shares_received=0, share_bytes_received=0)
         self.recent_reasons: deque[str] = deque(maxlen=keep_reasons)
         self._lock = threading.Lock()
         self._arrival = threading.Condition(self._lock)
@@ -210,6 +211,9 @@ class InputGate:
         if model is None or topic not in (*OWN_TOPICS, "share") or topic in OWN_TOPICS and vessel != self.id:
             return self._refuse("unexpected_key", key)
         if topic == "share":
+            with self._lock:   # what the shares cost on the wire (status: shares_received, share_bytes_received)
+                self.received["shares_received"] += 1
+                self.received["share_bytes_received"] += len(payload)
             if self.known_peers is not None and vessel not in self.known_peers():
                 return self._refuse("unknown_sender", f"{key}: no liveliness token")
             if vessel not in self._senders:

@@ -131,14 +131,15 @@ class Outbox:
 
 def health(record: TickRecord | None, gate, peers, *parts) -> dict[str, int]:
     """The status's counters: the core's of this tick (and its pairs whose relative motion leaves them short of
-    observable: gauges, not counts), the input gate's refusals by reason, the peer table's, and each of the
-    shell's `parts`' `counts()`."""
+    observable: gauges, not counts), the input gate's refusals by reason and the shares it was handed (and
+    their bytes), the peer table's, and each of the shell's `parts`' `counts()`."""
     health = dict(record.health if record is not None else {})
     if record is not None:
         verdicts = [n.observability for n in record.neighbours.values()]
         health.update(pairs_mirror_ambiguous=verdicts.count(MIRROR_AMBIGUOUS),
                       pairs_unobservable=verdicts.count(UNOBSERVABLE))
     health.update({f"rejected_{k}": v for k, v in gate.rejected.items()})
+    health.update(gate.received)
     health.update(peers.counted(), peers_withheld=len(peers.withheld()), peers_unproven=len(peers.unproven()))
     for part in parts:
         health.update(part.counts())
