@@ -256,3 +256,15 @@ def test_the_operators_view_draws_every_estimate_of_a_share_sent_per_pair():
     assert "vessel/2/estimate/4" not in children() and "vessel/2/estimate/1" in children()
     view.on_share(Sample(share_key("2"), encode(random_share(rng, "2", ["1", "3"], stamp_ns=NOW_NS))))   # older
     assert view.refused == 0 and len(view._beliefs) == 1
+
+
+@pytest.mark.slow
+def test_share_bench_writes_its_page_with_identical_commands_in_both_formats(tmp_path, capsys):
+    from lab import cli
+    assert cli.main(["share-bench", "--sizes", "3", "--duration", "0.5", "--repeats", "1", "--zenoh-sizes",
+                     "--out", str(tmp_path)]) == 0
+    page = (tmp_path / "share_benchmark.md").read_text()
+    assert "usv-lab share-bench --sizes 3" in page
+    row = next(line for line in page.splitlines() if line.startswith("| 3 |")).split(" | ")
+    assert row[-1].strip(" |") == "yes"
+    assert int(row[3].replace(",", "")) < int(row[2].replace(",", ""))   # format 2 carries fewer bytes
