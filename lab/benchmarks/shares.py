@@ -27,7 +27,7 @@ import yaml
 
 from agent.runtime.mcap_log import read_messages
 from lab import arguments
-from lab.benchmarks.fleet import fleet_scenarios
+from lab.benchmarks.fleet import add_size_arguments, fleet_scenarios
 from lab.benchmarks.shell import ShellRun, run_shells
 from lab.experiments.scenarios import DEFAULT_DIR, load, resolve
 from lab.report.markdown import invocation, machine, markdown_table
@@ -38,13 +38,9 @@ FORMATS = (1, 2)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--sizes", type=arguments.positive_int, nargs="+", default=[4, 12, 50],
-                        help="fleet sizes n")
-    parser.add_argument("--duration", type=arguments.positive_float, default=3.0,
-                        help="simulated seconds of each run")
+    add_size_arguments(parser, 3.0)
     parser.add_argument("--repeats", type=arguments.positive_int, default=2,
                         help="runs of each format per size, taken alternately (the medians are shown)")
-    parser.add_argument("--seed", type=arguments.seed, default=50, help="seed of the drawn start positions")
     parser.add_argument("--scale", default="table4_scale", metavar="NAME",
                         help="scenario file whose base the fleets start from")
     parser.add_argument("--scenarios-dir", type=Path, default=DEFAULT_DIR, help="where NAMEs are looked up")
