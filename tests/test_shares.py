@@ -267,4 +267,4 @@ def test_share_bench_writes_its_page_with_identical_commands_in_both_formats(tmp
     assert "usv-lab share-bench --sizes 3" in page
     row = next(line for line in page.splitlines() if line.startswith("| 3 |")).split(" | ")
     assert row[-1].strip(" |") == "yes"
-    assert int(row[3].replace(",", "")) < int(row[2].replace(",", ""))   # format 2 carries fewer bytes
+    assert int(row[4].replace(",", "")) < int(row[3].replace(",", ""))   # format 2 carries fewer bytes

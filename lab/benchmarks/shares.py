@@ -73,11 +73,11 @@ def median(runs: list[ShellRun], name: str) -> float:
     return statistics.median(figures(r)[name] for r in runs)
 
 
-def rows_of(n: int, runs: dict[int, list[ShellRun]]) -> list[list[object]]:
+def rows_of(n: int, source: str, runs: dict[int, list[ShellRun]]) -> list[list[object]]:
     same = all(np.array_equal(a.commands, b.commands) for a in runs[1] + runs[2] for b in runs[2])
     before, after = runs[1], runs[2]
     ratio = median(after, "decode_ms") / median(before, "decode_ms")
-    return [[n, f"{median(before, 'fleet_bytes'):,.0f}", f"{median(after, 'fleet_bytes'):,.0f}",
+    return [[n, source, f"{median(before, 'fleet_bytes'):,.0f}", f"{median(after, 'fleet_bytes'):,.0f}",
              f"{median(before, 'agent_bytes'):,.0f}", f"{median(after, 'agent_bytes'):,.0f}",
              f"{median(before, 'agent_messages'):.0f} / {median(after, 'agent_messages'):.0f}",
              f"{median(before, 'decode_ms'):.3f}", f"{median(after, 'decode_ms'):.3f}", f"{ratio:.2f}",
@@ -128,9 +128,9 @@ def run(args: argparse.Namespace) -> int:
     (scale_path,) = resolve([args.scale], args.scenarios_dir)
     spec, variants = load(scale_path)
     rows, identical = [], True
-    for n, scenario, _, _ in fleet_scenarios(spec.base, variants, args.sizes, args.duration, args.seed):
+    for n, scenario, source, _ in fleet_scenarios(spec.base, variants, args.sizes, args.duration, args.seed):
         runs = measure(scenario, args.repeats)
-        rows += rows_of(n, runs)
+        rows += rows_of(n, source, runs)
         identical = identical and rows[-1][-1] == "yes"
         print(f"share-bench: n = {n}: " + ", ".join(f"{h} {v}" for h, v in zip(HEADER[1:], rows[-1][1:])), flush=True)
     zenoh = []
@@ -147,7 +147,7 @@ def run(args: argparse.Namespace) -> int:
     return 0 if identical else 1
 
 
-HEADER = ["n", "fleet bytes/tick, broadcast", "per pair", "agent bytes/tick, broadcast", "per pair",
+HEADER = ["n", "start positions", "fleet bytes/tick, broadcast", "per pair", "agent bytes/tick, broadcast", "per pair",
           "agent messages/tick", "agent decode ms/tick, broadcast", "per pair", "decode per pair / broadcast",
           "agent rest of tick ms, broadcast", "per pair", "commands identical"]
 
