@@ -12,7 +12,8 @@ semi-definite, int64 stamps) and the JSON schema written into logs. Keys:
     usv/<id>/sensor/sonar    Sonar         bridge -> agent   obstacle points relative to the vessel (m)
     usv/<id>/sensor/vehicle  VehicleState  driver -> agent   an autopilot's mode and arming (optional; in the status)
     usv/<id>/cmd             Cmd           agent -> bridge   surge speed (m/s), yaw rate (rad/s)
-    usv/<id>/share           ShareMessage  agent -> agents   what neighbours need
+    usv/<id>/share/<j>       ShareMessage  agent -> agent j  what neighbour j needs (share format 2)
+    usv/<id>/share           ShareMessage  agent -> agents   the same for all, every pair estimate (format 1)
     usv/<id>/status          Status        agent -> anyone   estimates, covariances, health
     usv/<id>/alive           (liveliness token of the agent)
     sim/clock                Clock         sim bridge -> all sim time, one message per tick
@@ -25,6 +26,7 @@ docs/contract.md is the page a driver-bridge author follows.
 from __future__ import annotations
 
 import math
+import re
 from typing import Annotated, Any, ClassVar, Literal
 
 import numpy as np
@@ -42,12 +44,17 @@ MISSION_ALL = "all"      # mission/all: every vessel; mission/<id>: one
 MAX_RADIUS = 1e4         # m: the largest circle a mission command may ask for
 MAX_YAW_RATE = math.pi   # rad/s: the fastest circling a mission command may ask for (a lap in 2 s)
 LIVELINESS = "alive"
+SHARE = "share"
+# The share's format. 1: one message on usv/<id>/share to every agent, with all n - 1 pair estimates. 2: one
+# message per receiver j on usv/<id>/share/<j>, with j's estimate only, so that Zenoh routes each to j alone.
+SHARE_FORMAT = 2
 # A pair's observability verdicts as the status states them; the core computes them (agent/core/observability.py,
 # whose VERDICTS a test holds equal to these).
 VERDICTS = ("observable", "mirror-ambiguous", "unobservable")
 
 VESSEL_ID_PATTERN = r"^[A-Za-z0-9_-]{1,32}$"
 VesselId = Annotated[str, Field(pattern=VESSEL_ID_PATTERN)]
+_VESSEL_ID = re.compile(VESSEL_ID_PATTERN.replace("$", r"\Z"))
 MAX_SONAR_POINTS = 4096
 MAX_PEERS = 256
 # Physical limits of what a payload may say. Each is far beyond any mission and far inside what float arithmetic
@@ -139,6 +146,25 @@ def key(vessel: str, topic: str) -> str:
 def gnss_truth_key(vessel: str) -> str:
     """`usv/<vessel>/truth/gnss`: the driver's GNSS fixes (GnssFix), outside every agent's subscriptions."""
     return f"{FLEET_PREFIX}/{vessel}/{GNSS_TRUTH_TOPIC}"
+
+
+def share_key(sender: str, receiver: str | None = None) -> str:
+    """`usv/<sender>/share/<receiver>` (format 2), or `usv/<sender>/share` for every agent (None: format 1)."""
+    return key(sender, SHARE) if receiver is None else f"{key(sender, SHARE)}/{receiver}"
+
+
+def shares_for(receiver: str) -> str:
+    """Key expression of every sender's per-pair share to `receiver` (format 2)."""
+    return share_key("*", receiver)
+
+
+def share_receivers(key_expr: str) -> str | None:
+    """Who receives a share published on `key_expr`: the receiver of a per-pair key, "*" for a broadcast
+    key (every agent but the sender), None for a key that holds no share."""
+    parts = str(key_expr).split("/")
+    if len(parts) < 3 or parts[0] != FLEET_PREFIX or parts[2] != SHARE or len(parts) > 4:
+        return None
+    return parts[3] if len(parts) == 4 else "*"
 
 
 def every(topic: str) -> str:
@@ -498,6 +524,25 @@ def _invalid(name: str, error: ValidationError, within: tuple[str, ...] = ()) ->
 
 def encode(message: StrictModel) -> bytes:
     return message.model_dump_json().encode("utf-8")
+
+
+def encode_per_pair(message: ShareMessage, receivers) -> dict[str, bytes]:
+    """Format 2: each of `receivers` -> the bytes `encode` gives of `message` with only that receiver's pair
+    estimate (none if it has none). The body is encoded once and each estimate spliced in (`neighbours` is the
+    last field), so a sender encodes n - 1 estimates a tick, as in format 1, and n - 1 short joins. A receiver
+    that is no vessel id (a liveliness token's key may hold other characters) is left out."""
+    body = message.model_copy(update={"neighbours": {}}).model_dump_json().encode("utf-8")
+    if not body.endswith(b'"neighbours":{}}'):
+        raise ValueError("a share's neighbours must be its last field")
+    head = body[:-2]
+    payloads = {}
+    for receiver in receivers:
+        if not _VESSEL_ID.match(receiver):
+            continue
+        estimate = message.neighbours.get(receiver)
+        payloads[receiver] = body if estimate is None else b"".join(
+            (head, b'"', receiver.encode("utf-8"), b'":', estimate.model_dump_json().encode("utf-8"), b"}}"))
+    return payloads
 
 
 # ----- time on the wire: whole nanoseconds -----

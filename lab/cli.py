@@ -17,7 +17,7 @@ Experiments (lab/experiments/):
     usv-lab sea-wind        the wind's leeway: odometry, radius and the leeway model, with and without
     usv-lab driver-loop     the driver bridge's inner loop on the Otter, the rate from a VHW compass
 Benchmarks (lab/benchmarks/):
-    usv-lab bench, fleet-bench, runtime-bench, runtime-ab, hull-ab, cluster-bench, sea-bench, fuzz,
+    usv-lab bench, fleet-bench, runtime-bench, runtime-ab, hull-ab, cluster-bench, share-bench, sea-bench, fuzz,
     serial-fuzz, mavlink-fuzz
 
 A subcommand is a module with `add_arguments(parser)` and `run(args) -> exit code`, or, for a module of
@@ -53,6 +53,8 @@ SUBCOMMANDS = {
     "fleet-bench": ("lab.benchmarks.fleet", "Table II Monte Carlo wall time, tick cost by fleet size"),
     "runtime-bench": ("lab.benchmarks.runtime",
                       "Zenoh runtime: sensor-to-command latency, lockstep real-time factor, memory"),
+    "share-bench": ("lab.benchmarks.shares",
+                    "shares broadcast against per pair: bytes and decode CPU per agent per tick, by fleet size"),
     "cluster-bench": ("lab.benchmarks.cluster",
                       "the same Monte Carlo campaign on the process pool and a local Dask cluster"),
     "runtime-ab": ("lab.benchmarks.runtime_ab",

@@ -310,19 +310,27 @@ def test_the_truth_check_finds_a_made_up_reader():
 
 
 def test_no_key_the_agent_subscribes_to_matches_the_gnss_truth():
-    """The agent's subscriptions (agent/shell/node.py: its own sensors, every share, mission commands, the
+    """The agent's subscriptions (agent/shell/node.py: its own sensors, the shares to it in both formats, mission commands, the
     sim clock and the liveliness tokens), as zenoh key expressions, against the truth key."""
     import zenoh
 
-    from agent.contract import CLOCK_KEY, FLEET_PREFIX, LIVELINESS, MISSION_PREFIX, every, gnss_truth_key
+    from agent.contract import (
+        CLOCK_KEY,
+        FLEET_PREFIX,
+        LIVELINESS,
+        MISSION_PREFIX,
+        every,
+        gnss_truth_key,
+        shares_for,
+    )
     source = (ROOT / "agent" / "shell" / "node.py").read_text(encoding="utf-8")
-    subscribed = ['f"{FLEET_PREFIX}/{self.id}/sensor/*"', 'every("share")', 'f"{MISSION_PREFIX}/*"',
-                  "CLOCK_KEY", "every(LIVELINESS)"]
+    subscribed = ['f"{FLEET_PREFIX}/{self.id}/sensor/*"', "shares_for(self.id)", 'every("share")',
+                  'f"{MISSION_PREFIX}/*"', "CLOCK_KEY", "every(LIVELINESS)"]
     assert source.count("declare_subscriber(") == len(subscribed), "a subscription was added: list it here"
     assert all(f"declare_subscriber({expression}" in source for expression in subscribed)
     vessel = "1"
-    expressions = [f"{FLEET_PREFIX}/{vessel}/sensor/*", every("share"), f"{MISSION_PREFIX}/*", CLOCK_KEY,
-                   every(LIVELINESS)]
+    expressions = [f"{FLEET_PREFIX}/{vessel}/sensor/*", shares_for(vessel), every("share"), f"{MISSION_PREFIX}/*",
+                   CLOCK_KEY, every(LIVELINESS)]
     truth = zenoh.KeyExpr(gnss_truth_key(vessel))
     assert not [e for e in expressions if zenoh.KeyExpr(e).intersects(truth)]
     assert zenoh.KeyExpr(f"{FLEET_PREFIX}/*/**").intersects(truth)   # the check can see a match

@@ -2,8 +2,9 @@
 
 What the fleet publishes on Zenoh becomes the topics, frames and schemas of the MCAP logs, so one Foxglove
 layout (docs/foxglove_layout.json, `usv-op layout`) shows a live fleet and a recorded one alike:
-- from each agent's share: `/<id>/tf` (foxglove.FrameTransforms), its hull and where it believes each
-  neighbour and the target are (agent/runtime/foxglove.py `estimate_links`, as its log draws them);
+- from each agent's shares: `/<id>/tf` (foxglove.FrameTransforms), its hull and where it believes each
+  neighbour and the target are (agent/runtime/foxglove.py `estimate_links`, as its log draws them); in share
+  format 2 each of a tick's n - 1 shares holds one estimate: the tf has those of its last two shares;
 - from each agent's status: `usv/<id>/status` as it went out (health figures to plot), and once a second
   `/<id>/scene` (foxglove.SceneUpdate), the circle it steers to around its target estimate;
 - from the sim bridge in real time (`sim/truth`): `/tf`, the ground truth in `world`, and once a second
@@ -62,10 +63,13 @@ class LiveView:
         self._scenes: dict[str, tuple[float, frames.StaticScene]] = {}   # topic -> (radius, scene)
         self._next_scene: dict[str, float] = {}
         self._radius: float | None = None
+        # sender -> (its newest share's stamp, its estimates in it and in the one before: j -> (x, y))
+        self._beliefs: dict[str, tuple[int, dict, dict]] = {}
         self._lock = threading.Lock()
 
     def subscribe(self, session) -> list:
-        return [session.declare_subscriber(every("share"), self.on_share),
+        # Both share formats: each per-pair share (format 2) brings the estimate of its receiver only.
+        return [session.declare_subscriber(f"{every('share')}/**", self.on_share),
                 session.declare_subscriber(every("status"), self.on_status),
                 session.declare_subscriber(TRUTH_KEY, self.on_truth),
                 session.declare_subscriber(gnss_truth_key("*"), self.on_gnss)]
@@ -77,8 +81,18 @@ class LiveView:
             self._refuse()
             return
         target = None if share.target is None else (share.target[0], share.target[1])
+        estimates = {j: (e.position[0], e.position[1]) for j, e in share.neighbours.items()}
+        with self._lock:   # with the sender's other estimates of this share and of its share before
+            stamp, current, before = self._beliefs.get(share.sender, (-1, {}, {}))
+            if share.stamp_ns >= stamp:
+                if share.stamp_ns > stamp:
+                    current, before = {}, current
+                current.update(estimates)
+                estimates = before | current
+                if share.sender in self._beliefs or len(self._beliefs) < self.max_vessels:
+                    self._beliefs[share.sender] = (share.stamp_ns, current, before)
         links = frames.estimate_links(share.sender, share.heading,
-                                      [(j, e.position[0], e.position[1]) for j, e in share.neighbours.items()], target)
+                                      [(j, x, y) for j, (x, y) in estimates.items()], target)
         self._log(f"/{share.sender}/tf", frames.FrameTransforms, frames.transforms(share.stamp_ns, links),
                   ("tf", share.sender))
 

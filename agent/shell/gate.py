@@ -6,9 +6,9 @@ its own rate, and each set is a measurement at its own time), never blocks on I/
 last few reasons kept for the log). `snapshot(now)` turns what is fresh into the tick's `TickInputs`.
 
 What is refused, in the order it is checked (the cheap checks come before decoding):
-- a key the agent does not read (`unexpected_key`), a share from a vessel whose liveliness token is not
-  live (`unknown_sender`: a share alone never makes a neighbour), a new sender beyond MAX_PEERS
-  (`too_many_peers`);
+- a key the agent does not read (`unexpected_key`; a share to another vessel too), a share from a vessel
+  whose liveliness token is not live (`unknown_sender`: a share alone never makes a neighbour), a new sender
+  beyond MAX_PEERS (`too_many_peers`); shares of both formats are judged alike, one stamp mark per sender;
 - more than `max_rate` messages per second on one key, with bursts of `burst` (`rate_limited`, a token
   bucket per key, so a flood costs a dictionary look-up per message and no decoding);
 - an undecodable or invalid payload (`malformed`: wrong types, NaN, inf, values beyond the contract's
@@ -49,6 +49,7 @@ from agent.contract import (
     decode,
     nanoseconds,
     seconds,
+    share_key,
     vessel_of,
 )
 from agent.core.records import Share, TickInputs
@@ -172,6 +173,7 @@ class InputGate:
         # Present from the start at 0: the status's health carries them, and a plot of an absent field is empty.
         self.rejected: Counter[str] = Counter(dict.fromkeys(ALWAYS_COUNTED, 0))
         self.accepted: Counter[str] = Counter()
+        self.received: Counter[str] = Counter(shares_received=0, share_bytes_received=0)
         self.recent_reasons: deque[str] = deque(maxlen=keep_reasons)
         self._lock = threading.Lock()
         self._arrival = threading.Condition(self._lock)
@@ -201,12 +203,20 @@ class InputGate:
     def _offer(self, key: str, payload, now: float | None) -> bool:
         vessel = vessel_of(key)
         topic = key.split("/", 2)[2] if vessel is not None else ""
+        per_pair = topic.startswith("share/")
+        if per_pair:   # format 2: a share to one receiver, usv/<sender>/share/<receiver>
+            if topic != f"share/{self.id}":
+                return self._refuse("unexpected_key", key)
+            topic = "share"
         model = TOPICS.get(topic)
         if topic == "share" and vessel == self.id:
             return False  # our own share, echoed by a subscription to every vessel's
         if model is None or topic not in (*OWN_KEYS, "share") or topic in OWN_KEYS and vessel != self.id:
             return self._refuse("unexpected_key", key)
         if topic == "share":
+            with self._lock:   # what the shares cost on the wire (status: shares_received, share_bytes_received)
+                self.received["shares_received"] += 1
+                self.received["share_bytes_received"] += len(payload)
             if self.known_peers is not None and vessel not in self.known_peers():
                 return self._refuse("unknown_sender", f"{key}: no liveliness token")
             if vessel not in self._senders:
@@ -226,6 +236,8 @@ class InputGate:
         mine = None
         if topic == "share":
             mine, reason = message.estimate_for(self.id)
+            if per_pair and len(message.neighbours) > (self.id in message.neighbours):
+                reason = "ShareMessage: neighbours: a share to one receiver carries other vessels' estimates"
             if reason:
                 return self._refuse("malformed", f"{key}: {reason}")
         if message.sender != vessel:
@@ -383,7 +395,8 @@ class InputGate:
             self._held_count.pop(vessel, None)
             for mark in [k for k in self._last_stamp if k[1] == vessel]:
                 del self._last_stamp[mark]
-            self._buckets.pop(f"usv/{vessel}/share", None)
+            self._buckets.pop(share_key(vessel), None)
+            self._buckets.pop(share_key(vessel, self.id), None)
             self._senders.discard(vessel)
             self.offsets.forget(vessel)
 

@@ -28,6 +28,7 @@ from agent.contract import (
     key,
     nanoseconds,
     seconds,
+    shares_for,
     vessel_of,
 )
 from agent.core.build import InitialEstimates, initial_state
@@ -108,11 +109,13 @@ class AgentNode:
             # One subscriber for all four sensors: each subscriber is a thread of zenoh-python's, and a message
             # handed across threads costs more CPU than decoding it (docs/results/runtime_benchmark.md).
             subscribers = [session.declare_subscriber(f"{FLEET_PREFIX}/{self.id}/sensor/*", self._on_input),
+                           session.declare_subscriber(shares_for(self.id), self._on_input),
+                           # Format 1 senders (older agents; nothing comes here in a fleet of format 2).
                            session.declare_subscriber(every("share"), self._on_input),
                            session.declare_subscriber(f"{MISSION_PREFIX}/*", self._on_mission),
                            *([session.declare_subscriber(CLOCK_KEY, self._on_clock)] if sim else [])]
             token = session.liveliness().declare_token(key(self.id, LIVELINESS))
-            publishers = declare_publishers(session, self.id, sim)
+            publishers = declare_publishers(session, self.id, sim, self.settings.share_format)
             started = opened = time.monotonic()
             cpu_started = time.process_time()
             watch = SensorWatch(self._say, self.settings.no_sensor_warning, opened)
@@ -174,7 +177,7 @@ class AgentNode:
         driver_stamp = stamp if clock is not None else nanoseconds(now + self.gate.offsets.applied)
         command, wire = self.outbox.command(publishers, driver_stamp, output.command)
         self.ticker.answered(tick_cpu)
-        self.outbox.share(publishers, output.share)
+        self.outbox.share(publishers, output.share, self._live_view)
         status, status_wire = self._status(publishers, stamp, (command.surge, command.yaw_rate), output.record)
         self.recorder.tick(stamp, inputs if inputs is not None else TickInputs(time=now, odometry=None), output,
                            command, status, {"cmd": wire, "status": status_wire}, self.orders.judged(), self.state,

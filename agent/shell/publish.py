@@ -14,7 +14,7 @@ from collections.abc import Callable
 
 import zenoh
 
-from agent.contract import Cmd, Status, WeakestPair, encode, key
+from agent.contract import SHARE_FORMAT, Cmd, Status, WeakestPair, encode, encode_per_pair, key, share_key
 from agent.core.observability import MIRROR_AMBIGUOUS, UNOBSERVABLE
 from agent.core.records import Command, Share, TickRecord
 from agent.shell.translate import message_from_share
@@ -22,18 +22,39 @@ from agent.shell.translate import message_from_share
 Health = Callable[[TickRecord | None], dict[str, int]]
 
 
-def declare_publishers(session, vessel: str, sim: bool) -> dict:
-    """The agent's three publishers on `session`. On sim time nothing may be dropped by Zenoh (the simulated
-    radio decides what is lost, and lockstep waits for every message); at sea a late command or share is worth
-    less than a new one. The command goes express, at real-time priority."""
+def declare_publishers(session, vessel: str, sim: bool, share_format: int = SHARE_FORMAT) -> dict:
+    """The agent's publishers on `session`: command, status and share (one to all in share format 1, one per
+    receiver in format 2). On sim time nothing may be dropped by Zenoh (the simulated radio decides what is
+    lost, and lockstep waits for every message); at sea a late command or share is worth less than a new one.
+    The command goes express, at real-time priority."""
     congestion = zenoh.CongestionControl.BLOCK if sim else zenoh.CongestionControl.DROP
+    # Our own subscription to every vessel's share (format 1) would hand ours straight back to us.
+    share_options = {"congestion_control": congestion, "allowed_destination": zenoh.Locality.REMOTE}
     return {
         "cmd": session.declare_publisher(key(vessel, "cmd"), express=True, priority=zenoh.Priority.REAL_TIME,
                                          congestion_control=congestion),
-        # Our own subscription to every vessel's share would hand ours straight back to us.
-        "share": session.declare_publisher(key(vessel, "share"), congestion_control=congestion,
-                                           allowed_destination=zenoh.Locality.REMOTE),
+        "share": PairPublishers(session, vessel, share_options) if share_format == 2
+        else session.declare_publisher(share_key(vessel), **share_options),
         "status": session.declare_publisher(key(vessel, "status"), congestion_control=congestion)}
+
+
+class PairPublishers:
+    """Share format 2: a publisher on `usv/<vessel>/share/<j>` for each receiver j, declared when j is first
+    sent to and undeclared when a share goes out without it (its liveliness token went away)."""
+
+    def __init__(self, session, vessel: str, options: dict) -> None:
+        self.session, self.vessel, self.options = session, vessel, options
+        self.publishers: dict[str, object] = {}
+
+    def put_each(self, payloads: dict[str, bytes]) -> None:
+        for receiver in [j for j in self.publishers if j not in payloads]:
+            self.publishers.pop(receiver).undeclare()
+        for receiver, payload in payloads.items():
+            publisher = self.publishers.get(receiver)
+            if publisher is None:
+                publisher = self.publishers[receiver] = self.session.declare_publisher(
+                    share_key(self.vessel, receiver), **self.options)
+            publisher.put(payload)
 
 
 class Outbox:
@@ -53,12 +74,19 @@ class Outbox:
         publishers["cmd"].put(wire)
         return message, wire
 
-    def share(self, publishers, share: Share | None) -> bool:
-        """Publish the tick's share, if it has one the contract takes; whether it went out."""
+    def share(self, publishers, share: Share | None, receivers=()) -> bool:
+        """Publish the tick's share, if it has one the contract takes, to all (format 1: `publishers["share"]`
+        has `put`) or to each of `receivers` and each vessel it has an estimate of (format 2: `put_each`);
+        whether it went out. In format 2 the same `seq` goes to every receiver: it counts the sender's shares."""
         shared = False
         if share is not None:
             try:
-                publishers["share"].put(encode(message_from_share(share, self.seq["share"])))
+                message = message_from_share(share, self.seq["share"])
+                out = publishers["share"]
+                if hasattr(out, "put_each"):
+                    out.put_each(encode_per_pair(message, sorted({*receivers, *message.neighbours})))
+                else:
+                    out.put(encode(message))
                 self._next("share")
                 shared = True
             except Exception as error:  # noqa: BLE001  (an estimate beyond the contract's limits: not sent, counted)
@@ -103,14 +131,15 @@ class Outbox:
 
 def health(record: TickRecord | None, gate, peers, *parts) -> dict[str, int]:
     """The status's counters: the core's of this tick (and its pairs whose relative motion leaves them short of
-    observable: gauges, not counts), the input gate's refusals by reason, the peer table's, and each of the
-    shell's `parts`' `counts()`."""
+    observable: gauges, not counts), the input gate's refusals by reason and the shares it was handed (and
+    their bytes), the peer table's, and each of the shell's `parts`' `counts()`."""
     health = dict(record.health if record is not None else {})
     if record is not None:
         verdicts = [n.observability for n in record.neighbours.values()]
         health.update(pairs_mirror_ambiguous=verdicts.count(MIRROR_AMBIGUOUS),
                       pairs_unobservable=verdicts.count(UNOBSERVABLE))
     health.update({f"rejected_{k}": v for k, v in gate.rejected.items()})
+    health.update(gate.received)
     health.update(peers.counted(), peers_withheld=len(peers.withheld()), peers_unproven=len(peers.unproven()))
     for part in parts:
         health.update(part.counts())

@@ -22,6 +22,9 @@ class NodeSettings(StrictModel):
     zenoh: ZenohSettings = ZenohSettings()
     max_input_age: PositiveFloat = Field(1.0, description="inputs older than this (s) are ignored")
     share_wait: PositiveFloat = Field(2.0, description="sim lockstep: wall seconds to wait for neighbours' shares")
+    # 1 only while a fleet still has agents that predate format 2 (docs/contract.md, "Share format").
+    share_format: Literal[1, 2] = Field(2, description="2: a share to each neighbour on usv/<id>/share/<j>; "
+                                        "1: one to all on usv/<id>/share")
     # ----- robustness: what arrives is bounded, a failed tick is survived (agent/shell/gate.py, failures.py) -----
     max_input_future: PositiveFloat = Field(0.5, description="inputs stamped further ahead of the clock (s) are "
                                             "refused")

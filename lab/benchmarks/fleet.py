@@ -49,12 +49,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--cpu-variant", default="mckf", help="variant of the Monte Carlo file those runs come from")
     parser.add_argument("--out", type=arguments.folder, default=Path("docs/results"),
                         help="where fleet_benchmark.md goes")
-    parser.add_argument("--sizes", type=arguments.positive_int, nargs="+", default=[4, 12, 50],
-                        help="fleet sizes n of the tick-time part")
-    parser.add_argument("--duration", type=arguments.positive_float, default=20.0,
-                        help="simulated seconds of each fleet-size run")
-    parser.add_argument("--seed", type=arguments.seed, default=50,
-                        help="seed of the drawn start positions (fleet sizes the Table IV file lacks)")
+    add_size_arguments(parser, 20.0, " of the tick-time part")
     parser.add_argument("--monte-carlo", default="table2_estimators", metavar="NAME",
                         help="scenario file of part (a), as for `usv-lab scenario`")
     parser.add_argument("--scale", default="table4_scale", metavar="NAME",
@@ -62,6 +57,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scenarios-dir", type=Path, default=DEFAULT_DIR, help="where NAMEs are looked up")
     parser.add_argument("--estimators", nargs="+", choices=estimator_names(), default=["mckf", "raw_range"],
                         help="pair estimators of the tick-time part (default: the paper's and the agent's)")
+
+
+def add_size_arguments(parser: argparse.ArgumentParser, duration: float, part: str = "") -> None:
+    """--sizes, --duration and --seed of fleets built by `fleet_scenarios` (here and in `usv-lab share-bench`)."""
+    parser.add_argument("--sizes", type=arguments.positive_int, nargs="+", default=[4, 12, 50],
+                        help=f"fleet sizes n{part}")
+    parser.add_argument("--duration", type=arguments.positive_float, default=duration,
+                        help="simulated seconds of each fleet-size run")
+    parser.add_argument("--seed", type=arguments.seed, default=50,
+                        help="seed of the drawn start positions (fleet sizes the Table IV file lacks)")
 
 
 def spread_positions(count: int, seed: int, avoid: tuple[float, float]) -> list[tuple[float, float]]:

@@ -3,7 +3,7 @@
 One `usv-agent` process runs on sim time and listens on loopback. A Zenoh session plays its world: a small
 genuine mission (vessel 1, the agent's, and two neighbours 2 and 3 with live liveliness tokens, circling a
 target at the origin), and between each tick's genuine messages a batch of bad payloads on every key the
-agent subscribes to: its four sensor keys, every vessel's share (`usv/*/share`), `sim/clock` and the
+agent subscribes to: its four sensor keys, every vessel's share (`usv/*/share/1`, `usv/*/share`), `sim/clock` and the
 operator's mission keys (`mission/all`, `mission/1`; a genuine body is a harmless `set` of the radius and
 direction the mission already has). The payloads
 come from one seeded numpy Generator, in the classes listed in docs/reliability.md §4.
@@ -42,6 +42,7 @@ import numpy as np
 import yaml
 import zenoh
 
+from agent.contract import share_key
 from agent.core.params import AgentParams
 from agent.runtime.zenoh_session import ZenohSettings, zenoh_config
 from lab import arguments
@@ -170,6 +171,7 @@ class Fuzzer:
         self.rng = rng
         self.world = world
         self._phantoms = 0
+        self._share_keys = 0
 
     # ----- helpers -----
     def _pick(self, values):
@@ -189,12 +191,18 @@ class Fuzzer:
             return self.world.mission(k)
         return self.world.sensors(k)[topic]
 
+    def _share_key(self, sender: str) -> str:
+        """The agent hears shares in both formats: bad ones go to its per-pair key and to the broadcast key in
+        turn (a counter, not the Generator, so the campaign's draws are those of one key)."""
+        self._share_keys += 1
+        return share_key(sender, VESSEL if self._share_keys % 2 else None)
+
     def key_of(self, topic: str, body: dict | None = None) -> str:
         if topic == "sim/clock" or topic.startswith("mission/"):
             return topic
         if topic == "share":
             sender = body.get("sender") if isinstance(body, dict) else None
-            return f"usv/{sender if isinstance(sender, str) and sender in PEERS else self._pick(PEERS)}/share"
+            return self._share_key(sender if isinstance(sender, str) and sender in PEERS else self._pick(PEERS))
         return f"usv/{VESSEL}/{topic}"
 
     @staticmethod
@@ -314,7 +322,7 @@ class Fuzzer:
         if topic == "share":
             if rng.random() < 0.6:
                 sender = self._id()
-                return f"usv/{sender}/share", json.dumps(body | {"sender": sender}).encode()
+                return self._share_key(sender), json.dumps(body | {"sender": sender}).encode()
             if rng.random() < 0.5:
                 return key, json.dumps(body | {"sender": self._pick([p for p in PEERS if f"/{p}/" not in key])}).encode()
             many = {self._id(): {"position": [1.0, 1.0], "covariance": [0.04, 0.0, 0.04]} for _ in range(256)}
@@ -342,7 +350,7 @@ class Fuzzer:
             body = self.genuine(topic, k)
             if topic == "share":
                 sender = self._id()
-                out.append((f"usv/{sender}/share", json.dumps(body | {"sender": sender}).encode()))
+                out.append((self._share_key(sender), json.dumps(body | {"sender": sender}).encode()))
             else:
                 out.append((self.key_of(topic, body), json.dumps(body | {"seq": body["seq"] + i}).encode()))
         return out
@@ -446,7 +454,7 @@ def run_campaign(per_key: int = 5000, seed: int = 1, folder: Path | None = None,
             for topic, body in world.sensors(k).items():
                 put(f"usv/{VESSEL}/{topic}", json.dumps(body).encode())
             for j in PEERS:
-                put(f"usv/{j}/share", json.dumps(world.share(j, k)).encode())
+                put(share_key(j, VESSEL), json.dumps(world.share(j, k)).encode())
             for index in batches[k]:
                 topic, cls = plan[index]
                 if cls == "flood":
@@ -479,7 +487,7 @@ def run_campaign(per_key: int = 5000, seed: int = 1, folder: Path | None = None,
             for topic, body in world.sensors(tick).items():
                 put(f"usv/{VESSEL}/{topic}", json.dumps(body).encode())
             for j in PEERS:
-                put(f"usv/{j}/share", json.dumps(world.share(j, tick)).encode())
+                put(share_key(j, VESSEL), json.dumps(world.share(j, tick)).encode())
             stamp = round(tick * DT * SECOND)
             put("sim/clock", json.dumps(world.clock(tick)).encode())
             _wait(lambda stamp=stamp: stamp in stamps or process.poll() is not None, 1.0)
@@ -752,7 +760,7 @@ class AttackHarness:
                 self.put(f"usv/{VESSEL}/{topic}", json.dumps(body).encode())
             for j, speaker in speakers.items():
                 if speaker is not None:
-                    self.put(f"usv/{j}/share", json.dumps(speaker(j, k)).encode())
+                    self.put(share_key(j, VESSEL), json.dumps(speaker(j, k)).encode())
             self.put("sim/clock", json.dumps(self.world.clock(k)).encode())
             with self.lock:
                 self.k += 1
@@ -961,7 +969,7 @@ class AttackHarness:
             except ValueError:
                 pass
 
-        watcher = self.session.declare_subscriber(f"usv/{VESSEL}/share", on_share)
+        watcher = self.session.declare_subscriber(f"{share_key(VESSEL)}/**", on_share)   # either format
         self.wait_ticks(round(PROOF_WAIT / DT))
         watcher.undeclare()
         health = self.latest().get("health", {})

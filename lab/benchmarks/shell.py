@@ -20,8 +20,9 @@ from pathlib import Path
 import numpy as np
 
 import agent.shell.node as node_module
-from agent.contract import CLOCK_KEY, encode, key
+from agent.contract import CLOCK_KEY, SHARE_FORMAT, encode, share_receivers
 from agent.shell.node import AgentNode
+from agent.shell.publish import declare_publishers
 from agent.shell.settings import NodeSettings
 from sim_bridge.bridge import BridgeSettings, SimBridge
 from sim_bridge.fleet import agent_configs
@@ -59,6 +60,9 @@ class _Publisher:
     def put(self, payload: bytes) -> None:
         self.wire.sent.append((self.key_expr, bytes(payload)))
 
+    def undeclare(self) -> None:
+        pass
+
 
 @dataclass
 class _Sample:
@@ -81,6 +85,9 @@ class ShellRun:
     vessels: list[str]
     seconds: dict[str, float] = field(default_factory=lambda: dict.fromkeys((*AGENT_SECTIONS, "bridge"), 0.0))
     commands: np.ndarray | None = None     # (ticks, vessels, 2): surge and yaw rate as published
+    share_bytes: int = 0          # share payloads delivered to agents, all ticks (Zenoh's framing not counted)
+    share_messages: int = 0       # ... and how many
+    share_seconds: float = 0.0    # of the inputs' CPU: the agents' callbacks on those shares
 
     def per_tick_ms(self, section: str) -> float:
         """Mean CPU milliseconds per tick: of one agent for an agent section, of the bridge for "bridge"."""
@@ -106,16 +113,18 @@ class _Timed:
             self.run.seconds[self.section] += time.thread_time() - started
 
 
-def run_shells(scenario: Scenario, folder: Path | None = None, between_ticks=None) -> ShellRun:
+def run_shells(scenario: Scenario, folder: Path | None = None, between_ticks=None,
+               share_format: int = SHARE_FORMAT) -> ShellRun:
     """One lockstep run of `scenario` (every vessel there from start to end) through the sim bridge's and the
     agents' shells, timed by section; the logs go to `folder` (a temporary folder if None).
     `between_ticks(k, nodes)`, if given, is called once every agent has ticked k (and before the world moves
-    on): what arrives then is the next tick's."""
+    on): what arrives then is the next tick's. The agents send shares in `share_format` (docs/contract.md),
+    each delivered as Zenoh would route it."""
     with tempfile.TemporaryDirectory() as scratch:
-        return _run(scenario, Path(folder or scratch), between_ticks)
+        return _run(scenario, Path(folder or scratch), between_ticks, share_format)
 
 
-def _run(scenario: Scenario, folder: Path, between_ticks) -> ShellRun:
+def _run(scenario: Scenario, folder: Path, between_ticks, share_format: int) -> ShellRun:
     folder.mkdir(parents=True, exist_ok=True)
     ids = [v.id for v in scenario.world.vessels]
     if any(v.join_time > 0 or v.leave_time is not None for v in scenario.world.vessels):
@@ -126,8 +135,7 @@ def _run(scenario: Scenario, folder: Path, between_ticks) -> ShellRun:
     configs = agent_configs(scenario, None, folder, lambda vessel: {})
     nodes = {v: AgentNode(v, NodeSettings.model_validate(configs[v])) for v in ids}
     wire = {v: _Wire() for v in ["bridge", *ids]}
-    publishers = {v: {topic: wire[v].declare_publisher(key(v, topic)) for topic in ("cmd", "share", "status")}
-                  for v in ids}
+    publishers = {v: declare_publishers(wire[v], v, True, share_format) for v in ids}
     core_step = node_module.step
     node_module.step = _Timed(core_step, run, "core")
     try:
@@ -154,9 +162,13 @@ def _run(scenario: Scenario, folder: Path, between_ticks) -> ShellRun:
                 for key_expr, payload in published:
                     if key_expr.startswith(f"usv/{vessel}/"):
                         node._on_input(_Sample(key_expr, payload))
+                sharing = time.thread_time()
                 for key_expr, payload in shares:
-                    if not key_expr.startswith(f"usv/{vessel}/"):
+                    if share_receivers(key_expr) in (vessel, "*") and not key_expr.startswith(f"usv/{vessel}/"):
                         node._on_input(_Sample(key_expr, payload))
+                        run.share_bytes += len(payload)
+                        run.share_messages += 1
+                run.share_seconds += time.thread_time() - sharing
                 node._on_clock(_Sample(CLOCK_KEY, published[-1][1]))
                 node.ticker.clocked.clear()
                 ticking = time.thread_time()
