@@ -14,7 +14,7 @@ thrust. Each device (an autopilot too) is one adapter; this file only wires them
     usv/<id>/cmd, autopilot <-> MavlinkVehicle (`mavlink`): GUIDED set points; its state -> sensor/odom
 
 The watchdog is the adapter's: with no fresh command the thrusters get zero. Stamps are wall time (the
-clock the agents run on at sea). One thread reads the ports (select); the Zenoh callback only stores the
+clock the agents run on at sea), or with `clock: sim` the sim bridge's sim/clock (a simulated fleet's stand-ins). One thread reads the ports (select); the Zenoh callback only stores the
 latest command (and wakes the loop for an autopilot). SIGINT and SIGTERM stop it, with a last zero-thrust
 line (an autopilot: a zero set point and HOLD).
 
@@ -41,7 +41,19 @@ import zenoh
 from pydantic import Field, model_validator
 
 from agent.config import PositiveFloat, StrictModel
-from agent.contract import LIVELINESS, Bearing, Cmd, Odometry, Ranges, decode, encode, gnss_truth_key, key
+from agent.contract import (
+    CLOCK_KEY,
+    LIVELINESS,
+    Bearing,
+    Clock,
+    Cmd,
+    Odometry,
+    Ranges,
+    decode,
+    encode,
+    gnss_truth_key,
+    key,
+)
 from agent.runtime.mcap_log import McapLog
 from agent.runtime.process import stop_on_signals, vessel_process
 from agent.runtime.zenoh_session import ZenohSettings, zenoh_config
@@ -136,6 +148,8 @@ class DriverSettings(StrictModel):
     mavlink: MavlinkSettings | None = Field(None, description="an ArduPilot autopilot: it drives the vessel and "
                                             "gives its odometry (docs/boats.md)")
     commands: CommandWindow = CommandWindow()
+    clock: Literal["wall", "sim"] = Field("wall", description="wall: a boat's; sim: the sim bridge's sim/clock "
+                                          "(usv-fleet run --vehicle mavlink)")
 
     @model_validator(mode="after")
     def _measured(self) -> DriverSettings:
@@ -155,7 +169,8 @@ class DriverBridge:
                  report: Callable[[str], None] | None = None) -> None:
         self.id = vessel
         self.settings = settings
-        self.clock_ns = clock_ns
+        self.clock_ns = clock_ns if settings.clock == "wall" else self._sim_ns
+        self._sim_stamp = 0   # clock: sim: the stamp of the latest sim/clock (ns)
         self._report = report or (lambda line: print(line, file=sys.stderr, flush=True))
         self._reported: tuple[float, dict] = (-math.inf, {})
         self.stopping = threading.Event()
@@ -260,6 +275,16 @@ class DriverBridge:
                 self.command_gate.forget()
                 self._agent_left = True
             self._wake_loop()
+
+    def _sim_ns(self) -> int:
+        return self._sim_stamp
+
+    def _on_sim_clock(self, sample) -> None:
+        message, _ = decode(Clock, sample.payload.to_bytes())
+        if message is None:
+            self.refused["clock_malformed"] += 1
+        else:
+            self._sim_stamp = message.stamp_ns
 
     def _publish(self, publishers, topic: str, message) -> None:
         publishers[topic].put(encode(message))
@@ -410,6 +435,8 @@ class DriverBridge:
                 if self.gnss is not None:   # truth: a key outside every agent's subscriptions
                     publishers["truth/gnss"] = session.declare_publisher(gnss_truth_key(self.id))
                 subscriber = session.declare_subscriber(key(self.id, "cmd"), self._on_command)
+                clock = (session.declare_subscriber(CLOCK_KEY, self._on_sim_clock)
+                         if self.settings.clock == "sim" else None)
                 agent = session.liveliness().declare_subscriber(key(self.id, LIVELINESS), self._on_agent_liveliness,
                                                                  history=True)
                 period = (1.0 / self.settings.thrusters.lines_per_second() if self.thrusters
@@ -445,6 +472,8 @@ class DriverBridge:
                     ports["thrusters"].write(command_line(ZERO_THRUST))
                 subscriber.undeclare()
                 agent.undeclare()
+                if clock is not None:
+                    clock.undeclare()
         finally:
             try:
                 if "thrusters" in ports:
