@@ -13,9 +13,9 @@ thrust. Each device (an autopilot too) is one adapter; this file only wires them
                                    speed log and yaw) -> $THR lines at the loop's `loop_hz`
     usv/<id>/cmd, autopilot <-> MavlinkVehicle (`mavlink`): GUIDED set points; its state -> sensor/odom
 
-The watchdog is the adapter's: with no fresh command the thrusters get zero. Stamps are wall time (the
-clock the agents run on at sea), or with `clock: sim` the sim bridge's sim/clock (a simulated fleet's stand-ins). One thread reads the ports (select); the Zenoh callback only stores the
-latest command (and wakes the loop for an autopilot). SIGINT and SIGTERM stop it, with a last zero-thrust
+The watchdog is the adapter's: with no fresh command the thrusters get zero. Stamps are wall time (at sea),
+or `clock: sim` the sim bridge's sim/clock (MAVLink stand-ins). One thread reads the ports (select); the
+Zenoh callback only stores the latest command (and wakes the loop for an autopilot). SIGINT and SIGTERM stop it, with a last zero-thrust
 line (an autopilot: a zero set point and HOLD).
 
 No line or frame ends the process: that would take the watchdog's stop with it. Each adapter bounds what

@@ -51,9 +51,8 @@ STREAM_OF = {6: (LOCAL_POSITION_NED_ID,), 10: (ATTITUDE_ID,), 0: (ATTITUDE_ID, L
 DEFAULT_INTERVAL = 0.25   # s: 4 Hz until asked otherwise (our choice; ArduPilot's SRx_ parameters set it)
 STEP = 0.005              # s: the loop's period
 HULL_STEP = 0.02          # s: the hull's substep with --preset (the sim's default dynamics step)
-# Relayed: boot time = sim time + this, and TIMESYNC answers so: the driver stamps the pose of sim time t at t
-# exactly (the agents' shares carry their odometry's stamp, which must be the tick's); the pose of t = 0 it
-# refuses (stamp 0 is no stamp), so each agent's first tick goes without odometry.
+# Relayed: boot time = sim time + this (no time_boot_ms of 0), and TIMESYNC answers so: the driver stamps the
+# pose of sim time t at t exactly (an agent's share carries its odometry's stamp, which must be the tick's).
 RELAY_BOOT_NS = 1_000_000_000
 
 
@@ -275,7 +274,7 @@ def main(argv: list[str] | None = None) -> int:
     relay = None
     if args.sim is not None:
         from sim_bridge.standin_relay import SimRelay
-        relay = SimRelay(args.sim, args.vessel, standin)
+        relay = SimRelay(args.sim, args.vessel, standin, MODES)
         standin.arrival = relay.arrival
     spoken = False   # an udpin link has nobody to send to until someone speaks
     try:

@@ -77,8 +77,8 @@ class BridgeSettings(StrictModel):
     # A status stamped further ahead is refused too; sim time, wall time in the sea mode.
     max_command_skew: PositiveFloat = Field(
         1.0, description="a command stamped further than this from the bridge's clock is refused and counted (s)")
-    autopilots: list[str] = Field([], description="vessels an ArduPilot stand-in drives (usv-fleet --vehicle "
-                                  "mavlink): their odometry goes to it, their commands come from it")
+    # usv-fleet run --vehicle mavlink: their odometry goes to the stand-in, their commands come from it
+    autopilots: list[str] = Field([], description="vessels an ArduPilot stand-in drives (autopilot_relay.py)")
     # The bridge waits for it once the agents are ready; None: sim time 0 is the moment they are.
     epoch_ns: int | None = Field(
         None, ge=0, description="sea mode: the wall time of sim time 0 (ns since 1970); None: agents ready")

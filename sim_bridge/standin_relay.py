@@ -24,7 +24,6 @@ import zenoh
 from agent.angles import wrap_angle
 from agent.contract import Cmd, Odometry, decode, encode, key
 from agent.runtime.zenoh_session import ZenohSettings, zenoh_config
-from sim_bridge.ardupilot_standin import MODES
 from sim_bridge.autopilot_relay import Drive, as_sent, drive_key, pose_key
 
 MAX_POSES = 64        # poses queued between two turns of the loop (the oldest dropped)
@@ -33,8 +32,8 @@ MATCH_NS = 1_000_000_000   # a command and a set point further apart than this a
 
 
 class SimRelay:
-    def __init__(self, endpoint: str, vessel: str, standin) -> None:
-        self.vessel, self.standin = vessel, standin
+    def __init__(self, endpoint: str, vessel: str, standin, modes: dict[int, str]) -> None:
+        self.vessel, self.standin, self.modes = vessel, standin, modes
         self.session = zenoh.open(zenoh_config(ZenohSettings(connect=[endpoint])))
         self._lock = threading.Lock()
         self._poses: deque[Odometry] = deque(maxlen=MAX_POSES)
@@ -128,7 +127,7 @@ class SimRelay:
             return
         self._publisher.put(encode(Drive(stamp_ns=max(s.posed or 0, 0), sender=self.vessel, setpoint=setpoint,
                                          drive=(float(s.u), float(s.r)),
-                                         mode=MODES.get(s.mode, str(s.mode)), armed=s.armed)))
+                                         mode=self.modes.get(s.mode, str(s.mode)), armed=s.armed)))
 
     def close(self) -> None:
         for subscriber in self._subscribers:
