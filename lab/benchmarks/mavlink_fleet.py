@@ -151,7 +151,8 @@ def render(args, path: Path, spec, results: dict, killed: dict) -> str:
         "the last at 2 Hz too); its added latency runs from the command reaching the stand-in's process over "
         "Zenoh (as it reaches the sim bridge without MAVLink) to the stand-in taking the set point from the "
         "driver (negative when the set point came first). The agent commands once a tick: 10 a second in real "
-        "time, faster in lockstep. New set points not matched: the first zero set point of each vessel.",
+        "time, faster in lockstep. A new set point not matched is one that differs from the last and matched no "
+        "command of the agent within 1 s (the driver's zero set points before the agent's first command).",
         "",
         markdown_table(["seed", "mode", "fresh set points", "new, not matched", "fresh a second per vessel",
                         "added p50 (ms)", "added p99 (ms)", "added max (ms)"], paths),
