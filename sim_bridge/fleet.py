@@ -552,11 +552,25 @@ class Fleet:
         once on a second stop signal); wait for all of them."""
         self._note_memory()
         processes = {name: p for name, p in [*((self._name(v), p) for v, p in self.agents.items()),
-                                             *self.boats.items(), ("bridge", self.bridge)] if p is not None}
+                                             ("bridge", self.bridge)] if p is not None}
+        # The vessels' stand-ins and drivers last, as aboard: each driver sees its agent go and holds the boat.
+        signals = len(self.signals)
+        for phase in (processes, self.boats):
+            self._stop_phase(phase, signals)
+        for console in self.consoles.values():
+            unwritten = console.close()
+            if unwritten is not None:
+                self.unwritten.append(unwritten)
+        peaks = {"peak_resident_mb": dict(sorted(self.peak_memory.items()))}
+        self.write_file("memory.json", json.dumps(peaks, indent=2))
+
+
+    def _stop_phase(self, processes: dict[str, subprocess.Popen], signals: int) -> None:
+        """SIGTERM to each of `processes` still running; SIGKILL to those still running STOP_SECONDS later (or
+        at once once more than `signals` stop signals came); wait for all of them."""
         for process in processes.values():
             if process.poll() is None:
                 process.send_signal(signal.SIGTERM)
-        signals = len(self.signals)
         deadline = time.monotonic() + STOP_SECONDS
         while any(p.poll() is None for p in processes.values()):
             if time.monotonic() > deadline or len(self.signals) > signals:
@@ -570,13 +584,6 @@ class Fleet:
             time.sleep(0.02)
         for process in processes.values():
             process.wait()
-        for console in self.consoles.values():
-            unwritten = console.close()
-            if unwritten is not None:
-                self.unwritten.append(unwritten)
-        peaks = {"peak_resident_mb": dict(sorted(self.peak_memory.items()))}
-        self.write_file("memory.json", json.dumps(peaks, indent=2))
-
 
 class ClocksDisagree(RuntimeError):
     """The mission ran, but a vessel's clocks disagreed: an agent raised the alarm in its status."""
