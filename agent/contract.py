@@ -10,6 +10,7 @@ semi-definite, int64 stamps) and the JSON schema written into logs. Keys:
     usv/<id>/sensor/uwb      Ranges        bridge -> agent   ranges to named peers (m)
     usv/<id>/sensor/bearing  Bearing       bridge -> agent   unit vector from the target to the vessel, or null
     usv/<id>/sensor/sonar    Sonar         bridge -> agent   obstacle points relative to the vessel (m)
+    usv/<id>/sensor/vehicle  VehicleState  driver -> agent   an autopilot's mode and arming (optional; in the status)
     usv/<id>/cmd             Cmd           agent -> bridge   surge speed (m/s), yaw rate (rad/s)
     usv/<id>/share           ShareMessage  agent -> agents   what neighbours need
     usv/<id>/status          Status        agent -> anyone   estimates, covariances, health
@@ -368,6 +369,22 @@ class ClockOffset(StrictModel):
         description="its stamps minus the agent's clock at their arrival (s), median of the recent ones")
 
 
+VEHICLE_TOPIC = "sensor/vehicle"   # optional: only a driver with an autopilot publishes it; no tick reads it
+
+
+class VehicleState(Header):
+    """What an autopilot says of itself (a MAVLink HEARTBEAT), as its driver bridge reads it: the agent
+    repeats the latest in its status for the operator and steers by nothing in it."""
+
+    mode: str = Field(max_length=24, pattern=r"^[A-Za-z0-9_ ]*$",
+                      description="the autopilot's mode (ArduPilot Rover: MANUAL, ACRO, HOLD, GUIDED, ...)")
+    armed: bool = Field(description="the autopilot is armed: its motors follow commands")
+    linked: bool = Field(description="its heartbeat came within the driver's link timeout")
+    control: str = Field(max_length=16, pattern=r"^[a-z_]*$",
+                         description="how the driver commands it: 'guided' set points or 'acro' sticks")
+    refused: int = Field(0, ge=0, le=MAX_STAMP_NS, description="mode changes and arming the autopilot refused")
+
+
 class Status(Header):
     phase: Finite
     command: tuple[Finite, Finite]
@@ -387,6 +404,15 @@ class Status(Header):
     clocks: list[ClockOffset] = Field(
         default_factory=list, max_length=MAX_PEERS + 1,
         description="the alarm of clocks that disagree with the agent's (empty: none)")
+    vehicle: VehicleState | None = Field(None, description="the autopilot's latest state; absent: no autopilot")
+
+    @model_serializer(mode="wrap")
+    def _vehicle_only_when_given(self, handler):
+        # A vessel without an autopilot (every sim-bridge fleet) sends the bytes it sent before the field.
+        data = handler(self)
+        if self.vehicle is None:
+            data.pop("vehicle", None)
+        return data
 
 
 class Clock(StrictModel):
@@ -441,6 +467,7 @@ TOPICS: dict[str, type[StrictModel]] = {
     "sensor/uwb": Ranges,
     "sensor/bearing": Bearing,
     "sensor/sonar": Sonar,
+    VEHICLE_TOPIC: VehicleState,
     "cmd": Cmd,
     "share": ShareMessage,
     "status": Status,

@@ -11,7 +11,7 @@ thrust. Each device (an autopilot too) is one adapter; this file only wires them
     usv/<id>/cmd (Cmd)  -------->  ThrusterAdapter -> $THR lines to the motor controller, `rate_hz` times a second
                                    or LoopThrusters (thrusters.control: inner_loop, closed on the
                                    speed log and yaw) -> $THR lines at the loop's `loop_hz`
-    usv/<id>/cmd, autopilot <-> MavlinkVehicle (`mavlink`): GUIDED set points; its state -> sensor/odom
+    usv/<id>/cmd, autopilot <-> MavlinkVehicle (`mavlink`): set points; its state -> sensor/odom, sensor/vehicle
 
 The watchdog is the adapter's: with no fresh command the thrusters get zero. Stamps are wall time (at sea),
 or `clock: sim` the sim bridge's sim/clock (MAVLink stand-ins). One thread reads the ports (select); the
@@ -44,11 +44,13 @@ from agent.config import PositiveFloat, StrictModel
 from agent.contract import (
     CLOCK_KEY,
     LIVELINESS,
+    VEHICLE_TOPIC,
     Bearing,
     Clock,
     Cmd,
     Odometry,
     Ranges,
+    VehicleState,
     decode,
     encode,
     gnss_truth_key,
@@ -153,8 +155,11 @@ class DriverSettings(StrictModel):
 
     @model_validator(mode="after")
     def _measured(self) -> DriverSettings:
-        if self.mavlink is not None and (self.thrusters is not None or self.odometry is not None):
-            raise ValueError("mavlink drives the vessel and gives its odometry: leave out thrusters and odometry")
+        if self.mavlink is not None and self.thrusters is not None:
+            raise ValueError("mavlink drives the vessel: leave out thrusters")
+        if self.mavlink is not None and (self.mavlink.odometry == "none") != (self.odometry is not None):
+            raise ValueError("with mavlink the odometry comes from the autopilot, or (mavlink.odometry: none) from "
+                             "the speed log's port: give the odometry port exactly then")
         if self.thrusters is not None and self.thrusters.control == "inner_loop" and self.odometry is None:
             raise ValueError("thrusters.control 'inner_loop' closes its loop on the speed log and yaw: "
                              "it needs the odometry port")
@@ -380,8 +385,9 @@ class DriverBridge:
                 self._autopilot_heading = odometry.heading
                 self._publish(publishers, "sensor/odom", odometry)
 
-    def _drive_vehicle(self, link, mono: float) -> None:
-        """The agent's command (or its leaving) to the autopilot, then whatever is due on the link."""
+    def _drive_vehicle(self, link, mono: float, publishers=None) -> None:
+        """The agent's command (or its leaving) to the autopilot, then whatever is due on the link; the
+        autopilot's state to `publishers` when it is due."""
         with self._command_lock:
             command, left, self._agent_left = self._command, self._agent_left, False
         if left:
@@ -391,6 +397,10 @@ class DriverBridge:
             self.vehicle.command(command.surge, command.yaw_rate, mono)
         for msg in self._guarded("mavlink", self.vehicle.tick, self.clock_ns(), mono):
             self._guarded("mavlink", link.send, msg)
+        if publishers is not None and VEHICLE_TOPIC in publishers:
+            state = self._guarded("mavlink", self.vehicle.state, self.clock_ns(), mono)
+            if isinstance(state, VehicleState):
+                self._publish(publishers, VEHICLE_TOPIC, state)
 
     def _drive(self, port, now: float) -> None:
         """One thrust line to `port` (pyserial's write gives up after 1 s); `now`: the monotonic clock."""
@@ -432,13 +442,18 @@ class DriverBridge:
             with zenoh.open(zenoh_config(self.settings.zenoh)) as session:
                 publishers = {t: session.declare_publisher(key(self.id, t))
                               for t in ("sensor/uwb", "sensor/odom", "sensor/bearing")}
+                if link is not None:
+                    publishers[VEHICLE_TOPIC] = session.declare_publisher(key(self.id, VEHICLE_TOPIC))
                 if self.gnss is not None:   # truth: a key outside every agent's subscriptions
                     publishers["truth/gnss"] = session.declare_publisher(gnss_truth_key(self.id))
-                subscriber = session.declare_subscriber(key(self.id, "cmd"), self._on_command)
-                clock = (session.declare_subscriber(CLOCK_KEY, self._on_sim_clock)
-                         if self.settings.clock == "sim" else None)
-                agent = session.liveliness().declare_subscriber(key(self.id, LIVELINESS), self._on_agent_liveliness,
-                                                                 history=True)
+                # the agent's commands only where something drives: a GNSS tag (or a GNSS-only driver beside an
+                # autopilot's) would count commands it has no use for as refused
+                listening = [] if self.thrusters is None and link is None else [
+                    session.declare_subscriber(key(self.id, "cmd"), self._on_command),
+                    session.liveliness().declare_subscriber(key(self.id, LIVELINESS), self._on_agent_liveliness,
+                                                            history=True)]
+                if self.settings.clock == "sim":
+                    listening.append(session.declare_subscriber(CLOCK_KEY, self._on_sim_clock))
                 period = (1.0 / self.settings.thrusters.lines_per_second() if self.thrusters
                           else VEHICLE_PERIOD if link else 0.1)
                 waits = list(readers) + ([link.fd, self._wake[0]] if link else [])
@@ -453,7 +468,7 @@ class DriverBridge:
                             continue
                         if self._wake is not None and port == self._wake[0]:
                             os.read(port, 4096)
-                            self._drive_vehicle(link, time.monotonic())
+                            self._drive_vehicle(link, time.monotonic(), publishers)
                             continue
                         data = self._read(port, readers[port])
                         if data:
@@ -464,16 +479,14 @@ class DriverBridge:
                         if self.thrusters:
                             self._drive(ports["thrusters"], time.monotonic())
                         elif link is not None:
-                            self._drive_vehicle(link, time.monotonic())
+                            self._drive_vehicle(link, time.monotonic(), publishers)
                 if link is not None:   # leave the boat stopped and holding, as the thrusters' last line does
                     for msg in self.vehicle.stop(time.monotonic()):
                         self._guarded("mavlink", link.send, msg)
                 if "thrusters" in ports:   # stopped before Zenoh's teardown, which might not end by the deadline
                     ports["thrusters"].write(command_line(ZERO_THRUST))
-                subscriber.undeclare()
-                agent.undeclare()
-                if clock is not None:
-                    clock.undeclare()
+                for entity in listening:
+                    entity.undeclare()
         finally:
             try:
                 if "thrusters" in ports:

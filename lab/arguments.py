@@ -60,3 +60,12 @@ def folder(text: str) -> Path:
     if path.exists() and not path.is_dir():
         raise argparse.ArgumentTypeError(f"{text} is a file, not a folder (the page's name is the command's own)")
     return path
+
+
+def page(text: str) -> Path:
+    """A file a page or config is written to. An existing folder is refused at once, not after the work whose
+    results it would have held."""
+    path = Path(text)
+    if path.is_dir():
+        raise argparse.ArgumentTypeError(f"{text} is a folder, not a file (name the page, e.g. {path / 'page.md'})")
+    return path

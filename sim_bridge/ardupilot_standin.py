@@ -3,20 +3,21 @@
 It serves one MAVLink link (pymavlink URL, e.g. udpin:127.0.0.1:14550: it answers whoever spoke last) and
 moves a kinematic hull: heading and position follow the commanded (u, r) exactly (boat.sway.arc_step), or
 with --preset a boat preset's hull, thrusters and inner loop (sim_bridge/hull.py) take (u, r) as commands.
-- HEARTBEAT at 1 Hz: MAV_TYPE_SURFACE_BOAT, MAV_AUTOPILOT_ARDUPILOTMEGA, the Rover mode in custom_mode and
-  the armed flag; it boots in MANUAL, disarmed.
-- Modes MANUAL, HOLD and GUIDED (MAV_CMD_DO_SET_MODE or SET_MODE; others: MAV_RESULT_UNSUPPORTED); with
-  --no-position GUIDED is refused (MAV_RESULT_FAILED), as ArduPilot refuses a mode that needs a position.
-  Arming by MAV_CMD_COMPONENT_ARM_DISARM. Every command answered with COMMAND_ACK.
-- GUIDED: SET_POSITION_TARGET_LOCAL_NED with velocity and yaw rate used (yaw ignored): body frames (8, 9):
-  u = vx; local frames (1, 7): u = the velocity along the heading; r = -yaw_rate (NED is clockwise). Other
-  type masks are counted as `setpoint_unsupported`. No set point for --guid-timeout s (GUID_TIMEOUT, 3):
-  stop. HOLD, MANUAL (no RC here) and disarmed: stopped.
-- Streams: ATTITUDE and LOCAL_POSITION_NED at 4 Hz until MAV_CMD_SET_MESSAGE_INTERVAL or
-  REQUEST_DATA_STREAM (POSITION, EXTRA1, ALL) sets them; TIMESYNC answered with its boot time (ns).
-- Counted, never raised: bad_data, wrong_target, and every refusal. --record FILE: one JSON line per set
-  point taken (with the wall clock's ns, for latency) and per mode change, refusal or arming, with the
-  monotonic time (s) it happened.
+- HEARTBEAT at 1 Hz: MAV_TYPE_SURFACE_BOAT, ARDUPILOTMEGA, the Rover mode in custom_mode, the armed flag;
+  it boots in MANUAL, disarmed. Arming by MAV_CMD_COMPONENT_ARM_DISARM; every command gets a COMMAND_ACK.
+- Modes MANUAL, ACRO, HOLD, GUIDED (MAV_CMD_DO_SET_MODE or SET_MODE; others: UNSUPPORTED). --no-position:
+  GUIDED refused (FAILED) as ArduPilot refuses a mode that needs a position, and no LOCAL_POSITION_NED or
+  ODOMETRY; ACRO (a skid-steered boat needs no velocity estimate either) and MANUAL still work.
+- GUIDED: SET_POSITION_TARGET_LOCAL_NED, velocity and yaw rate used (yaw ignored): body frames (8, 9): u =
+  vx; local (1, 7): u = the velocity along the heading; r = -yaw_rate. Other masks: `setpoint_unsupported`.
+  No set point for --guid-timeout s (GUID_TIMEOUT): stop. HOLD and disarmed: stopped.
+- ACRO and MANUAL: MANUAL_CONTROL from --gcs-system (MAV_GCS_SYSID) aimed at it, y steering and z throttle
+  (-1000..1000): r = -steering x --acro-turn-rate, u = throttle x --full-throttle-speed (MANUAL's open-loop
+  steering taken as ACRO's rate); the sticks centre after RC_OVERRIDE_TIME (3 s) without one.
+- Streams: ATTITUDE and LOCAL_POSITION_NED at 4 Hz, ODOMETRY (LOCAL_NED, BODY_FRD) off, until
+  MAV_CMD_SET_MESSAGE_INTERVAL or REQUEST_DATA_STREAM sets them; TIMESYNC answered with its boot time.
+- Counted, never raised: bad_data, wrong_target, every refusal. --record FILE: a JSON line per set point or
+  sticks taken (with the wall clock's ns) and per mode change, refusal or arming, at its monotonic time.
 Not modelled: ArduPilot's own speed and turn-rate controllers (the preset's loop stands in), the EKF and
 its errors, RC, failsafes, missions, parameters. docs/boats.md, "ArduPilot over MAVLink".
 """
@@ -41,12 +42,14 @@ from boat.presets import preset as boat_preset
 from boat.sway import arc_step
 from sim_bridge.hull import HullFleet
 
-MANUAL, HOLD, GUIDED = 0, 4, 15
-MODES = {MANUAL: "MANUAL", HOLD: "HOLD", GUIDED: "GUIDED"}
+MANUAL, ACRO, HOLD, GUIDED = 0, 1, 4, 15
+MODES = {MANUAL: "MANUAL", ACRO: "ACRO", HOLD: "HOLD", GUIDED: "GUIDED"}
+STICK_MODES = (MANUAL, ACRO)   # the modes the pilot's sticks (RC, or MANUAL_CONTROL's overrides) drive
 ACCEPTED, UNSUPPORTED, FAILED = 0, 3, 4
 BODY_FRAMES, LOCAL_FRAMES = (8, 9), (1, 7)
 POSITION_BITS, VELOCITY_XY_BITS, YAW_BIT, YAW_RATE_BIT = 1 | 2 | 4, 8 | 16, 1024, 2048
-ATTITUDE_ID, LOCAL_POSITION_NED_ID = 30, 32
+ATTITUDE_ID, LOCAL_POSITION_NED_ID, ODOMETRY_ID = 30, 32, 331
+POSITION_STREAMS = (LOCAL_POSITION_NED_ID, ODOMETRY_ID)   # sent only with a position estimate
 STREAM_OF = {6: (LOCAL_POSITION_NED_ID,), 10: (ATTITUDE_ID,), 0: (ATTITUDE_ID, LOCAL_POSITION_NED_ID)}
 DEFAULT_INTERVAL = 0.25   # s: 4 Hz until asked otherwise (our choice; ArduPilot's SRx_ parameters set it)
 STEP = 0.005              # s: the loop's period
@@ -59,7 +62,8 @@ RELAY_BOOT_NS = 1_000_000_000
 class Standin:
     def __init__(self, mav, system: int = 1, component: int = 1, guid_timeout: float = 3.0,
                  position: bool = True, record=None, clock=time.monotonic, preset: str | None = None,
-                 relayed: bool = False) -> None:
+                 gcs_system: int = 255, full_throttle_speed: float = 2.0, acro_turn_rate: float = 180.0,
+                 override_timeout: float = 3.0, relayed: bool = False) -> None:
         self.mav, self.system, self.component = mav, system, component
         self.relayed = relayed   # the hull is the sim bridge's (standin_relay.py): no motion, no streams of its own
         self.arrival = None      # relayed: (u, r) -> wall ns the agent's command reached the relay, for latency
@@ -71,8 +75,15 @@ class Standin:
         self.yaw = 0.0                        # NED: clockwise from north (rad)
         self.u = self.r = 0.0                 # what the hull does now (r counter-clockwise)
         self.setpoint: tuple[float, float, float] | None = None   # u, r, when (monotonic s)
-        self.intervals = {ATTITUDE_ID: DEFAULT_INTERVAL, LOCAL_POSITION_NED_ID: DEFAULT_INTERVAL}
-        self.due = {ATTITUDE_ID: self.boot, LOCAL_POSITION_NED_ID: self.boot, "heartbeat": self.boot}
+        # The sticks: MANUAL_CONTROL from the GCS's system id (MAV_GCS_SYSID), overriding RC for
+        # RC_OVERRIDE_TIME (`override_timeout`); ACRO turns at steering x ACRO_TURN_RATE (deg/s), and with no
+        # speed estimate (no GNSS) sets throttle, which this hull turns into full_throttle_speed x throttle.
+        self.gcs_system, self.full_throttle_speed = gcs_system, full_throttle_speed
+        self.acro_turn_rate, self.override_timeout = math.radians(acro_turn_rate), override_timeout
+        self.sticks: tuple[float, float, float] | None = None   # steering, throttle (-1..1), when (monotonic s)
+        self.intervals = {ATTITUDE_ID: DEFAULT_INTERVAL, LOCAL_POSITION_NED_ID: DEFAULT_INTERVAL, ODOMETRY_ID: None}
+        self.due = {ATTITUDE_ID: self.boot, LOCAL_POSITION_NED_ID: self.boot, ODOMETRY_ID: self.boot,
+                    "heartbeat": self.boot}
         self.stepped = self.boot
         self.posed: int | None = None         # relayed: sim time (ns) of the last pose
         self.hulls = None
@@ -154,6 +165,19 @@ class Standin:
             return [self.mav.timesync_encode(msg.ts1 + RELAY_BOOT_NS, msg.ts1)]
         return [self.mav.timesync_encode(int((now - self.boot) * 1e9), msg.ts1)]
 
+    def _on_manual_control(self, msg, now: float) -> list:
+        """Rover's MANUAL_CONTROL: y the steering, z the throttle, each -1000..1000 over the RC range (x, r
+        unused); taken only from the GCS's system id and aimed at this vehicle, as ArduPilot does."""
+        if msg.get_srcSystem() != self.gcs_system or msg.target != self.system:
+            self.counts["manual_control_refused"] += 1
+            return []
+        steering, throttle = (max(-1.0, min(1.0, value / 1000.0)) for value in (msg.y, msg.z))
+        self.sticks = (steering, throttle, now)
+        self.counts["manual_control"] += 1
+        self._note("sticks", now, u=throttle * self.full_throttle_speed, r=-steering * self.acro_turn_rate,
+                   east=self.east, north=self.north, mode=MODES[self.mode], wall_ns=time.time_ns())
+        return []
+
     def _on_set_position_target_local_ned(self, msg, now: float) -> list:
         mask, frame = msg.type_mask, msg.coordinate_frame
         if self.mode != GUIDED:
@@ -203,19 +227,35 @@ class Standin:
                 self._note("guided_timeout", now)
             elif self.armed:
                 self.u, self.r = self.setpoint[0], self.setpoint[1]
+        if self.mode in STICK_MODES and self.sticks is not None:
+            if now - self.sticks[2] > self.override_timeout:
+                self.sticks = None   # the override lapses: the sticks (no RC here) are centred
+                self.counts["override_timeout"] += 1
+                self._note("override_timeout", now)
+            elif self.armed:
+                self.u = self.sticks[1] * self.full_throttle_speed
+                self.r = -self.sticks[0] * self.acro_turn_rate
         out = []
         if now >= self.due["heartbeat"]:
             self.due["heartbeat"] += 1.0
             base = 1 | (128 if self.armed else 0)   # CUSTOM_MODE_ENABLED, SAFETY_ARMED
             out.append(self.mav.heartbeat_encode(11, 3, base, self.mode, 4 if self.armed else 3))
         for message, interval in self.intervals.items():
-            if interval is None or now < self.due[message] or self.relayed:
+            if (interval is None or now < self.due[message] or message in POSITION_STREAMS and not self.position
+                    or self.relayed):
                 continue
             self.due[message] = max(self.due[message] + interval, now)
             ms = self.boot_ms(now)
             north_speed, east_speed, rate = self.motion()
             if message == ATTITUDE_ID:
                 out.append(self.mav.attitude_encode(ms, 0.0, 0.0, self.yaw, 0.0, 0.0, -rate))
+            elif message == ODOMETRY_ID:   # LOCAL_NED pose, BODY_FRD velocity and rates, covariances unknown
+                unknown = [math.nan] + [0.0] * 20
+                forward = north_speed * math.cos(self.yaw) + east_speed * math.sin(self.yaw)
+                out.append(self.mav.odometry_encode(
+                    int((now - self.boot) * 1e6), 1, 12, self.north, self.east, 0.0,
+                    [math.cos(self.yaw / 2), 0.0, 0.0, math.sin(self.yaw / 2)], forward, 0.0, 0.0, 0.0, 0.0, -rate,
+                    unknown, unknown, 0, 0, 0))
             else:
                 out.append(self.mav.local_position_ned_encode(ms, self.north, self.east, 0.0, north_speed,
                                                               east_speed, 0.0))
@@ -246,7 +286,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--listen", required=True, help="pymavlink URL to serve, e.g. udpin:127.0.0.1:14550")
     parser.add_argument("--system", type=int, default=1, help="its MAVLink system id")
     parser.add_argument("--guid-timeout", type=float, default=3.0, help="GUID_TIMEOUT (s)")
-    parser.add_argument("--no-position", action="store_true", help="no position estimate: GUIDED refused")
+    parser.add_argument("--no-position", action="store_true", help="no position estimate: GUIDED refused, "
+                        "no LOCAL_POSITION_NED or ODOMETRY (ACRO and MANUAL work)")
+    parser.add_argument("--gcs-system", type=int, default=255, help="MAV_GCS_SYSID: MANUAL_CONTROL's sender")
+    parser.add_argument("--full-throttle-speed", type=float, default=2.0, help="the hull's speed at full "
+                        "throttle in ACRO/MANUAL (m/s)")
+    parser.add_argument("--acro-turn-rate", type=float, default=180.0, help="ACRO_TURN_RATE (deg/s)")
     parser.add_argument("--preset", default=None, help="a boat preset's hull and inner loop (otter, heron, "
                         "wamv) instead of the kinematic hull")
     parser.add_argument("--record", default=None, help="JSON lines of set points and mode changes")
@@ -270,7 +315,8 @@ def main(argv: list[str] | None = None) -> int:
         signal.signal(sig, lambda *_: stopping.set())
     record = open(args.record, "a", encoding="utf-8") if args.record else None
     standin = Standin(connection.mav, args.system, 1, args.guid_timeout, not args.no_position, record,
-                      preset=args.preset, relayed=args.sim is not None)
+                      preset=args.preset, gcs_system=args.gcs_system, full_throttle_speed=args.full_throttle_speed,
+                      acro_turn_rate=args.acro_turn_rate, relayed=args.sim is not None)
     relay = None
     if args.sim is not None:
         from sim_bridge.standin_relay import SimRelay

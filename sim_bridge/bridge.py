@@ -65,6 +65,7 @@ from agent.runtime.mcap_log import LogRotation, McapLog
 from agent.runtime.process import guard_stderr, stop_on_signals
 from agent.runtime.zenoh_session import ZenohSettings, open_session, zenoh_config
 from sim_bridge.autopilot_relay import DRIVE_ALL, Drive, drives_command, pose_key
+from sim_bridge.gnss_ptys import GnssPtys, SimulatedGnss
 from sim_bridge.scenario import Scenario, select_scenario
 from sim_bridge.world import Frame, Measurement, SeaSensors, World, lost_shares, sea_steps, sea_world, streams
 
@@ -88,6 +89,8 @@ class BridgeSettings(StrictModel):
     log_rotation: LogRotation | None = Field(
         LogRotation(), description="start a new part of the log by size or time, keep a bounded total; null: "
                                    "one file")
+    gnss: SimulatedGnss | None = Field(
+        None, description="sea mode: each vessel's and the target's GGA into a pty a usv-driver reads")
 
 
 class SimBridge:
@@ -103,6 +106,15 @@ class SimBridge:
         if self.sea is not None and settings.mode != "realtime":
             raise ConfigError(f"scenario {scenario.name!r} runs in the sea mode, which needs the real-time mode "
                               "(bridge setting mode: realtime) and agents on the wall clock")
+        self.gnss = None
+        if settings.gnss is not None:
+            if self.sea is None:
+                raise ConfigError("gnss: the simulated receivers need the sea mode (a scenario with world.sea): "
+                                  "the driver stamps its fixes on the wall clock, which only the sea mode's agents read")
+            try:
+                self.gnss = GnssPtys(settings.gnss, scenario.seed if seed is None else seed)
+            except OSError as error:
+                raise ConfigError(f"gnss: cannot make the receivers' ptys: {error}") from None
         self.epoch_ns = settings.epoch_ns or 0   # wall time of sim time 0 in the sea mode (set at the start)
         self.alive: set[str] = set()
         self.commands: dict[str, Cmd] = {}
@@ -238,17 +250,22 @@ class SimBridge:
     def run(self) -> None:
         """The mission, tick by tick; the log is finished however the run ends, an exception included."""
         steps = int(round(self.scenario.duration / self.scenario.world.dt)) + 1
-        with self.log if self.log is not None else nullcontext(), open_session(self.settings.zenoh) as session:
-            subscribers = [session.declare_subscriber(every("cmd"), self._on_command),
-                           session.declare_subscriber(every("status"), self._on_status),
-                           *([session.declare_subscriber(DRIVE_ALL, self._on_drive)] if self.autopilots else [])]
-            watcher = session.liveliness().declare_subscriber(every(LIVELINESS), self._on_liveliness, history=True)
-            start, cpu_start = (self._run_sea if self.sea is not None else self._run_ticks)(session, steps)
-            self.loop_seconds = time.monotonic() - start
-            self._log_summary(time.process_time() - cpu_start)
-            for entity in [*subscribers, watcher, *self._publishers.values()]:
-                entity.undeclare()
-            self._publishers.clear()
+        try:
+            with self.log if self.log is not None else nullcontext(), open_session(self.settings.zenoh) as session:
+                subscribers = [session.declare_subscriber(every("cmd"), self._on_command),
+                               session.declare_subscriber(every("status"), self._on_status),
+                               *([session.declare_subscriber(DRIVE_ALL, self._on_drive)] if self.autopilots else [])]
+                watcher = session.liveliness().declare_subscriber(every(LIVELINESS), self._on_liveliness,
+                                                                  history=True)
+                start, cpu_start = (self._run_sea if self.sea is not None else self._run_ticks)(session, steps)
+                self.loop_seconds = time.monotonic() - start
+                self._log_summary(time.process_time() - cpu_start)
+                for entity in [*subscribers, watcher, *self._publishers.values()]:
+                    entity.undeclare()
+                self._publishers.clear()
+        finally:
+            if self.gnss is not None:
+                self.gnss.close()
 
     def _run_ticks(self, session, steps: int) -> tuple[float, float]:
         """Lockstep or real time on sim stamps; (monotonic, CPU) time of tick 0."""
@@ -304,6 +321,8 @@ class SimBridge:
                     stamp_ns=stamp, seq=n // m, previous_ns=previous_stamp, vessels=live)))
                 self._log_tick(self.epoch_ns + stamp)
                 self._publish_truth(session, self.epoch_ns + stamp)
+                if self.gnss is not None:
+                    self.gnss.emit(truth_record(self.world.truth()), self.epoch_ns + stamp)
                 self.ticks += 1
                 previous_stamp = stamp
             if self.world.time < hold - 1e-9:
@@ -549,6 +568,8 @@ def main(argv: list[str] | None = None) -> int:
           f"({bridge.refused_stamps} for their stamp); "
           f"{simulated:.1f} s simulated in {bridge.loop_seconds:.2f} s of wall time ({factor:.1f}x real time)"
           + (f"; no agent came for {', '.join(sorted(bridge.startup_missing))}" if bridge.startup_missing else "")
-          + (f"; {bridge.log.dropped} log message(s) lost to write errors" if bridge.log and bridge.log.dropped else ""),
+          + (f"; {bridge.log.dropped} log message(s) lost to write errors" if bridge.log and bridge.log.dropped else "")
+          + (f"; GNSS sentences written {dict(bridge.gnss.written)}, dropped {dict(bridge.gnss.dropped)}"
+             if bridge.gnss is not None else ""),
           file=sys.stderr)
     return 0

@@ -58,7 +58,7 @@ from agent.runtime.zenoh_session import ZenohSettings, zenoh_config
 from mission_log.metrics import circle_words, truth_metrics
 from mission_log.plots import plot_run
 from mission_log.reader import LogError, load_run
-from sim_bridge import fleet_mavlink
+from sim_bridge import fleet_mavlink, gnss_ptys, simulated_gnss
 from sim_bridge.console import TAIL_BYTES, Console
 from sim_bridge.scenario import default_variant, initial_estimates, scenario_file, select_scenario, with_duration
 from sim_bridge.world import SeaSensors, World, streams
@@ -141,8 +141,12 @@ class Fleet:
     """
 
     def __init__(self, scenario_path: Path, variant: str | None, out: Path, seed: int | None = None,
-                 mode: str = "lockstep", vehicle: str = "sim") -> None:
+                 mode: str = "lockstep", gnss: str | None = None, vehicle: str = "sim") -> None:
         self.name, self.scenario = select_scenario(scenario_path, variant)
+        if gnss is not None and self.scenario.world.sea is None:
+            raise ConfigError(f"--gnss: scenario {self.name!r} is not in the sea mode (world.sea): the drivers stamp "
+                              "their fixes on the wall clock, which only the sea mode's agents read (e.g. sea_trial)")
+        self.gnss = gnss
         if vehicle == "mavlink" and self.scenario.world.sea is not None:
             raise ConfigError(f"scenario {self.name!r} runs in the sea mode, which --vehicle mavlink does not have")
         self.vehicle = vehicle
@@ -160,6 +164,7 @@ class Fleet:
         self._write_settings(free_port())
         self.bridge: subprocess.Popen | None = None
         self.agents: dict[str, subprocess.Popen] = {}
+        self.drivers: dict[str, subprocess.Popen] = {}   # --gnss: id -> its usv-driver (GNSS only)
         self.killed: dict[str, float] = {}        # vessel -> sim time (s) when its agent was killed
         self.restarted: dict[str, list[tuple[float, float]]] = {}   # vessel -> (stopped, started again) sim times (s)
         self.down: set[str] = set()               # vessels whose agent is stopped for a restart, not yet started again
@@ -194,6 +199,8 @@ class Fleet:
             epoch_ns = time.time_ns() + int(SEA_LEAD * 1e9)
             bridge.update(mode="realtime", epoch_ns=epoch_ns)
             at_sea(self.scenario, self.seed, epoch_ns, configs)
+        if self.gnss is not None:
+            bridge["gnss"] = self._gnss_settings(bridge_port)
         if self.udp_ports:
             bridge["autopilots"] = sorted(self.udp_ports)
             for vessel, udp in self.udp_ports.items():
@@ -202,6 +209,30 @@ class Fleet:
         (self.folder / "bridge.yaml").write_text(yaml.safe_dump(bridge))
         for vessel, settings in configs.items():
             (self.folder / f"agent-{vessel}.yaml").write_text(yaml.safe_dump(settings))
+
+    def _gnss_settings(self, bridge_port: int) -> dict:
+        """--gnss: the bridge's receivers (a pty per vessel and the target tag, linked in the run folder) and a
+        GNSS-only driver's settings per id (driver-<id>.yaml), each logging its fixes to gnss-<id>.mcap."""
+        make = {"plain": simulated_gnss.plain, "rtk": simulated_gnss.rtk}[self.gnss]
+        links = {}
+        for owner in [*(v.id for v in self.scenario.world.vessels), gnss_ptys.TARGET]:
+            links[owner] = str(self.folder / f"gnss-{owner}.tty")
+            driver = {"zenoh": {"connect": [f"tcp/127.0.0.1:{bridge_port}"]},
+                      "gnss": {"device": links[owner], "baud": 115_200, "log": str(self.folder / f"gnss-{owner}.mcap")}}
+            (self.folder / f"driver-{owner}.yaml").write_text(yaml.safe_dump(driver))
+        return {"receiver": make(gnss_ptys.ORIGIN).model_dump(mode="json"), "links": links}
+
+    def start_drivers(self) -> None:
+        """--gnss: a usv-driver per vessel and the target tag, reading the bridge's pty (made before it listens)."""
+        for owner in self.scenario.world.vessels if self.gnss is not None else []:
+            self._start_driver(owner.id)
+        if self.gnss is not None:
+            self._start_driver(gnss_ptys.TARGET)
+
+    def _start_driver(self, owner: str) -> None:
+        self.drivers[owner] = self._start(f"driver-{owner}", [
+            sys.executable, "-m", "driver_bridge", "--vessel", owner, "--config",
+            str(self.folder / f"driver-{owner}.yaml")])
 
     def _start(self, name: str, command: list[str]) -> subprocess.Popen:
         guarded = [sys.executable, "-c", ORPHAN_GUARD, str(os.getpid()), *command]
@@ -358,8 +389,10 @@ class Fleet:
                 pending = {v.id: v for v in self.scenario.world.vessels}
                 leaving = {v.id: v.leave_time for v in self.scenario.world.vessels if v.leave_time is not None}
                 restarting = dict(restarts or {})
+                self.start_drivers()
                 print(f"usv-fleet: the sim bridge and {sum(v.join_time == 0 for v in pending.values())} agents "
-                      f"starting; run folder {self.folder}", file=sys.stderr)
+                      f"starting{' with their GNSS drivers' if self.drivers else ''}; run folder {self.folder}",
+                      file=sys.stderr)
                 print(f"usv-fleet: watch and command the fleet from another terminal: usv-op --connect "
                       f"tcp/127.0.0.1:{self.bridge_port} status (or hold, resume, set radius=R, view)",
                       file=sys.stderr)
@@ -490,6 +523,11 @@ class Fleet:
             if vessel not in self.killed and vessel not in self.down and process.poll() is not None:
                 raise RuntimeError(self._exited(f"the agent of vessel {vessel}", self._name(vessel),
                                                 process.returncode, "during the mission"))
+        for owner, process in self.drivers.items():
+            # the bridge's ptys go with it at the end: a driver that loses its receiver then has done its part
+            if process.poll() is not None and self._sim_time < self.scenario.duration - 1e-6:
+                raise RuntimeError(self._exited(f"the GNSS driver of {owner}", f"driver-{owner}",
+                                                process.returncode, "during the mission"))
 
     def _exited(self, who: str, name: str, code: int | None, when: str = "",
                 console: Console | None = None) -> str:
@@ -552,6 +590,7 @@ class Fleet:
         once on a second stop signal); wait for all of them."""
         self._note_memory()
         processes = {name: p for name, p in [*((self._name(v), p) for v, p in self.agents.items()),
+                                             *((f"driver-{v}", p) for v, p in self.drivers.items()),
                                              ("bridge", self.bridge)] if p is not None}
         # The vessels' stand-ins and drivers last, as aboard: each driver sees its agent go and holds the boat.
         signals = len(self.signals)
@@ -806,6 +845,9 @@ def main(argv: list[str] | None = None) -> int:
     run.add_argument("--vehicle", choices=("sim", "mavlink"), default="sim",
                      help="sim: the sim bridge moves the vessels; mavlink: each through an ArduPilot stand-in and "
                           "a usv-driver over MAVLink (docs/boats.md)")
+    run.add_argument("--gnss", choices=("plain", "rtk"), default=None,
+                     help="sea mode: a simulated field trial: the bridge's GGA (1.5 m or 2 cm) into a usv-driver "
+                          "per vessel and the target, whose GNSS logs `usv-log metrics RUN --truth gnss` scores")
     args = parser.parse_args(argv)
     guard_stderr()
     started = time.monotonic()
@@ -818,7 +860,7 @@ def main(argv: list[str] | None = None) -> int:
             atexit.register(shutil.rmtree, scratch, True)    # the bridge reads the copy until the end
             path = with_duration(path, scratch, args.duration)
         variant = args.variant if args.variant is not None else default_variant(path)
-        fleet = Fleet(path, variant, args.out, args.seed, mode=args.mode, vehicle=args.vehicle)
+        fleet = Fleet(path, variant, args.out, args.seed, mode=args.mode, gnss=args.gnss, vehicle=args.vehicle)
     except ConfigError as error:
         print(f"usv-fleet: {error}", file=sys.stderr)
         return 2

@@ -122,7 +122,7 @@ def test_guided_and_arming_are_requested_while_commands_flow_and_a_refusal_is_on
     assert adapter.rejected["mode_refused"] == 3
     refusals = [line for line in said if "refused" in line]
     assert refusals == ["the autopilot refused mode (command 176): FAILED "
-                        "(GUIDED needs a position estimate: docs/boats.md)"]
+                        "(GUIDED needs a position estimate; without GNSS: mavlink.control acro, docs/boats.md)"]
     quiet, quiet_said = vehicle(arm=False)
     quiet.receive(heartbeat(GUIDED, False), 0, 0.0)
     quiet.command(1.0, 0.0, 0.0)
@@ -194,10 +194,19 @@ def test_bad_mavlink_is_counted_and_refused_never_raised():
 def test_the_driver_config_takes_mavlink_instead_of_the_thrusters_and_the_speed_log():
     settings = DriverSettings.model_validate({"mavlink": {"url": "udpin:0.0.0.0:14550"}})
     assert settings.mavlink.min_rate_hz == 2.0 and settings.mavlink.arm is False
-    with pytest.raises(ValueError, match="mavlink drives the vessel and gives its odometry"):
+    with pytest.raises(ValueError, match="mavlink drives the vessel: leave out thrusters"):
         DriverSettings.model_validate({"mavlink": {"url": "udpin:0.0.0.0:14550"},
                                        "thrusters": {"device": "/dev/null", "hull": {
                                            "max_thrust": 1, "half_beam": 1, "surge_drag": 1, "yaw_drag": 1}}})
+    # The odometry is the autopilot's, or (GNSS-denied, mavlink.odometry none) the speed log's: exactly one.
+    log = {"device": "/dev/null"}
+    with pytest.raises(ValueError, match="give the odometry port exactly then"):
+        DriverSettings.model_validate({"mavlink": {"url": "udpin:0.0.0.0:14550"}, "odometry": log})
+    with pytest.raises(ValueError, match="give the odometry port exactly then"):
+        DriverSettings.model_validate({"mavlink": {"url": "udpin:0.0.0.0:14550", "odometry": "none"}})
+    denied = DriverSettings.model_validate({"mavlink": {"url": "udpin:0.0.0.0:14550", "odometry": "none",
+                                                        "control": "acro"}, "odometry": log})
+    assert denied.mavlink.control == "acro" and denied.odometry.device == "/dev/null"
 
 
 def test_without_pymavlink_the_driver_says_so_in_one_line(tmp_path):

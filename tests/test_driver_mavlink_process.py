@@ -186,7 +186,7 @@ def test_an_autopilot_without_a_position_refuses_guided_and_the_driver_says_it_i
     assert driver.returncode == 0 and "Traceback" not in driver_output, driver_output
     said = [line for line in driver_output.splitlines() if "refused mode" in line]
     assert said == ["usv-driver 1: the autopilot refused mode (command 176): FAILED (GUIDED needs a position "
-                    "estimate: docs/boats.md)"], driver_output
+                    "estimate; without GNSS: mavlink.control acro, docs/boats.md)"], driver_output
     refused = int(re.search(r"'mode_refused': (\d+)", driver_output).group(1))
     standin_refused = int(re.search(r"'mode_refused_no_position': (\d+)", standin_output).group(1))
     assert refused >= 2 and standin_refused >= refused, (driver_output, standin_output)

@@ -45,7 +45,7 @@ def test_an_unknown_subcommand_is_refused_in_one_line(capsys):
 def _out_type(name: str):
     parser = argparse.ArgumentParser()
     cli.entry_points(cli.SUBCOMMANDS[name][0])[0](parser)
-    return next((action.type for action in parser._actions if action.dest == "out"), None)
+    return next((action.type for action in parser._actions if "--out" in action.option_strings), None)
 
 
 # The subcommands whose --out is the folder their page goes into.
@@ -66,6 +66,29 @@ def test_a_results_folder_that_is_a_file_is_refused_before_any_work(tmp_path, ca
         assert f"argument --out: {page} is a file, not a folder" in err, (name, err)
         assert err.strip().splitlines()[-1].startswith(f"usv-lab {name}: error:"), err
     assert page.read_text() == "an earlier page\n"
+
+
+# The subcommands whose --out is the one file they write (a page, a config).
+PAGE_OUTS = sorted(name for name in cli.SUBCOMMANDS if _out_type(name) is arguments.page)
+
+
+def test_every_out_is_a_folder_or_a_page():
+    """Each command's --out says which it is, so argparse refuses the other kind at once."""
+    loose = [name for name in cli.SUBCOMMANDS if _out_type(name) not in (None, arguments.folder, arguments.page)]
+    assert not loose, loose
+
+
+def test_a_page_that_is_a_folder_is_refused_before_any_work(tmp_path, capsys):
+    """`--out` of the commands that write one page: an existing folder there is refused by argparse at once
+    (`usv-lab sea-states --out /tmp/x`, a folder, used to fail with a traceback after the whole campaign)."""
+    assert {"sea-states", "sea-agent-ab", "sea-bench", "uwb-page", "fit-noise"} <= set(PAGE_OUTS), PAGE_OUTS
+    for name in PAGE_OUTS:
+        with pytest.raises(SystemExit) as done:
+            cli.main([name, "--out", str(tmp_path)])
+        assert done.value.code == 2, name
+        err = capsys.readouterr().err
+        assert f"argument --out: {tmp_path} is a folder, not a file" in err, (name, err)
+        assert err.strip().splitlines()[-1].startswith(f"usv-lab {name}: error:"), err
 
 
 def documented_commands() -> set[tuple[str, str]]:

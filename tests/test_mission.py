@@ -198,7 +198,7 @@ def test_the_status_console_shows_each_vessel_its_rate_hold_and_last_answer():
                   mission=[MissionAck(sender="op", seq=4, command="hold", applied=True, stamp_ns=5)])
     lines = status_lines({"2": (9.5, held)}, {"2", "3"}, now=10.0, rates={"2": 10.0})
     assert lines[1].split()[:7] == ["2", "yes", "0.5", "10.0", "HOLD", "0.00", "0.000"]
-    assert " 4 1: observable " in lines[1] and lines[1].endswith("hold from op: applied")
+    assert " 4 -                1: observable " in lines[1] and lines[1].endswith("hold from op: applied")
     assert lines[2].startswith("3 ") and lines[2].endswith("(no status yet)")
     assert tick_rate([0.0, 0.1, 0.2, 0.3, 0.4], now=0.45) == pytest.approx(10.0)
     assert tick_rate([0.0, 5.0, 5.5], now=6.0) == pytest.approx(2.0)      # only the last two seconds
@@ -468,3 +468,24 @@ def test_usv_op_says_a_bad_value_in_one_line_as_typed():
         with pytest.raises(ConfigError) as raised:
             _command(args, NOW_NS)
         assert str(raised.value).startswith(said) and "pydantic" not in str(raised.value)
+
+
+@pytest.mark.parametrize("where", ["open_session", "send"])
+def test_a_ctrl_c_before_the_consoles_handler_is_one_line_and_code_130(where, monkeypatch, capsys):
+    """While the session opens, or while a command is out (no handler of its own), a Ctrl-C used to end
+    usv-op with a KeyboardInterrupt traceback."""
+    from usv_op import cli as op_cli
+
+    class Session:
+        def close(self):
+            pass
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(op_cli, "open_session", interrupted if where == "open_session" else lambda *a, **k: Session())
+    monkeypatch.setattr(op_cli, "fleet_clock", lambda session: (lambda: 0.0))
+    monkeypatch.setattr(op_cli, "send", interrupted)
+    assert op_cli.main(["--connect", "tcp/127.0.0.1:1", "hold"]) == 130
+    captured = capsys.readouterr()
+    assert captured.err == "usv-op: interrupted\n" and captured.out == ""

@@ -37,7 +37,7 @@ def plot_paths(node: dict) -> list[str]:
     content = node.get("content", node)
     if content.get("type") == "split":
         return [path for item in content["items"] for path in plot_paths(item)]
-    assert content.get("type") == "panel" and content["panelType"] in ("ThreeDee", "Plot"), content
+    assert content.get("type") == "panel" and content["panelType"] in ("ThreeDee", "Plot", "Map"), content
     return [series["value"] for series in content["config"].get("paths", [])]
 
 

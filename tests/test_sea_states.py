@@ -191,3 +191,17 @@ def test_a_variant_of_an_issue_state_is_judged_as_that_state():
     assert lines[0].startswith("- calm_moving_target (judged as calm): **not met**: settled 17/20 >= 20/20 ✗")
     assert lines[1].startswith("- wind_dvl (judged as wind): **met**: settled 20/20 >= 20/20 ✓")
     assert lines[2].startswith("- odd: **met**: closest approach")       # no issue state: the checks of every state
+
+
+def test_the_cold_start_runs_in_moderate_with_each_odometry_and_nowhere_else():
+    """The page's cold start: the ideal, `moderate` (speed log and compass) and `moderate_dvl` (DVL and gyro),
+    each judged as moderate; no other state, and no A/B variant of moderate, costs a cold row."""
+    args = SimpleNamespace(scenario=sea_states.DEFAULT_SCENARIO, variants=None, runs=1, seed=None, duration=None,
+                           no_cold=False, no_ab=True)
+    cold = sorted(state for table, state, _ in sea_states.rows(args) if table == "cold")
+    assert cold == ["kinematic", "moderate", "moderate_dvl"]
+    sea = SimpleNamespace(world=SimpleNamespace(dynamics=object()))
+    summaries = {("cold", "moderate_dvl"): _summary(settled=20), ("cold", "moderate"): _summary(settled=5)}
+    lines = sea_states._acceptance(summaries, dict.fromkeys(summaries, sea), "cold", COLD_ACCEPTANCE)
+    assert lines == ["- moderate_dvl (judged as moderate): **met**: settled 20/20 >= 19/20 ✓",
+                     "- moderate: **not met**: settled 5/20 >= 19/20 ✗"]

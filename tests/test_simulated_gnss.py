@@ -108,3 +108,78 @@ def test_the_same_seed_gives_the_same_sentences_and_another_seed_others():
     again = [simulated_gga([1.0, 2.0], 0.0, k, receiver, np.random.default_rng(3)) for k in range(3)]
     other = [simulated_gga([1.0, 2.0], 0.0, k, receiver, np.random.default_rng(4)) for k in range(3)]
     assert first == again and first != other
+
+
+# ----- the sim bridge's receivers for a live field trial: ptys a driver opens (sim_bridge/gnss_ptys.py) -----
+
+ORIGIN = (59.9, 10.7)
+TRUTH = {"vessels": {"1": {"position": [3.0, -4.0], "heading": math.pi / 2}}, "target": [1.0, 1.0]}
+
+
+def read_sentences(link: str) -> list[bytes]:
+    """What the pty behind `link` holds now, as the driver's serial port reads it, split in sentences."""
+    import os
+
+    fd = os.open(link, os.O_RDONLY | os.O_NONBLOCK | os.O_NOCTTY)
+    try:
+        data = os.read(fd, 65536)
+    except BlockingIOError:   # nothing written to it
+        data = b""
+    finally:
+        os.close(fd)
+    return [line + b"\n" for line in data.split(b"\n") if line]
+
+
+def test_each_ids_gga_goes_into_its_own_pty_at_its_antenna_and_time(tmp_path):
+    from sim_bridge.gnss_ptys import GnssPtys, SimulatedGnss
+
+    links = {"1": str(tmp_path / "gnss-1.tty"), "2": str(tmp_path / "gnss-2.tty"), "target": str(tmp_path / "t.tty")}
+    receiver = SimulatedReceiver(origin=ORIGIN, sigma=0.0, quality=4)
+    ptys = GnssPtys(SimulatedGnss(receiver=receiver, links=links, antennas={"1": (0.6, -0.2)}), seed=1)
+    try:
+        wall_ns = 1_764_000_037_123_450_000   # a wall time (ns since 1970): its time of day is the GGA's UTC
+        ptys.emit(TRUTH, wall_ns)
+        (one,), (tag,) = read_sentences(links["1"]), read_sentences(links["target"])
+        assert read_sentences(links["2"]) == []   # vessel 2 is not in the world: its receiver is silent
+        assert ptys.written == {"1": 1, "target": 1} and not ptys.dropped
+        frame = LocalFrame(*ORIGIN)
+        fix = fix_of(one)
+        # heading north: 0.6 m ahead is north, 0.2 m right is east
+        assert np.array(frame.to_local(fix["latitude"], fix["longitude"])) == pytest.approx([3.2, -3.4], abs=1e-3)
+        assert fix["quality"] == 4
+        assert fix["utc_time"] == pytest.approx((wall_ns % 86_400_000_000_000) * 1e-9, abs=0.006)
+        target = fix_of(tag)
+        assert np.array(frame.to_local(target["latitude"], target["longitude"])) == pytest.approx([1.0, 1.0], abs=1e-3)
+    finally:
+        ptys.close()
+    assert not any((tmp_path / name).exists() for name in ("gnss-1.tty", "gnss-2.tty", "t.tty"))
+
+
+def test_a_pty_nobody_reads_drops_and_counts_its_sentences_and_the_world_goes_on(tmp_path):
+    from sim_bridge.gnss_ptys import GnssPtys, SimulatedGnss
+
+    ptys = GnssPtys(SimulatedGnss(receiver=rtk(ORIGIN), links={"1": str(tmp_path / "g.tty")}), seed=2)
+    try:
+        for k in range(5000):   # ~80 bytes each: far beyond a pty's buffer
+            ptys.emit(TRUTH, k * 100_000_000)
+        assert ptys.written["1"] + ptys.dropped["1"] == 5000
+        assert ptys.dropped["1"] > 0 and ptys.written["1"] > 0
+    finally:
+        ptys.close()
+
+
+def test_receivers_outside_the_sea_mode_are_refused_in_one_line(tmp_path, capsys):
+    from agent.config import ConfigError
+    from sim_bridge.bridge import BridgeSettings, SimBridge
+    from sim_bridge.fleet import main as fleet
+    from sim_bridge.gnss_ptys import SimulatedGnss
+    from sim_bridge.scenario import select_scenario
+
+    _, scenario = select_scenario("tests/data/short_scenario.yaml")
+    settings = BridgeSettings(gnss=SimulatedGnss(receiver=plain(ORIGIN), links={"1": str(tmp_path / "g.tty")}))
+    with pytest.raises(ConfigError, match="need the sea mode"):
+        SimBridge(scenario, settings)
+    assert not (tmp_path / "g.tty").exists()
+    assert fleet(["run", "tests/data/short_scenario.yaml", "--gnss", "rtk", "--out", str(tmp_path / "runs")]) == 2
+    assert "usv-fleet: --gnss: scenario 'short' is not in the sea mode" in capsys.readouterr().err
+    assert not (tmp_path / "runs").exists()

@@ -175,17 +175,28 @@ def _command(args: argparse.Namespace, stamp_ns: int) -> MissionCommand:
         raise ConfigError(f"{given}: {first['msg'][0].lower()}{first['msg'][1:]}") from None
 
 
+def autopilot(status: Status) -> str:
+    """The autopilot's state as its agent last repeated it: mode and arming, 'link lost', and '(N s)' when the
+    driver said it more than LOST_AFTER s before the status; '-' without an autopilot (a simulated vessel)."""
+    vehicle = status.vehicle
+    if vehicle is None:
+        return "-"
+    said = f"{vehicle.mode} {'armed' if vehicle.armed else 'disarmed'}" if vehicle.linked else "link lost"
+    age = (status.stamp_ns - vehicle.stamp_ns) * 1e-9
+    return said + (f" ({age:.0f} s)" if status.ticked and age > LOST_AFTER else "")
+
+
 def status_lines(statuses: dict[str, tuple[float, Status]], live: set[str], now: float,
                  rates: dict[str, float] | None = None) -> list[str]:
     """The fleet as the console shows it: one line per vessel heard or alive. A vessel whose last status is
     more than LOST_AFTER s old is LOST, whatever its liveliness token says (a frozen process keeps it)."""
     rates = rates or {}
     lines = [f"{'vessel':8} {'alive':5} {'age s':>6} {'Hz':>5} {'held':4} {'surge':>6} {'yaw r.':>7} {'refused':>7} "
-             f"{'weakest pair':22} last mission command"]
+             f"{'autopilot':16} {'weakest pair':22} last mission command"]
     for vessel in sorted(set(statuses) | live):
         arrived, status = statuses.get(vessel, (None, None))
         if status is None:
-            lines.append(f"{vessel:8} {'yes':5} {'-':>6} {'-':>5} {'-':4} {'-':>6} {'-':>7} {'-':>7} {'-':22} "
+            lines.append(f"{vessel:8} {'yes':5} {'-':>6} {'-':>5} {'-':4} {'-':>6} {'-':>7} {'-':>7} {'-':16} {'-':22} "
                          "(no status yet)")
             continue
         refused = sum(v for k, v in status.health.items() if k.startswith("rejected_"))
@@ -197,7 +208,7 @@ def status_lines(statuses: dict[str, tuple[float, Status]], live: set[str], now:
         alive = "LOST" if now - arrived > LOST_AFTER else "yes" if vessel in live else "no"
         lines.append(f"{vessel:8} {alive:5} {now - arrived:6.1f} "
                      f"{rates.get(vessel, 0.0):5.1f} {'HOLD' if status.held else '':4} {status.command[0]:6.2f} "
-                     f"{status.command[1]:7.3f} {refused:7d} {pair[:22]:22} {said}")
+                     f"{status.command[1]:7.3f} {refused:7d} {autopilot(status)[:16]:16} {pair[:22]:22} {said}")
     return lines
 
 
@@ -282,6 +293,16 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    try:
+        return _run(args)
+    except KeyboardInterrupt:
+        # A Ctrl-C before the console's own handler is in place (while the session opens, or during a
+        # command's send): one line and the shell's code for it, not a traceback.
+        print("usv-op: interrupted", file=sys.stderr)
+        return 130
+
+
+def _run(args: argparse.Namespace) -> int:
     if args.command == "layout":
         try:
             print(json.dumps(json.loads(fleet_layout(args.vessels)), indent=2))

@@ -3,7 +3,8 @@ both use the same topics and frames. docs/foxglove_layout.json is this for the f
 
 A 3D panel in the `world` frame (the ground truth, when a simulation provides it, with every vessel's beliefs
 hanging off its own `vessel/<id>` frame), and plots of what an operator watches per vessel: the commanded
-surge speed, and the inputs refused so far (health counters of the status)."""
+surge speed, and the inputs refused so far (health counters of the status); and a Map panel of the GNSS fixes
+(`/<id>/gnss`, foxglove.LocationFix) of a field trial's drivers, following the target's tag."""
 
 from __future__ import annotations
 
@@ -11,6 +12,7 @@ from collections.abc import Sequence
 
 from usv_op.view import load_sdk
 
+GNSS_TAG = "target"   # the target tag's id (mission_log.gnss_truth.TARGET)
 WATCHED = ("rejected_stale", "rejected_malformed", "rejected_shares_missing", "tick_errors", "overruns")
 
 
@@ -30,8 +32,12 @@ def fleet_layout(vessels: Sequence[str]) -> str:
         layouts.PlotSeries(value=status_path(v, f"health.{name}"), label=f"{v}: {name}")
         for v in vessels for name in WATCHED]))
     scene = layouts.ThreeDeePanel(title="the fleet", config=layouts.ThreeDeeConfig(follow_tf="world"))
+    # every LocationFix topic is drawn unless disabled; centred on the target's tag
+    fixes = layouts.MapPanel(title="GNSS fixes (a field trial's truth)",
+                             config=layouts.MapConfig(follow_topic=f"/{GNSS_TAG}/gnss"))
     return layouts.Layout(content=layouts.SplitContainer(direction="row", items=[
         layouts.SplitItem(proportion=2, content=scene),
         layouts.SplitItem(proportion=1, content=layouts.SplitContainer(direction="column", items=[
-            layouts.SplitItem(content=surge), layouts.SplitItem(content=refused)]))])).to_json()
+            layouts.SplitItem(content=surge), layouts.SplitItem(content=refused),
+            layouts.SplitItem(content=fixes)]))])).to_json()
 

@@ -7,7 +7,10 @@ layout (docs/foxglove_layout.json, `usv-op layout`) shows a live fleet and a rec
 - from each agent's status: `usv/<id>/status` as it went out (health figures to plot), and once a second
   `/<id>/scene` (foxglove.SceneUpdate), the circle it steers to around its target estimate;
 - from the sim bridge in real time (`sim/truth`): `/tf`, the ground truth in `world`, and once a second
-  `/scene`, the true target and the circle.
+  `/scene`, the true target and the circle;
+- from each driver's GNSS receiver (`usv/<id>/truth/gnss`, a field trial's truth; the target's tag too):
+  `/<id>/gnss` (foxglove.LocationFix) for Foxglove's Map panel, its covariance HDOP x the fix quality's
+  nominal accuracy (`location_fix`).
 Payloads that do not decode, or whose sender is not the vessel of their key, are skipped and counted
 (`refused`), never shown half. Channels are bounded: at most `max_vessels` vessels get channels of each kind
 (tf, status, scene: a vessel's three), the first come first served; a message that would open one more is
@@ -24,10 +27,13 @@ import time
 
 import orjson
 
-from agent.contract import TRUTH_KEY, ShareMessage, Status, decode, every, vessel_of
+from agent.contract import TRUTH_KEY, GnssFix, ShareMessage, Status, decode, every, gnss_truth_key, vessel_of
 from agent.runtime import foxglove as frames
 
 SCENE_PERIOD = frames.SCENE_PERIOD_NS * 1e-9
+# Per-axis horizontal 1-sigma (m) at HDOP 1 by GGA fix quality, for the Map panel's ellipse (our choice, as the
+# sim's receivers: 1 GNSS 1.5 m, 4 RTK fixed 2 cm; DGNSS and RTK float between). Vertical: twice it.
+NOMINAL_SIGMA = {1: 1.5, 2: 0.5, 4: 0.02, 5: 0.3}
 MAX_VESSELS = 64   # vessels with channels of each kind (a fleet is a handful; `usv-op view --max-vessels`)
 
 
@@ -61,7 +67,8 @@ class LiveView:
     def subscribe(self, session) -> list:
         return [session.declare_subscriber(every("share"), self.on_share),
                 session.declare_subscriber(every("status"), self.on_status),
-                session.declare_subscriber(TRUTH_KEY, self.on_truth)]
+                session.declare_subscriber(TRUTH_KEY, self.on_truth),
+                session.declare_subscriber(gnss_truth_key("*"), self.on_gnss)]
 
     # ----- Zenoh callbacks -----
     def on_share(self, sample) -> None:
@@ -101,6 +108,13 @@ class LiveView:
         self._log("/tf", frames.FrameTransforms, frames.transforms(stamp, links))
         if self._radius is not None:
             self._scene("/scene", "target", self._radius, "target", stamp)
+
+    def on_gnss(self, sample) -> None:
+        fix, _ = decode(GnssFix, sample.payload.to_bytes())
+        if fix is None or fix.sender != vessel_of(str(sample.key_expr)):
+            self._refuse()
+            return
+        self._log(f"/{fix.sender}/gnss", frames.LocationFix, location_fix(fix), ("gnss", fix.sender))
 
     # ----- out to Foxglove -----
     def _scene(self, topic: str, frame: str, radius: float, label: str, stamp_ns: int,
@@ -147,6 +161,19 @@ class LiveView:
     def _refuse(self) -> None:
         with self._lock:
             self.refused += 1
+
+
+def location_fix(fix: GnssFix) -> dict:
+    """A GnssFix as foxglove.LocationFix: the antenna's position; an approximated diagonal covariance, (HDOP x
+    NOMINAL_SIGMA of its quality)^2 east and north and four times that up, when both are known, else type 0."""
+    sigma = NOMINAL_SIGMA.get(fix.quality)
+    known = sigma is not None and fix.hdop is not None
+    h = (fix.hdop * sigma) ** 2 if known else 0.0
+    frame = "target" if fix.sender == "target" else frames.vessel_frame(fix.sender)
+    return {"timestamp": frames.time_of(fix.stamp_ns).model_dump(), "frame_id": frame,
+            "latitude": fix.latitude, "longitude": fix.longitude,
+            "altitude": 0.0 if fix.altitude is None else fix.altitude,
+            "position_covariance": [h, 0.0, 0.0, 0.0, h, 0.0, 0.0, 0.0, 4 * h], "position_covariance_type": int(known)}
 
 
 def serve(session, host: str, port: int, stop: threading.Event, out=print,

@@ -1,7 +1,7 @@
 """Foxglove messages in our MCAP logs, so that a log shows the mission in Foxglove's 3D panel.
 
-Models of the parts of `foxglove.FrameTransforms` and `foxglove.SceneUpdate` we write, field for field as
-Foxglove publishes them (tests/test_foxglove.py checks what we log against the published JSON schemas). A
+Models of the parts of `foxglove.FrameTransforms`, `foxglove.SceneUpdate` and `foxglove.LocationFix` (the live
+view's GNSS fixes) we write, field for field as Foxglove publishes them (tests/test_foxglove.py checks what we log against the published JSON schemas). A
 channel whose schema is named `foxglove.<Name>` is drawn by Foxglove; its fields can be plotted like any other.
 
 Frames (one tree across all of a run's files):
@@ -78,6 +78,18 @@ class FrameTransforms(_Message):
     model_config = ConfigDict(extra="forbid", title="foxglove.FrameTransforms")   # the schema name Foxglove knows
 
     transforms: list[FrameTransform]
+
+
+class LocationFix(_Message):
+    model_config = ConfigDict(extra="forbid", title="foxglove.LocationFix")   # drawn by Foxglove's Map panel
+
+    timestamp: Time
+    frame_id: str
+    latitude: float
+    longitude: float
+    altitude: float
+    position_covariance: list[float] = Field(min_length=9, max_length=9, description="ENU, row-major (m^2)")
+    position_covariance_type: int = Field(ge=0, le=3, description="0 unknown, 1 approximated, 2 diagonal, 3 known")
 
 
 class SpherePrimitive(_Message):

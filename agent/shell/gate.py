@@ -38,12 +38,14 @@ from agent.contract import (
     MAX_PEERS,
     MAX_SPEED,
     TOPICS,
+    VEHICLE_TOPIC,
     Bearing,
     Clock,
     Odometry,
     Ranges,
     ReceivedShare,
     Sonar,
+    VehicleState,
     decode,
     nanoseconds,
     seconds,
@@ -53,6 +55,7 @@ from agent.core.records import Share, TickInputs
 from agent.shell.translate import odometry_reading, share_from_message
 
 OWN_TOPICS = ("sensor/odom", "sensor/uwb", "sensor/bearing", "sensor/sonar")
+OWN_KEYS = (*OWN_TOPICS, VEHICLE_TOPIC)   # the vehicle's state too: kept for the status, awaited by no tick
 ALWAYS_COUNTED = ("stale", "malformed", "shares_missing")   # refusals an operator watches (usv_op.layout)
 DETAIL_CHARS = 200   # of a refusal's detail kept in `recent_reasons` (a key or a reason may be long)
 MAX_RANGE_SETS = 32  # UWB range sets kept between two ticks (a module ranging at up to 300 Hz), the oldest dropped
@@ -201,7 +204,7 @@ class InputGate:
         model = TOPICS.get(topic)
         if topic == "share" and vessel == self.id:
             return False  # our own share, echoed by a subscription to every vessel's
-        if model is None or topic not in (*OWN_TOPICS, "share") or topic in OWN_TOPICS and vessel != self.id:
+        if model is None or topic not in (*OWN_KEYS, "share") or topic in OWN_KEYS and vessel != self.id:
             return self._refuse("unexpected_key", key)
         if topic == "share":
             if self.known_peers is not None and vessel not in self.known_peers():
@@ -276,7 +279,7 @@ class InputGate:
         """Measure the offset of the message's stamp from `now` for its source; an own sensor message comes
         back with its stamp corrected while the sensors' clock is consistently outside the window (the
         correction in force: `StampOffsets`), else as it came."""
-        own = topic in OWN_TOPICS
+        own = topic in OWN_KEYS
         with self._lock:
             source = CLOCK_SOURCE_SENSORS if own else message.sender
             self.offsets.observe(source, seconds(message.stamp_ns) - now)
@@ -308,6 +311,11 @@ class InputGate:
         if len(self._ranged) > 2 * MAX_PEERS:
             newest = sorted(self._ranged.items(), key=lambda item: item[1])[-MAX_PEERS:]
             self._ranged = dict(newest)
+
+    def vehicle(self) -> VehicleState | None:
+        """The autopilot's latest state its driver published (None: none came); for the status only."""
+        with self._lock:
+            return self._latest.get(VEHICLE_TOPIC)
 
     def ranged_within(self, peer: str, now: float | None, within: float) -> bool:
         """Whether our UWB module ranged to `peer` within `within` s of `now` (None: at all)."""

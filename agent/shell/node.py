@@ -183,7 +183,7 @@ class AgentNode:
 
     def _status(self, publishers, stamp, command, record, ticked=True):
         view = {"held": self.orders.held, "radius": self.params.control.radius, "mission": self.orders.acks(),
-                "clocks": self.ticker.alarms(self.gate.clock_alarms())}
+                "clocks": self.ticker.alarms(self.gate.clock_alarms()), "vehicle": self.gate.vehicle()}
         return self.outbox.status(publishers, stamp, command, record, sorted(self._live_view), self._health,
                                   view, ticked)
 

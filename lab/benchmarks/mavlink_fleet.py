@@ -20,6 +20,7 @@ import tempfile
 import time
 from pathlib import Path
 
+from lab import arguments
 from lab.arguments import seed as seed_type
 from lab.report.markdown import invocation, markdown_table
 from mission_log.metrics import truth_metrics
@@ -41,8 +42,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scenario", default="table2_estimators", help="a scenario file or name")
     parser.add_argument("--seeds", type=seed_type, nargs="+", default=[2, 3])
     parser.add_argument("--duration", type=float, default=None, help="simulated seconds (default: the scenario's)")
-    parser.add_argument("--out", type=Path, default=DEFAULT_PAGE, help="the page to write")
-    parser.add_argument("--runs", type=Path, default=None, help="where the run folders go (default: a temporary "
+    parser.add_argument("--out", type=arguments.page, default=DEFAULT_PAGE, help="the page to write")
+    parser.add_argument("--runs", type=arguments.folder, default=None, help="where the run folders go (default: a temporary "
                                                                  "folder, deleted afterwards)")
 
 

@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from lab import arguments
 from lab.arguments import seed as seed_type
 from lab.report.markdown import invocation, markdown_table
 from mission_log.metrics import truth_metrics
@@ -39,7 +40,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--ideal", default="ideal", help="the variant run in lockstep as the reference")
     parser.add_argument("--sea", nargs="+", default=["sea"], help="the sea-mode variants to compare")
     parser.add_argument("--seeds", type=seed_type, nargs="+", default=[2, 3, 4, 5, 6])
-    parser.add_argument("--out", type=Path, default=DEFAULT_PAGE, help="the page to write")
+    parser.add_argument("--out", type=arguments.page, default=DEFAULT_PAGE, help="the page to write")
     parser.add_argument("--runs", type=Path, default=None, help="where the run folders go (default: a temporary "
                                                                  "folder, deleted afterwards)")
 

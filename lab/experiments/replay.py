@@ -398,7 +398,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                        help="TUNED ON THE TRUTH: give every filter the sample variance of the ranges' "
                             "residuals against this file's ground truth (raw_range: one Gaussian of it); "
                             "the output is labelled so")
-    parser.add_argument("--out", type=Path, default=Path(DEFAULT_OUT),
+    parser.add_argument("--out", type=arguments.folder, default=Path(DEFAULT_OUT),
                         help=f"directory of the table and figure (default {DEFAULT_OUT})")
     add_engine_arguments(parser)
 

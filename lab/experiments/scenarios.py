@@ -52,7 +52,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=arguments.seed, default=None,
                         help="root seed of every variant (default: each file's own)")
     add_engine_arguments(parser)
-    parser.add_argument("--out", type=Path, default=Path("docs/results/scenarios"),
+    parser.add_argument("--out", type=arguments.folder, default=Path("docs/results/scenarios"),
                         help="where the pages and figures go")
     parser.add_argument("--scenarios-dir", type=Path, default=DEFAULT_DIR,
                         help="where NAME stems and 'all' are looked up")

@@ -20,6 +20,7 @@ import sys
 import time
 from pathlib import Path
 
+from lab import arguments
 from lab.arguments import seed as seed_type
 from lab.experiments.sea_agent import COPING, ODOMETRY, effect_scenario, measure, summary
 from lab.harness.plant_effects import PlantEffects
@@ -132,7 +133,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         choices=list(CONDITIONS),
         default=[c for c in CONDITIONS if c not in ISSUE or c in ("yaw_lag", "bias")],
     )
-    parser.add_argument("--out", type=Path, default=DEFAULT_PAGE, help="the page to write")
+    parser.add_argument("--out", type=arguments.page, default=DEFAULT_PAGE, help="the page to write")
 
 
 def run(args: argparse.Namespace) -> int:

@@ -26,6 +26,8 @@ ACCEPTANCE = {
     "moderate": [("settled", ">=", 0.95), ("e_c_after", "<=", 0.5), ("e_ij_after", "<=", 0.3), *EVERY_STATE],
 }
 COLD_ACCEPTANCE = {"moderate": [("settled", ">=", 0.95)]}
+# The states whose cold start the page runs: the acceptance's, with each odometry the page judges it with.
+COLD_STATES = ("moderate", "moderate_dvl")
 WORDS = {"settled": "settled", "e_c_after": "e_c after settling", "e_ij_after": "e_ij after settling",
          "closest": "closest approach", "within_limits": "commands within the limits"}
 UNITS = {"e_c_after": " m", "e_ij_after": " m", "closest": " m"}

@@ -27,6 +27,7 @@ from lab.experiments.sea_agent import COPING, ODOMETRY
 from lab.experiments.sea_figures import (
     ACCEPTANCE,
     COLD_ACCEPTANCE,
+    COLD_STATES,
     EVERY_STATE,
     StateSummary,
     command_limits,
@@ -93,7 +94,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-cold", action="store_true", help="leave out the cold start")
     parser.add_argument("--no-ab", action="store_true", help="leave out the A/B of the agent's measures")
     add_engine_arguments(parser)
-    parser.add_argument("--out", type=Path, default=DEFAULT_PAGE, help="the page; figures go to its stem/")
+    parser.add_argument("--out", type=arguments.page, default=DEFAULT_PAGE, help="the page; figures go to its stem/")
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -164,7 +165,7 @@ def rows(args: argparse.Namespace) -> dict[tuple[str, str, str], Scenario]:
     table = {("states", name, ""): s for name, s in found.items()}
     if not args.no_cold:
         for name, s in found.items():
-            if s.world.dynamics is None or name in COLD_ACCEPTANCE:
+            if s.world.dynamics is None or name in COLD_STATES:
                 table["cold", name, ""] = cold(s, args.duration)
     if not args.no_ab:
         for state, measure in AB_PLAN:

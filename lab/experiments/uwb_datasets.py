@@ -796,7 +796,7 @@ def write_page(manifests: Sequence[Sequence[Entry]], configs: Sequence[Config], 
 def add_convert_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("dataset", choices=sorted(READERS))
     parser.add_argument("source", type=Path, help="checkout of the data set's repository")
-    parser.add_argument("out", type=Path, help="directory of the CSVs and runs.csv")
+    parser.add_argument("out", type=arguments.folder, help="directory of the CSVs and runs.csv")
     parser.add_argument("--interval", type=arguments.positive_float, default=DEFAULT_INTERVAL,
                         help=f"keep at most one range per this many seconds (default {DEFAULT_INTERVAL:g}, "
                              "the agent's tick); MURP's 1 Hz windows are kept as they are")
@@ -815,7 +815,7 @@ def add_fit_noise_arguments(parser: argparse.ArgumentParser) -> None:
                         help="checkout of the data set's repository; with csv, the replay CSV files")
     parser.add_argument("--components", type=arguments.positive_int, default=3,
                         help="Gaussian components of the fitted density (default 3)")
-    parser.add_argument("--out", type=Path, default=None,
+    parser.add_argument("--out", type=arguments.page, default=None,
                         help="write the config here, e.g. configs/uwb/DATASET.yaml (default: print it)")
 
 
@@ -850,7 +850,7 @@ def add_page_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--runs", type=arguments.positive_int, default=10,
                         help="Monte Carlo runs per replay (default 10)")
     parser.add_argument("--seed", type=arguments.seed, default=1)
-    parser.add_argument("--out", type=Path, default=Path("docs/results/real_uwb.md"))
+    parser.add_argument("--out", type=arguments.page, default=Path("docs/results/real_uwb.md"))
     add_engine_arguments(parser)
 
 
