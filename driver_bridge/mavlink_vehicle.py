@@ -401,7 +401,7 @@ class MavlinkVehicle:
             last_east, last_north = self._last[:2] if self._last is not None else (0.0, 0.0)
             self._origin = (east - last_east, north - last_north)
         east, north = east - self._origin[0], north - self._origin[1]
-        if not (abs(east) <= MAX_POSITION and abs(north) <= MAX_POSITION and 0 < stamp <= MAX_STAMP_NS):
+        if not (abs(east) <= MAX_POSITION and abs(north) <= MAX_POSITION and 0 <= stamp <= MAX_STAMP_NS):
             self.rejected["out_of_range"] += 1
             return None
         if self._last is not None:

@@ -13,9 +13,9 @@ thrust. Each device (an autopilot too) is one adapter; this file only wires them
                                    speed log and yaw) -> $THR lines at the loop's `loop_hz`
     usv/<id>/cmd, autopilot <-> MavlinkVehicle (`mavlink`): set points; its state -> sensor/odom, sensor/vehicle
 
-The watchdog is the adapter's: with no fresh command the thrusters get zero. Stamps are wall time (the
-clock the agents run on at sea). One thread reads the ports (select); the Zenoh callback only stores the
-latest command (and wakes the loop for an autopilot). SIGINT and SIGTERM stop it, with a last zero-thrust
+The watchdog is the adapter's: with no fresh command the thrusters get zero. Stamps are wall time (at sea),
+or `clock: sim` the sim bridge's sim/clock (MAVLink stand-ins). One thread reads the ports (select); the
+Zenoh callback only stores the latest command (and wakes the loop for an autopilot). SIGINT and SIGTERM stop it, with a last zero-thrust
 line (an autopilot: a zero set point and HOLD).
 
 No line or frame ends the process: that would take the watchdog's stop with it. Each adapter bounds what
@@ -42,9 +42,11 @@ from pydantic import Field, model_validator
 
 from agent.config import PositiveFloat, StrictModel
 from agent.contract import (
+    CLOCK_KEY,
     LIVELINESS,
     VEHICLE_TOPIC,
     Bearing,
+    Clock,
     Cmd,
     Odometry,
     Ranges,
@@ -148,6 +150,8 @@ class DriverSettings(StrictModel):
     mavlink: MavlinkSettings | None = Field(None, description="an ArduPilot autopilot: it drives the vessel and "
                                             "gives its odometry (docs/boats.md)")
     commands: CommandWindow = CommandWindow()
+    clock: Literal["wall", "sim"] = Field("wall", description="wall: a boat's; sim: the sim bridge's sim/clock "
+                                          "(usv-fleet run --vehicle mavlink)")
 
     @model_validator(mode="after")
     def _measured(self) -> DriverSettings:
@@ -170,7 +174,8 @@ class DriverBridge:
                  report: Callable[[str], None] | None = None) -> None:
         self.id = vessel
         self.settings = settings
-        self.clock_ns = clock_ns
+        self.clock_ns = clock_ns if settings.clock == "wall" else self._sim_ns
+        self._sim_stamp = 0   # clock: sim: the stamp of the latest sim/clock (ns)
         self._report = report or (lambda line: print(line, file=sys.stderr, flush=True))
         self._reported: tuple[float, dict] = (-math.inf, {})
         self.stopping = threading.Event()
@@ -275,6 +280,16 @@ class DriverBridge:
                 self.command_gate.forget()
                 self._agent_left = True
             self._wake_loop()
+
+    def _sim_ns(self) -> int:
+        return self._sim_stamp
+
+    def _on_sim_clock(self, sample) -> None:
+        message, _ = decode(Clock, sample.payload.to_bytes())
+        if message is None:
+            self.refused["clock_malformed"] += 1
+        else:
+            self._sim_stamp = message.stamp_ns
 
     def _publish(self, publishers, topic: str, message) -> None:
         publishers[topic].put(encode(message))
@@ -437,6 +452,8 @@ class DriverBridge:
                     session.declare_subscriber(key(self.id, "cmd"), self._on_command),
                     session.liveliness().declare_subscriber(key(self.id, LIVELINESS), self._on_agent_liveliness,
                                                             history=True)]
+                if self.settings.clock == "sim":
+                    listening.append(session.declare_subscriber(CLOCK_KEY, self._on_sim_clock))
                 period = (1.0 / self.settings.thrusters.lines_per_second() if self.thrusters
                           else VEHICLE_PERIOD if link else 0.1)
                 waits = list(readers) + ([link.fd, self._wake[0]] if link else [])

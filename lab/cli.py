@@ -18,7 +18,7 @@ Experiments (lab/experiments/):
     usv-lab driver-loop     the driver bridge's inner loop on the Otter, the rate from a VHW compass
 Benchmarks (lab/benchmarks/):
     usv-lab bench, fleet-bench, runtime-bench, runtime-ab, hull-ab, cluster-bench, share-bench, sea-bench, fuzz,
-    serial-fuzz, mavlink-fuzz
+    serial-fuzz, mavlink-fuzz, mavlink-fleet
 
 A subcommand is a module with `add_arguments(parser)` and `run(args) -> exit code`, or, for a module of
 several, `add_<name>_arguments` and `run_<name>` (SUBCOMMANDS names them `module:name`).
@@ -66,6 +66,8 @@ SUBCOMMANDS = {
                     "the serial side of the fuzz campaign alone: bad lines per parser"),
     "mavlink-fuzz": ("lab.benchmarks.mavlink_fuzz",
                      "the MAVLink side of the fuzz campaign: hostile datagrams at the driver's link"),
+    "mavlink-fleet": ("lab.benchmarks.mavlink_fleet",
+                      "the fleet through MAVLink stand-ins against the sim bridge: metrics, latency, HOLD"),
     "sea-bench": ("lab.benchmarks.sea",
                   "the fleet in the sea mode against the ideal simulation, seed by seed"),
     "sea-agent-ab": ("lab.experiments.sea_agent_ab",

@@ -54,14 +54,19 @@ STREAM_OF = {6: (LOCAL_POSITION_NED_ID,), 10: (ATTITUDE_ID,), 0: (ATTITUDE_ID, L
 DEFAULT_INTERVAL = 0.25   # s: 4 Hz until asked otherwise (our choice; ArduPilot's SRx_ parameters set it)
 STEP = 0.005              # s: the loop's period
 HULL_STEP = 0.02          # s: the hull's substep with --preset (the sim's default dynamics step)
+# Relayed: boot time = sim time + this (no time_boot_ms of 0), and TIMESYNC answers so: the driver stamps the
+# pose of sim time t at t exactly (an agent's share carries its odometry's stamp, which must be the tick's).
+RELAY_BOOT_NS = 1_000_000_000
 
 
 class Standin:
     def __init__(self, mav, system: int = 1, component: int = 1, guid_timeout: float = 3.0,
                  position: bool = True, record=None, clock=time.monotonic, preset: str | None = None,
                  gcs_system: int = 255, full_throttle_speed: float = 2.0, acro_turn_rate: float = 180.0,
-                 override_timeout: float = 3.0) -> None:
+                 override_timeout: float = 3.0, relayed: bool = False) -> None:
         self.mav, self.system, self.component = mav, system, component
+        self.relayed = relayed   # the hull is the sim bridge's (standin_relay.py): no motion, no streams of its own
+        self.arrival = None      # relayed: (u, r) -> wall ns the agent's command reached the relay, for latency
         self.guid_timeout, self.position, self.record, self.clock = guid_timeout, position, record, clock
         self.boot = clock()
         self.counts: Counter[str] = Counter()
@@ -80,6 +85,7 @@ class Standin:
         self.due = {ATTITUDE_ID: self.boot, LOCAL_POSITION_NED_ID: self.boot, ODOMETRY_ID: self.boot,
                     "heartbeat": self.boot}
         self.stepped = self.boot
+        self.posed: int | None = None         # relayed: sim time (ns) of the last pose
         self.hulls = None
         if preset is not None:   # x east, y north, psi counter-clockwise from east: bow north at the origin
             self.hulls = HullFleet(boat_preset(preset), 1, HULL_STEP, 1)
@@ -155,6 +161,8 @@ class Standin:
     def _on_timesync(self, msg, now: float) -> list:
         if msg.tc1 != 0:
             return []
+        if self.relayed:   # its boot clock: the sim clock (the asker's own) + RELAY_BOOT_NS
+            return [self.mav.timesync_encode(msg.ts1 + RELAY_BOOT_NS, msg.ts1)]
         return [self.mav.timesync_encode(int((now - self.boot) * 1e9), msg.ts1)]
 
     def _on_manual_control(self, msg, now: float) -> list:
@@ -186,14 +194,19 @@ class Standin:
         u = msg.vx if frame in BODY_FRAMES else msg.vx * math.cos(self.yaw) + msg.vy * math.sin(self.yaw)
         self.setpoint = (u, -msg.yaw_rate, now)
         self.counts["setpoints"] += 1
-        self._note("setpoint", now, u=u, r=-msg.yaw_rate, wall_ns=time.time_ns())
+        wall_ns = time.time_ns()
+        arrived = self.arrival(u, -msg.yaw_rate) if self.arrival is not None else None
+        added = {} if arrived is None else {"added_ms": (wall_ns - arrived) * 1e-6}
+        self._note("setpoint", now, u=u, r=-msg.yaw_rate, wall_ns=wall_ns, **added)
         return []
 
     # ----- the hull and what goes out -----
     def step(self, now: float) -> list:
         """Move the hull to `now` under what it does, decide what it does next; the messages due."""
         dt = now - self.stepped
-        if self.hulls is not None:
+        if self.relayed:
+            pass
+        elif self.hulls is not None:
             while self.stepped + HULL_STEP <= now:   # the preset's hull under its inner loop, (u, r) held
                 self.hulls.advance(self.stepped, HULL_STEP, np.array([self.u]), np.array([self.r]), self.stepped)
                 self.stepped += HULL_STEP
@@ -228,7 +241,8 @@ class Standin:
             base = 1 | (128 if self.armed else 0)   # CUSTOM_MODE_ENABLED, SAFETY_ARMED
             out.append(self.mav.heartbeat_encode(11, 3, base, self.mode, 4 if self.armed else 3))
         for message, interval in self.intervals.items():
-            if interval is None or now < self.due[message] or message in POSITION_STREAMS and not self.position:
+            if (interval is None or now < self.due[message] or message in POSITION_STREAMS and not self.position
+                    or self.relayed):
                 continue
             self.due[message] = max(self.due[message] + interval, now)
             ms = self.boot_ms(now)
@@ -246,6 +260,18 @@ class Standin:
                 out.append(self.mav.local_position_ned_encode(ms, self.north, self.east, 0.0, north_speed,
                                                               east_speed, 0.0))
         return out
+
+    def pose(self, north: float, east: float, yaw: float, rate: float, stamp_ns: int) -> list:
+        """Relayed: the sim's pose of sim time `stamp_ns` (yaw NED, `rate` its rate counter-clockwise) as
+        ATTITUDE and LOCAL_POSITION_NED, stamped on the sim clock (+ RELAY_BOOT_NS: no boot time is 0)."""
+        speed_north, speed_east = (north - self.north, east - self.east) if self.posed is not None else (0.0, 0.0)
+        dt = (stamp_ns - self.posed) * 1e-9 if self.posed is not None else 0.0
+        self.north, self.east, self.yaw = north, east, yaw
+        self.posed = stamp_ns
+        ms = ((stamp_ns + RELAY_BOOT_NS) // 1_000_000) & 0xFFFFFFFF
+        north_speed, east_speed = (speed_north / dt, speed_east / dt) if dt > 0 else (0.0, 0.0)
+        return [self.mav.attitude_encode(ms, 0.0, 0.0, yaw, 0.0, 0.0, -rate),
+                self.mav.local_position_ned_encode(ms, north, east, 0.0, north_speed, east_speed, 0.0)]
 
     def motion(self) -> tuple[float, float, float]:
         """Velocity north and east (m/s) and yaw rate (rad/s, counter-clockwise) over ground now."""
@@ -270,7 +296,12 @@ def main(argv: list[str] | None = None) -> int:
                         "wamv) instead of the kinematic hull")
     parser.add_argument("--record", default=None, help="JSON lines of set points and mode changes")
     parser.add_argument("--seconds", type=float, default=None, help="stop after this long")
+    parser.add_argument("--sim", default=None, help="a sim bridge's Zenoh endpoint: the hull is its vessel "
+                        "--vessel (usv-fleet run --vehicle mavlink; sim_bridge/standin_relay.py)")
+    parser.add_argument("--vessel", default=None, help="with --sim: the vessel's id")
     args = parser.parse_args(argv)
+    if (args.sim is None) != (args.vessel is None) or (args.sim is not None and args.preset is not None):
+        parser.error("--sim and --vessel go together, and without --preset (the sim's world moves the hull)")
     os.environ.setdefault("MAVLINK20", "1")   # mavutil picks the wire version from the environment
     try:
         from pymavlink import mavutil
@@ -285,13 +316,21 @@ def main(argv: list[str] | None = None) -> int:
     record = open(args.record, "a", encoding="utf-8") if args.record else None
     standin = Standin(connection.mav, args.system, 1, args.guid_timeout, not args.no_position, record,
                       preset=args.preset, gcs_system=args.gcs_system, full_throttle_speed=args.full_throttle_speed,
-                      acro_turn_rate=args.acro_turn_rate)
+                      acro_turn_rate=args.acro_turn_rate, relayed=args.sim is not None)
+    relay = None
+    if args.sim is not None:
+        from sim_bridge.standin_relay import SimRelay
+        relay = SimRelay(args.sim, args.vessel, standin, MODES)
+        standin.arrival = relay.arrival
     spoken = False   # an udpin link has nobody to send to until someone speaks
     try:
         while not stopping.is_set() and (args.seconds is None or time.monotonic() - standin.boot < args.seconds):
-            ready, _, _ = select.select([connection.fd], [], [], STEP)
-            replies = []
-            if ready:
+            ready, _, _ = select.select([connection.fd] + ([relay.wake_fd] if relay else []), [], [], STEP)
+            replies, taken = [], standin.counts["setpoints"]
+            posed = relay is not None and relay.wake_fd in ready
+            if posed:
+                replies += relay.poses()
+            if connection.fd in ready:
                 for _ in range(256):
                     try:
                         msg = connection.recv_msg()
@@ -306,9 +345,15 @@ def main(argv: list[str] | None = None) -> int:
             if spoken:
                 for message in out:
                     connection.mav.send(message)
+            if relay is not None:
+                relay.publish(posed or standin.counts["setpoints"] > taken)
+                for added in relay.late_matches():
+                    standin._note("setpoint_ahead", time.monotonic(), added_ms=added)
     finally:
         if record is not None:
             record.close()
+        if relay is not None:
+            relay.close()
     print(f"usv-ardupilot-standin: stopped; {dict(standin.counts)}", file=sys.stderr, flush=True)
     return 0
 

@@ -16,7 +16,8 @@ step of its arrival, as thrusters do), and `SeaSensors` gives every measurement 
 time, from the world interpolated between the step's ends. A small scheduler (one heap, on the bridge's
 thread) publishes each message when its latency has passed, stamped in its vessel's own clock. The truth is
 logged and `sim/clock` goes out once per tick (dt), for the launcher; wall-clock agents do not read the
-clock, and the radio is not simulated (no packet loss).
+clock, and the radio is not simulated (no packet loss). Vessels in `autopilots` are driven through MAVLink
+stand-ins, which relay this world (sim_bridge/autopilot_relay.py).
 
 The bridge also plays the radio between the vessels: each clock message says which shares of the tick
 before each agent gets now (`lost_shares`: the scenario's packet loss, by a hash of the run's seed), so the
@@ -63,6 +64,7 @@ from agent.runtime.log_schema import BridgeSummary, CommandLatency, LoggedTruth
 from agent.runtime.mcap_log import LogRotation, McapLog
 from agent.runtime.process import guard_stderr, stop_on_signals
 from agent.runtime.zenoh_session import ZenohSettings, open_session, zenoh_config
+from sim_bridge.autopilot_relay import DRIVE_ALL, Drive, drives_command, pose_key
 from sim_bridge.gnss_ptys import GnssPtys, SimulatedGnss
 from sim_bridge.scenario import Scenario, select_scenario
 from sim_bridge.world import Frame, Measurement, SeaSensors, World, lost_shares, sea_steps, sea_world, streams
@@ -76,6 +78,8 @@ class BridgeSettings(StrictModel):
     # A status stamped further ahead is refused too; sim time, wall time in the sea mode.
     max_command_skew: PositiveFloat = Field(
         1.0, description="a command stamped further than this from the bridge's clock is refused and counted (s)")
+    # usv-fleet run --vehicle mavlink: their odometry goes to the stand-in, their commands come from it
+    autopilots: list[str] = Field([], description="vessels an ArduPilot stand-in drives (autopilot_relay.py)")
     # The bridge waits for it once the agents are ready; None: sim time 0 is the moment they are.
     epoch_ns: int | None = Field(
         None, ge=0, description="sea mode: the wall time of sim time 0 (ns since 1970); None: agents ready")
@@ -97,6 +101,8 @@ class SimBridge:
         self.sea = None if scenario.world.sea is None else SeaSensors(scenario.world, random.sea)
         self.world = World(scenario.world if self.sea is None else sea_world(scenario.world), random.world)
         self.loss_seed = random.loss_seed
+        if self.sea is not None and settings.autopilots:
+            raise ConfigError(f"scenario {scenario.name!r} runs in the sea mode, which has no autopilot stand-ins")
         if self.sea is not None and settings.mode != "realtime":
             raise ConfigError(f"scenario {scenario.name!r} runs in the sea mode, which needs the real-time mode "
                               "(bridge setting mode: realtime) and agents on the wall clock")
@@ -113,6 +119,9 @@ class SimBridge:
         self.alive: set[str] = set()
         self.commands: dict[str, Cmd] = {}
         self.statuses: dict[str, Status] = {}
+        self.autopilots = set(settings.autopilots)
+        self.drives: dict[str, Drive] = {}         # vessel -> its stand-in's latest Drive (autopilot_relay.py)
+        self.drive_arrivals: dict[str, float] = {}   # vessel -> when it came, by _bridge_clock()
         self.missed_commands = 0
         self.startup_missing: set[str] = set()   # vessels whose agent was not ready when the bridge gave up waiting
         self.watchdog_stops = 0
@@ -172,15 +181,31 @@ class SimBridge:
                 latest[vessel] = message
                 if model is Cmd:
                     self.arrivals[vessel] = arrived
-            # While a tick waits for its answers, wake it once, when the last one is in (fewer context
-            # switches per tick); otherwise on every message (start-up waits on heartbeats).
-            if self._waiting is None:
-                self._arrived.notify_all()
-            elif vessel in self._waiting and self._answered(vessel, self._tick_stamp):
-                self._waiting.discard(vessel)
-                if not self._waiting:
-                    self._arrived.notify_all()
+            self._wake(vessel)
         return message
+
+    def _wake(self, vessel: str) -> None:
+        """While a tick waits for its answers, wake it once, when the last one is in (fewer context switches
+        per tick); otherwise on every message (start-up waits on heartbeats). Caller holds the lock."""
+        if self._waiting is None:
+            self._arrived.notify_all()
+        elif vessel in self._waiting and self._answered(vessel, self._tick_stamp):
+            self._waiting.discard(vessel)
+            if not self._waiting:
+                self._arrived.notify_all()
+
+    def _on_drive(self, sample) -> None:
+        """A stand-in's Drive: what its vessel is driven at (kept per vessel; refused and counted if malformed,
+        from another vessel, or for a vessel no stand-in drives)."""
+        parts = str(sample.key_expr).split("/")
+        message, _ = decode(Drive, sample.payload.to_bytes())
+        with self._arrived:
+            if message is None or message.sender != parts[2] or message.sender not in self.autopilots:
+                self.rejected += 1
+                return
+            self.drives[message.sender] = message
+            self.drive_arrivals[message.sender] = self._bridge_clock()
+            self._wake(message.sender)
 
     def _bridge_clock(self) -> float:
         """The bridge's own time (s) that command arrivals are judged by: sim time, or in the sea mode the
@@ -228,7 +253,8 @@ class SimBridge:
         try:
             with self.log if self.log is not None else nullcontext(), open_session(self.settings.zenoh) as session:
                 subscribers = [session.declare_subscriber(every("cmd"), self._on_command),
-                               session.declare_subscriber(every("status"), self._on_status)]
+                               session.declare_subscriber(every("status"), self._on_status),
+                               *([session.declare_subscriber(DRIVE_ALL, self._on_drive)] if self.autopilots else [])]
                 watcher = session.liveliness().declare_subscriber(every(LIVELINESS), self._on_liveliness,
                                                                   history=True)
                 start, cpu_start = (self._run_sea if self.sea is not None else self._run_ticks)(session, steps)
@@ -392,10 +418,12 @@ class SimBridge:
         for vessel, reading in self.world.sense().items():
             odometry = reading.odometry
             bearing = None if reading.bearing is None else tuple(float(v) for v in reading.bearing)
+            pose = Odometry(stamp_ns=stamp, seq=self._next(vessel, "odom"), sender=vessel,
+                            position=tuple(float(v) for v in odometry.position), heading=float(odometry.heading))
+            if vessel in self.autopilots:   # to its stand-in, whose driver gives the agent its odometry
+                self._publisher(session, pose_key(vessel)).put(encode(pose))
             for topic, message in (
-                    ("sensor/odom", Odometry(stamp_ns=stamp, seq=self._next(vessel, "odom"), sender=vessel,
-                                             position=tuple(float(v) for v in odometry.position),
-                                             heading=float(odometry.heading))),
+                    *((("sensor/odom", pose),) if vessel not in self.autopilots else ()),
                     ("sensor/uwb", Ranges(stamp_ns=stamp, seq=self._next(vessel, "uwb"), sender=vessel,
                                           ranges={peer: float(r) for peer, r in reading.ranges.items()})),
                     ("sensor/bearing", Bearing(stamp_ns=stamp, seq=self._next(vessel, "bearing"), sender=vessel,
@@ -436,16 +464,21 @@ class SimBridge:
         """The vessel's command and (ticked) status of the tick stamped `stamp` are in; caller holds the lock."""
         command, status = self.commands.get(vessel), self.statuses.get(vessel)
         return (stamp is not None and command is not None and status is not None and status.ticked
-                and command.stamp_ns >= stamp and status.stamp_ns >= stamp)
+                and command.stamp_ns >= stamp and status.stamp_ns >= stamp
+                and (vessel not in self.autopilots or drives_command(self.drives.get(vessel), command)))
 
     def _commands_now(self, now: float) -> dict[str, Command]:
         """Each live vessel's latest command, or a stop when it arrived more than `watchdog` before `now`
-        (both by `_bridge_clock()`), or never."""
+        (both by `_bridge_clock()`), or never. A vessel a stand-in drives goes as its latest Drive says."""
         commands = {}
         with self._lock:
             for vessel in self.world.live():
-                message = self.commands.get(vessel)
-                if message is None or now - self.arrivals[vessel] > self.settings.watchdog:
+                if vessel in self.autopilots:
+                    drive, arrived = self.drives.get(vessel), self.drive_arrivals.get(vessel, 0.0)
+                    message = None if drive is None else Command(*drive.drive)
+                else:
+                    message, arrived = self.commands.get(vessel), self.arrivals.get(vessel, 0.0)
+                if message is None or now - arrived > self.settings.watchdog:
                     commands[vessel] = STOP
                     self.watchdog_stops += 1
                 else:

@@ -58,7 +58,7 @@ from agent.runtime.zenoh_session import ZenohSettings, zenoh_config
 from mission_log.metrics import circle_words, truth_metrics
 from mission_log.plots import plot_run
 from mission_log.reader import LogError, load_run
-from sim_bridge import gnss_ptys, simulated_gnss
+from sim_bridge import fleet_mavlink, gnss_ptys, simulated_gnss
 from sim_bridge.console import TAIL_BYTES, Console
 from sim_bridge.scenario import default_variant, initial_estimates, scenario_file, select_scenario, with_duration
 from sim_bridge.world import SeaSensors, World, streams
@@ -141,12 +141,19 @@ class Fleet:
     """
 
     def __init__(self, scenario_path: Path, variant: str | None, out: Path, seed: int | None = None,
-                 mode: str = "lockstep", gnss: str | None = None) -> None:
+                 mode: str = "lockstep", gnss: str | None = None, vehicle: str = "sim") -> None:
         self.name, self.scenario = select_scenario(scenario_path, variant)
         if gnss is not None and self.scenario.world.sea is None:
             raise ConfigError(f"--gnss: scenario {self.name!r} is not in the sea mode (world.sea): the drivers stamp "
                               "their fixes on the wall clock, which only the sea mode's agents read (e.g. sea_trial)")
         self.gnss = gnss
+        if vehicle == "mavlink" and self.scenario.world.sea is not None:
+            raise ConfigError(f"scenario {self.name!r} runs in the sea mode, which --vehicle mavlink does not have")
+        self.vehicle = vehicle
+        # --vehicle mavlink: each vessel's UDP port between its driver and its stand-in (fleet_mavlink.py)
+        self.udp_ports = {v.id: free_port() for v in self.scenario.world.vessels} if vehicle == "mavlink" else {}
+        self.boats: dict[str, subprocess.Popen] = {}   # name (standin-<id>, driver-<id>) -> its process
+        self.killed_at: dict[str, float] = {}     # vessel -> monotonic s when its agent was killed
         self.folder = out / f"{scenario_path.stem}-{self.name}-{datetime.now(timezone.utc):%Y%m%dT%H%M%S%f}"
         self.folder.mkdir(parents=True, exist_ok=False)
         self.mode, self.seed = mode, seed
@@ -194,6 +201,11 @@ class Fleet:
             at_sea(self.scenario, self.seed, epoch_ns, configs)
         if self.gnss is not None:
             bridge["gnss"] = self._gnss_settings(bridge_port)
+        if self.udp_ports:
+            bridge["autopilots"] = sorted(self.udp_ports)
+            for vessel, udp in self.udp_ports.items():
+                (self.folder / f"driver-{vessel}.yaml").write_text(yaml.safe_dump(
+                    fleet_mavlink.driver_settings(bridge_port, udp, AGENT_LISTEN)))
         (self.folder / "bridge.yaml").write_text(yaml.safe_dump(bridge))
         for vessel, settings in configs.items():
             (self.folder / f"agent-{vessel}.yaml").write_text(yaml.safe_dump(settings))
@@ -329,7 +341,27 @@ class Fleet:
         """SIGKILL a vessel's agent: no goodbye, its liveliness token vanishes with its session."""
         self._note_memory()
         self.killed[vessel] = self._sim_time   # first: the polling loop must never see it dead and not killed
+        self.killed_at[vessel] = time.monotonic()
         self.agents[vessel].kill()
+
+    def _start_boats(self, deadline: float) -> None:
+        """--vehicle mavlink: each vessel's stand-in and driver, and wait until every driver has its autopilot's
+        heartbeat (its console says so), so that the agents' first ticks find the odometry flowing."""
+        for vessel, udp in self.udp_ports.items():
+            self.boats[f"standin-{vessel}"] = self._start(f"standin-{vessel}", fleet_mavlink.standin_command(
+                self.bridge_port, udp, vessel, self.folder / f"standin-{vessel}.jsonl"))
+            self.boats[f"driver-{vessel}"] = self._start(f"driver-{vessel}", fleet_mavlink.driver_command(
+                vessel, self.folder / f"driver-{vessel}.yaml"))
+        waiting = [f"driver-{vessel}" for vessel in self.udp_ports]
+        while waiting:
+            self._check_interrupted()
+            self._check_agents()
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"no autopilot link for {', '.join(waiting)}")
+            for name in list(waiting):
+                if fleet_mavlink.LINK_UP in self.consoles[name].text:
+                    waiting.remove(name)
+            time.sleep(0.05)
 
     def run(self, timeout: float = 600.0, on_time=None,
             restarts: dict[str, tuple[float, float]] | None = None) -> Path:
@@ -352,6 +384,7 @@ class Fleet:
         deadline = time.monotonic() + timeout
         try:
             with self._start_bridge(on_clock, deadline) as session:
+                self._start_boats(deadline)
                 dt = self.scenario.world.dt
                 pending = {v.id: v for v in self.scenario.world.vessels}
                 leaving = {v.id: v.leave_time for v in self.scenario.world.vessels if v.leave_time is not None}
@@ -481,7 +514,11 @@ class Fleet:
         return True
 
     def _check_agents(self) -> None:
-        """An agent runs until the launcher stops or kills it: one that exits on its own fails the launch."""
+        """An agent runs until the launcher stops or kills it: one that exits on its own fails the launch (so
+        does a vessel's stand-in or driver)."""
+        for name, process in self.boats.items():
+            if process.poll() is not None:
+                raise RuntimeError(self._exited(name, name, process.returncode, "during the mission"))
         for vessel, process in self.agents.items():
             if vessel not in self.killed and vessel not in self.down and process.poll() is not None:
                 raise RuntimeError(self._exited(f"the agent of vessel {vessel}", self._name(vessel),
@@ -555,10 +592,24 @@ class Fleet:
         processes = {name: p for name, p in [*((self._name(v), p) for v, p in self.agents.items()),
                                              *((f"driver-{v}", p) for v, p in self.drivers.items()),
                                              ("bridge", self.bridge)] if p is not None}
+        # The vessels' stand-ins and drivers last, as aboard: each driver sees its agent go and holds the boat.
+        signals = len(self.signals)
+        for phase in (processes, self.boats):
+            self._stop_phase(phase, signals)
+        for console in self.consoles.values():
+            unwritten = console.close()
+            if unwritten is not None:
+                self.unwritten.append(unwritten)
+        peaks = {"peak_resident_mb": dict(sorted(self.peak_memory.items()))}
+        self.write_file("memory.json", json.dumps(peaks, indent=2))
+
+
+    def _stop_phase(self, processes: dict[str, subprocess.Popen], signals: int) -> None:
+        """SIGTERM to each of `processes` still running; SIGKILL to those still running STOP_SECONDS later (or
+        at once once more than `signals` stop signals came); wait for all of them."""
         for process in processes.values():
             if process.poll() is None:
                 process.send_signal(signal.SIGTERM)
-        signals = len(self.signals)
         deadline = time.monotonic() + STOP_SECONDS
         while any(p.poll() is None for p in processes.values()):
             if time.monotonic() > deadline or len(self.signals) > signals:
@@ -572,13 +623,6 @@ class Fleet:
             time.sleep(0.02)
         for process in processes.values():
             process.wait()
-        for console in self.consoles.values():
-            unwritten = console.close()
-            if unwritten is not None:
-                self.unwritten.append(unwritten)
-        peaks = {"peak_resident_mb": dict(sorted(self.peak_memory.items()))}
-        self.write_file("memory.json", json.dumps(peaks, indent=2))
-
 
 class ClocksDisagree(RuntimeError):
     """The mission ran, but a vessel's clocks disagreed: an agent raised the alarm in its status."""
@@ -625,16 +669,18 @@ def _peak_resident_mb(pid: int) -> float | None:
 
 
 def launch(scenario_path: Path, variant: str | None, out: Path, seed: int | None,
-           timeout: float = 600.0) -> Path:
+           timeout: float = 600.0, mode: str = "lockstep", vehicle: str = "sim", on_time=None) -> Path:
     """Run the fleet and analyse its logs; returns the run folder. A run that fails is analysed as cut short
-    (`summary.md` says so), then its error raised."""
-    fleet = Fleet(scenario_path, variant, out, seed)
+    (`summary.md` says so), then its error raised. --vehicle mavlink: `mavlink.json` too (fleet_mavlink.py)."""
+    fleet = Fleet(scenario_path, variant, out, seed, mode=mode, vehicle=vehicle)
     try:
-        folder = fleet.run(timeout)
+        folder = fleet.run(timeout, on_time=on_time)
     except (RuntimeError, TimeoutError) as error:
         analyse_cut_short(fleet, str(error))
         raise
     analyse(folder, fleet.planned_ticks)
+    if vehicle == "mavlink":
+        fleet_mavlink.figures(folder, fleet.killed_at)
     verdict = fleet.clocks_verdict()
     if verdict is not None:
         raise ClocksDisagree(f"{folder}: {verdict}")
@@ -796,6 +842,9 @@ def main(argv: list[str] | None = None) -> int:
     run.add_argument("--mode", choices=("lockstep", "realtime"), default="lockstep",
                      help="lockstep: as fast as the processes go; realtime: sim time at the wall clock's pace "
                           "(time to watch and command the fleet with usv-op)")
+    run.add_argument("--vehicle", choices=("sim", "mavlink"), default="sim",
+                     help="sim: the sim bridge moves the vessels; mavlink: each through an ArduPilot stand-in and "
+                          "a usv-driver over MAVLink (docs/boats.md)")
     run.add_argument("--gnss", choices=("plain", "rtk"), default=None,
                      help="sea mode: a simulated field trial: the bridge's GGA (1.5 m or 2 cm) into a usv-driver "
                           "per vessel and the target, whose GNSS logs `usv-log metrics RUN --truth gnss` scores")
@@ -811,7 +860,7 @@ def main(argv: list[str] | None = None) -> int:
             atexit.register(shutil.rmtree, scratch, True)    # the bridge reads the copy until the end
             path = with_duration(path, scratch, args.duration)
         variant = args.variant if args.variant is not None else default_variant(path)
-        fleet = Fleet(path, variant, args.out, args.seed, mode=args.mode, gnss=args.gnss)
+        fleet = Fleet(path, variant, args.out, args.seed, mode=args.mode, gnss=args.gnss, vehicle=args.vehicle)
     except ConfigError as error:
         print(f"usv-fleet: {error}", file=sys.stderr)
         return 2
@@ -853,6 +902,9 @@ def main(argv: list[str] | None = None) -> int:
         fleet.unwritten.append(f"the summary: the logs could not be analysed ({type(error).__name__}: "
                                f"{' '.join(str(error).split())[:300]})")
     print(summary_text)
+    if fleet.vehicle == "mavlink":
+        print(f"usv-fleet: MAVLink: {fleet_mavlink.say(fleet_mavlink.figures(fleet.folder, fleet.killed_at))}",
+              file=sys.stderr)
     verdict = fleet.clocks_verdict()
     summary = fleet.bridge_summary() or {}
     if summary.get("loop_seconds"):
