@@ -22,9 +22,7 @@
 (f) What one share costs its receiver to decode, by fleet size: a share carries the sender's n - 1 pair
     estimates, and every agent decodes n - 1 shares a tick. The receiver's decoding (`ReceivedShare`: its own
     estimate checked) against checking the whole message (`ShareMessage`), timed in this process.
-(g) One agent on a core of its own, as on a boat's computer (lab/benchmarks/pinned_agent.py): the real-time
-    fleet again with the first vessel's agent pinned to one CPU and every other process to another, against
-    the same agent unpinned in (b) and the bare round trip between two processes pinned the same way.
+(g) One agent on a CPU of its own, the rest on another, as on a boat: lab/benchmarks/pinned_agent.py.
 """
 
 from __future__ import annotations
