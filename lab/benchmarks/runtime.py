@@ -22,6 +22,7 @@
 (f) What one share costs its receiver to decode, by fleet size: a share carries the sender's n - 1 pair
     estimates, and every agent decodes n - 1 shares a tick. The receiver's decoding (`ReceivedShare`: its own
     estimate checked) against checking the whole message (`ShareMessage`), timed in this process.
+(g) One agent on a CPU of its own, the rest on another, as on a boat: lab/benchmarks/pinned_agent.py.
 """
 
 from __future__ import annotations
@@ -42,6 +43,8 @@ import zenoh
 from agent.contract import PairEstimate, ReceivedShare, ShareMessage, decode, encode
 from agent.runtime.mcap_log import read_messages
 from lab import arguments
+from lab.benchmarks import pinned_agent
+from lab.benchmarks.pinning import AffinityUnsupported, pin, pinned, usable_cpus
 from lab.benchmarks.shell import AGENT_SECTIONS, SECTION_TEXT, run_shells
 from lab.benchmarks.transport_floor import SIZES, loopback_config, transport_floor
 from lab.experiments.scenarios import DEFAULT_DIR
@@ -60,6 +63,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="simulated (= wall) seconds of each real-time latency run")
     parser.add_argument("--sizes", type=arguments.positive_int, nargs="+", default=[4, 12],
                         help="fleet sizes of the latency runs (variants n<size>_r5 of table4_scale)")
+    parser.add_argument("--pinned-sizes", type=arguments.positive_int, nargs="*", default=[4, 12],
+                        help="fleet sizes of the runs with one agent pinned to a CPU of its own and the rest to "
+                             "another (Linux, 2 CPUs or more); none: skip them")
     parser.add_argument("--floor-ticks", type=arguments.positive_int, default=1000,
                         help="ticks of the transport floor (lab/benchmarks/transport_floor.py)")
     parser.add_argument("--out", type=arguments.folder, default=Path("docs/results"), help="where runtime_benchmark.md goes")
@@ -80,12 +86,15 @@ def echo(port: int, seconds: float) -> None:
         time.sleep(seconds)
 
 
-def bare_zenoh(pings: int) -> dict[str, float]:
-    """One-way and round-trip latency percentiles (ms) of plain put/subscribe between two processes."""
+def bare_zenoh(pings: int, echo_cpus: set[int] | None = None) -> dict[str, float]:
+    """One-way and round-trip latency percentiles (ms) of plain put/subscribe between two processes; the echo
+    process pinned to `echo_cpus` if given (before it has imported Zenoh)."""
     port = free_port()
     seconds = WARM_UP_SECONDS + 5.0 + pings * 0.004
     child = subprocess.Popen([sys.executable, "-c",
                               f"from lab.benchmarks.runtime import echo; echo({port}, {seconds})"])
+    if echo_cpus is not None:
+        pin(child.pid, echo_cpus)
     one_way, round_trip = [], []
     counted_from = [time.monotonic_ns()]   # pongs of pings sent before this are the warm-up's, not counted
     try:
@@ -132,14 +141,40 @@ def bare_zenoh(pings: int) -> dict[str, float]:
             "round_trip_p99": float(np.percentile(round_trip, 99)), "samples": len(round_trip)}
 
 
-def bridge_records(folder: Path) -> tuple[list[float], dict]:
-    latencies, summary = [], {}
+def bridge_records(folder: Path) -> tuple[dict[str, list[float]], dict]:
+    """Each vessel's sensor-to-command latencies (ms) and the bridge's summary, from its log."""
+    latencies, summary = {}, {}
     for topic, _, message in read_messages(folder / "sim.mcap"):
         if topic == "/bridge/command_latency":
-            latencies += list(message["milliseconds"].values())
+            for vessel, value in message["milliseconds"].items():
+                latencies.setdefault(vessel, []).append(value)
         elif topic == "/bridge/summary":
             summary = message
     return latencies, summary
+
+
+def pinning_cpus(sizes: list[int]) -> tuple[tuple[int, int] | None, str]:
+    """The CPU for the pinned agent and the CPU for the rest, or None and why the pinned runs are skipped."""
+    if not sizes:
+        return None, "not asked for (`--pinned-sizes` with no size)"
+    try:
+        cpus = usable_cpus()
+    except AffinityUnsupported as error:
+        return None, f"skipped: {error}"
+    if len(cpus) < 2:
+        return None, f"skipped: this process may use {len(cpus)} CPU, and pinning an agent apart needs 2"
+    return (cpus[0], cpus[1]), ""
+
+
+def pinned_run(scale: Path, size: int, scratch: Path, pings: int, cpus: tuple[int, int]):
+    """(g): the bare round trip across the two CPUs, then the real-time fleet with its first vessel's agent on
+    `cpus[0]` and the launcher, the bridge and the other agents on `cpus[1]`. (baseline, fleet, its folder)."""
+    agent_cpu, rest_cpu = cpus
+    with pinned({rest_cpu}):   # this process and every child it starts, unless pinned apart
+        baseline = bare_zenoh(pings, echo_cpus={agent_cpu})
+        fleet = pinned_agent.PinnedFleet(scale, f"n{size}_r5", scratch / "runs", mode="realtime", cpus={agent_cpu})
+        folder = fleet.run(on_time=fleet.look)
+    return baseline, fleet, folder
 
 
 def _reactions(folder: Path) -> tuple[list[dict], list[dict]]:
@@ -168,6 +203,21 @@ def _cpu_per_tick(folder: Path) -> dict[str, float]:
     return cpu
 
 
+def latency_row(size: int, latencies: dict[str, list[float]], summary: dict, baseline: dict, folder: Path) -> list:
+    """(b)'s row: the fleet's sensor-to-command latency against the bare round trip and the agents' own."""
+    every = [value for values in latencies.values() for value in values]
+    expected = size * summary.get("ticks", 0)
+    p50, p99 = np.percentile(every, 50), np.percentile(every, 99)
+    own, cpu = _reactions(folder)
+    return [size, f"{p50:.2f}", f"{p99:.2f}", f"{baseline['round_trip_p50']:.3f}",
+            f"{baseline['round_trip_p99']:.3f}", f"{baseline['one_way_p50']:.3f}",
+            f"{p50 / baseline['round_trip_p50']:.0f}x",
+            f"{np.median([r['p50'] for r in own]):.2f}" if own else "-",
+            f"{max(r['p99'] for r in own):.2f}" if own else "-",
+            f"{np.median([r['p50'] for r in cpu]):.2f}" if cpu else "-",
+            f"{len(every)}/{expected}"]
+
+
 def in_process_baseline(path: Path, variant: str) -> tuple[float, float]:
     """The in-process runner on the same mission and seed: (real-time factor, mean core tick in ms)."""
     _, scenario = select_scenario(path, variant)
@@ -183,27 +233,41 @@ def _memory(folder: Path) -> dict[str, float]:
 def run(args: argparse.Namespace) -> int:
     scale = args.scenarios_dir / "table4_scale.yaml"
     table2 = args.scenarios_dir / "table2_estimators.yaml"
-    rows, memory_rows = [], []
+    rows, memory_rows, pinned_rows, where_rows = [], [], [], []
+    cpus, skipped = pinning_cpus(args.pinned_sizes)
+    if cpus is None:
+        print(f"runtime-bench: one agent on a core of its own: {skipped}", file=sys.stderr)
+    unpinned: dict[int, dict[str, list[float]]] = {}   # size -> each vessel's latencies in (b)
     with tempfile.TemporaryDirectory() as scratch:
         scratch = Path(scratch)
-        for size in args.sizes:
-            print(f"runtime-bench: bare Zenoh baseline, then {size} vessels in real time for {args.seconds:.0f} s",
-                  file=sys.stderr)
-            baseline = bare_zenoh(args.pings)
-            fleet = Fleet(with_duration(scale, scratch, args.seconds), f"n{size}_r5", scratch / "runs", mode="realtime")
-            folder = fleet.run()
-            latencies, summary = bridge_records(folder)
-            expected = size * summary.get("ticks", 0)
-            p50, p99 = np.percentile(latencies, 50), np.percentile(latencies, 99)
-            own, cpu = _reactions(folder)
-            rows.append([size, f"{p50:.2f}", f"{p99:.2f}", f"{baseline['round_trip_p50']:.3f}",
-                         f"{baseline['round_trip_p99']:.3f}", f"{baseline['one_way_p50']:.3f}",
-                         f"{p50 / baseline['round_trip_p50']:.0f}x",
-                         f"{np.median([r['p50'] for r in own]):.2f}" if own else "-",
-                         f"{max(r['p99'] for r in own):.2f}" if own else "-",
-                         f"{np.median([r['p50'] for r in cpu]):.2f}" if cpu else "-",
-                         f"{len(latencies)}/{expected}"])
-            memory_rows.append([f"real time, {size} vessels", *_memory_cells(_memory(folder))])
+        timed = with_duration(scale, scratch, args.seconds)
+        for size in sorted(set(args.sizes) | set(args.pinned_sizes if cpus else [])):
+            if size in args.sizes:
+                print(f"runtime-bench: bare Zenoh baseline, then {size} vessels in real time for "
+                      f"{args.seconds:.0f} s", file=sys.stderr)
+                baseline = bare_zenoh(args.pings)
+                folder = Fleet(timed, f"n{size}_r5", scratch / "runs", mode="realtime").run()
+                latencies, summary = bridge_records(folder)
+                unpinned[size] = latencies
+                rows.append(latency_row(size, latencies, summary, baseline, folder))
+                memory_rows.append([f"real time, {size} vessels", *_memory_cells(_memory(folder))])
+            if size in args.pinned_sizes and cpus:
+                print(f"runtime-bench: bare Zenoh across CPUs {cpus[0]} and {cpus[1]}, then {size} vessels in real "
+                      f"time with one agent on CPU {cpus[0]} and the rest on CPU {cpus[1]}", file=sys.stderr)
+                load = os.getloadavg()[0]
+                baseline, fleet, folder = pinned_run(timed, size, scratch, args.pings, cpus)
+                latencies, summary = bridge_records(folder)
+                vessel = fleet.pinned_vessel
+                others = [v for k, values in latencies.items() if k != vessel for v in values]
+                threads = (f"agent {fleet.threads_on('agent', {cpus[0]})}, "
+                           f"bridge {fleet.threads_on('bridge', {cpus[1]})}")
+                pinned_rows.append(pinned_agent.row(
+                    size, vessel, latencies.get(vessel, []), unpinned.get(size, {}).get(vessel), baseline, others,
+                    summary.get("ticks", 0), threads))
+                where_rows.append(pinned_agent.where_row(size, latencies.get(vessel, []), baseline,
+                                                         pinned_agent.own_summary(folder, vessel), fleet.waits(), load))
+                memory_rows.append([f"real time, {size} vessels, one agent pinned",
+                                    *_memory_cells(_memory(folder))])
         print("runtime-bench: Table II (MCKF, 4 vessels, 60 s) in lockstep", file=sys.stderr)
         started = time.monotonic()
         fleet = Fleet(table2, "mckf", scratch / "runs")
@@ -267,6 +331,7 @@ def run(args: argparse.Namespace) -> int:
                         "bare one-way p50 (ms)", "p50 / bare round trip", "agents' own reaction p50 (ms)",
                         "agents' own reaction p99 (ms)", "tick thread's CPU to the command p50 (ms)",
                         "commands timed"], rows), "",
+        *pinned_agent.section(pinned_rows, where_rows, cpus, skipped),
         "## Lockstep real-time factor (Table II, MCKF, 4 vessels)", "",
         "The bridge advances a tick when every agent has answered, and each agent waits for its neighbours' "
         "shares of the tick before (tests/test_lockstep.py checks the result equals the in-process runner). "
