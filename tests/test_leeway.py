@@ -67,6 +67,7 @@ def _wind(leeway: float) -> Scenario:
     return Scenario.model_validate(data)
 
 
+@pytest.mark.slow   # an in-process fleet run of seconds: the full suite's, not test-fast's
 def test_the_leeway_model_holds_the_circle_in_the_wind():
     # Seed 0: without it the wind's leeway pushes each hull in and out once an orbit, mean |r - r*| over the
     # last 10 s 0.45 m and no settling within 10 %; with it 0.10 m, settled (docs/sea.md, "Wind").

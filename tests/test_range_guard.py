@@ -7,6 +7,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 
 from agent.config import updated
 from agent.core.build import InitialEstimates, initial_state
@@ -65,6 +66,7 @@ def _chase(rng: np.random.Generator, count: int, ticks: int) -> float:
     return closest
 
 
+@pytest.mark.slow   # an in-process fleet run of seconds: the full suite's, not test-fast's
 def test_vessels_chasing_each_other_with_no_estimates_never_come_inside_the_safety_distance():
     """30 fleets of 2-5 vessels placed at random, each driving at the next with no estimate of any
     neighbour, its ranges drawn with Table II's heavy-tailed noise: no two ever closer than min_separation.

@@ -122,6 +122,7 @@ def test_the_coasting_distance_is_what_a_lagged_boat_runs_after_a_stop():
     assert coasting_distance(1.5, 0.0) == 0.0
 
 
+@pytest.mark.slow   # an in-process fleet run of seconds: the full suite's, not test-fast's
 @pytest.mark.parametrize("seed", [11, 12, 13])
 def test_the_coping_agent_settles_and_keeps_apart_under_one_second_lags(seed):
     effects = PlantEffects(surge_lag=1.0, yaw_lag=1.0)
@@ -130,6 +131,7 @@ def test_the_coping_agent_settles_and_keeps_apart_under_one_second_lags(seed):
     assert figures.closest >= 3.0
 
 
+@pytest.mark.slow   # an in-process fleet run of seconds: the full suite's, not test-fast's
 @pytest.mark.parametrize("seed", [21, 22])
 def test_the_coping_agent_with_the_otters_limits_settles_and_commands_within_them(seed):
     limits = {"control": {"boat_max_yaw_rate": math.radians(10.0), "max_speed": 3.0}}

@@ -61,6 +61,7 @@ def _by_hand(trace, radius: float) -> tuple[float, float, float | None]:
     return closest, math.degrees(sum(errors) / len(errors)), float(trace.time[first])
 
 
+@pytest.mark.slow   # an in-process fleet run of seconds: the full suite's, not test-fast's
 def test_the_page_on_two_variants_and_two_seeds_agrees_with_the_traces(tmp_path):
     path, out = _file(tmp_path), tmp_path / "page" / "sea_states.md"
     code = cli.main(["sea-states", "--scenario", str(path), "--variants", "kinematic,calm", "--runs", "2",

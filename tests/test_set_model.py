@@ -70,6 +70,7 @@ def _moderate_dvl(set_time_constant: float) -> Scenario:
     return Scenario.model_validate(data)
 
 
+@pytest.mark.slow   # an in-process fleet run of seconds: the full suite's, not test-fast's
 def test_the_set_model_brings_the_centre_onto_the_target_in_moderate_with_a_dvl():
     # Seed 0: the DVL sees the 0.3 m/s current over ground and the leeway model takes only its part across
     # the heading; the part along it leaves the formation's centre 0.67 m downstream after settling. With the

@@ -122,6 +122,7 @@ def test_the_variance_covers_the_error_over_seeded_noise():
     assert 0.8 <= float(np.mean(normalised)) <= 1.25, np.mean(normalised)
 
 
+@pytest.mark.slow   # an in-process fleet run of seconds: the full suite's, not test-fast's
 @pytest.mark.parametrize("seed", [0, 1])
 def test_a_vessel_that_joins_with_the_papers_mckf_localises_its_neighbours(seed):
     """dropout_join's join (the paper's Figs. 12-15: vessel 5 joins at 50 s, MCKF): over the last 20 s the worst
