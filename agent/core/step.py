@@ -39,6 +39,7 @@ from agent.core.records import (
     TickInputs,
     TickOutput,
     TickRecord,
+    neighbour_record,
 )
 from agent.core.state import VesselState
 from agent.core.target import leeway_drift, leeway_estimate, own_motion, track_target
@@ -362,7 +363,7 @@ def _shared_estimate(track: NeighbourTrack) -> tuple[np.ndarray, np.ndarray, flo
 def _neighbour_record(track: NeighbourTrack, estimate: np.ndarray, localised: bool) -> NeighbourRecord:
     low, high, observability = track.excitation()
     _, _, p11, p12, p22 = track.moments()
-    return NeighbourRecord(
+    return neighbour_record(
         position=estimate, covariance=np.array([[p11, p12], [p12, p22]]), epoch=track.epoch * 1e-6,
         updates=track.updates, rejected=track.rejected, iterations=track.last_iterations,
         outcomes=track.outcomes, localised=localised, excitation=(low, high), observability=observability,
