@@ -440,3 +440,20 @@ def test_a_neighbour_record_built_directly_is_the_constructors():
     assert repr(built) == repr(constructed)
     with pytest.raises(dataclasses.FrozenInstanceError):
         built.epoch = 1.0
+
+
+def test_an_accepted_outcome_built_directly_is_the_constructors():
+    """accepted_outcome sets every slot of UpdateOutcome: equal to the constructor's, field by field."""
+    import dataclasses
+
+    from agent.core.estimators.base import UpdateOutcome, accepted_outcome
+
+    built = accepted_outcome(3, -0.25, 1.5, 0.75, "fix dropped")
+    assert type(built) is UpdateOutcome
+    assert built == UpdateOutcome(accepted=True, reason="fix dropped", iterations=3, innovation=-0.25,
+                                  innovation_variance=1.5, weight=0.75, noise_scale=1.0)
+    assert dataclasses.asdict(accepted_outcome(1, 0.0, 2.0, 1.0)) == {
+        "accepted": True, "reason": "", "iterations": 1, "innovation": 0.0, "innovation_variance": 2.0,
+        "weight": 1.0, "noise_scale": 1.0}
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        built.weight = 0.0

@@ -35,6 +35,7 @@ from agent.core.estimators.base import (
     RelativePositionEstimator,
     UpdateOutcome,
     _as_range,
+    accepted_outcome,
 )
 from agent.core.estimators.range_density import (
     LogNormalDensity,
@@ -275,8 +276,7 @@ def tracked(m: Moments, s: RawRangeState, r: float, p: RawRangeParams, model: No
     # weight: the share of the prior's variance along the range this range removed, h psi' (for a Gaussian
     # noise the Kalman gain's h / (sigma^2 + h); about 0 for a gross error).
     information = model.exact.fisher if model.exact is not None else s.sandwich[2]
-    return m, s, UpdateOutcome(accepted=True, reason=reason, iterations=1, innovation=innovation,
-                               innovation_variance=h + 1.0 / information, weight=dpsi * h if h > 0.0 else 1.0)
+    return m, s, accepted_outcome(1, innovation, h + 1.0 / information, dpsi * h if h > 0.0 else 1.0, reason)
 
 
 def fix_lost(s: RawRangeState, p: RawRangeParams, model: NoiseModel) -> bool:
