@@ -14,6 +14,7 @@ import pytest
 from agent.core.checks import finite_floats, finite_matrix, finite_vector, pair_entry_floats
 from agent.core.control.formation import desired_offset, desired_offsets, formation_velocity
 from agent.core.control.oscillator import coupling_gains, oscillator_step
+from agent.core.control.separation import surge_interval, sweep_max_cos
 from agent.core.cooperation import _gate_distances
 from agent.core.fusion import (
     covariance_intersection,
@@ -358,3 +359,101 @@ def test_oscillator_uses_the_harmonics_coupling_gains_leaves_non_zero(seed):
         coupling = 0.0 + float(np.cumsum(terms)[-1])
     from agent.angles import wrap_angle
     assert oscillator_step(phase, neighbours, 0.1, 0.1, gain) == wrap_angle(phase + 0.1 * 0.1 + 0.1 * coupling)
+
+
+# ----- issue 32: per-neighbour work skipped or built directly gives the same numbers -----
+
+def _interval_of_every_neighbour(heading, turn, neighbours, guard, rate):
+    """surge_interval's bounds taken over every neighbour, none skipped: each one's allowance divided by the
+    share of the surge that goes towards it, ahead and astern, the sweep's largest cosine found by sampling
+    the sweep densely and at its ends, and where it crosses the direction itself."""
+    low, high = -math.inf, math.inf
+    for px, py in neighbours:
+        d = math.hypot(px, py)
+        if d == 0.0:
+            return 0.0, 0.0
+        allowed = rate * max(d - guard, 0.0)
+        beta = math.atan2(-py, -px)
+        for sign, start in ((1, heading - beta), (-1, heading - beta + math.pi)):
+            share = sweep_max_cos(start, turn)
+            # the closed form is itself checked against a sampled sweep: the largest cosine is at an end or 1
+            sampled = max(math.cos(start + a) for a in np.linspace(0.0, turn, 2001))
+            assert share >= sampled - 1e-12 and (share == 1.0 or share == max(math.cos(start),
+                                                                             math.cos(start + turn)))
+            if share > 0.0:
+                if sign > 0:
+                    high = min(high, allowed / share)
+                else:
+                    low = max(low, -allowed / share)
+    return low, high
+
+
+@pytest.mark.parametrize("seed", RNG_SEEDS)
+def test_separation_interval_skipping_far_neighbours_is_the_full_one(seed):
+    """surge_interval skips a neighbour whose allowance cannot tighten the interval kept: the interval is
+    bit for bit the one taken over every neighbour (a fleet of 1-60 near and far neighbours)."""
+    rng = np.random.default_rng(seed)
+    count = int(rng.integers(1, 60))
+    neighbours = [tuple((rng.normal(size=2) * rng.choice([1.0, 5.0, 30.0])).tolist()) for _ in range(count)]
+    heading, turn = float(rng.uniform(-math.pi, math.pi)), float(rng.uniform(-0.3, 0.3))
+    guard, rate = float(rng.uniform(1.0, 4.0)), 0.04
+    assert surge_interval(heading, turn, neighbours, guard, rate) == _interval_of_every_neighbour(
+        heading, turn, neighbours, guard, rate)
+
+
+@pytest.mark.parametrize("values", [(1.0, 0.2, 2.0), (1e10, -1e10, 1e10), (1e10, 0.0, 1.0000001e10),
+                                    (math.nan, 0.0, 1.0), (1.0, math.inf, 1.0), (-2e10, 0.0, 1.0)])
+def test_a_shared_pair_estimate_is_bounded_as_numpy_bounds_it(values):
+    """_shared_estimate leaves out a P_ij with an element beyond MAX_SHARED_VARIANCE, or NaN, as
+    np.all(np.abs(P) <= bound) does, and otherwise carries p^_ij, P_ij and the epoch."""
+    from types import SimpleNamespace
+
+    from agent.core.step import MAX_SHARED_VARIANCE, _shared_estimate
+
+    p11, p12, p22 = values
+    track = SimpleNamespace(estimator=SimpleNamespace(moments=lambda: (1.5, -2.5, p11, p12, p22)), epoch=2_300_000)
+    carried = _shared_estimate(track)
+    matrix = np.array([[p11, p12], [p12, p22]])
+    if not np.all(np.abs(matrix) <= MAX_SHARED_VARIANCE):
+        assert carried is None
+    else:
+        position, covariance, epoch = carried
+        assert position.tolist() == [1.5, -2.5] and covariance.tolist() == matrix.tolist() and epoch == 2.3
+
+
+def test_a_neighbour_record_built_directly_is_the_constructors():
+    """neighbour_record takes every field of NeighbourRecord and gives the record its constructor gives:
+    the same fields in the same order, the same objects, equal, and as frozen."""
+    import dataclasses
+    import inspect
+
+    from agent.core.records import NeighbourRecord, neighbour_record
+
+    names = [f.name for f in dataclasses.fields(NeighbourRecord)]
+    assert list(inspect.signature(neighbour_record).parameters) == names
+    values = dict(zip(names, (np.array([1.0, 2.0]), np.eye(2), 0.3, 4, 1, 2, ((0.3, 5.0, None),), True,
+                              (0.1, 0.4), "mirror-ambiguous")))
+    built, constructed = neighbour_record(**values), NeighbourRecord(**values)
+    assert type(built) is NeighbourRecord
+    assert list(vars(built)) == list(vars(constructed)) == names
+    assert all(getattr(built, name) is value for name, value in values.items())
+    assert repr(built) == repr(constructed)
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        built.epoch = 1.0
+
+
+def test_an_accepted_outcome_built_directly_is_the_constructors():
+    """accepted_outcome sets every slot of UpdateOutcome: equal to the constructor's, field by field."""
+    import dataclasses
+
+    from agent.core.estimators.base import UpdateOutcome, accepted_outcome
+
+    built = accepted_outcome(3, -0.25, 1.5, 0.75, "fix dropped")
+    assert type(built) is UpdateOutcome
+    assert built == UpdateOutcome(accepted=True, reason="fix dropped", iterations=3, innovation=-0.25,
+                                  innovation_variance=1.5, weight=0.75, noise_scale=1.0)
+    assert dataclasses.asdict(accepted_outcome(1, 0.0, 2.0, 1.0)) == {
+        "accepted": True, "reason": "", "iterations": 1, "innovation": 0.0, "innovation_variance": 2.0,
+        "weight": 1.0, "noise_scale": 1.0}
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        built.weight = 0.0

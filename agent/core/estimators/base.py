@@ -38,6 +38,27 @@ class UpdateOutcome:
     noise_scale: float = 1.0
 
 
+# The slots' setters of UpdateOutcome's fields, in their order (`accepted_outcome`)
+_OUTCOME_SLOTS = tuple(UpdateOutcome.__dict__[name].__set__ for name in UpdateOutcome.__slots__)
+
+
+def accepted_outcome(iterations: int, innovation: float, innovation_variance: float, weight: float,
+                     reason: str = "") -> UpdateOutcome:
+    """`UpdateOutcome(accepted=True, reason=reason, iterations=..., innovation=..., innovation_variance=...,
+    weight=..., noise_scale=1.0)`, the same object, built by setting its slots directly: the frozen
+    dataclass's __init__ (object.__setattr__ per field, keywords) cost 2 us, once per range and pair."""
+    outcome = object.__new__(UpdateOutcome)
+    accepted_, reason_, iterations_, innovation_, variance_, weight_, scale_ = _OUTCOME_SLOTS
+    accepted_(outcome, True)
+    reason_(outcome, reason)
+    iterations_(outcome, iterations)
+    innovation_(outcome, innovation)
+    variance_(outcome, innovation_variance)
+    weight_(outcome, weight)
+    scale_(outcome, 1.0)
+    return outcome
+
+
 REJECTED_RANGE = "range is not finite, is negative or exceeds max_range"
 REJECTED_NUMERICS = "update produced a non-finite or indefinite state"
 

@@ -12,7 +12,7 @@ from typing import Literal
 from pydantic import Field
 
 from agent.config import PositiveFloat
-from agent.core.estimators.base import UpdateOutcome
+from agent.core.estimators.base import UpdateOutcome, accepted_outcome
 from agent.core.estimators.pseudolinear import joseph
 from agent.core.estimators.pseudolinear_estimator import PseudoLinearEstimator
 from agent.core.estimators.registry import EstimatorParams, register
@@ -110,7 +110,4 @@ class MCKF(PseudoLinearEstimator):
         (self._px, self._py, self._p11, self._p12, self._p22, iterations, weight) = mckf_correct(
             px, py, p11, p12, p22, dx, dy, z, rz, *p.bandwidths, p.tolerance, p.max_iterations
         )
-        return UpdateOutcome(
-            accepted=True, iterations=iterations, innovation=innovation,
-            innovation_variance=innovation_variance, weight=weight,
-        )
+        return accepted_outcome(iterations, innovation, innovation_variance, weight)

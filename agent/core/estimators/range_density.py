@@ -35,6 +35,8 @@ class RangeDensity:
 
     def __init__(self, components: tuple[tuple[float, float, float], ...]) -> None:
         self.components = components
+        # (ln w_c, mu_c, sigma_c^2) for `predictive`, which runs once per range: the logarithms taken once
+        self._tracking = tuple((math.log(w), mean, variance) for w, mean, variance in components)
         self.mean = np.array([c[1] for c in components])[:, None]
         self.var = np.array([c[2] for c in components])[:, None]
         self.precision = 1.0 / self.var
@@ -74,14 +76,14 @@ class RangeDensity:
         Plain floats: this runs once per range in tracking."""
         best = -math.inf
         logs = []
-        for weight, mean, variance in self.components:
+        for log_weight, mean, variance in self._tracking:
             v = variance + h
             d = e - mean
-            lp = math.log(weight) - 0.5 * (math.log(v) + d * d / v)
+            lp = log_weight - 0.5 * (math.log(v) + d * d / v)
             logs.append(lp)
             best = max(best, lp)
         total = psi = curvature = 0.0
-        for (_, mean, variance), lp in zip(self.components, logs):
+        for (_, mean, variance), lp in zip(self._tracking, logs):
             g = math.exp(lp - best)
             total += g
             v = variance + h
