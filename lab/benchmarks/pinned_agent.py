@@ -14,7 +14,6 @@ from pathlib import Path
 
 import numpy as np
 
-from agent.runtime.mcap_log import read_messages
 from lab.benchmarks.pinning import affinities, pin
 from lab.report.markdown import markdown_table
 from sim_bridge.fleet import Fleet
@@ -103,15 +102,6 @@ def cpu_times(cpu: int) -> dict[str, float]:
             user, nice, system, idle, iowait, irq, softirq, steal = (int(v) / tick for v in line.split()[1:9])
             return {"busy": user + nice + system + irq + softirq, "idle": idle + iowait, "steal": steal}
     raise ProcessLookupError(f"no cpu{cpu} in /proc/stat")
-
-
-def own_summary(folder: Path, vessel: str) -> dict:
-    """The summary record at the end of the agent's log (its reaction times, agent/shell/reaction.py)."""
-    summary = {}
-    for topic, _, message in read_messages(folder / f"agent-{vessel}.mcap"):
-        if topic.endswith("/summary"):
-            summary = message
-    return summary
 
 
 def percentiles(values: list[float]) -> tuple[float, float, float]:

@@ -177,15 +177,23 @@ def pinned_run(scale: Path, size: int, scratch: Path, pings: int, cpus: tuple[in
     return baseline, fleet, folder
 
 
+def _log_summary(path: Path) -> dict:
+    """The summary record a process logs at its end ({} without one)."""
+    summary = {}
+    for topic, _, message in read_messages(path):
+        if topic.endswith("/summary"):
+            summary = message
+    return summary
+
+
 def _reactions(folder: Path) -> tuple[list[dict], list[dict]]:
     """Each agent's reaction times (clock to command) and its tick thread's CPU to the command, from the summary
     at the end of its log (each log read once)."""
     wall, cpu = [], []
     for path in sorted(folder.glob("agent-*.mcap")):
-        for topic, _, message in read_messages(path):
-            if topic.endswith("/summary"):
-                wall += [message["reaction_ms"]] if message.get("reaction_ms") else []
-                cpu += [message["reaction_cpu_ms"]] if message.get("reaction_cpu_ms") else []
+        summary = _log_summary(path)
+        wall += [summary["reaction_ms"]] if summary.get("reaction_ms") else []
+        cpu += [summary["reaction_cpu_ms"]] if summary.get("reaction_cpu_ms") else []
     return wall, cpu
 
 
@@ -265,7 +273,7 @@ def run(args: argparse.Namespace) -> int:
                     size, vessel, latencies.get(vessel, []), unpinned.get(size, {}).get(vessel), baseline, others,
                     summary.get("ticks", 0), threads))
                 where_rows.append(pinned_agent.where_row(size, latencies.get(vessel, []), baseline,
-                                                         pinned_agent.own_summary(folder, vessel), fleet.waits(), load))
+                                                         _log_summary(folder / f"agent-{vessel}.mcap"), fleet.waits(), load))
                 memory_rows.append([f"real time, {size} vessels, one agent pinned",
                                     *_memory_cells(_memory(folder))])
         print("runtime-bench: Table II (MCKF, 4 vessels, 60 s) in lockstep", file=sys.stderr)
