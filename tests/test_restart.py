@@ -58,22 +58,29 @@ MAX_GAP_ERROR = math.radians(15)   # the angular gaps to its two neighbours agai
 
 
 # ----- the core: when a pair filter may start from the target estimates -----
-def _vessel_two(target_error, neighbours, ticks: int = 50):
+def _vessel_two(target_error, neighbours, ticks: int = 50, lead: float = 0.0, range_lag: float = 0.0,
+                velocity=(0.0, 0.0)):
     """Vessel 2 at (15, 0) from a target at the origin, restarted: its target estimate is off by
-    `target_error` with a small covariance. Its neighbours (id -> position) hold still, share exact target
-    estimates and are ranged exactly every tick."""
+    `target_error` with a small covariance. Its neighbours (id -> position at time 0) move at `velocity`,
+    share exact target estimates stamped `lead` s after our odometry, in odometry frames of their own, and
+    are ranged exactly every tick, `range_lag` s after our odometry (on wall clocks every vessel samples on a
+    phase of its own)."""
     params = AgentParams()
     here = np.array([15.0, 0.0])
     state = initial_state("2", params, InitialEstimates(target=(*(here + np.asarray(target_error)), 0.0, 0.0),
                                                         target_variance=0.1))
+    origin = np.array([100.0, -50.0])     # where each neighbour's odometry started: only differences count
     for k in range(ticks):
         now = k * DT
         state.own.put(now, (0.0, 0.0))
         state.motion.stamp = now
-        receive_shares(params, state, {j: Share(j, OdometryReading(now, np.zeros(2), 0.0), np.zeros(2), 0.0,
-                                                target=np.array([*p, 0.0, 0.0]), target_covariance=np.eye(4) * 0.01)
-                                       for j, p in neighbours.items()}, now)
-        store_ranges(params, state, {j: float(np.hypot(*(here - p))) for j, p in neighbours.items()}, now)
+        where = {j: p + np.asarray(velocity) * (now + lead) for j, p in neighbours.items()}
+        receive_shares(params, state, {j: Share(j, OdometryReading(now + lead, p - origin, 0.0), np.asarray(velocity),
+                                                0.0, target=np.array([*p, 0.0, 0.0]),
+                                                target_covariance=np.eye(4) * 0.01)
+                                       for j, p in where.items()}, now)
+        ranged = {j: p + np.asarray(velocity) * (now + range_lag) for j, p in neighbours.items()}
+        store_ranges(params, state, {j: float(np.hypot(*(here - p))) for j, p in ranged.items()}, now + range_lag)
     return params, state
 
 
@@ -114,6 +121,35 @@ def test_a_target_route_waits_for_ranges_to_judge_it(error):
     assert prior_from_target(params, state, state.tracks["1"]) is None and state.health.priors_refused == 1
     params, state = _vessel_two((0.0, 0.0), ONE, ticks=ROUTE_RANGES)
     assert prior_from_target(params, state, state.tracks["1"]) is not None
+
+
+def test_a_route_from_shares_stamped_after_our_odometry_starts_the_pair():
+    """On wall clocks a neighbour's share can be stamped a few ms after our last odometry, tick after tick.
+    Before: the route was judged at the share's stamp, where our odometry was never yet known, so it was
+    never judged and never started (a sea-mode fleet: two vessels without each other's pair, held 3.5 m
+    apart by the range guard for the rest of the mission). Now it is carried back along the neighbour's
+    odometry to our last odometry's time and judged there."""
+    ticks = ROUTE_RANGES + 5
+    params, state = _vessel_two((0.0, 0.0), ONE, ticks=ticks, lead=0.02, range_lag=0.011, velocity=(0.5, -0.3))
+    prior = prior_from_target(params, state, state.tracks["1"])
+    last = (ticks - 1) * DT
+    assert prior is not None and prior.stamp == pytest.approx(last, abs=1e-6)
+    # p_ij at our last odometry's time: ours (15, 0) less neighbour 1's position then
+    np.testing.assert_allclose(prior.position, [15.0, 0.0] - ONE["1"] - np.array([0.5, -0.3]) * last, atol=1e-9)
+    assert state.health.priors_refused == 0
+    # and a wrong one is still judged, and refused
+    params, state = _vessel_two((-6.0, 0.0), ONE, ticks=ticks, lead=0.02, range_lag=0.011, velocity=(0.5, -0.3))
+    assert prior_from_target(params, state, state.tracks["1"]) is None and state.health.priors_refused == 1
+
+
+def test_the_range_start_takes_the_last_range_when_none_was_measured_at_the_shares_stamp():
+    """Before: after `history_ticks` of refusals the pair started from the range measured at the share's
+    very stamp, which a wall clock never gives (the ranges come on our phase, the shares on theirs)."""
+    ticks = AgentParams().fleet.history_ticks + 1
+    params, state = _vessel_two((-6.0, 0.0), ONE, ticks=ticks, lead=0.02, range_lag=0.011)
+    prior = prior_from_target(params, state, state.tracks["1"])
+    assert prior is not None and prior.stamp == pytest.approx((ticks - 1) * DT + 0.011, abs=1e-6)
+    np.testing.assert_allclose(prior.position, [float(np.hypot(15.0, -5.0)), 0.0])
 
 
 def test_every_neighbours_ranges_judge_our_target_estimate():

@@ -146,10 +146,17 @@ def prior_from_target(params: AgentParams, state: VesselState, track: NeighbourT
         if stamp - track.first_heard < params.fleet.history_ticks * params.dt:
             return None
     spread = params.relative.initial_covariance
-    range_then = track.ranges.get(stamp_key(stamp))
+    # The range of the share's time; on a wall clock no range is measured at a neighbour's odometry stamp
+    # (each vessel samples on its own phase), so the last range kept, at its own time: waiting for an exact
+    # match kept a pair unstarted for good (a sea-mode fleet, 2026-12-04: two vessels frozen 3.5 m apart).
+    key = stamp_key(stamp)
+    range_then = track.ranges.get(key)
+    if range_then is None and track.ranges.keys():
+        key = track.ranges.keys()[-1]
+        range_then = track.ranges.get(key)
     if range_then is None:
         return None
-    return NeighbourPrior(np.array([range_then, 0.0]), np.eye(2) * max(range_then**2, spread), stamp)
+    return NeighbourPrior(np.array([range_then, 0.0]), np.eye(2) * max(range_then**2, spread), key * 1e-6)
 
 
 def _route(state: VesselState, track: NeighbourTrack) -> NeighbourPrior | None:
@@ -159,10 +166,20 @@ def _route(state: VesselState, track: NeighbourTrack) -> NeighbourPrior | None:
     if state.tracker is None or share is None or share.target is None:
         return None
     stamp = share.odometry.stamp
+    theirs = np.asarray(share.target, dtype=float)[:2]
+    own_keys = state.own.keys()
+    if own_keys and stamp_key(stamp) > own_keys[-1]:
+        # j's share is newer than our last odometry (on wall clocks its period can run a few ms ahead of
+        # ours, tick after tick): judged at its stamp the route could never be paired with our odometry.
+        # Carry j's estimate back along j's odometry to our last odometry's time: p_j(t') - p_o =
+        # (p_j(t) - p_o) - (p_j(t) - p_j(t')).
+        then, _ = track.odometry.at(own_keys[-1], track.gap_key)
+        if then is not None:
+            theirs = theirs - np.subtract(share.odometry.position, then)
+            stamp = own_keys[-1] * 1e-6
     own_then, own_now = state.own.get(stamp_key(stamp)), state.own.get(stamp_key(state.motion.stamp))
     shift = np.subtract(own_now, own_then) if own_then is not None and own_now is not None else np.zeros(2)
     mine = state.tracker.state[:2] - shift
-    theirs = np.asarray(share.target, dtype=float)[:2]
     covariance = state.tracker.covariance[:2, :2] + np.asarray(share.target_covariance, dtype=float)[:2, :2]
     return NeighbourPrior(mine - theirs, covariance, stamp)
 
