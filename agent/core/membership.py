@@ -18,6 +18,8 @@ from agent.core.state import VesselState
 # distance misses the ranges' median by more than 4 sqrt(range_variance / 10) (1.9 m with Table II's 2.32 m^2)
 # is refused; one range alone lets 6 m through, and a restarted neighbour's target estimate is that far off.
 ROUTE_RANGES = 10
+# Ranges whose median may refuse a deployment prior (`_agrees_with_range`): three outvote one stray range.
+PRIOR_RANGES = 3
 
 
 def receive_shares(params: AgentParams, state: VesselState, shares: Mapping[str, Share], now: float) -> None:
@@ -81,7 +83,11 @@ def start_track(params: AgentParams, state: VesselState, track: NeighbourTrack, 
     if prior is not None and now - prior.stamp > params.fleet.prior_max_age:
         state.health.priors_stale += 1
         prior = None
-    if prior is not None and not _agrees_with_range(params, track, prior):
+    agrees = None if prior is None else _agrees_with_range(params, track, prior, now)
+    if agrees is None and prior is not None:
+        state.priors[track.neighbour] = prior     # too few ranges yet to refuse it by: judged next tick
+        return
+    if agrees is False:
         state.health.priors_refused += 1
         prior = None
     if prior is None:
@@ -99,10 +105,13 @@ def start_track(params: AgentParams, state: VesselState, track: NeighbourTrack, 
         state.health.priors_stale += 1
 
 
-def _agrees_with_range(params: AgentParams, track: NeighbourTrack, prior: NeighbourPrior) -> bool:
+def _agrees_with_range(params: AgentParams, track: NeighbourTrack, prior: NeighbourPrior,
+                       now: float) -> bool | None:
     """Whether |p^_ij,0| is within four standard deviations (and a metre) of the median of the ranges
     measured within `max_odometry_gap` of the prior's time (a median, so that one stray UWB range does not
-    refuse a good estimate); True when there is no range to judge by."""
+    refuse a good estimate); True when there is no range to judge by. A refusal needs the median of
+    `PRIOR_RANGES` ranges, or every range of that window: with fewer, while more can still come, None (wait).
+    Before, the first range alone judged: one stray range (3.4 m against 10.8 m) refused a good prior."""
     key, window = stamp_key(prior.stamp), stamp_key(params.fleet.max_odometry_gap)
     near = [track.ranges.get(k) for k in track.ranges.keys() if abs(k - key) <= window]
     if not near:
@@ -116,7 +125,9 @@ def _agrees_with_range(params: AgentParams, track: NeighbourTrack, prior: Neighb
     direction = position / distance
     variance = float(direction @ np.asarray(prior.covariance, dtype=float) @ direction) + params.relative.range_variance
     miss = abs(measured - distance)
-    return miss <= 1.0 or miss**2 <= 16.0 * variance
+    if miss <= 1.0 or miss**2 <= 16.0 * variance:
+        return True
+    return False if len(near) >= PRIOR_RANGES or stamp_key(now) > key + window else None
 
 
 def prior_from_target(params: AgentParams, state: VesselState, track: NeighbourTrack) -> NeighbourPrior | None:
