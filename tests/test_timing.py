@@ -216,7 +216,7 @@ def test_one_stray_first_range_does_not_refuse_a_true_initial_estimate():
     """Before: the first range alone judged the prior (a sea-mode run: 3.4 m against a true 10.8 m), the
     pair started from a route or a range instead, and the paper's MCKF, which cannot correct a start across
     the line of sight, kept e_ij 0.86-1.26 m on Table II seeds 3 and 5 against 0.41-0.50 m when it is kept."""
-    state, health, seen = _one_neighbour((40.0, 0.0), [40.0, 5.0, 40.0, 40.0, 40.0])
+    state, _, seen = _one_neighbour((40.0, 0.0), [40.0, 5.0, 40.0, 40.0, 40.0])
     assert seen[:2] == [(False, 0), (False, 0)]             # the stray range alone (tick 1's): waiting
     assert seen[-1] == (True, 0) and all(refused == 0 for _, refused in seen)
     np.testing.assert_allclose(state.tracks["2"].estimator.position, [40.0, 0.0], atol=0.5)
