@@ -96,6 +96,12 @@ def test_the_option_takes_sizes_or_none():
     assert parser.parse_args(["--pinned-sizes"]).pinned_sizes == []
     with pytest.raises(SystemExit):
         parser.parse_args(["--pinned-sizes", "0"])
+    # each pinned size once with the other agents as the launcher is, once at niceness 19
+    assert parser.parse_args([]).others_nice == [0, 19]
+    assert parser.parse_args(["--others-nice", "5"]).others_nice == [5]
+    for wrong in ("20", "-1"):
+        with pytest.raises(SystemExit):
+            parser.parse_args(["--others-nice", wrong])
 
 
 @linux
@@ -109,15 +115,21 @@ def test_a_pinned_fleet_pins_its_first_vessels_agent_as_it_starts_and_no_other(t
         return started[-1]
 
     monkeypatch.setattr("sim_bridge.fleet.Fleet._start", start)
-    fleet = PinnedFleet(SCALE, "n4_r5", tmp_path, mode="realtime", cpus={cpu})
+    fleet = PinnedFleet(SCALE, "n4_r5", tmp_path, mode="realtime", cpus={cpu}, others_nice=19)
     assert fleet.pinned_vessel == fleet.scenario.world.vessels[0].id
     try:
         for vessel in fleet.scenario.world.vessels[:2]:
             fleet.start_agent(vessel.id)
         first, second = started
         _wait_for_threads(first.pid, 4)
+        _wait_for_threads(second.pid, 4)
         assert _cpu_sets(first.pid) == {frozenset({cpu})}
         assert _cpu_sets(second.pid) == {frozenset(os.sched_getaffinity(0))}
+        # The other agent at niceness 19, every thread of it, the ones started later too; the pinned one as
+        # this process is.
+        mine = os.getpriority(os.PRIO_PROCESS, 0)
+        assert {os.getpriority(os.PRIO_PROCESS, tid) for tid in threads(second.pid)} == {19}
+        assert {os.getpriority(os.PRIO_PROCESS, tid) for tid in threads(first.pid)} == {mine}
     finally:
         for process in started:
             process.kill()
@@ -143,11 +155,11 @@ def test_the_row_sets_the_pinned_agent_against_itself_unpinned_and_the_bare_roun
     unpinned_ms = [2.0 * v for v in pinned_ms]             # twice as long: ratios 0.50
     bare = {"round_trip_p50": 0.5, "round_trip_p99": 1.0}
     assert percentiles(pinned_ms) == pytest.approx((50.5, 99.01, 100.0))
-    cells = row(4, "1", pinned_ms, unpinned_ms, bare, [3.0, 1.0, 2.0], 100, "agent 9/9")
-    assert cells == [4, "1", "50.50", "99.01", "100.00", "no", "101.00 / 198.02", "0.50 / 0.50",
+    cells = row(4, "1", pinned_ms, unpinned_ms, bare, [3.0, 1.0, 2.0], 100, "agent 9/9", 19)
+    assert cells == [4, 19, "1", "50.50", "99.01", "100.00", "no", "101.00 / 198.02", "0.50 / 0.50",
                      "0.500 / 1.000", "101.0x / 99.0x", "2.00", "100/100", "agent 9/9"]
     fast = row(4, "1", [1.0] * 99 + [4.0], None, bare, [], 100, "")
-    assert fast[5] == "yes" and fast[6] == fast[7] == "-" and fast[10] == "-"
+    assert fast[1] == 0 and fast[6] == "yes" and fast[7] == fast[8] == "-" and fast[11] == "-"
 
 
 def test_the_helper_reads_cpus_from_this_kernel(monkeypatch):

@@ -66,6 +66,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--pinned-sizes", type=arguments.positive_int, nargs="*", default=[4, 12],
                         help="fleet sizes of the runs with one agent pinned to a CPU of its own and the rest to "
                              "another (Linux, 2 CPUs or more); none: skip them")
+    parser.add_argument("--others-nice", type=int, nargs="+", default=[0, 19], choices=range(20), metavar="N",
+                        help="niceness of the other agents in the pinned runs, one run each (19: as if each ran on "
+                             "a computer of its own)")
     parser.add_argument("--floor-ticks", type=arguments.positive_int, default=1000,
                         help="ticks of the transport floor (lab/benchmarks/transport_floor.py)")
     parser.add_argument("--out", type=arguments.folder, default=Path("docs/results"), help="where runtime_benchmark.md goes")
@@ -166,13 +169,15 @@ def pinning_cpus(sizes: list[int]) -> tuple[tuple[int, int] | None, str]:
     return (cpus[0], cpus[1]), ""
 
 
-def pinned_run(scale: Path, size: int, scratch: Path, pings: int, cpus: tuple[int, int]):
+def pinned_run(scale: Path, size: int, scratch: Path, pings: int, cpus: tuple[int, int], others_nice: int = 0):
     """(g): the bare round trip across the two CPUs, then the real-time fleet with its first vessel's agent on
-    `cpus[0]` and the launcher, the bridge and the other agents on `cpus[1]`. (baseline, fleet, its folder)."""
+    `cpus[0]` and the launcher, the bridge and the other agents (at `others_nice`) on `cpus[1]`. (baseline,
+    fleet, its folder)."""
     agent_cpu, rest_cpu = cpus
     with pinned({rest_cpu}):   # this process and every child it starts, unless pinned apart
         baseline = bare_zenoh(pings, echo_cpus={agent_cpu})
-        fleet = pinned_agent.PinnedFleet(scale, f"n{size}_r5", scratch / "runs", mode="realtime", cpus={agent_cpu})
+        fleet = pinned_agent.PinnedFleet(scale, f"n{size}_r5", scratch / "runs", mode="realtime", cpus={agent_cpu},
+                                         others_nice=others_nice)
         folder = fleet.run(on_time=fleet.look)
     return baseline, fleet, folder
 
@@ -259,11 +264,12 @@ def run(args: argparse.Namespace) -> int:
                 unpinned[size] = latencies
                 rows.append(latency_row(size, latencies, summary, baseline, folder))
                 memory_rows.append([f"real time, {size} vessels", *_memory_cells(_memory(folder))])
-            if size in args.pinned_sizes and cpus:
+            for nice in (args.others_nice if size in args.pinned_sizes and cpus else []):
                 print(f"runtime-bench: bare Zenoh across CPUs {cpus[0]} and {cpus[1]}, then {size} vessels in real "
-                      f"time with one agent on CPU {cpus[0]} and the rest on CPU {cpus[1]}", file=sys.stderr)
+                      f"time with one agent on CPU {cpus[0]} and the rest on CPU {cpus[1]} (the other agents at "
+                      f"niceness {nice})", file=sys.stderr)
                 load = os.getloadavg()[0]
-                baseline, fleet, folder = pinned_run(timed, size, scratch, args.pings, cpus)
+                baseline, fleet, folder = pinned_run(timed, size, scratch, args.pings, cpus, nice)
                 latencies, summary = bridge_records(folder)
                 vessel = fleet.pinned_vessel
                 others = [v for k, values in latencies.items() if k != vessel for v in values]
@@ -271,10 +277,11 @@ def run(args: argparse.Namespace) -> int:
                            f"bridge {fleet.threads_on('bridge', {cpus[1]})}")
                 pinned_rows.append(pinned_agent.row(
                     size, vessel, latencies.get(vessel, []), unpinned.get(size, {}).get(vessel), baseline, others,
-                    summary.get("ticks", 0), threads))
+                    summary.get("ticks", 0), threads, nice))
                 where_rows.append(pinned_agent.where_row(size, latencies.get(vessel, []), baseline,
-                                                         _log_summary(folder / f"agent-{vessel}.mcap"), fleet.waits(), load))
-                memory_rows.append([f"real time, {size} vessels, one agent pinned",
+                                                         _log_summary(folder / f"agent-{vessel}.mcap"), fleet.waits(),
+                                                         load, nice))
+                memory_rows.append([f"real time, {size} vessels, one agent pinned, the others at niceness {nice}",
                                     *_memory_cells(_memory(folder))])
         print("runtime-bench: Table II (MCKF, 4 vessels, 60 s) in lockstep", file=sys.stderr)
         started = time.monotonic()
