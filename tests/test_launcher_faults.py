@@ -257,9 +257,13 @@ def test_an_agent_asked_for_its_stacks_writes_them_and_goes_on(launch):
     agent = json.loads((run.folder / "processes.json").read_text())["agent-2"]
     log = run.folder / "agent-2.log"
     subprocess.run(["kill", "-USR1", str(agent)], check=True)
-    assert wait_until(lambda: "Current thread" in log.read_text(), timeout=10), log.read_text()
-    stacks = log.read_text()
-    assert "agent/shell/node.py" in stacks and "in _run" in stacks, stacks   # the tick loop's thread, named
+    # The dump is written thread by thread: read it once the tick loop's thread is in it, not at its first
+    # line (a CI run read it half written, 2026-12-03).
+    def dumped() -> bool:
+        stacks = log.read_text()
+        return "Current thread" in stacks and "agent/shell/node.py" in stacks and "in _run" in stacks
+
+    assert wait_until(dumped, timeout=10), log.read_text()     # the tick loop's thread, named
     done = run.ticks()
     run.wait_for_ticks(done + 20)              # still ticking: the launcher and every process still run
     run.process.send_signal(signal.SIGTERM)
