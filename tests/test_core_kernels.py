@@ -337,6 +337,38 @@ def test_history_keeps_the_latest_stamps_in_order_without_a_resort():
     assert history.last_values(10) == [history.get(k) for k in kept]
 
 
+@pytest.mark.parametrize("seed", range(10))
+def test_history_puts_keep_what_a_sorted_dict_trimmed_to_its_size_keeps(seed):
+    """History against a plain dict trimmed to its `size` largest keys after each put: in-order puts (the
+    fast path), repeated and out-of-order stamps, pops and restores, in random order."""
+    from agent.core.neighbours import History
+
+    rng = np.random.default_rng(seed)
+    size = int(rng.integers(1, 8))
+    history, reference = History(size), {}
+    key = 0
+    for _ in range(400):
+        action = rng.choice(["next", "next", "next", "again", "earlier", "pop", "restore"], p=[.5, .1, .1, .1, .1, .05, .05])
+        if action == "pop" and reference:
+            old = int(rng.choice(sorted(reference)))
+            history.pop(old)
+            del reference[old]
+        elif action == "restore":
+            history.restore(history.items())
+        else:
+            key = {"next": key + int(rng.integers(1, 4)), "again": key,
+                   "earlier": key - int(rng.integers(1, 10))}.get(str(action), key)
+            value = (float(rng.normal()), float(rng.normal()))
+            history.put_key(key, value)
+            reference[key] = value
+            while len(reference) > size:
+                del reference[min(reference)]
+        assert history.items() == sorted(reference.items())
+        assert all(history.get(k) == reference.get(k) for k in range(key - 30, key + 5))   # dropped: gone
+        assert history.latest() == (max(reference) if reference else None)
+        assert history.last_values(3) == [reference[k] for k in sorted(reference)[-3:]]
+
+
 @pytest.mark.parametrize("seed", range(5))
 def test_target_fusion_matches_the_matrices_of_one_neighbour_at_a_time(seed):
     """fuse_targets, which gathers every neighbour's floats into stacks, against the transformations written
