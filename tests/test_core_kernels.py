@@ -185,6 +185,145 @@ def test_a_checked_share_gives_the_floats_the_track_keeps():
     assert checked_share(Share("2", share.odometry, np.array([np.nan, 0.0]), 0.0), "1") is None
 
 
+def _reference_checked_share(share, receiver):
+    """checked_share written out independently, numpy's isfinite on every part, for one receiver: what each
+    receiver checked for itself before the checks common to all receivers were kept on the share."""
+    from agent.core.estimators.registry import MAX_LEVER_ARM
+    from agent.core.records import Share
+
+    def floats(value, shape):
+        try:
+            array = np.asarray(value, dtype=float)
+        except (TypeError, ValueError):
+            return None
+        return array.ravel().tolist() if array.shape == shape and np.isfinite(array).all() else None
+
+    def real(value):
+        return isinstance(value, (int, float)) and math.isfinite(value)
+
+    if not isinstance(share, Share):
+        return None
+    odometry = share.odometry
+    position, velocity = floats(odometry.position, (2,)), floats(share.velocity, (2,))
+    if position is None or velocity is None or not real(odometry.stamp) or not math.isfinite(share.phase):
+        return None
+    if share.target is not None and (floats(share.target, (4,)) is None or share.target_covariance is None
+                                     or floats(share.target_covariance, (4, 4)) is None):
+        return None
+    if not isinstance(share.neighbours, dict):
+        return None
+    if share.antenna is not None:
+        arm = floats(share.antenna, (2,))
+        if arm is None or max(abs(v) for v in arm) > MAX_LEVER_ARM or not real(odometry.heading):
+            return None
+    entry = share.neighbours.get(receiver)
+    if entry is None:
+        return tuple(position), tuple(velocity), ()
+    if not isinstance(entry, tuple) or len(entry) != 3:
+        return None
+    p, P, stamp = entry
+    p, P = floats(p, (2,)), floats(P, (2, 2))
+    if p is None or P is None or not (isinstance(stamp, float) and math.isfinite(stamp)):
+        return None
+    return tuple(position), tuple(velocity), (*p, *P, stamp)
+
+
+def _hostile_shares(rng: np.random.Generator, receivers: list[str]) -> list:
+    """Shares from "9" to `receivers`, valid and broken in each of the ways a share can be: a non-finite or
+    misshapen part common to every receiver, or one receiver's own entry broken (the others' valid)."""
+    from agent.core.records import OdometryReading, Share
+
+    def entry():
+        return rng.normal(size=2), np.eye(2) * rng.uniform(0.1, 2.0), float(rng.uniform(0.0, 5.0))
+
+    def share(**changes):
+        parts = {"sender": "9", "odometry": OdometryReading(float(rng.uniform(0, 5)), rng.normal(size=2), 0.3),
+                 "velocity": rng.normal(size=2), "phase": float(rng.uniform(-3, 3)), "target": rng.normal(size=4),
+                 "target_covariance": np.eye(4), "neighbours": {r: entry() for r in receivers}, "antenna": None}
+        return Share(**(parts | changes))
+
+    nan, inf = math.nan, math.inf
+    shares = [share(), share(target=None, target_covariance=None), share(neighbours={}),
+              share(antenna=(0.2, -0.1)), share(velocity=[0.5, 1.0])]
+    shares += [share(odometry=OdometryReading(0.1, np.array([nan, 0.0]), 0.0)),
+               share(odometry=OdometryReading(inf, np.zeros(2), 0.0)),
+               share(odometry=OdometryReading("0.1", np.zeros(2), 0.0)),
+               share(odometry=OdometryReading(0.1, np.zeros(3), 0.0)),
+               share(velocity=np.array([0.0, -inf])), share(velocity=np.zeros((2, 1))), share(velocity="ab"),
+               share(phase=nan), share(target=np.array([0.0, 0.0, nan, 0.0])),
+               share(target_covariance=None), share(target_covariance=np.full((4, 4), inf)),
+               share(target_covariance=np.eye(3)), share(neighbours=[("1", entry())]),
+               share(antenna=(nan, 0.0)), share(antenna=(30.0, 0.0)), share(antenna=(0.1,)),
+               share(antenna=(0.1, 0.0), odometry=OdometryReading(0.1, np.zeros(2), nan)), "not a share", None]
+    for broken in ((np.array([nan, 0.0]), np.eye(2), 1.0), (np.zeros(2), np.full((2, 2), inf), 1.0),
+                   (np.zeros(2), np.eye(2), 1), (np.zeros(2), np.eye(2), nan), (np.zeros(2), np.eye(2)), 7):
+        victim = receivers[int(rng.integers(len(receivers)))]
+        shares.append(share(neighbours={r: broken if r == victim else entry() for r in receivers}))
+    return shares
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_a_share_checked_once_for_all_its_receivers_gives_each_the_verdict_of_its_own_check(seed):
+    """checked_share keeps the checks common to every receiver on the share: each receiver, in any order and
+    on a share others have checked already, gets what a check of its own (the reference, from scratch)
+    gives, a refusal for a broken entry of its own included, and the other receivers are not affected."""
+    from agent.core.checks import checked_share
+
+    rng = np.random.default_rng(seed)
+    receivers = ["1", "2", "3", "4"]
+    for share in _hostile_shares(rng, receivers):
+        expected = {r: _reference_checked_share(share, r) for r in receivers + ["5"]}
+        for r in rng.permutation(receivers + ["5"]).tolist() * 2:     # twice: the kept verdict read again
+            assert checked_share(share, r) == expected[r], (share, r)
+    # what the shares above were built to hold: 5 valid, 19 refused by all, 6 by one receiver (its entry)
+    verdicts = [[_reference_checked_share(s, r) is None for r in receivers] for s in _hostile_shares(rng, receivers)]
+    assert [sum(not any(v) for v in verdicts), sum(all(v) for v in verdicts),
+            sum(any(v) and not all(v) for v in verdicts)] == [5, 19, 6]
+
+
+def test_the_fleet_counts_a_refused_share_at_each_receiver_as_a_check_per_receiver_did():
+    """receive_shares: a share broken for every receiver is counted by each, at every delivery, the same
+    object or not; one broken in one receiver's entry is refused (and counted) by that receiver alone; a valid
+    share delivered again leaves the track as taking a fresh copy of it does."""
+    import dataclasses
+
+    from agent.core.build import InitialEstimates, initial_state
+    from agent.core.membership import receive_shares
+    from agent.core.params import AgentParams
+    from agent.core.records import OdometryReading, Share
+
+    params = AgentParams()
+    states = {r: initial_state(r, params, InitialEstimates()) for r in ("1", "2", "3")}
+    entry = (np.array([1.0, 2.0]), np.eye(2), 0.1)
+    good = Share("9", OdometryReading(0.1, np.array([4.0, 5.0]), 0.0), np.array([0.5, 0.0]), 0.2,
+                 neighbours={r: entry for r in states})
+    hostile = dataclasses.replace(good, velocity=np.array([math.nan, 0.0]))
+    theirs = dataclasses.replace(good, neighbours={**good.neighbours, "2": (np.zeros(2), np.eye(2), 1)})
+    for tick in range(3):
+        for r in ("3", "2", "1"):
+            receive_shares(params, states[r], {"9": hostile}, 0.1 + tick)
+    assert [states[r].health.bad_shares for r in ("1", "2", "3")] == [3, 3, 3]
+    assert not any(state.tracks for state in states.values())
+    for r in ("2", "1", "3"):
+        receive_shares(params, states[r], {"9": theirs}, 0.1)
+    assert [states[r].health.bad_shares for r in ("1", "2", "3")] == [3, 4, 3]
+    assert "9" in states["1"].tracks and "9" not in states["2"].tracks and "9" in states["3"].tracks
+
+    def kept(track):
+        return (track.odometry.items(), track.arms.items(), track.share, track.reciprocal, track.velocity,
+                track.last_heard, track.first_heard)
+
+    again, fresh = (initial_state("1", params, InitialEstimates()) for _ in range(2))
+    later = dataclasses.replace(good, odometry=OdometryReading(0.2, np.array([4.5, 5.0]), 0.0))
+    for state, second in ((again, later), (fresh, dataclasses.replace(later))):
+        receive_shares(params, state, {"9": good}, 0.1)
+        receive_shares(params, state, {"9": later}, 0.2)
+        receive_shares(params, state, {"9": second}, 0.3)      # the same object again, or an equal new one
+    assert again.tracks["9"].share is later and fresh.tracks["9"].share is not later
+    assert kept(again.tracks["9"]) == kept(fresh.tracks["9"])
+    assert again.health.as_dict() == fresh.health.as_dict()
+
+
 def test_history_keeps_the_latest_stamps_in_order_without_a_resort():
     from agent.core.neighbours import History
 
@@ -196,6 +335,38 @@ def test_history_keeps_the_latest_stamps_in_order_without_a_resort():
     assert history.keys() == kept
     assert history.last_values(3) == [history.get(k) for k in kept[-3:]]
     assert history.last_values(10) == [history.get(k) for k in kept]
+
+
+@pytest.mark.parametrize("seed", range(10))
+def test_history_puts_keep_what_a_sorted_dict_trimmed_to_its_size_keeps(seed):
+    """History against a plain dict trimmed to its `size` largest keys after each put: in-order puts (the
+    fast path), repeated and out-of-order stamps, pops and restores, in random order."""
+    from agent.core.neighbours import History
+
+    rng = np.random.default_rng(seed)
+    size = int(rng.integers(1, 8))
+    history, reference = History(size), {}
+    key = 0
+    for _ in range(400):
+        action = rng.choice(["next", "next", "next", "again", "earlier", "pop", "restore"], p=[.5, .1, .1, .1, .1, .05, .05])
+        if action == "pop" and reference:
+            old = int(rng.choice(sorted(reference)))
+            history.pop(old)
+            del reference[old]
+        elif action == "restore":
+            history.restore(history.items())
+        else:
+            key = {"next": key + int(rng.integers(1, 4)), "again": key,
+                   "earlier": key - int(rng.integers(1, 10))}.get(str(action), key)
+            value = (float(rng.normal()), float(rng.normal()))
+            history.put_key(key, value)
+            reference[key] = value
+            while len(reference) > size:
+                del reference[min(reference)]
+        assert history.items() == sorted(reference.items())
+        assert all(history.get(k) == reference.get(k) for k in range(key - 30, key + 5))   # dropped: gone
+        assert history.latest() == (max(reference) if reference else None)
+        assert history.last_values(3) == [reference[k] for k in sorted(reference)[-3:]]
 
 
 @pytest.mark.parametrize("seed", range(5))

@@ -76,9 +76,41 @@ def checked_share(share: object, receiver: str) -> CheckedShare | None:
     """What a receiver takes from a share (`CheckedShare`), or None if the share is not valid. Of the share's
     `neighbours` only the receiver's own entry is checked (O(1) per share, where checking them all would cost
     O(n^2) per tick in a large fleet). The track reads these floats every tick: they are checked and converted
-    once, where the share comes in."""
+    once, where the share comes in; what every receiver finds alike, once per share (`share_floats`)."""
     if not isinstance(share, Share):
         return None
+    common = share_floats(share)
+    if common is None:
+        return None
+    entry = share.neighbours.get(receiver)
+    reciprocal = () if entry is None else pair_entry_floats(entry)
+    if reciprocal is None:
+        return None
+    position, velocity = common
+    return position, velocity, reciprocal
+
+
+# Where `share_floats` keeps its verdict: in the share's own __dict__ (a frozen dataclass's fields are its
+# constructor's; this is not one of them, so equality, repr and the codecs ignore it). In process every
+# receiver gets the same Share object, and an agent's tick is handed the same object until the sender's next
+# share replaces it: the checks run once per share, not once per receiver and tick (with 50 vessels they were
+# a tenth of the fleet's tick). Nothing writes to a share's arrays once it is built: the core's step builds
+# them fresh, the gate decodes them fresh.
+_VERDICT = "_checked_floats"
+_UNSEEN = object()
+
+
+def share_floats(share: Share) -> tuple[tuple[float, float], tuple[float, float]] | None:
+    """The checks of `checked_share` that do not depend on the receiver, once per share: (the odometry
+    position, the commanded velocity) as float pairs, or None if the share is not valid."""
+    kept = share.__dict__
+    verdict = kept.get(_VERDICT, _UNSEEN)
+    if verdict is _UNSEEN:
+        verdict = kept[_VERDICT] = _share_floats(share)
+    return verdict
+
+
+def _share_floats(share: Share) -> tuple[tuple[float, float], tuple[float, float]] | None:
     odometry = share.odometry
     # One chain that keeps the floats it checks: a check after a failed one is still not evaluated.
     if not ((position := finite_floats(odometry.position, (2,))) is not None
@@ -91,12 +123,8 @@ def checked_share(share: object, receiver: str) -> CheckedShare | None:
             and (type(share.neighbours) is dict or isinstance(share.neighbours, Mapping))
             and (share.antenna is None or _valid_antenna(share.antenna, odometry.heading))):
         return None
-    entry = share.neighbours.get(receiver)
-    reciprocal = () if entry is None else pair_entry_floats(entry)
-    if reciprocal is None:
-        return None
     (px, py), (vx, vy) = position, velocity
-    return (px, py), (vx, vy), reciprocal
+    return (px, py), (vx, vy)
 
 
 def _valid_antenna(antenna, heading) -> bool:

@@ -28,11 +28,16 @@ def receive_shares(params: AgentParams, state: VesselState, shares: Mapping[str,
     # same order whichever way the shares travelled.
     for sender in sorted(shares, key=str):
         share = shares[sender]
+        track = state.tracks.get(sender)
+        if track is not None and track.share is share:
+            # The share the track took last (the gate hands the latest one to every tick until the next comes,
+            # the runner one that the next was lost): it was valid, and it is the newest the track holds, so
+            # taking it again would write the same values back.
+            continue
         checked = None if sender == state.vessel else checked_share(share, state.vessel)
         if checked is None:
             state.health.bad_shares += 1
             continue
-        track = state.tracks.get(sender)
         if track is None:
             if now - share.odometry.stamp > params.fleet.neighbour_timeout:
                 continue  # a stale share from a vessel we have already forgotten

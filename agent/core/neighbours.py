@@ -62,6 +62,17 @@ class History:
 
     def put_key(self, key: int, value: object) -> None:
         """`put` for a caller that has the stamp's key already (`store_ranges`, once for all its ranges)."""
+        values, keys = self._values, self._keys
+        if keys is not None and key not in values and (not keys or key > keys[-1]):
+            # The usual put, a new latest stamp, with the oldest one dropped once full: what the general path
+            # below does for it, without its calls (two puts per neighbour and tick). While the keys are kept
+            # they are the values' keys, so the counts agree.
+            keys.append(key)
+            values[key] = value
+            if len(keys) > self.size:
+                del values[keys[0]]
+                del keys[0]
+            return
         if key not in self._values and self._keys is not None:
             if self._keys and key < self._keys[-1]:
                 self._keys = None
@@ -206,7 +217,7 @@ class NeighbourTrack:
         `checked_share` gave for the share."""
         stamp, (position, velocity, reciprocal) = share.odometry.stamp, checked
         self.odometry.put(stamp, position)
-        if share.antenna is not None or self.arms.latest() is not None:
+        if share.antenna is not None or self.arms._values:     # (an arm kept: its latest is not None)
             self.arms.put(stamp, arm_vector(share.odometry.heading, share.antenna or ZERO))
         if self.share is None or stamp >= self.share.odometry.stamp:
             self.share, self.reciprocal, self.velocity = share, reciprocal, velocity
@@ -278,7 +289,7 @@ class NeighbourTrack:
             return
         latest = self.odometry.latest()
         # Without antennas off the centres (the paper's fleets) no offset is looked up: the loop is as it was.
-        arms = self.arms.latest() is not None or (own_arms is not None and own_arms.latest() is not None)
+        arms = bool(self.arms._values) or (own_arms is not None and bool(own_arms._values))
         for key in self.ranges.keys_after(self.epoch):
             if latest is None or key > latest:
                 mine, theirs, why = None, None, "later"     # what positions_at says, without asking
