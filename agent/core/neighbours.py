@@ -62,27 +62,22 @@ class History:
 
     def put_key(self, key: int, value: object) -> None:
         """`put` for a caller that has the stamp's key already (`store_ranges`, once for all its ranges)."""
-        values, keys = self._values, self._keys
-        if keys is not None and key not in values and (not keys or key > keys[-1]):
-            # The usual put, a new latest stamp, with the oldest one dropped once full: what the general path
-            # below does for it, without its calls (two puts per neighbour and tick). While the keys are kept
-            # they are the values' keys, so the counts agree.
-            keys.append(key)
-            values[key] = value
-            if len(keys) > self.size:
-                del values[keys[0]]
-                del keys[0]
-            return
-        if key not in self._values and self._keys is not None:
-            if self._keys and key < self._keys[-1]:
-                self._keys = None
+        values, keys = self._values, self._keys     # (locals: two puts per neighbour and tick)
+        if keys is not None and key not in values:
+            if keys and key < keys[-1]:
+                self._keys = keys = None            # out of order: sorted again on the next read
             else:
-                self._keys.append(key)
-        self._values[key] = value
-        if len(self._values) > self.size:
-            keys, excess = self.keys(), len(self._values) - self.size
-            for old in keys[:excess] if excess > 1 else (keys[0],):     # one, once full: no list for it
-                del self._values[old]
+                keys.append(key)
+        values[key] = value
+        excess = len(values) - self.size
+        if excess > 0:
+            if keys is None:
+                keys = self.keys()
+            if excess == 1:                         # the usual put once full: no list for it
+                del values[keys[0]]
+            else:
+                for old in keys[:excess]:
+                    del values[old]
             # Trimmed in place (still sorted, no sort on the next read): a new list per put would be one more
             # object per neighbour and tick for the garbage collector to walk.
             del keys[:excess]
@@ -106,6 +101,10 @@ class History:
     def latest(self) -> int | None:
         keys = self.keys()
         return keys[-1] if keys else None
+
+    def kept(self) -> bool:
+        """Whether any value is kept (`latest() is not None` without the keys' sort)."""
+        return bool(self._values)
 
     def at(self, key: int, max_gap: int) -> tuple[tuple[float, float] | None, str]:
         """The (x, y) value at `key`: the sample itself, or the straight line between the samples around it
@@ -217,7 +216,7 @@ class NeighbourTrack:
         `checked_share` gave for the share."""
         stamp, (position, velocity, reciprocal) = share.odometry.stamp, checked
         self.odometry.put(stamp, position)
-        if share.antenna is not None or self.arms._values:     # (an arm kept: its latest is not None)
+        if share.antenna is not None or self.arms.kept():
             self.arms.put(stamp, arm_vector(share.odometry.heading, share.antenna or ZERO))
         if self.share is None or stamp >= self.share.odometry.stamp:
             self.share, self.reciprocal, self.velocity = share, reciprocal, velocity
@@ -289,7 +288,7 @@ class NeighbourTrack:
             return
         latest = self.odometry.latest()
         # Without antennas off the centres (the paper's fleets) no offset is looked up: the loop is as it was.
-        arms = bool(self.arms._values) or (own_arms is not None and bool(own_arms._values))
+        arms = self.arms.kept() or (own_arms is not None and own_arms.kept())
         for key in self.ranges.keys_after(self.epoch):
             if latest is None or key > latest:
                 mine, theirs, why = None, None, "later"     # what positions_at says, without asking
