@@ -171,7 +171,7 @@ def test_overrides_reach_every_variant(tiny):
 
 def test_fleet_bench_smoke(tiny, tmp_path):
     out = tmp_path / "bench"
-    argv = ["fleet-bench", "--monte-carlo", str(tiny), "--runs", "1", "--workers", "1", "--sizes", "3",
+    argv = ["fleet-bench", "--monte-carlo", str(tiny), "--runs", "1", "--workers", "1", "--sizes", "3", "4",
             "--duration", "1", "--scenarios-dir", str(SCENARIOS_DIR), "--out", str(out)]
     assert main(argv) == 0
     document = (out / "fleet_benchmark.md").read_text(encoding="utf-8")
@@ -180,6 +180,36 @@ def test_fleet_bench_smoke(tiny, tmp_path):
     # One row per pair estimator, each fleet on that estimator (the paper's and the agent's by default).
     assert "| mckf | 3 | 20 | drawn (seed 50) |" in document
     assert "| raw_range | 3 | 20 | drawn (seed 50) |" in document
+    # What a neighbour adds, split into its pair filter's own work and the rest, per estimator (n = 3 to 4).
+    for name in ("mckf", "raw_range"):
+        assert f"- {name}: an extra neighbour adds " in document and "(n = 3 to 4), of which its pair" in document
+
+
+def test_fleet_bench_times_every_call_of_the_pair_filters_and_puts_the_factory_back():
+    from agent.core import neighbours
+    from lab.benchmarks.fleet import FilterClock, fleet_scenarios
+    from lab.harness.runner import run
+
+    spec, variants = scenario_cmd.load(SCENARIOS_DIR / "table4_scale.yaml")
+    ((_, scenario, _, _),) = fleet_scenarios(spec.base, variants, [4], 3.0, 50, "mckf")
+    original, made = neighbours.make_relative_estimator, []
+    clock = FilterClock()
+    clock.calibrate(calls=1000)
+    with clock.timing():
+        timed = neighbours.make_relative_estimator
+        assert timed is not original
+        neighbours.make_relative_estimator = lambda *args, **kwargs: made.append(timed(*args, **kwargs)) or made[-1]
+        try:
+            run(scenario)
+        finally:
+            neighbours.make_relative_estimator = timed
+    assert neighbours.make_relative_estimator is original
+    # Every predict and update counts one of these three (base.py: refused ones in `rejected`).
+    diagnostics = [e.diagnostics for e in made]
+    calls = sum(d.predictions + d.updates + d.rejected for d in diagnostics)
+    assert len(made) == 12 and sum(d.updates for d in diagnostics) > 0
+    assert clock.calls == calls
+    assert 0.0 < clock.overhead and 0.0 < clock.seconds < clock.raw
 
 
 def test_fleet_bench_puts_every_vessel_on_the_estimator_asked_for(tiny):

@@ -15,6 +15,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import statistics
 import time
 from pathlib import Path
@@ -22,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from agent.config import ConfigError, deep_merge, parse_mapping, updated
+from agent.core import neighbours
 from agent.core.estimators import estimator_names
 from boat.presets import PRESETS
 from lab import arguments
@@ -179,6 +181,78 @@ def cpu_comparison(kinematic: Scenario, hull: Scenario, runs: int) -> dict[str, 
     return {label: [statistics.median(column) for column in zip(*rows)] for label, rows in figures.items()}
 
 
+# The pair filter's own work: what `NeighbourTrack.advance` asks of it per range (agent/core/neighbours.py).
+FILTER_METHODS = ("predict", "update", "update_between")
+
+
+class FilterClock:
+    """Sums the CPU time (time.thread_time) of every pair filter's `FILTER_METHODS` calls while installed
+    (`timing`): each estimator that `NeighbourTrack.start` makes gets its methods wrapped on the instance.
+    `overhead` is what the wrapper itself adds to one bracketed call, measured on a method that does nothing;
+    `seconds` has it taken off per call."""
+
+    def __init__(self) -> None:
+        self.raw = 0.0
+        self.calls = 0
+        self.overhead = 0.0
+
+    @property
+    def seconds(self) -> float:
+        return self.raw - self.calls * self.overhead
+
+    def wrap(self, method):
+        clock, now = self, time.thread_time
+
+        def timed(*args, **kwargs):
+            started = now()
+            try:
+                return method(*args, **kwargs)
+            finally:
+                clock.raw += now() - started
+                clock.calls += 1
+        return timed
+
+    def calibrate(self, calls: int = 200_000) -> None:
+        """The wrapper's own time per call, the median of 5 batches of a method that does nothing."""
+        probe = FilterClock()
+        nothing = probe.wrap(lambda *args: None)
+        per_call = []
+        for _ in range(5):
+            probe.raw, probe.calls = 0.0, 0
+            for _ in range(calls):
+                nothing(1.0, 2.0)
+            per_call.append(probe.raw / probe.calls)
+        self.overhead = statistics.median(per_call)
+
+    @contextlib.contextmanager
+    def timing(self):
+        """A context in which every new track's filter is timed."""
+        make = neighbours.make_relative_estimator
+
+        def timed_filter(*args, **kwargs):
+            estimator = make(*args, **kwargs)
+            for name in FILTER_METHODS:
+                setattr(estimator, name, self.wrap(getattr(estimator, name)))
+            return estimator
+
+        neighbours.make_relative_estimator = timed_filter
+        try:
+            yield self
+        finally:
+            neighbours.make_relative_estimator = make
+
+
+def filter_ms_per_tick(scenario: Scenario) -> tuple[float, float]:
+    """(the pair filters' own CPU time per vessel tick (ms), the wrapper's overhead per call (us)) over a run
+    of `scenario` with every filter timed (`FilterClock`); a run of its own, apart from the tick-time run."""
+    clock = FilterClock()
+    clock.calibrate()
+    with clock.timing():
+        trace = run_scenario(scenario)
+    ticks = int(np.isfinite(trace.tick_seconds).sum())
+    return clock.seconds / ticks * 1e3, clock.overhead * 1e6
+
+
 def run(args: argparse.Namespace) -> int:
     # tqdm (the optional 'lab' extra) is imported by the command that shows a bar, not by `usv-lab --help`.
     from tqdm import tqdm
@@ -227,6 +301,8 @@ def run(args: argparse.Namespace) -> int:
          for label, figures in (("kinematic", split["kinematic"]), (args.preset, split["hull"]))])
 
     rows = []
+    per_size: dict[str, list[tuple[int, float, float]]] = {name: [] for name in args.estimators}
+    overheads: list[float] = []
     for name, n, scenario, source, paper in fleets:
         print(f"fleet of {n}, {name}: {args.duration:g} s simulated ...", flush=True)
         started = time.perf_counter()
@@ -234,13 +310,20 @@ def run(args: argparse.Namespace) -> int:
         wall = time.perf_counter() - started
         ticks = trace.tick_seconds
         step_ms = np.nansum(ticks, axis=1) * 1e3   # all vessels of one sampling period, as one computer would
+        print(f"fleet of {n}, {name}: again, its pair filters timed ...", flush=True)
+        filter_ms, overhead_us = filter_ms_per_tick(scenario)
+        mean_tick = float(np.nanmean(ticks)) * 1e3
+        per_size[name].append((n, mean_tick, filter_ms))
+        overheads.append(overhead_us)
         rows.append([name, n, f"{RADIUS:g}", source, int(np.isfinite(ticks).sum()),
                      f"{trace.metrics.mean_tick_ms:.3f}", f"{trace.metrics.p99_tick_ms:.3f}",
-                     f"{step_ms.mean():.2f}",
+                     f"{step_ms.mean():.2f}", f"{filter_ms:.3f}", f"{mean_tick - filter_ms:.3f}",
                      "-" if paper is None else f"{paper:g}", f"{wall:.1f}"])
     tick_table = markdown_table(
         ["estimator", "n", "r* (m)", "start positions", "vessel ticks", "mean tick (ms)", "p99 tick (ms)",
-         "mean fleet step (ms)", "paper Avg. Run Time (ms)", "run wall time (s)"], rows)
+         "mean fleet step (ms)", "of a tick, the pair filters' own (ms)", "of a tick, the rest (ms)",
+         "paper Avg. Run Time (ms)", "run wall time (s)"], rows)
+    tick_table = "\n".join([tick_table, "", *per_neighbour_lines(per_size, overheads)])
 
     document = render(invocation(args), mc_table, cpu_table, tick_table, args, scale_path, base)
     args.out.mkdir(parents=True, exist_ok=True)
@@ -248,6 +331,27 @@ def run(args: argparse.Namespace) -> int:
     path.write_text(document, encoding="utf-8")
     print(f"\n{mc_table}\n\n{cpu_table}\n\n{tick_table}\n\nwrote {path}")
     return report_failures(engine)
+
+
+def per_neighbour_lines(per_size: dict[str, list[tuple[int, float, float]]], overheads: list[float]) -> list[str]:
+    """Per estimator, what an extra neighbour adds to a vessel's tick between the smallest and the largest
+    fleet: in all, and beyond its pair filter's own predict and update."""
+    lines = []
+    for name, sizes in per_size.items():
+        if len(sizes) < 2:
+            continue
+        (n0, tick0, filter0), (n1, tick1, filter1) = min(sizes), max(sizes)
+        extra = n1 - n0
+        lines.append(f"- {name}: an extra neighbour adds {(tick1 - tick0) / extra * 1e3:.1f} us to a vessel's "
+                     f"tick (n = {n0} to {n1}), of which its pair filter's own predict and update "
+                     f"{(filter1 - filter0) / extra * 1e3:.1f} us and the rest "
+                     f"{((tick1 - filter1) - (tick0 - filter0)) / extra * 1e3:.1f} us.")
+    if overheads:
+        lines.append(f"- The pair filters' own time comes from a second run of each fleet with every filter's "
+                     f"{', '.join(FILTER_METHODS)} bracketed by time.thread_time; the bracket's own cost on a "
+                     f"method that does nothing ({min(overheads):.2f}-{max(overheads):.2f} us a call, measured "
+                     "before each run) is taken off every call. The rest is the tick's mean less that.")
+    return lines
 
 
 def render(command: str, mc_table: str, cpu_table: str, tick_table: str, args: argparse.Namespace,
