@@ -180,6 +180,8 @@ def test_fleet_bench_smoke(tiny, tmp_path):
     # One row per pair estimator, each fleet on that estimator (the paper's and the agent's by default).
     assert "| mckf | 3 | 20 | drawn (seed 50) |" in document
     assert "| raw_range | 3 | 20 | drawn (seed 50) |" in document
+    # The pool's time beyond the runs' CPU, with the one worker asked for.
+    assert "- The 1 worker(s) had " in document and "is the hand-off between the processes" in document
     # What a neighbour adds, split into its pair filter's own work and the rest, per estimator (n = 3 to 4).
     for name in ("mckf", "raw_range"):
         assert f"- {name}: an extra neighbour adds " in document and "(n = 3 to 4), of which its pair" in document

@@ -288,6 +288,7 @@ def run(args: argparse.Namespace) -> int:
           f"{sum(times):.1f}", f"{sum(times) / max(len(times), 1):.2f}"] for label, times in cpu.items()])
     mc_table = "\n".join([mc_table, "", f"Ratio {args.preset} / kinematic: **{hull / kinematic:.2f}**. The "
                           f"campaign of both ({len(jobs)} runs) took {mc_seconds:.1f} s of wall time on {where}.",
+                          *hand_off_lines(engine, mc_seconds, kinematic + hull, len(jobs)),
                           *campaign_notes(engine)])
 
     base = mc_variants.get(args.cpu_variant)
@@ -331,6 +332,19 @@ def run(args: argparse.Namespace) -> int:
     path.write_text(document, encoding="utf-8")
     print(f"\n{mc_table}\n\n{cpu_table}\n\n{tick_table}\n\nwrote {path}")
     return report_failures(engine)
+
+
+def hand_off_lines(engine, wall: float, cpu: float, runs: int) -> list[str]:
+    """What the campaign's processes spent beyond its runs' CPU: the pool's workers had wall x workers
+    seconds (a cluster's workers are elsewhere, their time not ours to count)."""
+    if engine.cluster is not None:
+        return []
+    had = wall * engine.workers
+    return [f"- The {engine.workers} worker(s) had {had:.1f} s ({wall:.1f} s of wall time each); the runs took "
+            f"{cpu:.1f} s of CPU in them ({cpu / had:.0%}). The rest, {had - cpu:.1f} s "
+            f"({(had - cpu) / runs * 1e3:.0f} ms a run), is the hand-off between the processes (each job and its "
+            "result pickled and sent), the pool's start, the idle tail of the last runs, and whatever else "
+            "the machine ran."]
 
 
 def per_neighbour_lines(per_size: dict[str, list[tuple[int, float, float]]], overheads: list[float]) -> list[str]:
