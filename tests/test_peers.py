@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from agent.core.records import NeighbourRecord, OdometryReading, Share, TickInputs, TickRecord
-from agent.core.vetting import range_misfit
+from agent.core.vetting import range_misfit, residual_trend
 from agent.shell import peers as table_module
 from agent.shell.peers import PeerTable
 
@@ -186,6 +186,27 @@ def test_genuine_claims_under_the_papers_range_noise_agree_within_the_tolerance(
             noise = np.where(outlier, rng.normal(0, math.sqrt(10), len(t)), rng.normal(0, math.sqrt(0.4), len(t)))
             misfits.append(range_misfit(own - own[0], theirs - theirs[0], np.hypot(*(own - theirs).T) + noise))
         assert np.quantile(misfits, 0.99) < table_module.TOLERANCE
+
+
+@pytest.mark.parametrize("seed", [3, 4])
+def test_the_trend_of_genuine_claims_under_the_papers_range_noise_stays_within_the_limit(seed):
+    """The residuals of true claims are the range noise (Table II's 0.8 N(0, 0.4) + 0.2 N(0, 10)). The trend
+    of a window, the difference of two medians of WINDOW // 3 ranges, has an asymptotic spread of
+    sqrt(2 / (4 m f(0)^2)) with f(0) the mixture's density at 0: 0.334 m for m = 16. TREND must be several of
+    those: every failed window brings a vessel one judgement nearer to being refuted (DOUBT in a row), and at
+    0.6 m honest vessels were refuted about once in a hundred sessions per neighbour."""
+    m = table_module.WINDOW // 3
+    f0 = 0.8 / math.sqrt(2 * math.pi * 0.4) + 0.2 / math.sqrt(2 * math.pi * 10.0)
+    spread = math.sqrt(2.0 / (4.0 * m * f0 * f0))
+    assert spread == pytest.approx(0.334, abs=0.001)
+    rng = np.random.default_rng(seed)
+    windows = 20_000
+    outlier = rng.random((windows, table_module.WINDOW)) < 0.2
+    noise = np.where(outlier, rng.normal(0, math.sqrt(10.0), outlier.shape), rng.normal(0, math.sqrt(0.4), outlier.shape))
+    trends = np.array([residual_trend(w) for w in noise])
+    assert np.std(trends) == pytest.approx(spread, rel=0.1)       # the statistic is the one worked out above
+    # Failed windows: 0.27 % for a normal statistic at three spreads (TREND is about that); 7 % at the old 0.6 m.
+    assert np.mean(np.abs(trends) > table_module.TREND) < 0.005
 
 
 def test_an_id_proven_after_coming_back_is_refuted_when_its_claims_leave_the_ranges():
