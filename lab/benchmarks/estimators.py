@@ -36,7 +36,7 @@ from agent.core.params import AgentParams, RelativeEstimationParams
 from agent.core.range_noise import GaussianMixtureNoise
 from lab import arguments
 from lab.experiments.comparison import ComparisonConfig, relative_trajectory
-from lab.report.markdown import invocation, markdown_table
+from lab.report.markdown import cpu_model, invocation, markdown_table
 from sim_bridge.noise import IsotropicGaussianNoise
 
 DT = 0.1
@@ -570,15 +570,7 @@ def _peak_memory(build: Callable[[], list], pairs: Sequence[PairData], ours: boo
 def machine_info() -> list[tuple[str, str]]:
     import filterpy  # optional, as in new_filterpy
 
-
-    cpu = platform.processor() or platform.machine()
-    try:
-        with open("/proc/cpuinfo", encoding="utf-8") as info:
-            names = [line.split(":", 1)[1].strip() for line in info if line.startswith("model name")]
-        if names:
-            cpu = names[0]
-    except OSError:
-        pass
+    cpu = cpu_model()
     return [
         ("Python", f"{platform.python_implementation()} {platform.python_version()}"),
         ("numpy", np.__version__),

@@ -33,8 +33,21 @@ def invocation(args: argparse.Namespace) -> str:
     return " ".join(["usv-lab", *map(shlex.quote, argv)])
 
 
+def cpu_model() -> str:
+    """The processor's name (/proc/cpuinfo's first "model name"; else what `platform` knows): a virtual machine
+    can come back on other hardware, and the same code then runs at another speed."""
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8") as info:
+            names = [line.split(":", 1)[1].strip() for line in info if line.startswith("model name")]
+        if names:
+            return names[0]
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
 def machine() -> list[str]:
     """What a result page says of the machine it was measured on, a line each."""
-    return [f"platform: {platform.platform()}", f"os.cpu_count(): {os.cpu_count()}",
+    return [f"platform: {platform.platform()}", f"CPU: {cpu_model()}", f"os.cpu_count(): {os.cpu_count()}",
             f"Python: {platform.python_implementation()} {sys.version.split()[0]}",
             f"numpy: {np.__version__}"]
