@@ -17,6 +17,9 @@ from agent.core.target_range import RangeWitness, range_along_bearing
 # The least ranges, paired with both odometries, a neighbour's say on the target's range needs
 # (`range_from_neighbours`), as a pair's target route asks (membership.ROUTE_RANGES).
 WITNESS_RANGES = 10
+# Neighbours asked at most, in the tracks' order: six pin s well (var(s) falls as 1/m), and each costs the fit
+# its ranges and two more starts, which a 50-vessel joiner would pay every tick until the range is taken.
+MAX_WITNESSES = 6
 # How sure the ranges must make a range from the neighbours before it is taken (its variance from the ranges
 # alone, the neighbours' target estimates taken as exact), as a fraction of the target routes' bound: the
 # pairs started from the routes inherit its error, and the paper's MCKF never corrects it from the ranges.
@@ -132,6 +135,8 @@ def range_from_neighbours(params: AgentParams, state: VesselState, bearing: np.n
     witnesses = []
     for track in state.tracks.values():
         share = track.share
+        if len(witnesses) == MAX_WITNESSES:
+            break
         if share is None or share.target is None or share.target_covariance is None:
             continue
         covariance = np.asarray(share.target_covariance, dtype=float)[:2, :2]
