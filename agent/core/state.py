@@ -36,6 +36,7 @@ class Health:
     priors_refused: int = 0       # initial estimates the measured range contradicts
     separation_stops: int = 0     # ticks the separation guard stopped or cut the surge
     target_restarts: int = 0      # target filter started again: its estimate went behind the bearing
+    target_ranges_fixed: int = 0  # a target range unobserved (a start without estimates) taken from neighbours
 
     def as_dict(self) -> dict[str, int]:
         return dict(self.__dict__)

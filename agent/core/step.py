@@ -42,7 +42,7 @@ from agent.core.records import (
     neighbour_record,
 )
 from agent.core.state import VesselState
-from agent.core.target import leeway_drift, leeway_estimate, own_motion, track_target
+from agent.core.target import leeway_drift, leeway_estimate, own_motion, range_from_neighbours, track_target
 
 SEPARATION_RANGES = 5   # the median of this many last ranges judges a localised neighbour, outliers aside
 # |p^_ij| further than this from that median (m): the estimate is wrong, not localised. The median of five
@@ -140,6 +140,9 @@ def step(params: AgentParams, state: VesselState, inputs: TickInputs) -> tuple[V
     bearing = _bearing(state, inputs.bearing)
     target_state, target_cov, bearing_outcome = track_target(params, state, bearing, velocity_change,
                                                              odometry.heading)
+    if target_state is not None and bearing_outcome is not None and bearing_outcome.accepted \
+            and range_from_neighbours(params, state, bearing, now):
+        target_state, target_cov = state.tracker.state, state.tracker.covariance
     if target_state is not None and params.fleet.fuse_target_estimates:
         target_state, target_cov = fuse_targets(params, state, lent, now)
     if state.phase is None:

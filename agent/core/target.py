@@ -2,13 +2,28 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from agent.core.estimators.plkf import PLKF
 from agent.core.estimators.plkf_leeway import LeewayPLKF, leeway_projection
+from agent.core.neighbours import stamp_key
 from agent.core.params import AgentParams, TargetEstimationParams
 from agent.core.records import BearingOutcome
 from agent.core.state import VesselState
+from agent.core.target_range import RangeWitness, range_along_bearing
+
+# The least ranges, paired with both odometries, a neighbour's say on the target's range needs
+# (`range_from_neighbours`), as a pair's target route asks (membership.ROUTE_RANGES).
+WITNESS_RANGES = 10
+# Neighbours asked at most, in the tracks' order: six pin s well (var(s) falls as 1/m), and each costs the fit
+# its ranges and two more starts, which a 50-vessel joiner would pay every tick until the range is taken.
+MAX_WITNESSES = 6
+# How sure the ranges must make a range from the neighbours before it is taken (its variance from the ranges
+# alone, the neighbours' target estimates taken as exact), as a fraction of the target routes' bound: the
+# pairs started from the routes inherit its error, and the paper's MCKF never corrects it from the ranges.
+FIX_VARIANCE = 0.05
 
 
 def own_motion(state: VesselState, now: float, position: np.ndarray) -> np.ndarray | None:
@@ -94,3 +109,71 @@ def _start_tracker(params: AgentParams, state: VesselState, bearing: np.ndarray,
     covariance = np.diag([p.initial_range_guess**2] * 2 + [p.initial_covariance] * 2)
     state.tracker = target_filter(p, np.concatenate([guess, -state.motion.velocity]), covariance, params.dt,
                                   range_unobserved=True, heading=heading)
+
+
+def range_from_neighbours(params: AgentParams, state: VesselState, bearing: np.ndarray | None, now: float) -> bool:
+    """A target filter whose range is unobserved (D19) takes it from its neighbours (target_range.py, D20):
+    along this tick's bearing, the s that fits the ranges to every neighbour whose own target estimate is
+    sure (position trace within `fleet.target_route_factor` * P_io,0), over every range kept to it.
+    Taken in (`assimilate`: the range now counts as observed) when the ranges alone pin s within FIX_VARIANCE
+    of that bound (the neighbours' own errors are in the routes' covariance either way), so that the pairs' target routes, which wait on it, can start. True when taken, counted in
+    `target_ranges_fixed`.
+
+    Why: a vessel restarted or joining without estimates cannot fuse its neighbours' target estimates before
+    its pair filters are localised, and its pairs wait on target routes that wait on its target range: with
+    the paper's MCKF, which does not localise from ranges, a joiner's pairs stayed 10-20 m wrong for the
+    rest of the run (dropout_join, D19)."""
+    tracker = state.tracker
+    if tracker is None or not tracker.range_unobserved or bearing is None:
+        return False
+    norm = math.hypot(float(bearing[0]), float(bearing[1]))
+    if not norm > 0.0:
+        return False
+    sure = params.fleet.target_route_factor * params.target.initial_covariance
+    now_key = stamp_key(now)
+    own_now = state.own.get(now_key)
+    witnesses = []
+    for track in state.tracks.values():
+        share = track.share
+        if len(witnesses) == MAX_WITNESSES:
+            break
+        if share is None or share.target is None or share.target_covariance is None:
+            continue
+        covariance = np.asarray(share.target_covariance, dtype=float)[:2, :2]
+        if np.trace(covariance) > sure:
+            continue
+        key = stamp_key(share.odometry.stamp)
+        mine_then, theirs_then, why = track.positions_at(state.own, key)
+        if why or own_now is None:
+            continue
+        distances, moves = [], []
+        for k, measured in track.ranges.items():
+            mine, theirs, why = track.positions_at(state.own, k)
+            if not why:
+                distances.append(measured)
+                moves.append((mine[0] - mine_then[0] - (theirs[0] - theirs_then[0]),
+                              mine[1] - mine_then[1] - (theirs[1] - theirs_then[1])))
+        if len(distances) < WITNESS_RANGES:
+            continue
+        # p_io at the share's time is p_io now less our motion since (the target taken as still over the
+        # share's age, as a target route takes it, membership._route).
+        shift = (own_now[0] - mine_then[0], own_now[1] - mine_then[1])
+        target = np.asarray(share.target, dtype=float)[:2] + shift
+        witnesses.append(RangeWitness(target, covariance, np.array(distances), np.array(moves),
+                                      params.relative.range_variance))
+    direction = np.asarray(bearing, dtype=float) / norm
+    fit = range_along_bearing(direction, witnesses, params.target.min_range)
+    if fit is None or fit[2] > FIX_VARIANCE * sure:
+        return False
+    s, variance, _ = fit
+    across = np.array([-direction[1], direction[0]])
+    P = np.zeros((4, 4))
+    P[:2, :2] = (variance * np.outer(direction, direction)
+                 + (s * s + variance) * params.target.bearing_variance * np.outer(across, across))
+    current = tracker.covariance
+    P[2:, 2:] = current[2:, 2:]
+    x = np.concatenate([s * direction, tracker.state[2:]])
+    if not tracker.assimilate(x, P):
+        return False
+    state.health.target_ranges_fixed += 1
+    return True

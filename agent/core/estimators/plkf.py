@@ -118,9 +118,10 @@ class PLKF:
     `initial_range_guess`^2, what the start assumed: its neighbours do not start pairs from it, and their
     target estimates, fused in (`assimilate`), supply the range instead of being gated out as disagreeing
     with a confident wrong one. The filter's own gain still runs on P (the estimate's path is unchanged). The
-    range counts as observed once an estimate fused with the neighbours' has been taken in, and not before:
-    the bearings alone do not tell when (the same run's filter had swept a radian of arc while still 4.7 m
-    off at 0.35 m^2), so a vessel alone keeps saying its range is unknown."""
+    range counts as observed once an estimate fused with the neighbours', or a range fitted to the ranges to
+    them (target.range_from_neighbours, D20), has been taken in, and not before: the bearings alone do not
+    tell when (the same run's filter had swept a radian of arc while still 4.7 m off at 0.35 m^2), so a
+    vessel alone keeps saying its range is unknown."""
 
     def __init__(self, params: TargetEstimationParams, state: np.ndarray, covariance: np.ndarray | None = None,
                  dt: float = 0.1, range_unobserved: bool = False) -> None:
