@@ -28,7 +28,7 @@ from agent.core.estimators import estimator_names
 from boat.presets import PRESETS
 from lab import arguments
 from lab.experiments.scenarios import DEFAULT_DIR, load, resolve
-from lab.harness.parallel import add_engine_arguments, campaign_notes, engine_from, report_failures
+from lab.harness.parallel import Engine, add_engine_arguments, campaign_notes, engine_from, report_failures
 from lab.harness.runner import run as run_scenario
 from lab.report.markdown import invocation, machine, markdown_table
 from sim_bridge.scenario import Scenario
@@ -334,7 +334,7 @@ def run(args: argparse.Namespace) -> int:
     return report_failures(engine)
 
 
-def hand_off_lines(engine, wall: float, cpu: float, runs: int) -> list[str]:
+def hand_off_lines(engine: Engine, wall: float, cpu: float, runs: int) -> list[str]:
     """What the campaign's processes spent beyond its runs' CPU: the pool's workers had wall x workers
     seconds (a cluster's workers are elsewhere, their time not ours to count)."""
     if engine.cluster is not None:
