@@ -122,15 +122,14 @@ def step(params: AgentParams, state: VesselState, inputs: TickInputs) -> tuple[V
         estimate = np.array(p_ij)
         medians[j] = median = _recent_range(track)
         distances[j] = distance = math.hypot(*p_ij)
-        moments = track.moments()       # read once: the localisation, the guard and the record take it
-        trace = moments[2] + moments[4]
+        trace = track.best_trace()      # read once: the localisation and the guard take it
         is_localised = _localised(params, trace, distance, median)
         if is_localised:
             localised[j] = estimate
             lent.append((track, *p_ij))
         if is_localised or trace <= guard_trace:
             estimated.append(p_ij)
-        records[j] = _neighbour_record(track, estimate, is_localised, moments)
+        records[j] = _neighbour_record(track, estimate, is_localised)
         carried = _shared_estimate(track)
         if carried is not None:
             shared[j] = carried
@@ -233,10 +232,9 @@ def _elapsed(params: AgentParams, previous: float | None, now: float) -> float:
 
 
 def _localised(params: AgentParams, trace: float, distance: float, median: float | None) -> bool:
-    """The pair filter has converged enough to steer by: trace(P_ij) (`trace`, of `NeighbourTrack.best`'s
-    covariance) at most `fleet.localised_trace`, and its
-    estimate agrees with the ranges: |p^_ij| within `RANGE_DISAGREEMENT` of `median`, that of the last
-    `SEPARATION_RANGES` ranges (`_recent_range`). A filter that cannot learn from the ranges (the paper's
+    """The pair filter has converged enough to steer by: trace(P_ij) (`trace`, `NeighbourTrack.best_trace`) at
+    most `fleet.localised_trace`, and its estimate agrees with the ranges: |p^_ij| within `RANGE_DISAGREEMENT`
+    of `median`, that of the last `SEPARATION_RANGES` ranges (`_recent_range`). A filter that cannot learn from the ranges (the paper's
     pseudo-linear ones) keeps a wrong start for good while its covariance says it is sure: in a restart test
     two vessels that both believed 5.3 m crept to 0.19 m, the guard stopping them only on the ticks the
     ranges' median happened to exceed the limit. Unlocalised, the neighbour is judged by its raw ranges
@@ -366,11 +364,9 @@ def _shared_estimate(track: NeighbourTrack) -> tuple[np.ndarray, np.ndarray, flo
     return np.array([px, py]), np.array([[p11, p12], [p12, p22]]), track.epoch * 1e-6
 
 
-def _neighbour_record(track: NeighbourTrack, estimate: np.ndarray, localised: bool,
-                      moments: tuple[float, float, float, float, float]) -> NeighbourRecord:
-    """The track's record of the tick; `moments` are the track's (`NeighbourTrack.moments`) at the tick."""
+def _neighbour_record(track: NeighbourTrack, estimate: np.ndarray, localised: bool) -> NeighbourRecord:
     low, high, observability = track.excitation()
-    _, _, p11, p12, p22 = moments
+    _, _, p11, p12, p22 = track.moments()
     return neighbour_record(
         position=estimate, covariance=np.array([[p11, p12], [p12, p22]]), epoch=track.epoch * 1e-6,
         updates=track.updates, rejected=track.rejected, iterations=track.last_iterations,

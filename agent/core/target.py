@@ -130,8 +130,9 @@ def range_from_neighbours(params: AgentParams, state: VesselState, bearing: np.n
     if not norm > 0.0:
         return False
     sure = params.fleet.target_route_factor * params.target.initial_covariance
-    now_key = stamp_key(now)
-    own_now = state.own.get(now_key)
+    own_now = state.own.get(stamp_key(now))
+    if own_now is None:
+        return False
     witnesses = []
     for track in state.tracks.values():
         share = track.share
@@ -144,7 +145,7 @@ def range_from_neighbours(params: AgentParams, state: VesselState, bearing: np.n
             continue
         key = stamp_key(share.odometry.stamp)
         mine_then, theirs_then, why = track.positions_at(state.own, key)
-        if why or own_now is None:
+        if why:
             continue
         distances, moves = [], []
         for k, measured in track.ranges.items():
