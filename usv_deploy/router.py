@@ -18,6 +18,11 @@ import zenoh
 
 from agent.runtime.zenoh_session import config_from_file
 
+# Python runs a signal's handler in the main thread, but the kernel may deliver SIGTERM to any of Zenoh's threads;
+# then nothing interrupts a main thread blocked in an untimed wait, and the router never stops (seen in CI: still
+# running 15 s after SIGTERM). A timed wait lets the main thread run the pending handler within this many seconds.
+SIGNAL_POLL = 0.2
+
 
 def router_config(config_file: Path | None, listen: list[str]):
     """The router's zenoh.Config: the file if given, else plain TCP on `listen`; mode is always router."""
@@ -42,6 +47,7 @@ def run_router(config_file: Path | None, listen: list[str], ready: threading.Eve
               f"{', '.join(listen) if listen else 'the endpoints of ' + str(config_file)}", file=sys.stderr, flush=True)
         if ready is not None:
             ready.set()
-        stopping.wait()
+        while not stopping.wait(SIGNAL_POLL):
+            pass
     print("usv-router: stopped", file=sys.stderr)
     return 0
