@@ -14,6 +14,9 @@ import pytest
 from agent.config import updated
 from lab.cli import main
 from lab.experiments import scenarios as scenario_cmd
+from lab.harness.parallel import Engine, hand_off_lines
+from lab.harness.run_cost import costed_run
+from lab.harness.runner import run as run_scenario
 from mission_log.metrics import RunMetrics, nan_mean
 from sim_bridge.scenario import Scenario, ScenarioFile
 
@@ -180,11 +183,34 @@ def test_fleet_bench_smoke(tiny, tmp_path):
     # One row per pair estimator, each fleet on that estimator (the paper's and the agent's by default).
     assert "| mckf | 3 | 20 | drawn (seed 50) |" in document
     assert "| raw_range | 3 | 20 | drawn (seed 50) |" in document
-    # The pool's time beyond the runs' CPU, with the one worker asked for.
-    assert "- The 1 worker(s) had " in document and "is the hand-off between the processes" in document
+    # The campaign's time beyond the runs' CPU: one worker runs them in this process, with no hand-off.
+    assert "- The runs took " in document and "in this process" in document and "hand-off" not in document
     # What a neighbour adds, split into its pair filter's own work and the rest, per estimator (n = 3 to 4).
     for name in ("mckf", "raw_range"):
         assert f"- {name}: an extra neighbour adds " in document and "(n = 3 to 4), of which its pair" in document
+
+
+def test_the_hand_off_is_the_workers_time_beyond_the_runs_cpu():
+    # 2 workers for 10 s had 20 s; runs of 18 s of CPU leave 2 s, 500 ms for each of 4 runs.
+    (line,) = hand_off_lines(Engine(workers=2), wall=10.0, cpu=18.0, runs=4)
+    assert "had 20.0 s (10.0 s of wall time each)" in line and "18.0 s of CPU in them (90%)" in line
+    assert "The rest, 2.0 s (500 ms a run)" in line
+    # One worker runs them in this process: no hand-off, the rest is the campaign's own.
+    (line,) = hand_off_lines(Engine(workers=1), wall=10.0, cpu=9.0, runs=4)
+    assert "9.0 s of CPU in 10.0 s of wall time, in this process (90%); the rest, 1.0 s" in line
+    assert hand_off_lines(Engine(workers=2, cluster="tcp://elsewhere:8786"), 10.0, 18.0, 4) == []
+
+
+def test_a_costed_run_is_the_same_run_and_its_parts_fit_in_it(tiny):
+    _, scenarios = scenario_cmd.load(tiny)
+    scenario = next(iter(scenarios.values()))
+    seed = np.random.SeedSequence(scenario.seed).spawn(1)[0]
+    trace, cost = costed_run(scenario, seed)
+    plain = run_scenario(scenario, np.random.SeedSequence(scenario.seed).spawn(1)[0])
+    for name in ("positions", "estimates", "relative", "commands", "e_ij", "e_io", "e_c"):
+        np.testing.assert_array_equal(getattr(trace, name), getattr(plain, name))
+    assert cost.world > 0.0 and cost.agents > 0.0 and cost.rest >= 0.0
+    assert cost.world + cost.agents + cost.rest == pytest.approx(cost.whole)
 
 
 def test_fleet_bench_times_every_call_of_the_pair_filters_and_puts_the_factory_back():

@@ -100,6 +100,18 @@ def test_the_page_on_two_variants_and_two_seeds_agrees_with_the_traces(tmp_path)
     # The calm Otter with today's agent commands 66 deg/s against the preset's 17.2: the verdict says so.
     assert "- calm: **not met**" in page and "commands within the limits (the otter preset's): no ✗" in page
     assert "- kinematic: the ideal, no target" in page
+    # What it cost: each state's two runs, their CPU split into parts that add up to the whole (each of the
+    # five rounded to 0.01 s), the world's share on the Otter's hull above the kinematic one's.
+    costs = {}
+    for state in ("kinematic", "calm"):
+        row = _row(page, "## What it cost", f"states: {state}")
+        assert row[1:3] == ["2", f"{DURATION:g}"]
+        whole, world, agents, runner_, figures = map(float, row[3:8])
+        assert min(world, agents, runner_, figures) >= 0.0 and agents > 0.0
+        assert abs(whole - (world + agents + runner_ + figures)) <= 0.025
+        costs[state] = world / whole
+    assert costs["calm"] > costs["kinematic"]
+    assert re.search(r"- In all, \d+ runs took [0-9.]+ s of CPU", page) and "in this process" in page
     # The A/B on calm: with all and without each of its measures, the limits' row beyond the preset's rate.
     assert _row(page, "## The agent's measures", "calm")[1] == "with all"
     without_limits = next(line for line in page.splitlines() if line.startswith("| calm | without limits |"))

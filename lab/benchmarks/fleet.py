@@ -28,11 +28,17 @@ from agent.core.estimators import estimator_names
 from boat.presets import PRESETS
 from lab import arguments
 from lab.experiments.scenarios import DEFAULT_DIR, load, resolve
-from lab.harness.parallel import Engine, add_engine_arguments, campaign_notes, engine_from, report_failures
+from lab.harness.parallel import (
+    add_engine_arguments,
+    campaign_notes,
+    engine_from,
+    hand_off_lines,
+    report_failures,
+)
+from lab.harness.run_cost import costed_run
 from lab.harness.runner import run as run_scenario
 from lab.report.markdown import invocation, machine, markdown_table
 from sim_bridge.scenario import Scenario
-from sim_bridge.world import World
 
 RADIUS = 20.0          # r* (m) of every fleet-size run
 HALF_WIDTH = 25.0      # drawn start positions lie in [-25, 25]^2 (m)
@@ -120,19 +126,6 @@ def on_hull(scenario: Scenario, preset: str) -> Scenario:
     return updated(scenario, world=updated(scenario.world, dynamics={"preset": preset}))
 
 
-class TimedWorld(World):
-    """A World that adds the CPU time of each `step` (the motion and the next tick's readings) to `seconds`."""
-
-    def __init__(self, *args, **kwargs) -> None:
-        super().__init__(*args, **kwargs)
-        self.seconds = 0.0
-
-    def step(self, commands) -> None:
-        started = time.process_time()
-        super().step(commands)
-        self.seconds += time.process_time() - started
-
-
 def monte_carlo_pairs(variants: dict[str, Scenario], preset: str) -> list[tuple[str, Scenario, np.random.SeedSequence]]:
     """The Monte Carlo's runs (every variant, each run's own seed, as `usv-lab scenario` draws them), each
     kinematic and then on `preset`'s hull, side by side in one job list: a change of the machine's load in the
@@ -156,17 +149,8 @@ def timed_run(job: tuple[str, Scenario, np.random.SeedSequence]) -> tuple[str, f
 
 def cpu_split(scenario: Scenario, seed: np.random.SeedSequence) -> tuple[float, float, float, float]:
     """CPU seconds of one run in this process: (whole run, World.step, the agents' ticks, the rest)."""
-    worlds: list[TimedWorld] = []
-
-    def make_world(config, rng) -> TimedWorld:
-        worlds.append(TimedWorld(config, rng))
-        return worlds[-1]
-
-    started = time.process_time()
-    trace = run_scenario(scenario, seed, make_world=make_world)
-    total = time.process_time() - started
-    world, agents = worlds[0].seconds, float(np.nansum(trace.tick_seconds))
-    return total, world, agents, total - world - agents
+    _, cost = costed_run(scenario, seed)
+    return cost.whole, cost.world, cost.agents, cost.rest
 
 
 def cpu_comparison(kinematic: Scenario, hull: Scenario, runs: int) -> dict[str, list[float]]:
@@ -332,19 +316,6 @@ def run(args: argparse.Namespace) -> int:
     path.write_text(document, encoding="utf-8")
     print(f"\n{mc_table}\n\n{cpu_table}\n\n{tick_table}\n\nwrote {path}")
     return report_failures(engine)
-
-
-def hand_off_lines(engine: Engine, wall: float, cpu: float, runs: int) -> list[str]:
-    """What the campaign's processes spent beyond its runs' CPU: the pool's workers had wall x workers
-    seconds (a cluster's workers are elsewhere, their time not ours to count)."""
-    if engine.cluster is not None:
-        return []
-    had = wall * engine.workers
-    return [f"- The {engine.workers} worker(s) had {had:.1f} s ({wall:.1f} s of wall time each); the runs took "
-            f"{cpu:.1f} s of CPU in them ({cpu / had:.0%}). The rest, {had - cpu:.1f} s "
-            f"({(had - cpu) / runs * 1e3:.0f} ms a run), is the hand-off between the processes (each job and its "
-            "result pickled and sent), the pool's start, the idle tail of the last runs, and whatever else "
-            "the machine ran."]
 
 
 def per_neighbour_lines(per_size: dict[str, list[tuple[int, float, float]]], overheads: list[float]) -> list[str]:

@@ -50,7 +50,7 @@ def measure(run_index: int) -> dict[str, float]:
     from sim_bridge.scenario import select_scenario
     from sim_bridge.world import World
 
-    class TimedWorld(World):    # fleet.py's, here too: the revision measured may be older than it
+    class TimedWorld(World):    # lab/harness/run_cost.py's, here too: the revision measured may be older than it
         def __init__(self, *args, **kwargs) -> None:
             super().__init__(*args, **kwargs)
             self.seconds = 0.0

@@ -36,10 +36,16 @@ from lab.experiments.sea_figures import (
     summarise,
     verdict,
 )
-from lab.harness.parallel import add_engine_arguments, campaign_notes, engine_from, report_failures
-from lab.harness.runner import run as run_scenario
+from lab.harness.parallel import (
+    add_engine_arguments,
+    campaign_notes,
+    engine_from,
+    hand_off_lines,
+    report_failures,
+)
+from lab.harness.run_cost import RunCost, costed_run
 from lab.report.fleet_plots import radius_spacing_figure, trajectory_figure
-from lab.report.markdown import invocation, markdown_table
+from lab.report.markdown import cpu_model, invocation, markdown_table
 from sim_bridge.environment import SEA_STATES
 from sim_bridge.scenario import SCENARIOS_DIR, Scenario, load_scenarios, select_scenario
 
@@ -184,14 +190,19 @@ def _source(key: tuple[str, str, str], table: dict) -> tuple[str, str, str]:
 
 
 def _job(job: tuple[Scenario, np.random.SeedSequence, bool]):
+    """One run in a worker: its figures, its trace if kept, and what it cost (the run by part, then the
+    figures' CPU seconds)."""
     scenario, seed, keep = job
-    trace = run_scenario(scenario, seed)
-    return run_figures(trace), (trace if keep else None)
+    trace, cost = costed_run(scenario, seed)
+    started = time.process_time()
+    figures = run_figures(trace)
+    return figures, (trace if keep else None), cost, time.process_time() - started
 
 
-def run_all(table: dict, engine) -> tuple[dict, dict]:
-    """Every row's runs ({key: [SeaRun] in run order}, a run that raised left out) and run 0's traces of the
-    'states' and 'cold' rows ({key: trace})."""
+def run_all(table: dict, engine) -> tuple[dict, dict, dict, float]:
+    """Every row's runs ({key: [SeaRun] in run order}, a run that raised left out), run 0's traces of the
+    'states' and 'cold' rows ({key: trace}), what each row's runs cost ({key: [(RunCost, the figures' CPU
+    seconds)]}, rows that take another's runs left out) and the campaign's wall time (s)."""
     keys, jobs = [], []
     for key, scenario in table.items():
         if _source(key, table) != key:
@@ -212,6 +223,7 @@ def run_all(table: dict, engine) -> tuple[dict, dict]:
 
     results: dict = {key: [] for key in table}
     traces: dict = {}
+    costs: dict = {}
 
     def consume(n: int, outcome) -> None:
         key, _ = keys[n]
@@ -219,11 +231,45 @@ def run_all(table: dict, engine) -> tuple[dict, dict]:
             results[key].append(outcome[0])
             if outcome[1] is not None:
                 traces[key] = outcome[1]
+            costs.setdefault(key, []).append((outcome[2], outcome[3]))
 
     engine.map(_job, jobs, progress, describe, consume=consume)
+    wall = time.monotonic() - started
     for key in table:
         results[key] = results[_source(key, table)]
-    return results, traces
+    return results, traces, costs, wall
+
+
+def cost_lines(table: dict, costs: dict[tuple, list[tuple[RunCost, float]]], engine, wall: float) -> list[str]:
+    """What the runs cost, per state and for the A/B together: CPU seconds per run (time.process_time in the
+    worker) of the world, the agents' ticks, the runner's own work and the figures; then the workers' time
+    beyond the runs (the process hand-off)."""
+    if not costs:
+        return []
+    groups: dict[str, list[tuple[RunCost, float]]] = {}
+    simulated: dict[str, float] = {}
+    for key, spent in costs.items():
+        label = "A/B, every state and measure" if key[0] == "ab" else f"{key[0]}: {key[1]}"
+        groups.setdefault(label, []).extend(spent)
+        simulated[label] = table[key].duration
+    rows = []
+    for label, spent in groups.items():
+        runs = len(spent)
+        whole = sum(c.whole for c, _ in spent) / runs
+        metrics = sum(m for _, m in spent) / runs
+        rows.append([label, runs, f"{simulated[label]:g}", f"{whole + metrics:.2f}",
+                     f"{sum(c.world for c, _ in spent) / runs:.2f}", f"{sum(c.agents for c, _ in spent) / runs:.2f}",
+                     f"{sum(c.rest for c, _ in spent) / runs:.2f}", f"{metrics:.2f}"])
+    everything = [pair for spent in groups.values() for pair in spent]
+    cpu = sum(c.whole + m for c, m in everything)
+    return ["CPU seconds per run (time.process_time, in the worker that ran it; a mean over the row's runs): "
+            "the world (World.step: the hull, the sea and the next tick's readings), the agents' ticks (the "
+            "core `step` of every vessel), the runner's own work (shares handed round, the trace's records) "
+            "and the figures of the run (lab/experiments/sea_figures.py).", "",
+            markdown_table(["row", "runs", "simulated s per run", "CPU per run (s)", "world (s)",
+                            "agents' ticks (s)", "runner (s)", "figures (s)"], rows), "",
+            f"- In all, {len(everything)} runs took {cpu:.1f} s of CPU ({cpu / len(everything):.2f} s a run).",
+            *hand_off_lines(engine, wall, cpu, len(everything))]
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -234,14 +280,15 @@ def run(args: argparse.Namespace) -> int:
     table = rows(args)
     started = time.monotonic()
     with engine_from(args) as engine:
-        results, traces = run_all(table, engine)
+        results, traces, costs, wall = run_all(table, engine)
         where = engine.where()
+        spent = cost_lines(table, costs, engine, wall)
     elapsed = time.monotonic() - started
     summaries = {key: summarise(runs, command_limits(table[key])) for key, runs in results.items() if runs}
     figures_dir = args.out.parent / args.out.stem
     figures = _figures(table, traces, figures_dir)
     runs = sum(len(results[key]) for key in table if key == _source(key, table))
-    page = render(args, table, summaries, figures, elapsed, runs, where, campaign_notes(engine))
+    page = render(args, table, summaries, figures, elapsed, runs, where, spent + campaign_notes(engine))
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(page, encoding="utf-8")
     print(page)
@@ -418,8 +465,8 @@ def render(args: argparse.Namespace, table: dict, summaries: dict, figures: list
     for caption, path in figures:
         lines += [f"{caption}:", "", f"![{Path(path).stem}]({path})", ""]
     lines += ["## What it cost", "",
-              f"{runs} runs in {elapsed:.0f} s of wall time on {where} (os.cpu_count() = {os.cpu_count()}), "
-              "in process (lab/harness/runner.py).", *notes, ""]
+              f"{runs} runs in {elapsed:.0f} s of wall time on {where} (os.cpu_count() = {os.cpu_count()}; "
+              f"CPU: {cpu_model()}), in process (lab/harness/runner.py).", "", *notes, ""]
     return "\n".join(lines)
 
 

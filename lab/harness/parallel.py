@@ -280,6 +280,24 @@ def campaign_notes(engine: Engine) -> list[str]:
     return notes
 
 
+def hand_off_lines(engine: Engine, wall: float, cpu: float, runs: int) -> list[str]:
+    """What the campaign's processes spent beyond its runs' CPU (`cpu`, s, as the workers measured it): the
+    pool's workers had `wall` x workers seconds. Nothing for a cluster, whose workers are elsewhere and their
+    time not ours to count."""
+    if engine.cluster is not None or runs < 1 or wall <= 0.0:
+        return []
+    if engine.workers == 1 or runs == 1:
+        return [f"- The runs took {cpu:.1f} s of CPU in {wall:.1f} s of wall time, in this process "
+                f"({cpu / wall:.0%}); the rest, {wall - cpu:.1f} s, is the campaign's own work between runs "
+                "and whatever else the machine ran."]
+    had = wall * engine.workers
+    return [f"- The {engine.workers} worker(s) had {had:.1f} s ({wall:.1f} s of wall time each); the runs took "
+            f"{cpu:.1f} s of CPU in them ({cpu / had:.0%}). The rest, {had - cpu:.1f} s "
+            f"({(had - cpu) / runs * 1e3:.0f} ms a run), is the hand-off between the processes (each job and its "
+            "result pickled and sent), the pool's start, the idle tail of the last runs, and whatever else "
+            "the machine ran."]
+
+
 def report_failures(engine: Engine) -> int:
     """Say on stderr which runs raised; the command's exit code (1 if any did)."""
     for failure in engine.failures:
