@@ -12,12 +12,18 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from agent.core.build import InitialEstimates, initial_state
+from agent.core.membership import receive_shares, store_ranges
+from agent.core.params import AgentParams
+from agent.core.records import OdometryReading, Share
+from agent.core.target import range_from_neighbours, target_filter
 from agent.core.target_range import MEDIAN_EFFICIENCY, RangeWitness, range_along_bearing
 from lab.harness import runner
 from sim_bridge.scenario import select_scenario
 
 SCENARIOS = Path(__file__).resolve().parents[1] / "configs" / "scenarios"
 RANGE_VARIANCE = 2.32
+DT = 0.1
 
 
 def witness(target_range: float, direction, pair, count: int = 10, covariance=None, moves=None,
@@ -133,3 +139,49 @@ def test_a_vessel_that_joins_with_the_papers_mckf_localises_its_neighbours(seed)
     trace = runner.run(scenario, np.random.SeedSequence(scenario.seed).spawn(seed + 1)[seed])
     last = trace.e_ij[trace.time >= trace.time[-1] - 20.0]
     assert np.nanmax(last) < 1.0, np.nanmax(last)
+
+
+def _restarted_vessel_two(neighbours: dict, ticks: int = 50):
+    """Vessel 2 at (15, 0) from a target at the origin, still, its target filter restarted (range unobserved).
+    Each neighbour (id -> (position, v^_o it shares, that velocity's covariance)) shares an exact target
+    position with 0.01 m^2 per axis and is ranged exactly every tick."""
+    params = AgentParams()
+    here = np.array([15.0, 0.0])
+    state = initial_state("2", params, InitialEstimates())
+    for k in range(ticks):
+        now = k * DT
+        state.own.put(now, (0.0, 0.0))
+        shares = {}
+        for j, (p, velocity, covariance) in neighbours.items():
+            shared_covariance = np.zeros((4, 4))
+            shared_covariance[:2, :2] = 0.01 * np.eye(2)
+            shared_covariance[2:, 2:] = covariance
+            shares[j] = Share(j, OdometryReading(now, np.asarray(p) + 100.0, 0.0), np.zeros(2), 0.0,
+                              target=np.array([*p, *velocity]), target_covariance=shared_covariance)
+        receive_shares(params, state, shares, now)
+        store_ranges(params, state, {j: float(np.hypot(*(here - p))) for j, (p, _, _) in neighbours.items()}, now)
+    return params, state, (ticks - 1) * DT
+
+
+def test_a_range_taken_from_the_neighbours_takes_their_target_velocity_too():
+    """The restarted filter sits at 10 m for 15 with a velocity 2 m/s off and sure of it (as the bearings at a
+    wrong range leave it: dropout_join seed 1, 2.6 m/s off across the line of sight at 0.006 (m/s)^2). Taking
+    the range, it takes v_io = v_i - v_o with v_o the neighbours' shared v^_o fused with equal weights, and P_vv
+    theirs; by hand, per axis (the covariances are diagonal): information (1/0.2 + 1/0.05) / 2 = 12.5 on both,
+    so P_vv = 0.08 I and v_o = 0.08 (5 * 0.5 + 20 * 0.3) / 2 = 0.34 along x, 0.08 (20 * 0.1 - 5 * 0.1) / 2 =
+    0.06 along y; v_i = (0.3, -0.4). Before, the filter kept its own v and P_vv, and its range drifted 5.5 m
+    in 4 s (docs/equations.md D20)."""
+    neighbours = {"1": ((0.0, 5.0), (0.5, 0.1), np.diag([0.2, 0.05])),
+                  "3": ((-5.0, 0.0), (0.3, -0.1), np.diag([0.05, 0.2]))}
+    params, state, now = _restarted_vessel_two(neighbours)
+    wrong = np.diag([4.0, 4.0, 0.005, 0.005])
+    wrong[0, 2] = wrong[2, 0] = 0.1
+    state.tracker = target_filter(params.target, np.array([10.0, 0.0, -1.7, 1.0]), wrong, DT, range_unobserved=True)
+    state.motion.velocity = np.array([0.3, -0.4])
+    assert range_from_neighbours(params, state, np.array([1.0, 0.0]), now)
+    x, P = state.tracker.state, state.tracker.covariance
+    np.testing.assert_allclose(x[:2], [15.0, 0.0], atol=1e-6)
+    np.testing.assert_allclose(x[2:], [0.3 - 0.34, -0.4 - 0.06], atol=1e-12)
+    np.testing.assert_allclose(P[2:, 2:], 0.08 * np.eye(2), atol=1e-12)
+    np.testing.assert_array_equal(P[:2, 2:], np.zeros((2, 2)))
+    assert state.health.target_ranges_fixed == 1
