@@ -215,6 +215,28 @@ def test_an_estimate_behind_the_bearing_starts_the_target_filter_again():
     np.testing.assert_allclose(x[:2], bearing * params.target.initial_range_guess)
 
 
+def test_a_target_filter_started_while_the_vessel_moves_takes_the_target_as_still():
+    # x_io is the vessel relative to the target, so a still target gives v_io = v_i - 0 = v_i: the sign the
+    # simulation's initial estimates use (sim_bridge/scenario.py). The update cannot move v here: P's
+    # position-velocity blocks start at zero, so the gain's velocity rows are zero.
+    from agent.core.build import InitialEstimates, initial_state
+    from agent.core.params import AgentParams
+    from agent.core.target import track_target
+
+    params = AgentParams()
+    state = initial_state("0", params, InitialEstimates())
+    state.motion.velocity = np.array([1.2, -0.4])
+    bearing = np.array([0.6, -0.8])
+    x, _, _ = track_target(params, state, bearing, None)
+    np.testing.assert_array_equal(x[2:], [1.2, -0.4])
+    # and restarted behind the bearing while moving, likewise
+    params, state = _tracked_state([-4.0, -3.0])
+    state.motion.velocity = np.array([-0.5, 2.0])
+    x, _, _ = track_target(params, state, np.array([0.8, 0.6]), None)
+    assert state.health.target_restarts == 1
+    np.testing.assert_array_equal(x[2:], [-0.5, 2.0])
+
+
 def test_an_estimate_along_the_bearing_is_not_restarted():
     from agent.core.target import track_target
 

@@ -104,11 +104,12 @@ def track_target(params: AgentParams, state: VesselState, bearing: np.ndarray | 
 
 
 def _start_tracker(params: AgentParams, state: VesselState, bearing: np.ndarray, heading: float) -> None:
-    """A target estimate from one bearing: `initial_range_guess` along it, the target taken as still."""
+    """A target estimate from one bearing: `initial_range_guess` along it, the target taken as still:
+    v_io = v_i - v_o = v_i (x_io is the vessel relative to the target, as the bearing of (9) points)."""
     p = params.target
     guess = bearing / np.linalg.norm(bearing) * p.initial_range_guess
     covariance = np.diag([p.initial_range_guess**2] * 2 + [p.initial_covariance] * 2)
-    state.tracker = target_filter(p, np.concatenate([guess, -state.motion.velocity]), covariance, params.dt,
+    state.tracker = target_filter(p, np.concatenate([guess, state.motion.velocity]), covariance, params.dt,
                                   range_unobserved=True, heading=heading)
 
 
