@@ -236,17 +236,12 @@ def _agrees_with_ranges_kept(params: AgentParams, state: VesselState, track: Nei
     ranges: the median of measured minus predicted |p_ij| within four standard deviations of a median of n
     ranges (range_variance / n; some 0.9 m with a full history). The prior's own covariance is left out: it
     is what is in doubt. None while fewer than `least` ranges can be paired with both odometries."""
-    mine_then, theirs_then, why = track.positions_at(state.own, stamp_key(prior.stamp))
-    if why:
+    carried = track.ranges_with_motion(state.own, stamp_key(prior.stamp))
+    if carried is None:
         return None
     position = np.asarray(prior.position, dtype=float)
-    misses = []
-    for key, measured in track.ranges.items():
-        mine, theirs, why = track.positions_at(state.own, key)
-        if not why:
-            # (the histories keep (x, y) floats; as arrays here, where these sums run once per prior tried)
-            carried = position + np.subtract(mine, mine_then) - np.subtract(theirs, theirs_then)
-            misses.append(measured - float(np.hypot(*carried)))
+    # (as arrays here, where these sums run once per prior tried)
+    misses = [measured - float(np.hypot(*(position + mine - theirs))) for measured, mine, theirs in carried[1]]
     if len(misses) < least or not misses:
         return None
     return float(median(misses)) ** 2 <= 16.0 * params.relative.range_variance / len(misses)

@@ -233,6 +233,21 @@ class NeighbourTrack:
             return None, None, "later" if "later" in reasons else ("gap" if "gap" in reasons else "before")
         return mine, theirs, ""
 
+    def ranges_with_motion(self, own: History, key: int) -> tuple[tuple[float, float], list] | None:
+        """i's odometry at stamp key `key`, and each range kept whose time both odometries cover, as (range,
+        i's motion, j's motion) since `key`, each motion (dx, dy) in floats: what carries a p_ij of that time to
+        each range's (p_ij(t_k) = p_ij(t) + i's motion - j's motion). None when `key` itself is not covered."""
+        mine_then, theirs_then, why = self.positions_at(own, key)
+        if why:
+            return None
+        (ax, ay), (bx, by) = mine_then, theirs_then
+        kept = []
+        for k, measured in self.ranges.items():
+            mine, theirs, why = self.positions_at(own, k)
+            if not why:
+                kept.append((measured, (mine[0] - ax, mine[1] - ay), (theirs[0] - bx, theirs[1] - by)))
+        return mine_then, kept
+
     def start(self, prior: NeighbourPrior, own: History, own_arms: History | None = None) -> str:
         """Start the filter from `prior`, the initial estimate of (10), at its stamp: "started", "wait" (the
         odometry of that time has not all arrived), or "stale" (the prior's time is outside the odometry

@@ -157,26 +157,19 @@ def range_from_neighbours(params: AgentParams, state: VesselState, bearing: np.n
         covariance = shared_covariance[:2, :2]
         if np.trace(covariance) > sure:
             continue
-        key = stamp_key(share.odometry.stamp)
-        mine_then, theirs_then, why = track.positions_at(state.own, key)
-        if why:
+        carried = track.ranges_with_motion(state.own, stamp_key(share.odometry.stamp))
+        if carried is None or len(carried[1]) < WITNESS_RANGES:
             continue
-        distances, moves = [], []
-        for k, measured in track.ranges.items():
-            mine, theirs, why = track.positions_at(state.own, k)
-            if not why:
-                distances.append(measured)
-                moves.append((mine[0] - mine_then[0] - (theirs[0] - theirs_then[0]),
-                              mine[1] - mine_then[1] - (theirs[1] - theirs_then[1])))
-        if len(distances) < WITNESS_RANGES:
-            continue
+        mine_then, kept = carried
+        distances = [measured for measured, _, _ in kept]
+        moves = [(mx - tx, my - ty) for _, (mx, my), (tx, ty) in kept]
         # p_io at the share's time is p_io now less our motion since (the target taken as still over the
         # share's age, as a target route takes it, membership._route).
         shift = (own_now[0] - mine_then[0], own_now[1] - mine_then[1])
-        target = np.asarray(share.target, dtype=float)[:2] + shift
-        witnesses.append(RangeWitness(target, covariance, np.array(distances), np.array(moves),
+        shared_target = np.asarray(share.target, dtype=float)
+        witnesses.append(RangeWitness(shared_target[:2] + shift, covariance, np.array(distances), np.array(moves),
                                       params.relative.range_variance))
-        velocities.append((np.asarray(share.target, dtype=float)[2:], shared_covariance[2:, 2:]))
+        velocities.append((shared_target[2:], shared_covariance[2:, 2:]))
     direction = np.asarray(bearing, dtype=float) / norm
     fit = range_along_bearing(direction, witnesses, params.target.min_range)
     if fit is None or fit[2] > FIX_VARIANCE * sure:
