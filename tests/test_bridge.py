@@ -137,3 +137,73 @@ def test_watchdog_stops_a_vessel_whose_agent_is_silent():
     assert bridge.watchdog_stops >= 11           # vessel 2 stopped at every tick
     assert bridge.startup_missing == {"2"}        # and the bridge says which agent never came
     np.testing.assert_array_equal(bridge.world.truth().positions["2"], start)
+
+
+class TimedSession:
+    """A stand-in Zenoh session whose publishers note (key, monotonic time) of each put."""
+
+    def __init__(self) -> None:
+        self.puts: list[tuple[str, float]] = []
+
+    def declare_publisher(self, key_expr: str, **_):
+        return SimpleNamespace(put=lambda payload: self.puts.append((key_expr, time.monotonic())))
+
+
+def four_vessel_scenario(duration: float) -> Scenario:
+    return Scenario.model_validate({
+        "name": "four", "duration": duration, "seed": 3,
+        "world": {"vessels": [{"id": str(v), "position": [3.0 * v, 1.0]} for v in range(1, 5)],
+                  "target": {"kind": "constant_velocity", "position": [0.0, 0.0], "velocity": [0.0, 0.0]}},
+    })
+
+
+def timed_ticks(stagger: float, ticks: int = 3) -> tuple[SimBridge, list[tuple[str, float]], float]:
+    """The real-time bridge's first `ticks` ticks on a TimedSession (no agents: their readiness is not waited
+    for); (bridge, the puts, the monotonic time of tick 0)."""
+    bridge = SimBridge(four_vessel_scenario(duration=ticks * 0.1), BridgeSettings(mode="realtime",
+                                                                                      stagger=stagger))
+    bridge._wait_for_agents = lambda vessels: None
+    session = TimedSession()
+    start, _ = bridge._run_ticks(session, ticks)
+    return bridge, session.puts, start
+
+
+def test_in_real_time_each_vessels_sensors_come_in_its_own_slot_after_the_clock():
+    """12 agents woken by one clock queued for 2 cores (sensor-to-command p99 42 ms): the bridge spreads the
+    vessels' sensors over `stagger` of dt, the clock first, and times each vessel's latency from its own."""
+    bridge, puts, start = timed_ticks(stagger=0.5)
+    dt, vessels = 0.1, ["1", "2", "3", "4"]
+    ticks = [[]]
+    for put in puts:
+        if put[0] == "sim/truth":
+            ticks.append([])
+        else:
+            ticks[-1].append(put)
+    assert bridge.ticks == 3 and len(ticks) == 4 and ticks[-1] == []
+    for k, tick in enumerate(ticks[:3]):
+        assert tick[0][0] == "sim/clock"
+        sensors = tick[1:]
+        assert [name for name, _ in sensors] == [f"usv/{v}/sensor/{topic}" for v in vessels
+                                                 for topic in ("odom", "uwb", "bearing", "sonar")]
+        for m, vessel in enumerate(vessels):
+            first = sensors[4 * m][1]
+            # not before its slot, (m + 1/2) x 0.5 dt / 4 into the tick, nor (on a machine not stalled) after
+            # half of dt
+            assert start + k * dt + (m + 0.5) * dt * 0.5 / 4 <= first < start + k * dt + 0.5 * dt
+    # The latency runs from the vessel's own sensors: the last slot's command 1 ms after them takes 1 ms.
+    last = bridge._sent["4"]
+    bridge._sent["4"] = time.monotonic() - 0.001
+    bridge._on_command(command("4", stamp_ns=bridge._tick_stamp))
+    assert 0.001 <= bridge._latency["4"] < 0.001 + (time.monotonic() - last)
+
+
+def test_with_no_stagger_every_vessels_sensors_go_at_once_before_the_clock():
+    _, puts, _ = timed_ticks(stagger=0.0, ticks=1)
+    names = [name for name, _ in puts]
+    assert names.index("sim/clock") == 16 and all(name.startswith("usv/") for name in names[:16])
+    assert puts[15][1] - puts[0][1] < 0.02
+
+
+def test_a_stagger_beyond_half_of_dt_is_refused():
+    with pytest.raises(ValueError, match="stagger"):
+        BridgeSettings(stagger=0.6)

@@ -14,6 +14,7 @@ from __future__ import annotations
 import json
 import math
 import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -115,6 +116,78 @@ def test_in_real_time_the_gate_takes_each_senders_newest_share_whether_late_or_o
     assert round(g.snapshot(now + 0.1).shares["2"].odometry.stamp, 6) == 0.3
     assert +g.rejected == {}   # nothing refused (the counters an operator watches are present at 0)
     assert list(g._held) == [("2", 4 * TICK_NS)]     # only what is newer than the tick is still held
+
+
+def own_sensors(stamp_ns: int, vessel: str = "1") -> list[tuple[str, bytes]]:
+    return [(key(vessel, "sensor/odom"), encode(Odometry(stamp_ns=stamp_ns, seq=0, sender=vessel,
+                                                         position=(1.0, 2.0), heading=0.0))),
+            (key(vessel, "sensor/uwb"), encode(Ranges(stamp_ns=stamp_ns, seq=0, sender=vessel, ranges={"2": 7.0}))),
+            (key(vessel, "sensor/bearing"), encode(Bearing(stamp_ns=stamp_ns, seq=0, sender=vessel, bearing=None))),
+            (key(vessel, "sensor/sonar"), encode(Sonar(stamp_ns=stamp_ns, seq=0, sender=vessel, points=[])))]
+
+
+def test_in_real_time_an_agent_whose_sensors_come_late_in_the_tick_waits_for_them():
+    """The real-time bridge sends the clock first and a vessel's sensors in its slot, up to half of dt later
+    (its `stagger`): the tick waits for them (without a core: on the gate's condition), not taking the tick
+    before's."""
+    g = InputGate("1", known_peers=lambda: {"2"}, hold_shares=True)
+    for key_expr, payload in own_sensors(TICK_NS):
+        assert g.offer(key_expr, payload, 0.1)
+    clock = Clock(stamp_ns=2 * TICK_NS, seq=2, previous_ns=TICK_NS, vessels=["1", "2"], senders=[], lockstep=False)
+
+    def later() -> None:
+        for key_expr, payload in own_sensors(2 * TICK_NS):
+            assert g.offer(key_expr, payload, 0.245)
+    sender = threading.Timer(0.045, later)    # 45 ms: the last slot of a 12-vessel fleet, 0.5 dt x 11 / 12
+    sender.start()
+    g.deliver_for(clock, share_wait=2.0, dt=0.1)
+    sender.join()
+    snapshot = g.snapshot(0.2)
+    assert snapshot.odometry.stamp == 0.2 and snapshot.ranges == {"2": 7.0}
+    assert g.rejected["sensors_missing"] == 0
+    # Sensors that never come: the tick goes on with what it has within three quarters of dt, and counts it.
+    waited = time.monotonic()
+    g.deliver_for(Clock(stamp_ns=3 * TICK_NS, seq=3, previous_ns=2 * TICK_NS, vessels=["1", "2"], senders=[],
+                        lockstep=False), share_wait=2.0, dt=0.1)
+    assert 0.075 <= time.monotonic() - waited < 1.0 and g.rejected["sensors_missing"] == 1
+
+
+def test_a_waiting_tick_is_woken_once_what_it_waits_for_is_all_in_not_by_every_message():
+    """On a boat's single core each wake-up of the tick thread took the core from the Zenoh thread delivering
+    the next sensor message."""
+    g = InputGate("1", known_peers=lambda: {"2"}, hold_shares=True)
+    notified = []
+    notify = g._arrival.notify_all
+    g._arrival.notify_all = lambda: (notified.append(len(g._latest)), notify())
+    clock = Clock(stamp_ns=TICK_NS, seq=1, previous_ns=0, vessels=["1", "2"], senders=[], lockstep=False)
+    waiting = threading.Thread(target=g.deliver_for, args=(clock, 2.0, 0.1))
+    waiting.start()
+    assert wait_until(lambda: g._ready is not None, timeout=2.0)
+    sensors = own_sensors(TICK_NS)
+    for key_expr, payload in sensors[:3]:
+        assert g.offer(key_expr, payload, 0.1)
+    assert notified == [] and waiting.is_alive()
+    assert g.offer(*sensors[3], 0.1)
+    waiting.join(timeout=2.0)
+    assert not waiting.is_alive() and notified == [4]
+    assert g.rejected["sensors_missing"] == 0 and g._ready is None
+
+
+def test_an_agents_reaction_is_timed_from_its_own_sensors_when_they_come_after_the_clock():
+    """A real-time agent woken by the clock waits 45 ms for its sensors (its vessel's slot): the tick uses them,
+    and its reaction, what runtime-bench sets beside the latency, starts at their arrival, not the clock's."""
+    node = AgentNode("1", NodeSettings(clock="sim"))
+    outbox: list = []
+    publishers = {topic: Publisher(key("1", topic), outbox) for topic in ("cmd", "share", "status")}
+    node._on_clock(sample("sim/clock", encode(Clock(stamp_ns=0, seq=0, vessels=["1"], lockstep=False))))
+    timer = threading.Timer(0.045, lambda: [node._on_sensor(sample(k, p)) for k, p in own_sensors(0)])
+    timer.start()
+    node._tick(publishers, node.ticker.clock.latest)
+    timer.join()
+    assert node.gate.rejected["sensors_missing"] == 0 and node.state.own.get(0) == (1.0, 2.0)   # its odometry
+    reaction = node.ticker.reaction.summary()
+    assert reaction["ticks"] == 1 and reaction["max"] < 40.0
+    assert any(k.endswith("/cmd") for k, _ in outbox)
 
 
 def test_in_real_time_a_senders_first_share_is_its_oldest_so_that_a_deployment_estimate_can_start():

@@ -73,6 +73,10 @@ class AgentNode:
     def _on_input(self, sample) -> None:
         self.gate.offer(str(sample.key_expr), sample.payload.to_bytes(), self.ticker.input_time())
 
+    def _on_sensor(self, sample) -> None:
+        self.ticker.sensed = time.monotonic()
+        self._on_input(sample)
+
     def _on_mission(self, sample) -> None:
         try:
             self.orders.offer(str(sample.key_expr), sample.payload.to_bytes(), self.ticker.input_time(),
@@ -108,7 +112,7 @@ class AgentNode:
                 self.recorder.open()
             # One subscriber for all four sensors: each subscriber is a thread of zenoh-python's, and a message
             # handed across threads costs more CPU than decoding it (docs/results/runtime_benchmark.md).
-            subscribers = [session.declare_subscriber(f"{FLEET_PREFIX}/{self.id}/sensor/*", self._on_input),
+            subscribers = [session.declare_subscriber(f"{FLEET_PREFIX}/{self.id}/sensor/*", self._on_sensor),
                            session.declare_subscriber(shares_for(self.id), self._on_input),
                            # Format 1 senders (older agents; nothing comes here in a fleet of format 2).
                            session.declare_subscriber(every("share"), self._on_input),
@@ -160,10 +164,11 @@ class AgentNode:
         try:
             if clock is not None:
                 self.gate.deliver_for(clock, self.settings.share_wait, self.settings.agent.dt)
+                if not clock.lockstep:
+                    self.ticker.sensors_in()
             inputs = self.peers.vet(self.gate.snapshot(now))   # a vessel id come back proves itself first
             core_started = time.thread_time()
             self.state, output = step(self.params, self.state, inputs)
-            self.peers.learn(inputs, output.record)
             self.core_seconds += time.thread_time() - core_started
             check_command(output.command, self.params.control)
             self.failures.succeeded()
@@ -177,6 +182,11 @@ class AgentNode:
         driver_stamp = stamp if clock is not None else nanoseconds(now + self.gate.offsets.applied)
         command, wire = self.outbox.command(publishers, driver_stamp, output.command)
         self.ticker.answered(tick_cpu)
+        if output.record is not None:
+            try:   # what the next ticks vet a returning id by: after the command, which does not wait for it
+                self.peers.learn(inputs, output.record)
+            except Exception as error:  # noqa: BLE001
+                self._failed(error, inputs, stamp)
         self.outbox.share(publishers, output.share, self._live_view)
         status, status_wire = self._status(publishers, stamp, (command.surge, command.yaw_rate), output.record)
         self.recorder.tick(stamp, inputs if inputs is not None else TickInputs(time=now, odometry=None), output,

@@ -7,8 +7,9 @@
   thread wakes), and the tick thread starts a new mission (`restart_pending`).
 - Wall clock (`clock: wall`): the system clock held continuous across a step (`WallTimeline`); a tick every
   `dt` on the monotonic clock, an overrun counted and no backlog caught up.
-`triggered` is the monotonic time the tick to come was triggered (the clock's arrival or the timer's), from
-which the agent's reaction times are measured (`answered`: to the command's put, reaction.py).
+`triggered` is the monotonic time the tick to come was triggered (the clock's arrival or the timer's; in real
+time on sim time the arrival of its own sensors when they come after the clock, `sensors_in`), from which the
+agent's reaction times are measured (`answered`: to the command's put, reaction.py).
 """
 
 from __future__ import annotations
@@ -42,6 +43,7 @@ class Ticker:
         self.alarms = ClockAlarms(say)   # the clocks that disagree with ours, for the status
         self.overruns = 0
         self.triggered: float | None = None
+        self.sensed: float | None = None   # monotonic time the latest own sensor message arrived
         # From a tick's trigger to its command's put: wall time, and the tick thread's CPU.
         self.reaction, self.reaction_cpu = ReactionTimes(), ReactionTimes()
         self.restart_pending = False
@@ -85,6 +87,12 @@ class Ticker:
             self.clocked.set()
         except Exception as error:  # noqa: BLE001  (a callback must never raise into Zenoh)
             self.gate.count("internal", f"sim/clock: {type(error).__name__}: {error}")
+
+    def sensors_in(self) -> None:
+        """Real time on sim time: the bridge sends the clock first and this vessel's sensors in its slot after
+        it (sim_bridge/bridge.py `stagger`); the tick, which waited for them, was triggered by the last."""
+        if self.sensed is not None and self.triggered is not None and self.sensed > self.triggered:
+            self.triggered = self.sensed
 
     def answered(self, tick_cpu: float) -> None:
         """The tick's command went out; the tick thread's CPU time at its start was `tick_cpu`."""
