@@ -275,8 +275,8 @@ class AgentSummary(StrictModel):
     # Against the same step timed alone: what sharing the machine costs it.
     core_cpu_seconds: float | None = Field(
         None, description="CPU time of the tick thread inside the core's step over the same span (s)")
-    # The trigger is the sim clock's arrival or the timer; on lockstep sim time this includes the wait for
-    # the neighbours' shares.
+    # The trigger is the sim clock's arrival (in real time its own sensors', when they come after it) or the
+    # timer; on lockstep sim time this includes the wait for the neighbours' shares.
     reaction_ms: ReactionSummary | None = Field(
         None, description="from each tick's trigger to its command's put (ms)")
     # The reaction without the waits for a core: what a computer of the agent's own would take.

@@ -332,16 +332,19 @@ def run(args: argparse.Namespace) -> int:
         "next by 15-30 % here). What each change to the runtime bought, measured by alternating runs before and "
         "after it: [runtime_changes.md](runtime_changes.md) (`usv-lab runtime-ab`).", "",
         "## Sensor-to-command latency (real-time mode)", "",
-        "From the sim bridge publishing a tick's sensors to it receiving each agent's command: two Zenoh hops "
+        "From the sim bridge publishing a vessel's sensors of the tick to it receiving that vessel's command (the "
+        "bridge sends the clock first, then each vessel's sensors in a slot of its own over half of dt, `stagger`: "
+        "a laptop's agents do not all wake at one instant): two Zenoh hops "
         "plus the agent's decoding, its tick and the command's encoding. The baseline is bare Zenoh between two "
         "processes (same session settings, 300-byte payloads), measured just before each fleet run; the ratio is "
         "the p50 latency over the baseline's p50 round trip. The agents' own reaction time is the wall time from "
-        "the clock's arrival in an agent to its command's put (the median of the agents' medians, the largest "
+        "the arrival of the last of its inputs (the clock, then its sensors) to its command's put (the median of "
+        "the agents' medians, the largest "
         "of their 99th percentiles): its decoding and its tick, and, here, its waits for one of the cores the "
         "bridge and every agent share. The tick thread's CPU over the same stretch (median of the agents' "
         "medians) is that reaction without the waits, what a computer of the agent's own would take. The rest "
-        "of the latency is the bridge's publishing of the tick, the two hops and the wait before the clock's "
-        "callback runs in each agent.", "",
+        "of the latency is the bridge's puts of the vessel's sensors, the two hops and the wait before each "
+        "sensor's callback runs in the agent.", "",
         markdown_table(["vessels", "p50 (ms)", "p99 (ms)", "bare round trip p50 (ms)", "bare round trip p99 (ms)",
                         "bare one-way p50 (ms)", "p50 / bare round trip", "agents' own reaction p50 (ms)",
                         "agents' own reaction p99 (ms)", "tick thread's CPU to the command p50 (ms)",
