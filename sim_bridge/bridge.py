@@ -93,8 +93,8 @@ class BridgeSettings(StrictModel):
         None, description="sea mode: each vessel's and the target's GGA into a pty a usv-driver reads")
     # The clock first, then each vessel's sensors in a slot of its own over this fraction of dt; 0: every vessel's
     # at once, before the clock. Boats sample on clocks of their own, and a laptop's agents woken at one instant
-    # queue for its cores (12 agents on 2 cores: sensor-to-command p99 42 ms at once, 14 ms spread over half of
-    # dt; docs/results/runtime_benchmark.md).
+    # queue for its cores (12 agents on 2 cores: sensor-to-command p99 42-47 ms at once, 10-15 ms spread over
+    # half of dt; docs/results/runtime_benchmark.md).
     stagger: float = Field(0.5, ge=0.0, le=0.5, allow_inf_nan=False,
                            description="real time: the fraction of dt the vessels' sensors are spread over")
 
@@ -432,8 +432,8 @@ class SimBridge:
 
     def _publish_sensors(self, session, stamp: int, first: float | None = None, spacing: float = 0.0) -> None:
         """Every vessel's sensors of the tick stamped `stamp`; with `first`, the m-th vessel's not before
-        `first` + m `spacing` (monotonic s). A vessel's messages are built first: its latency is timed from their puts, as
-        a boat's from its driver's, not from the simulator's work of sensing and encoding."""
+        `first` + m `spacing` (monotonic s). A vessel's messages are built first: its latency is timed from their
+        puts, as a boat's from its driver's, not from the simulator's work of sensing and encoding."""
         for m, (vessel, reading) in enumerate(self.world.sense().items()):
             odometry = reading.odometry
             bearing = None if reading.bearing is None else tuple(float(v) for v in reading.bearing)

@@ -1,6 +1,7 @@
 """How long the agent takes to answer a tick: from the tick's trigger (the sim clock's arrival, in real time its
-own sensors' when they come after it, or the wall-clock timer's) to its command's put. Kept as a histogram, so that a mission of any length costs the same memory;
-its quantiles are read to the bin's width. The agent logs them in its summary (`AgentSummary.reaction_ms`).
+own sensors' when they come after it, or the wall-clock timer's) to its command's put. Kept as a histogram, so
+that a mission of any length costs the same memory; its quantiles are read to the bin's width. The agent logs
+them in its summary (`AgentSummary.reaction_ms`).
 
 It is wall time. On sim time in lockstep it includes the wait for the neighbours' shares of the tick before;
 in real time and at sea it is the agent's work between its inputs and its command (decoding what came with the

@@ -134,7 +134,8 @@ def row(size: int, vessel: str, pinned: list[float], unpinned: list[float] | Non
 def where_row(size: int, pinned: list[float], bare: dict, summary: dict, waits: dict | None, load: float,
               others_nice: int = 0) -> list:
     """Where the pinned agent's median latency goes: its own reaction (its sensors' arrival to its command's
-    put), of which CPU, and the rest (the bridge's puts of the vessel's sensors, the two hops, the bridge's receiving);
+    put), of which CPU, and the rest (the bridge's puts of the vessel's sensors, the two hops, the bridge's
+    receiving);
     what the scheduler says of the agent's CPU (`PinnedFleet.waits`)."""
     p50 = percentiles(pinned)[0]
     reaction, cpu = summary.get("reaction_ms") or {}, summary.get("reaction_cpu_ms") or {}
@@ -176,11 +177,11 @@ def section(rows: list[list], where: list[list], cpus: tuple[int, int] | None, s
                         "bare round trip across the CPUs p50 / p99 (ms)", "p50 / p99 over the bare round trip",
                         f"the other agents (CPU {rest_cpu}) p50 (ms)", "commands timed",
                         "threads on their CPU"], rows), "",
-        ("Where the pinned agent's time goes: its own reaction (from the arrival of its sensors to its command's put, "
-        "from its log's summary, read to 0.05 ms) and its tick thread's CPU over that stretch; the rest of the "
-        "median latency is the bridge's side (putting the vessel's sensors, receiving the command, on the CPU it "
-        "shares with the other agents), the two hops and the agent's callbacks of the first sensors. Then what the kernel's scheduler "
-        "says between 5 s into the run and 2 s before its end (/proc/<pid>/task/*/schedstat, /proc/stat): per "
+        ("Where the pinned agent's time goes: its own reaction (from the arrival of its sensors to its "
+        "command's put, from its log's summary, read to 0.05 ms) and its tick thread's CPU over that stretch; the "
+        "rest of the median latency is the bridge's side (putting the vessel's sensors, receiving the command, on "
+        "the CPU it shares with the other agents), the two hops and the agent's callbacks of the first sensors. "
+        "Then what the kernel's scheduler says between 5 s into the run and 2 s before its end (/proc/<pid>/task/*/schedstat, /proc/stat): per "
         f"tick, the time the pinned agent's threads ran and the time they waited, runnable, for CPU {agent_cpu}; "
         f"the share of CPU {agent_cpu}'s time that went to other processes of the machine and to the hypervisor "
         f"(steal); and the same two times of the bridge, on CPU {rest_cpu}. The load average is the machine's (every process of it) when the pinned run "
