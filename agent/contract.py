@@ -37,6 +37,9 @@ from agent.config import StrictModel
 
 FLEET_PREFIX = "usv"
 CLOCK_KEY = "sim/clock"
+# In real time on sim time the clock comes first and each vessel's sensors of the tick within this fraction of dt
+# after it (the sim bridge's `stagger` is at most this); an agent waits for them a quarter of dt beyond it.
+MAX_SENSOR_STAGGER = 0.5
 TRUTH_KEY = "sim/truth"  # a simulation's ground truth each tick, in real time only: for viewers, no agent reads it
 GNSS_TRUTH_TOPIC = "truth/gnss"  # usv/<id>/truth/gnss: GNSS fixes to score a field trial; no agent reads it
 MISSION_PREFIX = "mission"

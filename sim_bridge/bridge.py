@@ -44,6 +44,7 @@ from agent.config import ConfigError, PositiveFloat, StrictModel, load_yaml
 from agent.contract import (
     CLOCK_KEY,
     LIVELINESS,
+    MAX_SENSOR_STAGGER,
     TRUTH_KEY,
     Bearing,
     Clock,
@@ -95,7 +96,7 @@ class BridgeSettings(StrictModel):
     # at once, before the clock. Boats sample on clocks of their own, and a laptop's agents woken at one instant
     # queue for its cores (12 agents on 2 cores: sensor-to-command p99 42-47 ms at once, 10-15 ms spread over
     # half of dt; docs/results/runtime_benchmark.md).
-    stagger: float = Field(0.5, ge=0.0, le=0.5, allow_inf_nan=False,
+    stagger: float = Field(0.5, ge=0.0, le=MAX_SENSOR_STAGGER, allow_inf_nan=False,
                            description="real time: the fraction of dt the vessels' sensors are spread over")
 
 

@@ -36,6 +36,7 @@ import numpy as np
 from agent.contract import (
     CLOCK_SOURCE_SENSORS,
     MAX_PEERS,
+    MAX_SENSOR_STAGGER,
     MAX_SPEED,
     TOPICS,
     VEHICLE_TOPIC,
@@ -433,11 +434,11 @@ class InputGate:
         """Sim time: take the shares of the tick before that `clock` (the sim's radio) delivers to this vessel,
         once this tick's own sensors are in; in lockstep first wait (up to `share_wait`) for those shares too.
         In real time only the own sensors are worth a wait, bounded by three quarters of `dt`: the bridge
-        publishes them within half of dt after the clock (its `stagger`, sim_bridge/bridge.py), and a vessel whose
-        sensors never come still answers before the world's next step. Each neighbour's newest share that has
+        publishes them within `MAX_SENSOR_STAGGER` (half) of dt after the clock (its `stagger`,
+        sim_bridge/bridge.py), and a vessel whose sensors never come still answers before the world's next step. Each neighbour's newest share that has
         come is taken, late or not, unless the radio lost it: at sea a late share is still the neighbour's latest
         word."""
-        wait = share_wait if clock.lockstep else 0.75 * dt
+        wait = share_wait if clock.lockstep else (MAX_SENSOR_STAGGER + 0.25) * dt
         sensed = clock.vessels is not None and self.id in clock.vessels
         lost = None if clock.lockstep else {sender for sender, to in clock.lost if to == self.id}
         self.deliver_shares(clock.previous_ns, clock.delivered_to(self.id), wait, clock.stamp_ns if sensed else None,
