@@ -16,7 +16,7 @@ from agent.core.checks import finite_floats, finite_matrix, finite_vector, pair_
 from agent.core.control.formation import desired_offset, desired_offsets, formation_velocity
 from agent.core.control.oscillator import coupling_gains, oscillator_step
 from agent.core.control.separation import surge_interval, sweep_max_cos
-from agent.core.cooperation import _gate_distances
+from agent.core.cooperation import stacked_inverses
 from agent.core.fusion import (
     covariance_intersection,
     covariance_intersection_2d,
@@ -87,16 +87,18 @@ def test_inverse_of_a_two_by_two_matches_numpy(seed):
 
 
 @pytest.mark.parametrize("seed", RNG_SEEDS)
-def test_gate_distances_match_one_solve_per_neighbour(seed):
+def test_stacked_inverses_match_one_inverse_per_matrix_and_name_the_singular_ones(seed):
     rng = np.random.default_rng(seed)
     m = int(rng.integers(1, 30))
-    differences, covariances = rng.normal(size=(m, 4)), np.array([_spd(rng, 4) for _ in range(m)])
-    expected = [float(d @ np.linalg.solve(S, d)) for d, S in zip(differences, covariances)]
-    np.testing.assert_allclose(_gate_distances(differences, covariances), expected, rtol=1e-12)
-    covariances[0] = 0.0    # singular: that one is infinitely far, the others as before
-    distances = _gate_distances(differences, covariances)
-    assert distances[0] == math.inf
-    np.testing.assert_allclose(distances[1:], expected[1:], rtol=1e-12)
+    matrices = np.array([_spd(rng, 4) for _ in range(m)])
+    inverses, singular = stacked_inverses(matrices)
+    assert singular == []
+    for matrix, inverse_of in zip(matrices, inverses):
+        np.testing.assert_allclose(inverse_of @ matrix, np.eye(4), atol=1e-9)
+    matrices[0] = 0.0
+    inverses_with, singular = stacked_inverses(matrices)
+    assert singular == [0] and not inverses_with[0].any()
+    np.testing.assert_array_equal(inverses_with[1:], inverses[1:])
 
 
 @pytest.mark.parametrize("seed", RNG_SEEDS)
@@ -385,11 +387,13 @@ def test_history_puts_keep_what_a_sorted_dict_trimmed_to_its_size_keeps(seed):
 
 
 @pytest.mark.parametrize("seed", range(5))
-def test_target_fusion_matches_the_matrices_of_one_neighbour_at_a_time(seed):
+@pytest.mark.parametrize("far", [0, 2])
+def test_target_fusion_matches_the_matrices_of_one_neighbour_at_a_time(seed, far):
     """fuse_targets, which gathers every neighbour's floats into stacks, against the transformations written
     as 4x4 matrices, one neighbour at a time: x_j carried by C = [I, -age I; 0, I] (and j's velocity), moved
-    to us through p^_ij and v_i, covariance SWAP C P C^T SWAP + blkdiag(P_ij, 0), then equal-weight
-    covariance intersection with ours."""
+    to us through p^_ij and v_i, covariance SWAP C P C^T SWAP + blkdiag(P_ij, 0), then the chi-square gate
+    d^T (P_io + P_j)^-1 d <= 13.28 (4 degrees of freedom, 1 %) and equal-weight covariance intersection of
+    ours with those kept. `far` of the four neighbours have target estimates 20 m off: gated out, counted."""
     from types import SimpleNamespace
 
     from agent.core.cooperation import SWAP_VELOCITY, fuse_targets
@@ -401,11 +405,13 @@ def test_target_fusion_matches_the_matrices_of_one_neighbour_at_a_time(seed):
     tracker = SimpleNamespace(state=own_state, covariance=own_cov,
                               assimilate=lambda x, P: assimilated.append((x, P)))
     neighbours, expected = [], [(own_state, own_cov)]
-    for _ in range(4):
+    gated = 0
+    for k in range(4):
         pair_cov = _spd(rng, 2)
         moments = (*rng.normal(size=2), pair_cov[0, 0], 0.5 * (pair_cov[0, 1] + pair_cov[1, 0]), pair_cov[1, 1])
+        offset = np.array([20.0, 0.0, 0.0, 0.0]) if k < far else 0.1 * rng.normal(size=4)
         share = SimpleNamespace(odometry=SimpleNamespace(stamp=now - rng.uniform(0.0, 0.3)),
-                                target=own_state + 0.1 * rng.normal(size=4), target_covariance=_spd(rng, 4),
+                                target=own_state + offset, target_covariance=_spd(rng, 4),
                                 velocity=rng.normal(size=2))
         track = SimpleNamespace(share=share, estimator=object(), moments=lambda m=moments: m)
         x, y = rng.normal(size=2)
@@ -417,11 +423,17 @@ def test_target_fusion_matches_the_matrices_of_one_neighbour_at_a_time(seed):
         _, _, p11, p12, p22 = moments
         cov = SWAP_VELOCITY @ C @ share.target_covariance @ C.T @ SWAP_VELOCITY
         cov[:2, :2] += [[p11, p12], [p12, p22]]
-        expected.append((mean, cov))
+        difference = mean - own_state
+        if difference @ np.linalg.solve(own_cov + cov, difference) > 13.28:
+            gated += 1
+        else:
+            expected.append((mean, cov))
+    assert gated == far     # (what the test means to set up)
     state = SimpleNamespace(tracker=tracker, motion=SimpleNamespace(velocity=velocity),
                             health=SimpleNamespace(target_estimates_gated=0))
-    params = SimpleNamespace(fleet=SimpleNamespace(target_gate=1e9))
+    params = SimpleNamespace(fleet=SimpleNamespace(target_gate=13.28))
     fuse_targets(params, state, neighbours, now)
+    assert state.health.target_estimates_gated == far
     (x_f, P_f), = assimilated
     x_r, P_r = _reference_intersection(expected, [1.0 / len(expected)] * len(expected))
     np.testing.assert_allclose(x_f, x_r, rtol=1e-9, atol=1e-12)
@@ -529,7 +541,8 @@ def test_world_ranges_are_the_per_vessel_norms():
 @pytest.mark.parametrize("seed", RNG_SEEDS)
 def test_oscillator_uses_the_harmonics_coupling_gains_leaves_non_zero(seed):
     """oscillator_step's count of harmonics (floor(n/2), none for a zero gain) is where coupling_gains puts its
-    first zero, and the step is the one computed with that list of gains, bit for bit."""
+    first zero, and the step is the one computed with that list of gains (to the last bits of the sines: the
+    step sums few terms with the C library's sine, many with numpy's)."""
     rng = np.random.default_rng(seed)
     neighbours = rng.uniform(-math.pi, math.pi, int(rng.integers(0, 60))).tolist()
     phase, gain = float(rng.uniform(-math.pi, math.pi)), float(rng.choice([0.0, 0.3, 1.0]))
@@ -544,7 +557,9 @@ def test_oscillator_uses_the_harmonics_coupling_gains_leaves_non_zero(seed):
         terms = np.array(gains[:used]) / (harmonics * n) * np.cumsum(sines, axis=1)[:, -1]
         coupling = 0.0 + float(np.cumsum(terms)[-1])
     from agent.angles import wrap_angle
-    assert oscillator_step(phase, neighbours, 0.1, 0.1, gain) == wrap_angle(phase + 0.1 * 0.1 + 0.1 * coupling)
+    expected = wrap_angle(phase + 0.1 * 0.1 + 0.1 * coupling)
+    got = oscillator_step(phase, neighbours, 0.1, 0.1, gain)
+    assert math.isclose(math.remainder(got - expected, 2 * math.pi), 0.0, abs_tol=1e-13)
 
 
 # ----- issue 32: per-neighbour work skipped or built directly gives the same numbers -----

@@ -58,6 +58,38 @@ def test_instrumental_variable_step_matches_the_scalar_derivation():
     np.testing.assert_allclose(P_post, (np.eye(4) - np.outer(K, h)) @ P, atol=1e-10)
 
 
+def joseph_update(x, P, b, s, min_range, u):
+    """(25) as matrices: H = [G(u) 0], R_z = r^2 s G G^T, K = P H^T pinv(H P H^T + R_z), the Joseph form."""
+    n = len(x)
+    G = np.eye(2) - np.outer(u, u)
+    H = np.hstack([G, np.zeros((2, n - 2))])
+    r = max(np.linalg.norm(x[:2]), min_range)
+    Rz = r * r * s * G @ G.T
+    K = P @ H.T @ np.linalg.pinv(H @ P @ H.T + Rz)
+    I_KH = np.eye(n) - K @ H
+    return x - K @ ((np.eye(2) - np.outer(b, b)) @ x[:2]), I_KH @ P @ I_KH.T + K @ Rz @ K.T
+
+
+@pytest.mark.parametrize("gain_bearing", ["measured", "predicted"])
+@pytest.mark.parametrize("n", [4, 6])
+def test_update_matches_the_joseph_form_with_a_pseudo_inverse(gain_bearing, n):
+    """Random states of 4 and 6 elements (the leeway filter's): the rank-one closed form against the matrices
+    of (25) with numpy's pseudo-inverse."""
+    rng = np.random.default_rng(20 + n)
+    for _ in range(20):
+        L = rng.normal(size=(n, n))
+        P = L @ L.T + 0.1 * np.eye(n)
+        x = rng.normal(scale=5.0, size=n)
+        angle = math.atan2(x[1], x[0]) + rng.normal(scale=0.2)
+        b = np.array([math.cos(angle), math.sin(angle)])
+        u = b if gain_bearing == "measured" else x[:2] / np.linalg.norm(x[:2])
+        x_post, P_post, _, _ = plkf_update(x, P, b, 1e-3, 0.1, gain_bearing)
+        x_ref, P_ref = joseph_update(x, P, b, 1e-3, 0.1, u)
+        np.testing.assert_allclose(x_post, x_ref, rtol=1e-9, atol=1e-9)
+        np.testing.assert_allclose(P_post, P_ref, rtol=1e-9, atol=1e-9)
+        assert np.array_equal(P_post, P_post.T)
+
+
 def range_after_circling(gain_bearing: str, seed: int, seconds: float = 60.0, radius: float = 5.0):
     """A vessel circling a 0.5 m/s target with Table I bearing noise; returns (estimated, true) range."""
     rng = np.random.default_rng(seed)
@@ -84,12 +116,37 @@ def test_printed_gain_is_biased_towards_the_target_and_the_instrumental_variable
 
 def test_prediction_step_hand_value():
     x = np.array([1.0, 2.0, 3.0, 4.0])
-    x_prior, P_prior = plkf_predict(x, np.eye(4), transition(0.5), 0.01 * np.eye(4), np.array([1.0, -1.0]))
+    x_prior, P_prior = plkf_predict(x, np.eye(4), 0.5, 0.01, np.array([1.0, -1.0]))
     # The velocity change acts over the whole interval: v = (4, 3), p = (1, 2) + 0.5 (4, 3).
     np.testing.assert_allclose(x_prior, [3.0, 3.5, 4.0, 3.0])
     # A I A^T: position variance 1 + dt^2 = 1.25, cross term dt = 0.5, plus Q.
     np.testing.assert_allclose(P_prior[0], [1.26, 0.0, 0.5, 0.0])
     np.testing.assert_allclose(P_prior[2], [0.5, 0.0, 1.01, 0.0])
+
+
+def test_prediction_step_is_the_matrix_product_of_24():
+    """The written-out blocks against A P A^T + Q_o with A of (4) as a matrix, for random covariances."""
+    rng = np.random.default_rng(11)
+    for _ in range(20):
+        L = rng.normal(size=(4, 4))
+        P = L @ L.T
+        x, dv, dt = rng.normal(size=4), rng.normal(size=2), rng.uniform(0.01, 1.0)
+        A = transition(dt)
+        x_prior, P_prior = plkf_predict(x, P, dt, 0.02, dv)
+        np.testing.assert_allclose(x_prior, A @ (x + np.concatenate([[0.0, 0.0], dv])), rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(P_prior, A @ P @ A.T + 0.02 * np.eye(4), rtol=1e-12, atol=1e-12)
+        assert np.array_equal(P_prior, P_prior.T)
+
+
+def test_an_update_that_overflows_is_refused_and_leaves_the_estimate_alone():
+    """A state so far out (1e200 m) that r^2 R_b overflows: the update's numbers are not finite, so the bearing
+    is refused and counted, and the estimate stays as it was."""
+    tracker = PLKF(TargetEstimationParams(), np.array([1e200, -1e200, 0.0, 0.0]), dt=DT)
+    before = tracker.state, tracker.covariance
+    outcome = tracker.update(np.array([0.6, 0.8]))
+    assert not outcome.accepted and outcome.reason == "update produced a non-finite state"
+    assert tracker.rejected == 1 and tracker.updates == 0
+    assert np.array_equal(tracker.state, before[0]) and np.array_equal(tracker.covariance, before[1])
 
 
 def circling_scenario(seconds: float, target_velocity=(0.5, 0.0), radius=8.0, omega=math.pi / 30):

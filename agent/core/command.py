@@ -24,6 +24,9 @@ from agent.core.control.formation import (
 from agent.core.params import ControlParams
 from agent.core.records import Command
 
+# Up to this many neighbours their desired offsets (27) are computed one by one in floats, above it in numpy.
+FLOAT_OFFSETS = 8
+
 
 @dataclass(frozen=True)
 class VelocityTerms:
@@ -54,7 +57,9 @@ def control_command(c: ControlParams, dt: float, phase: float, next_phase: float
     # (30), (33): kappa_ij (p*_ij - p^_ij) with p*_ij = p*_io - p*_jo, then the target's term.
     terms = []
     if usable:
-        theirs = desired_offsets(c.radius, np.array([neighbour_phases[j] for j in usable])).tolist()
+        # A few offsets in floats, many in one numpy call: the same numbers (tests/test_core_kernels.py).
+        theirs = ([desired_offset(c.radius, neighbour_phases[j]) for j in usable] if len(usable) <= FLOAT_OFFSETS
+                  else desired_offsets(c.radius, np.array([neighbour_phases[j] for j in usable])).tolist())
         for (dx, dy), j in zip(theirs, usable):
             px, py = np.asarray(estimates[j], dtype=float).tolist()
             terms.append((gain, (ox - dx) - px, (oy - dy) - py))

@@ -11,7 +11,7 @@ import math
 
 import numpy as np
 
-from agent.core.fusion import covariance_intersection_2d, covariance_intersection_stacked
+from agent.core.fusion import covariance_intersection_2d, covariance_intersection_information
 from agent.core.neighbours import NeighbourTrack, stamp_key
 from agent.core.params import AgentParams
 from agent.core.state import VesselState
@@ -84,29 +84,51 @@ def fuse_targets(params: AgentParams, state: VesselState, neighbours: list[tuple
     A neighbour whose estimate disagrees with ours beyond `fleet.target_gate` (chi-square, 4 degrees of
     freedom) is left out and counted. Returns the fused state and covariance (ours alone if none fits)."""
     tracker = state.tracker
-    own = (tracker.state, tracker.covariance)
+    own_x, own_P = tracker.state, tracker.covariance
     shared = [(track.share, x, y, track) for track, x, y in neighbours
               if track.share is not None and track.share.target is not None and track.estimator is not None]
     if not shared:
-        return tracker.state, tracker.covariance
+        return own_x, own_P
     x, P = moved_target_estimates(shared, now, state.motion.velocity)
+    m = len(x)
+    # One stacked inverse serves the gate, (P_io + P_k)^-1, and the intersection, P_io^-1 and each P_k^-1:
+    # numpy's per-call overhead, not the arithmetic, is the cost of a 4x4 inverse.
+    inverses, singular = stacked_inverses(np.concatenate([own_P + P, own_P[None], P]))
+    differences = x - own_x
+    distances = np.add.reduce(differences * np.matmul(inverses[:m], differences[:, :, None])[:, :, 0], axis=1)
     gate = params.fleet.target_gate
-    # NaN fails the gate test `distance > gate` and so is kept.
-    keep = [k for k, distance in enumerate(_gate_distances(x - own[0], own[1] + P).tolist()) if not distance > gate]
-    state.health.target_estimates_gated += len(x) - len(keep)
-    if not keep:
-        return own
-    if len(keep) < len(x):
-        x, P = x[keep], P[keep]
-    means = np.concatenate([own[0][None], x])
-    covariances = np.concatenate([own[1][None], P])
+    # NaN fails the gate test `distance > gate` and so is kept; a singular P_io + P_k is infinitely far.
+    keep = [k for k, distance in enumerate(distances.tolist()) if not (distance > gate or k in singular)]
+    state.health.target_estimates_gated += m - len(keep)
+    if not keep or m in singular or any(m + 1 + k in singular for k in keep):
+        return own_x, own_P
+    if len(keep) < m:
+        x, rows = x[keep], [m] + [m + 1 + k for k in keep]
+        information = inverses[rows]
+    else:
+        information = inverses[m:]
     try:
-        fused, fused_covariance = covariance_intersection_stacked(means, covariances,
-                                                                  np.full(len(means), 1.0 / len(means)))
+        fused, fused_covariance = covariance_intersection_information(
+            np.concatenate([own_x[None], x]), information * (1.0 / len(information)))
     except np.linalg.LinAlgError:
-        return own
+        return own_x, own_P
     tracker.assimilate(fused, fused_covariance)
     return tracker.state, tracker.covariance
+
+
+def stacked_inverses(matrices: np.ndarray) -> tuple[np.ndarray, list[int]]:
+    """The inverse of each matrix of the stack (m, k, k) and the indices of those that are singular (their
+    inverse left as zeros): one numpy call unless one is singular, then one per matrix."""
+    try:
+        return np.linalg.inv(matrices), []
+    except np.linalg.LinAlgError:
+        inverses, singular = np.zeros_like(matrices), []
+        for k, matrix in enumerate(matrices):
+            try:
+                inverses[k] = np.linalg.inv(matrix)
+            except np.linalg.LinAlgError:
+                singular.append(k)
+        return inverses, singular
 
 
 # Up to this many neighbours their target estimates are moved in plain floats, above it as numpy stacks: both
@@ -164,32 +186,13 @@ def carried_target_covariance(P: list[float], age: float, p11: float, p12: float
     """A neighbour's shared target covariance (4x4, row-major floats, of [p_jo; v_o]) carried over the share's
     age and moved to our frame, as `fuse_targets` does: C P C^T with C = [I, -age I; 0, I] (rows 0, 1 less age
     times rows 2, 3, then likewise the columns), SWAP_VELOCITY's sign flip of the off-diagonal blocks, and
-    P_ij = [[p11, p12], [p12, p22]] added to the position block. Element-wise, in numpy's order of operations."""
-    P = list(P)
-    for r in (0, 4):
-        for c in range(4):
-            P[r + c] = P[r + c] - age * P[r + 8 + c]
-    for r in (0, 4, 8, 12):
-        P[r] = P[r] - age * P[r + 2]
-        P[r + 1] = P[r + 1] - age * P[r + 3]
-    for i in (2, 3, 6, 7, 8, 9, 12, 13):
-        P[i] = -P[i]
-    P[0], P[1], P[4], P[5] = P[0] + p11, P[1] + p12, P[4] + p12, P[5] + p22
-    return P
-
-
-def _gate_distances(differences: np.ndarray, covariances: np.ndarray) -> np.ndarray:
-    """d_k^T S_k^-1 d_k for each row d_k and matrix S_k (the chi-square statistic of the gate); inf where
-    S_k is singular."""
-    try:
-        solved = np.linalg.solve(covariances, differences[:, :, None])[:, :, 0]
-    except np.linalg.LinAlgError:
-        return np.array([_gate_distance(d, S) for d, S in zip(differences, covariances)])
-    return np.add.reduce(differences * solved, axis=1)
-
-
-def _gate_distance(difference: np.ndarray, covariance: np.ndarray) -> float:
-    try:
-        return float(difference @ np.linalg.solve(covariance, difference))
-    except np.linalg.LinAlgError:
-        return math.inf
+    P_ij = [[p11, p12], [p12, p22]] added to the position block. Element-wise, in numpy's order of operations
+    (`_moved_target_stacks`), written out: a loop over the indices cost three times as much."""
+    a, b, c, d, e, f, g, h, i, j, k, l, m, n, o, p = P
+    # rows 0, 1 less age times rows 2, 3
+    a, b, c, d = a - age * i, b - age * j, c - age * k, d - age * l
+    e, f, g, h = e - age * m, f - age * n, g - age * o, h - age * p
+    # columns 0, 1 less age times columns 2, 3; the off-diagonal blocks change sign; P_ij joins the position block
+    a, b, e, f = a - age * c, b - age * d, e - age * g, f - age * h
+    i, j, m, n = i - age * k, j - age * l, m - age * o, n - age * p
+    return [a + p11, b + p12, -c, -d, e + p12, f + p22, -g, -h, -i, -j, k, l, -m, -n, o, p]

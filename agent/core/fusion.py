@@ -80,7 +80,13 @@ def covariance_intersection_stacked(means: np.ndarray, covariances: np.ndarray, 
         inverses = np.array([inverse(C) for C in covariances])
     else:
         inverses = np.linalg.inv(covariances)
-    information = weights[:, None, None] * inverses
+    return covariance_intersection_information(means, weights[:, None, None] * inverses)
+
+
+def covariance_intersection_information(means: np.ndarray, information: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """`covariance_intersection_stacked` from the weighted information matrices w_k P_k^-1 (m, k, k), for a
+    caller that has the inverses already: P = (sum w_k P_k^-1)^-1, x = P sum w_k P_k^-1 x_k, summed over the
+    stack in order."""
     P = inverse(np.add.reduce(information, axis=0))
     x = P @ np.add.reduce(np.matmul(information, means[:, :, None])[:, :, 0], axis=0)
     return x, 0.5 * (P + P.T)

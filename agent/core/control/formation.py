@@ -93,13 +93,14 @@ def surge_and_yaw_rate(velocity_command: np.ndarray, heading: float, yaw_rate: f
     `heading_gain` K: omega^c = K (atan2(v^c) - theta) instead (None: K = 1/dt, (31) as written).
     Returns (surge, yaw rate, whether the correction saturated).
     """
-    speed = math.hypot(velocity_command[0], velocity_command[1])
-    surge = math.cos(heading) * velocity_command[0] + math.sin(heading) * velocity_command[1]
+    vx, vy = np.asarray(velocity_command, dtype=float).tolist()      # floats: numpy's scalars cost more
+    speed = math.hypot(vx, vy)
+    surge = math.cos(heading) * vx + math.sin(heading) * vy
     surge = min(max(surge, -max_speed), max_speed)
     if speed == 0.0:
         correction = 0.0
     else:
-        error = wrap_angle(math.atan2(velocity_command[1], velocity_command[0]) - heading)
+        error = wrap_angle(math.atan2(vy, vx) - heading)
         correction = error / dt if heading_gain is None else heading_gain * error
     saturated = abs(correction) > max_correction
     correction = min(max(correction, -max_correction), max_correction)

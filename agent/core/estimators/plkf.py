@@ -18,10 +18,6 @@ from agent.core.records import BearingOutcome
 BEARING_NORM_TOLERANCE = 0.5
 
 
-_I4 = np.eye(4)
-_I4.setflags(write=False)
-
-
 def transition(dt: float) -> np.ndarray:
     """A of (4)."""
     a = np.eye(4)
@@ -29,31 +25,66 @@ def transition(dt: float) -> np.ndarray:
     return a
 
 
-def plkf_predict(x: np.ndarray, P: np.ndarray, A: np.ndarray, Q: np.ndarray,
+def plkf_predict(x: np.ndarray, P: np.ndarray, dt: float, process_noise: float,
                  own_velocity_change: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """(24): x^- = A x^+, P^- = A P^+ A^T + Q_o (A of (4)), with the vessel's own manoeuvre as a known input.
+    """(24): x^- = A x^+, P^- = A P^+ A^T + Q_o with A of (4) (`transition`) and Q_o = `process_noise` I, with the
+    vessel's own manoeuvre as a known input.
 
     `own_velocity_change` is dv_i, the change of the vessel's own velocity at the start of this interval
     (known from its odometry): the relative velocity over the interval is v_io + dv_i, so
     x^- = A (x^+ + [0; dv_i]). The paper's (24) leaves it out and lets Q_o absorb the vessel's manoeuvres;
     with it the relative model is exact for a constant-velocity target. None or zero gives (24) as printed.
-    """
+
+    In plain floats, A's blocks written out (A P adds dt times the velocity rows to the position rows, then
+    (A P) A^T likewise the columns): the terms A's zeros and ones would add are exact, so the numbers are the
+    matrix products' up to the rounding of their sums (numpy's small products cost more in calls than in
+    arithmetic)."""
+    x0, x1, x2, x3 = x.tolist()
     if own_velocity_change is not None:
-        x = x.copy()
-        x[2:] += own_velocity_change
-    P_prior = A @ P @ A.T + Q
-    return A @ x, 0.5 * (P_prior + P_prior.T)  # keep it exactly symmetric despite round-off
+        d0, d1 = own_velocity_change.tolist()
+        x2, x3 = x2 + d0, x3 + d1
+    (a, b, c, d), (e, f, g, h), (i, j, k, l), (m, n, o, p) = P.tolist()
+    # A P: rows 0, 1 gain dt times rows 2, 3
+    a, b, c, d = a + dt * i, b + dt * j, c + dt * k, d + dt * l
+    e, f, g, h = e + dt * m, f + dt * n, g + dt * o, h + dt * p
+    # (A P) A^T: columns 0, 1 gain dt times columns 2, 3; then Q_o on the diagonal
+    a, e, i, m = a + dt * c, e + dt * g, i + dt * k, m + dt * o
+    b, f, j, n = b + dt * d, f + dt * h, j + dt * l, n + dt * p
+    a, f, k, p = a + process_noise, f + process_noise, k + process_noise, p + process_noise
+    # symmetric to the last bit despite round-off: (P + P^T) / 2
+    b = e = 0.5 * (b + e)
+    c = i = 0.5 * (c + i)
+    d = m = 0.5 * (d + m)
+    g = j = 0.5 * (g + j)
+    h = n = 0.5 * (h + n)
+    l = o = 0.5 * (l + o)
+    return (np.array([x0 + dt * x2, x1 + dt * x3, x2, x3]),
+            np.array([[a, b, c, d], [e, f, g, h], [i, j, k, l], [m, n, o, p]]))
 
 
 def plkf_update(x: np.ndarray, P: np.ndarray, bearing: np.ndarray, bearing_variance: float,
                 min_range: float, gain_bearing: str = "measured") -> tuple[np.ndarray, np.ndarray, float, float]:
-    """(22), (23), (25) with a unit measured bearing b~ of (9): z = 0 (22), H = [G 0] (23), innovation
-    -G(b~) p^-, R_z = r^2 G R_b G^T with r = |p^-| (floored at min_range), K = P H^T (H P H^T + R_z)^+
-    (pseudo-inverse), (25).
-    G = I - u u^T = q q^T for the unit bearing u and its unit normal q, so S = H P H^T + R_z = s q q^T with
-    s = q^T (P_pp + r^2 R_b) q: S is rank one, and its pseudo-inverse is exactly q q^T / s.
-    x^+ = x^- - K G(b~) p^-. The covariance uses the Joseph form (I - K H) P (I - K H)^T + K R_z K^T, equal to
-    (25)'s (I - K H) P for this gain and symmetric positive semi-definite by construction.
+    """(22), (23), (25) with a unit measured bearing b~ of (9); `plkf_update_floats` on arrays. Returns
+    (x+, P+, innovation, innovation variance)."""
+    values, covariance, innovation, variance = plkf_update_floats(
+        x.tolist(), P.tolist(), *bearing.tolist(), bearing_variance, min_range, gain_bearing)
+    return np.array(values), np.array(covariance), innovation, variance
+
+
+def plkf_update_floats(x: list[float], P: list[list[float]], b0: float, b1: float, bearing_variance: float,
+                       min_range: float, gain_bearing: str = "measured"
+                       ) -> tuple[list[float], list[list[float]], float, float]:
+    """(22), (23), (25) with a unit measured bearing b~ = (b0, b1) of (9), on the state x and the rows of P as
+    floats: z = 0 (22), H = [G 0] (23), innovation -G(b~) p^-, R_z = r^2 G R_b G^T with r = |p^-| (floored at
+    min_range), K = P H^T (H P H^T + R_z)^+ (pseudo-inverse), (25).
+
+    G = I - u u^T = q q^T for the unit bearing u and its unit normal q (G q = q, as u . q = 0), so
+    S = H P H^T + R_z = s q q^T with s = q^T (P_pp + r^2 R_b) q = s_0 + r^2 R_b: S is rank one and its
+    pseudo-inverse is exactly q q^T / s. Hence K = k q^T / s and K H = k h^T / s with k = P h, h = [q; 0]:
+    x^+ = x^- - k (q^T G(b~) p^-) / s. The covariance is the Joseph form (I - K H) P (I - K H)^T + K R_z K^T,
+    equal to (25)'s (I - K H) P for this gain; with h^T P h = s_0 it is P - (2 / s - (s_0 + r^2 R_b g) / s^2)
+    k k^T, g = q^T G G^T q (1 but for round-off), symmetric by construction. Plain floats: numpy's products of
+    a 4x4 cost more in calls than in arithmetic, and the target filter runs every tick.
 
     `gain_bearing` picks the bearing G and H are built from for the gain and the covariance:
     - "measured": H = [G(b~) 0], (25) as printed. The noise of b~ then sits in both the gain and the
@@ -63,33 +94,33 @@ def plkf_update(x: np.ndarray, P: np.ndarray, bearing: np.ndarray, bearing_varia
       N. H. Nguyen and K. Dogancay (IEEE Signal Processing Letters vol. 25 no. 9, 2018), which removes that
       correlation; the innovation still uses the measured bearing.
 
-    Returns (x+, P+, innovation, innovation variance) with the innovation along q, the unit normal of the
-    bearing the gain uses. x may hold more states after [p; v] (the leeway's, plkf_leeway.py): H is 0 there.
+    Returns (x+, rows of P+, innovation, innovation variance s) with the innovation along q, the unit normal of
+    the bearing the gain uses. x may hold more states after [p; v] (the leeway's, plkf_leeway.py): H is 0 there.
     """
-    # The element-wise pieces (G = I - u u^T, H, q q^T) are built from floats, the same numbers numpy's eye and
-    # outer give; the matrix products stay numpy's.
-    x0, x1 = float(x[0]), float(x[1])
+    x0, x1 = x[0], x[1]
     distance = math.hypot(x0, x1)
     r = max(distance, min_range)
-    b0, b1 = float(bearing[0]), float(bearing[1])
     u0, u1 = b0, b1                     # the gain's direction
     if gain_bearing == "predicted" and distance >= min_range:
         u0, u1 = x0 / r, x1 / r
-    G_measured = np.array([[1.0 - b0 * b0, 0.0 - b0 * b1], [0.0 - b1 * b0, 1.0 - b1 * b1]])
-    g00, g01, g10, g11 = 1.0 - u0 * u0, 0.0 - u0 * u1, 0.0 - u1 * u0, 1.0 - u1 * u1
-    G = np.array([[g00, g01], [g10, g11]])
-    n = len(x)
-    H = (np.array([[g00, g01, 0.0, 0.0], [g10, g11, 0.0, 0.0]]) if n == 4
-         else np.array([[g00, g01] + [0.0] * (n - 2), [g10, g11] + [0.0] * (n - 2)]))
-    Rz = (r * r * bearing_variance) * (G @ G.T)
     q0, q1 = -u1, u0
-    q = np.array([q0, q1])
-    s = float(q @ P[:2, :2] @ q) + r * r * bearing_variance
-    K = P @ H.T @ np.array([[q0 * q0, q0 * q1], [q1 * q0, q1 * q1]]) / s
-    I_KH = (_I4 if n == 4 else np.eye(n)) - K @ H
-    x_post = x - K @ (G_measured @ x[:2])
-    P_post = I_KH @ P @ I_KH.T + K @ Rz @ K.T
-    return x_post, 0.5 * (P_post + P_post.T), float(q @ G_measured @ x[:2]), s
+    noise = r * r * bearing_variance    # r^2 R_b
+    # q^T G(b~) p^-: the innovation along q
+    innovation = q0 * ((1.0 - b0 * b0) * x0 - b0 * b1 * x1) + q1 * ((1.0 - b1 * b1) * x1 - b1 * b0 * x0)
+    k = [row[0] * q0 + row[1] * q1 for row in P]          # k = P h
+    s0 = q0 * k[0] + q1 * k[1]
+    s = s0 + noise
+    # G q and so g = |G q|^2, with G of the gain's direction
+    gq0 = (1.0 - u0 * u0) * q0 - u0 * u1 * q1
+    gq1 = (1.0 - u1 * u1) * q1 - u1 * u0 * q0
+    factor = (2.0 * s - (s0 + noise * (gq0 * gq0 + gq1 * gq1))) / (s * s)
+    step = innovation / s
+    x_post = [value - ka * step for value, ka in zip(x, k)]
+    P_post = [[value - (factor * ka) * kb for value, kb in zip(row, k)] for row, ka in zip(P, k)]
+    for a in range(len(x)):
+        for b in range(a):
+            P_post[a][b] = P_post[b][a] = 0.5 * (P_post[a][b] + P_post[b][a])
+    return x_post, P_post, innovation, s
 
 
 def valid_fused(state, covariance) -> tuple[np.ndarray, np.ndarray] | None:
@@ -128,8 +159,6 @@ class PLKF:
         self.params = params
         self.dt = dt
         self.range_unobserved = range_unobserved
-        self._A = transition(dt)
-        self._Q = params.process_noise * np.eye(4)
         self.predictions = 0
         self.updates = 0
         self.skipped = 0
@@ -209,7 +238,8 @@ class PLKF:
     def predict(self, own_velocity_change: np.ndarray | None = None) -> bool:
         """Time update (24). A non-finite velocity change is refused (counted) and the step uses none."""
         own_velocity_change, accepted = self._velocity_change(own_velocity_change)
-        self._x, self._P = plkf_predict(self._x, self._P, self._A, self._Q, own_velocity_change)
+        self._x, self._P = plkf_predict(self._x, self._P, self.dt, self.params.process_noise,
+                                       own_velocity_change)
         self.predictions += 1
         return accepted
 
@@ -224,17 +254,20 @@ class PLKF:
             self.skipped += 1
             return BearingOutcome(accepted=False, reason="no bearing (prediction only)")
         b = np.asarray(bearing, dtype=float).reshape(-1)
-        norm = float(np.hypot(b[0], b[1])) if b.shape == (2,) else math.nan
+        b0, b1 = b.tolist() if b.shape == (2,) else (math.nan, math.nan)
+        norm = math.hypot(b0, b1)
         if not (math.isfinite(norm) and abs(norm - 1.0) <= BEARING_NORM_TOLERANCE):
             self.rejected += 1
             return BearingOutcome(accepted=False, reason="bearing is not a finite unit vector")
-        x, P, innovation, variance = plkf_update(
-            self._x, self._P, b / norm, self.params.bearing_variance, self.params.min_range,
-            self.params.gain_bearing,
+        x, P, innovation, variance = plkf_update_floats(
+            self._x.tolist(), self._P.tolist(), b0 / norm, b1 / norm, self.params.bearing_variance,
+            self.params.min_range, self.params.gain_bearing,
         )
-        if finite_floats(x, self._x.shape) is None or finite_floats(P, self._P.shape) is None:
+        total = sum(x) + sum(map(sum, P))       # any inf or NaN makes the sum so; an overflow is looked into
+        if total - total != 0.0 and not all(map(math.isfinite, x + [v for row in P for v in row])):
             self.rejected += 1
             return BearingOutcome(accepted=False, reason="update produced a non-finite state")
+        x, P = np.array(x), np.array(P)
         self._x, self._P = x, P
         self.updates += 1
         return BearingOutcome(accepted=True, innovation=innovation, innovation_variance=variance)
