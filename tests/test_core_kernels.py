@@ -386,6 +386,14 @@ def test_history_puts_keep_what_a_sorted_dict_trimmed_to_its_size_keeps(seed):
         assert history.last_values(3) == [reference[k] for k in sorted(reference)[-3:]]
 
 
+def _share_with_target(stamp: float, target: np.ndarray, covariance: np.ndarray, velocity: np.ndarray):
+    """A share from vessel "j" at `stamp` that carries a target estimate."""
+    from agent.core.records import OdometryReading, Share
+
+    return Share("j", OdometryReading(stamp, np.zeros(2), 0.0), velocity, 0.0, target=target,
+                 target_covariance=covariance)
+
+
 @pytest.mark.parametrize("seed", range(5))
 @pytest.mark.parametrize("far", [0, 2])
 def test_target_fusion_matches_the_matrices_of_one_neighbour_at_a_time(seed, far):
@@ -410,9 +418,7 @@ def test_target_fusion_matches_the_matrices_of_one_neighbour_at_a_time(seed, far
         pair_cov = _spd(rng, 2)
         moments = (*rng.normal(size=2), pair_cov[0, 0], 0.5 * (pair_cov[0, 1] + pair_cov[1, 0]), pair_cov[1, 1])
         offset = np.array([20.0, 0.0, 0.0, 0.0]) if k < far else 0.1 * rng.normal(size=4)
-        share = SimpleNamespace(odometry=SimpleNamespace(stamp=now - rng.uniform(0.0, 0.3)),
-                                target=own_state + offset, target_covariance=_spd(rng, 4),
-                                velocity=rng.normal(size=2))
+        share = _share_with_target(now - rng.uniform(0.0, 0.3), own_state + offset, _spd(rng, 4), rng.normal(size=2))
         track = SimpleNamespace(share=share, estimator=object(), moments=lambda m=moments: m)
         x, y = rng.normal(size=2)
         neighbours.append((track, x, y))
@@ -475,9 +481,8 @@ def _shared_targets(rng: np.random.Generator, m: int, now: float):
     for _ in range(m):
         pair_cov = _spd(rng, 2)
         moments = (*rng.normal(size=2), pair_cov[0, 0], 0.5 * (pair_cov[0, 1] + pair_cov[1, 0]), pair_cov[1, 1])
-        share = SimpleNamespace(odometry=SimpleNamespace(stamp=now - rng.uniform(0.0, 0.3)),
-                                target=rng.normal(size=4) * 10, target_covariance=_spd(rng, 4),
-                                velocity=rng.normal(size=2))
+        share = _share_with_target(now - rng.uniform(0.0, 0.3), rng.normal(size=4) * 10, _spd(rng, 4),
+                                   rng.normal(size=2))
         track = SimpleNamespace(moments=lambda m=moments: m)
         shared.append((share, *rng.normal(size=2).tolist(), track))
     return shared

@@ -95,6 +95,9 @@ def test_cooperative_fusion_improves_the_fleet_over_the_paper_architecture():
 @pytest.mark.parametrize("bad", [
     {"target": np.array([1.0, 2.0])},                                         # wrong shape
     {"target": np.zeros(4), "target_covariance": np.full((4, 4), np.nan)},    # NaN covariance
+    {"target": np.zeros(4)},                                                  # a target without covariance
+    {"target": np.zeros(4), "target_covariance": np.eye(3)},                  # wrong shape
+    {"target": np.zeros(4), "target_covariance": np.full((4, 4), "x", dtype=object)},    # not numbers
     {"neighbours": {"1": (np.array([np.inf, 0.0]), np.eye(2), 0.0)}},        # inf estimate
     {"neighbours": {"1": (np.zeros(2), np.eye(2), math.nan)}},               # NaN stamp
 ])

@@ -86,7 +86,7 @@ def checked_share(share: object, receiver: str) -> CheckedShare | None:
     reciprocal = () if entry is None else pair_entry_floats(entry)
     if reciprocal is None:
         return None
-    position, velocity = common
+    position, velocity, _ = common
     return position, velocity, reciprocal
 
 
@@ -100,9 +100,14 @@ _VERDICT = "_checked_floats"
 _UNSEEN = object()
 
 
-def share_floats(share: Share) -> tuple[tuple[float, float], tuple[float, float]] | None:
-    """The checks of `checked_share` that do not depend on the receiver, once per share: (the odometry
-    position, the commanded velocity) as float pairs, or None if the share is not valid."""
+# What `share_floats` keeps of a valid share: (the odometry position, the commanded velocity, the target
+# estimate as (x (4 floats), P row by row (16)) or None when it shares none).
+SharedFloats = tuple[tuple[float, float], tuple[float, float], tuple[list[float], list[float]] | None]
+
+
+def share_floats(share: Share) -> SharedFloats | None:
+    """The checks of `checked_share` that do not depend on the receiver, once per share: `SharedFloats`, or
+    None if the share is not valid."""
     kept = share.__dict__
     verdict = kept.get(_VERDICT, _UNSEEN)
     if verdict is _UNSEEN:
@@ -110,21 +115,30 @@ def share_floats(share: Share) -> tuple[tuple[float, float], tuple[float, float]
     return verdict
 
 
-def _share_floats(share: Share) -> tuple[tuple[float, float], tuple[float, float]] | None:
+def _share_floats(share: Share) -> SharedFloats | None:
     odometry = share.odometry
+    target = None
     # One chain that keeps the floats it checks: a check after a failed one is still not evaluated.
     if not ((position := finite_floats(odometry.position, (2,))) is not None
             and isinstance(odometry.stamp, (int, float))
             and math.isfinite(odometry.stamp) and math.isfinite(share.phase)
             and (velocity := finite_floats(share.velocity, (2,))) is not None
-            and (share.target is None or (finite_floats(share.target, (4,)) is not None
-                                          and share.target_covariance is not None
-                                          and _finite_4x4(share.target_covariance)))
+            and (share.target is None or (target := _target_floats(share)) is not None)
             and (type(share.neighbours) is dict or isinstance(share.neighbours, Mapping))
             and (share.antenna is None or _valid_antenna(share.antenna, odometry.heading))):
         return None
     (px, py), (vx, vy) = position, velocity
-    return (px, py), (vx, vy)
+    return (px, py), (vx, vy), target
+
+
+def _target_floats(share: Share) -> tuple[list[float], list[float]] | None:
+    """The share's target estimate (4) and its covariance (4x4, row by row) as floats; None unless both are
+    there and finite."""
+    x = finite_floats(share.target, (4,))
+    if x is None or share.target_covariance is None:
+        return None
+    P = finite_floats(share.target_covariance, (4, 4))
+    return None if P is None else (x, P)
 
 
 def _valid_antenna(antenna, heading) -> bool:
@@ -132,13 +146,6 @@ def _valid_antenna(antenna, heading) -> bool:
     arm = finite_floats(antenna, (2,))
     return (arm is not None and all(abs(v) <= MAX_LEVER_ARM for v in arm)
             and isinstance(heading, (int, float)) and math.isfinite(heading))
-
-
-def _finite_4x4(value) -> bool:
-    """Shape (4, 4) and every element finite."""
-    if type(value) is np.ndarray and value.dtype == FLOAT64:
-        return finite_floats(value, (4, 4)) is not None
-    return np.shape(value) == (4, 4) and bool(np.isfinite(value).all())
 
 
 def pair_entry_floats(entry) -> tuple[float, ...] | None:

@@ -11,6 +11,7 @@ import math
 
 import numpy as np
 
+from agent.core.checks import share_floats
 from agent.core.fusion import covariance_intersection_2d, covariance_intersection_information
 from agent.core.neighbours import NeighbourTrack, stamp_key
 from agent.core.params import AgentParams
@@ -144,12 +145,11 @@ def moved_target_estimates(shared: list, now: float, velocity: np.ndarray) -> tu
     and p^_ij's covariance added to the position block."""
     if len(shared) > FLOAT_NEIGHBOURS:
         return _moved_target_stacks(shared, now, velocity)
-    targets = np.array([share.target for share, _, _, _ in shared], dtype=float).tolist()
-    matrices = np.array([share.target_covariance for share, _, _, _ in shared], dtype=float).reshape(-1, 16).tolist()
-    velocities = np.array([share.velocity for share, _, _, _ in shared], dtype=float).tolist()
     vx, vy = np.asarray(velocity, dtype=float).tolist()
     means, covariances = [], []
-    for (share, px, py, track), (t0, t1, t2, t3), P, (ux, uy) in zip(shared, targets, matrices, velocities):
+    for share, px, py, track in shared:
+        # The floats the share's check kept (checks.py share_floats): every share a track holds passed it.
+        _, (ux, uy), ((t0, t1, t2, t3), P) = share_floats(share)
         age = now - share.odometry.stamp
         _, _, p11, p12, p22 = track.moments()
         means.append((((t0 - age * t2) + age * ux) + px, ((t1 - age * t3) + age * uy) + py, vx - t2, vy - t3))
