@@ -396,12 +396,13 @@ def _share_with_target(stamp: float, target: np.ndarray, covariance: np.ndarray,
 
 @pytest.mark.parametrize("seed", range(5))
 @pytest.mark.parametrize("far", [0, 2])
-def test_target_fusion_matches_the_matrices_of_one_neighbour_at_a_time(seed, far):
+@pytest.mark.parametrize("count", [4, 12])      # moved in floats, and as numpy stacks (FLOAT_NEIGHBOURS = 8)
+def test_target_fusion_matches_the_matrices_of_one_neighbour_at_a_time(seed, far, count):
     """fuse_targets, which gathers every neighbour's floats into stacks, against the transformations written
     as 4x4 matrices, one neighbour at a time: x_j carried by C = [I, -age I; 0, I] (and j's velocity), moved
     to us through p^_ij and v_i, covariance SWAP C P C^T SWAP + blkdiag(P_ij, 0), then the chi-square gate
     d^T (P_io + P_j)^-1 d <= 13.28 (4 degrees of freedom, 1 %) and equal-weight covariance intersection of
-    ours with those kept. `far` of the four neighbours have target estimates 20 m off: gated out, counted."""
+    ours with those kept. `far` of the `count` neighbours have target estimates 20 m off: gated out, counted."""
     from types import SimpleNamespace
 
     from agent.core.cooperation import SWAP_VELOCITY, fuse_targets
@@ -414,7 +415,7 @@ def test_target_fusion_matches_the_matrices_of_one_neighbour_at_a_time(seed, far
                               assimilate=lambda x, P: assimilated.append((x, P)))
     neighbours, expected = [], [(own_state, own_cov)]
     gated = 0
-    for k in range(4):
+    for k in range(count):
         pair_cov = _spd(rng, 2)
         moments = (*rng.normal(size=2), pair_cov[0, 0], 0.5 * (pair_cov[0, 1] + pair_cov[1, 0]), pair_cov[1, 1])
         offset = np.array([20.0, 0.0, 0.0, 0.0]) if k < far else 0.1 * rng.normal(size=4)

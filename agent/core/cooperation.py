@@ -159,15 +159,19 @@ def moved_target_estimates(shared: list, now: float, velocity: np.ndarray) -> tu
 
 def _moved_target_stacks(shared: list, now: float, velocity: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """`moved_target_estimates` for every neighbour at once, as stacks: per neighbour, numpy's call overhead
-    would be most of the cost. The floats of each neighbour (the share's age, p^_ij and the symmetric P_ij)
-    go in one array, one row each."""
-    floats = np.array([(now - share.odometry.stamp, x, y, *track.moments()[2:]) for share, x, y, track in shared])
+    would be most of the cost. The floats of each neighbour (the share's age, p^_ij, the symmetric P_ij, j's
+    velocity and its target estimate and covariance as its share's check kept them) go in one array, one row
+    each; x and P are views of it."""
+    rows = []
+    for share, x, y, track in shared:
+        _, velocity_j, (target, covariance) = share_floats(share)
+        rows.append((now - share.odometry.stamp, x, y, *track.moments()[2:], *velocity_j, *target, *covariance))
+    floats = np.array(rows)
     age = floats[:, :1]
-    x = np.array([share.target for share, _, _, _ in shared], dtype=float)
-    P = np.array([share.target_covariance for share, _, _, _ in shared], dtype=float)
+    x, P = floats[:, 8:12], floats[:, 12:28].reshape(-1, 4, 4)
     # C's zeros and ones add nothing but rounding-free terms: written out by blocks.
     x[:, :2] -= age * x[:, 2:]
-    x[:, :2] += age * np.array([share.velocity for share, _, _, _ in shared], dtype=float)
+    x[:, :2] += age * floats[:, 6:8]
     P[:, :2, :] -= age[:, :, None] * P[:, 2:, :]
     P[:, :, :2] -= age[:, :, None] * P[:, :, 2:]
     x[:, :2] += floats[:, 1:3]
