@@ -55,6 +55,21 @@ def test_the_offset_is_the_median_of_the_window_and_judged_only_once_enough_are_
     assert offsets.median("2") == pytest.approx(-0.02) and offsets.alarms() == []
 
 
+@pytest.mark.parametrize("seed", [4, 5])
+def test_the_median_offset_is_numpys_median_of_the_window_even_or_odd(seed):
+    """The tracker's median (the standard library's) against numpy.median of the same window, for every
+    count of offsets from OFFSET_MIN to past a full window, in the same run."""
+    rng = np.random.default_rng(seed)
+    offsets = StampOffsets(max_age=1.0, max_future=0.5)
+    kept = []
+    for k in range(OFFSET_WINDOW + 10):
+        value = float(rng.normal(0.0, rng.uniform(1e-3, 2.0)))
+        offsets.observe("2", value)
+        kept = (kept + [value])[-OFFSET_WINDOW:]
+        if len(kept) >= OFFSET_MIN:
+            assert offsets.median("2") == float(np.median(kept))
+
+
 @pytest.mark.parametrize("seed", [1, 2, 3])
 def test_the_alarm_is_raised_exactly_when_most_stamps_are_outside_the_window(seed):
     """Over random offsets and jitters: the alarm is raised for a source iff its median offset is outside
