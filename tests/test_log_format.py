@@ -246,3 +246,25 @@ def test_earlier_range_sets_go_through_the_log_codec():
     back = inputs_from_json(json.loads(json.dumps(inputs_to_json(inputs))))
     assert back.earlier_ranges == ((1.855, {"2": 3.9, "3": 7.25}), (1.93, {"3": 7.5}))
     assert back.ranges == {"2": 4.0} and back.range_stamp == 1.98
+
+
+def test_a_tick_loggers_topics_have_their_schemas_before_the_first_tick(tmp_path, monkeypatch):
+    """TickLogger prepares its per-tick topics when it is made (the agent makes it before it tells the fleet
+    it is up), so that its first tick generates no JSON schema: the log's channels are in the file before any
+    message, with the schemas a first message would have made."""
+    from pydantic import BaseModel
+
+    expected = {"cmd": Cmd.model_json_schema().get("title", "Cmd"), "estimates": Estimates.model_json_schema()["title"]}
+    log = McapLog(tmp_path / "agent-1.mcap", metadata={"vessel": "1"})
+    TickLogger(log, "1", 5.0)
+    made = []
+    monkeypatch.setattr(BaseModel, "model_json_schema", classmethod(lambda cls, *a, **k: made.append(cls) or {}))
+    log.log(log_topic("1", "cmd"), Cmd(stamp_ns=1, seq=0, sender="1", surge=0.5, yaw_rate=0.1), 1)
+    log.close()
+    assert made == []
+    with open(tmp_path / "agent-1.mcap", "rb") as handle:
+        summary = make_reader(handle).get_summary()
+    topics = {channel.topic: summary.schemas[channel.schema_id].name for channel in summary.channels.values()}
+    assert topics[log_topic("1", "cmd")] == expected["cmd"]
+    assert topics[log_topic("1", "estimates")] == expected["estimates"]
+    assert {log_topic("1", name) for name in ("inputs", "cmd", "status", "estimates", "tf", "scene")} <= set(topics)

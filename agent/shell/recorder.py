@@ -54,6 +54,8 @@ class Recorder:
         except OSError as error:
             raise StartupError(f"cannot write its log {path}: {error.strerror or error}") from None
         self.tick_log = TickLogger(self.log, self.vessel, self.settings.agent.control.radius)
+        if self.settings.snapshot_every:
+            self.log.prepare(log_topic(self.vessel, "state"), CoreState)
 
     def next_mission(self, summary) -> None:
         """The simulation restarted: the log of the mission so far is finished (`summary()` written last) and

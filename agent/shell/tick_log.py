@@ -29,7 +29,7 @@ from collections.abc import Mapping
 from pydantic import ConfigDict, Field
 
 from agent.config import StrictModel
-from agent.contract import MissionAck, MissionCommand, key
+from agent.contract import Cmd, MissionAck, MissionCommand, Status, key
 from agent.core.records import TickInputs, TickOutput, TickRecord, floats, inputs_to_json
 from agent.runtime import foxglove
 from agent.runtime.log_schema import AgentSummary, Estimates, Inputs
@@ -99,6 +99,10 @@ class TickLogger:
         self.radius = radius
         self._next_scene = 0
         self._scene: foxglove.StaticScene | None = None
+        # Every tick's topics get their schemas and channels now, at start-up, not in the first tick.
+        for name, model in (("inputs", Inputs), ("cmd", Cmd), ("status", Status), ("estimates", Estimates),
+                            ("tf", foxglove.FrameTransforms), ("scene", foxglove.SceneUpdate)):
+            log.prepare(log_topic(vessel, name), model)
 
     def tick(self, stamp: int, inputs: TickInputs, output: TickOutput, command, status=None,
              wire: dict[str, bytes] | None = None) -> None:
