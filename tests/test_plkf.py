@@ -9,10 +9,17 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from agent.core.estimators.plkf import PLKF, plkf_predict, plkf_update, transition
+from agent.core.estimators.plkf import PLKF, plkf_predict, plkf_update
 from agent.core.params import TargetEstimationParams
 
 DT = 0.1
+
+
+def transition(dt: float) -> np.ndarray:
+    """A of (4) as a matrix, the reference the filter's written-out blocks are checked against."""
+    a = np.eye(4)
+    a[0, 2] = a[1, 3] = dt
+    return a
 
 
 def scalar_form_update(x, P, b, s, min_range):
@@ -33,7 +40,7 @@ def test_one_step_matches_the_scalar_derivation():
     P = A @ A.T + 0.5 * np.eye(4)
     x = np.array([4.0, -2.0, 0.3, 0.1])
     b = np.array([0.8, -0.6])
-    x_post, P_post, _, _ = plkf_update(x, P, b, 1e-3, 0.1)
+    x_post, P_post, _, _ = plkf_update(x.tolist(), P.tolist(), *b, 1e-3, 0.1)
     x_ref, P_ref = scalar_form_update(x, P, b, 1e-3, 0.1)
     np.testing.assert_allclose(x_post, x_ref, atol=1e-10)
     np.testing.assert_allclose(P_post, P_ref, atol=1e-10)
@@ -47,7 +54,7 @@ def test_instrumental_variable_step_matches_the_scalar_derivation():
     P = A @ A.T + 0.5 * np.eye(4)
     x = np.array([4.0, -2.0, 0.3, 0.1])
     b = np.array([0.8, -0.6])  # measured, 0.3 rad or so off the prediction
-    x_post, P_post, _, _ = plkf_update(x, P, b, 1e-3, 0.1, gain_bearing="predicted")
+    x_post, P_post, _, _ = plkf_update(x.tolist(), P.tolist(), *b, 1e-3, 0.1, gain_bearing="predicted")
     r = np.linalg.norm(x[:2])
     q_hat = np.array([x[1], -x[0]]) / r
     h = np.concatenate([q_hat, [0.0, 0.0]])
@@ -83,11 +90,11 @@ def test_update_matches_the_joseph_form_with_a_pseudo_inverse(gain_bearing, n):
         angle = math.atan2(x[1], x[0]) + rng.normal(scale=0.2)
         b = np.array([math.cos(angle), math.sin(angle)])
         u = b if gain_bearing == "measured" else x[:2] / np.linalg.norm(x[:2])
-        x_post, P_post, _, _ = plkf_update(x, P, b, 1e-3, 0.1, gain_bearing)
+        x_post, P_post, _, _ = plkf_update(x.tolist(), P.tolist(), *b, 1e-3, 0.1, gain_bearing)
         x_ref, P_ref = joseph_update(x, P, b, 1e-3, 0.1, u)
         np.testing.assert_allclose(x_post, x_ref, rtol=1e-9, atol=1e-9)
         np.testing.assert_allclose(P_post, P_ref, rtol=1e-9, atol=1e-9)
-        assert np.array_equal(P_post, P_post.T)
+        assert np.array_equal(P_post, np.transpose(P_post))
 
 
 def range_after_circling(gain_bearing: str, seed: int, seconds: float = 60.0, radius: float = 5.0):

@@ -438,9 +438,9 @@ class InputGate:
         once this tick's own sensors are in; in lockstep first wait (up to `share_wait`) for those shares too.
         In real time only the own sensors are worth a wait, bounded by three quarters of `dt`: the bridge
         publishes them within `MAX_SENSOR_STAGGER` (half) of dt after the clock (its `stagger`,
-        sim_bridge/bridge.py), and a vessel whose sensors never come still answers before the world's next step. Each neighbour's newest share that has
-        come is taken, late or not, unless the radio lost it: at sea a late share is still the neighbour's latest
-        word."""
+        sim_bridge/bridge.py), and a vessel whose sensors never come still answers before the world's next step.
+        Each neighbour's newest share that has come is taken, late or not, unless the radio lost it: at sea a late
+        share is still the neighbour's latest word."""
         wait = share_wait if clock.lockstep else (MAX_SENSOR_STAGGER + 0.25) * dt
         sensed = clock.vessels is not None and self.id in clock.vessels
         lost = None if clock.lockstep else {sender for sender, to in clock.lost if to == self.id}

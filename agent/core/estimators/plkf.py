@@ -18,16 +18,9 @@ from agent.core.records import BearingOutcome
 BEARING_NORM_TOLERANCE = 0.5
 
 
-def transition(dt: float) -> np.ndarray:
-    """A of (4)."""
-    a = np.eye(4)
-    a[0, 2] = a[1, 3] = dt
-    return a
-
-
 def plkf_predict(x: np.ndarray, P: np.ndarray, dt: float, process_noise: float,
                  own_velocity_change: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """(24): x^- = A x^+, P^- = A P^+ A^T + Q_o with A of (4) (`transition`) and Q_o = `process_noise` I, with the
+    """(24): x^- = A x^+, P^- = A P^+ A^T + Q_o with A = [I dt I; 0 I] of (4) and Q_o = `process_noise` I, with the
     vessel's own manoeuvre as a known input.
 
     `own_velocity_change` is dv_i, the change of the vessel's own velocity at the start of this interval
@@ -62,18 +55,9 @@ def plkf_predict(x: np.ndarray, P: np.ndarray, dt: float, process_noise: float,
             np.array([[a, b, c, d], [e, f, g, h], [i, j, k, l], [m, n, o, p]]))
 
 
-def plkf_update(x: np.ndarray, P: np.ndarray, bearing: np.ndarray, bearing_variance: float,
-                min_range: float, gain_bearing: str = "measured") -> tuple[np.ndarray, np.ndarray, float, float]:
-    """(22), (23), (25) with a unit measured bearing b~ of (9); `plkf_update_floats` on arrays. Returns
-    (x+, P+, innovation, innovation variance)."""
-    values, covariance, innovation, variance = plkf_update_floats(
-        x.tolist(), P.tolist(), *bearing.tolist(), bearing_variance, min_range, gain_bearing)
-    return np.array(values), np.array(covariance), innovation, variance
-
-
-def plkf_update_floats(x: list[float], P: list[list[float]], b0: float, b1: float, bearing_variance: float,
-                       min_range: float, gain_bearing: str = "measured"
-                       ) -> tuple[list[float], list[list[float]], float, float]:
+def plkf_update(x: list[float], P: list[list[float]], b0: float, b1: float, bearing_variance: float,
+                min_range: float, gain_bearing: str = "measured"
+                ) -> tuple[list[float], list[list[float]], float, float]:
     """(22), (23), (25) with a unit measured bearing b~ = (b0, b1) of (9), on the state x and the rows of P as
     floats: z = 0 (22), H = [G 0] (23), innovation -G(b~) p^-, R_z = r^2 G R_b G^T with r = |p^-| (floored at
     min_range), K = P H^T (H P H^T + R_z)^+ (pseudo-inverse), (25).
@@ -259,7 +243,7 @@ class PLKF:
         if not (math.isfinite(norm) and abs(norm - 1.0) <= BEARING_NORM_TOLERANCE):
             self.rejected += 1
             return BearingOutcome(accepted=False, reason="bearing is not a finite unit vector")
-        x, P, innovation, variance = plkf_update_floats(
+        x, P, innovation, variance = plkf_update(
             self._x.tolist(), self._P.tolist(), b0 / norm, b1 / norm, self.params.bearing_variance,
             self.params.min_range, self.params.gain_bearing,
         )
