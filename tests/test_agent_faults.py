@@ -73,13 +73,13 @@ def test_a_failing_tick_commands_stop_and_the_next_one_runs(monkeypatch, capsys)
 
     calls = []
 
-    def step(params, state, inputs):
+    def decide(params, state, inputs):
         calls.append(1)
         if len(calls) == 2:
             raise ZeroDivisionError("boom")
-        return state, TickOutput(Command(1.0, 0.1), None, None)
+        return state, Command(1.0, 0.1), lambda: TickOutput(Command(1.0, 0.1), None, None)
 
-    monkeypatch.setattr(node_module, "step", step)
+    monkeypatch.setattr(node_module, "decide", decide)
     agent, sinks = node(), publishers()
     for _ in range(4):
         agent._tick(sinks)
@@ -92,10 +92,10 @@ def test_a_failing_tick_commands_stop_and_the_next_one_runs(monkeypatch, capsys)
 def test_the_same_failure_tick_after_tick_rebuilds_the_core(monkeypatch, capsys):
     import agent.shell.node as node_module
 
-    def step(params, state, inputs):
+    def decide(params, state, inputs):
         raise ValueError("reset needs a symmetric positive-definite covariance")
 
-    monkeypatch.setattr(node_module, "step", step)
+    monkeypatch.setattr(node_module, "decide", decide)
     agent, sinks = node(rebuild_after=3), publishers()
     before = agent.state
     agent.state.phase = 1.0
@@ -114,7 +114,8 @@ def test_the_same_failure_tick_after_tick_rebuilds_the_core(monkeypatch, capsys)
 def test_a_command_beyond_the_limits_never_leaves(monkeypatch, command):
     import agent.shell.node as node_module
 
-    monkeypatch.setattr(node_module, "step", lambda params, state, inputs: (state, TickOutput(command, None, None)))
+    monkeypatch.setattr(node_module, "decide",
+                        lambda params, state, inputs: (state, command, lambda: TickOutput(command, None, None)))
     agent, sinks = node(), publishers()
     agent._tick(sinks)
     assert commands(sinks) == [(0.0, 0.0)] and agent.failures.total == 1
@@ -125,10 +126,74 @@ def test_a_command_at_the_limits_goes_out(monkeypatch):
     import agent.shell.node as node_module
 
     command = Command(-MAX_SURGE, MAX_YAW_RATE)
-    monkeypatch.setattr(node_module, "step", lambda params, state, inputs: (state, TickOutput(command, None, None)))
+    monkeypatch.setattr(node_module, "decide",
+                        lambda params, state, inputs: (state, command, lambda: TickOutput(command, None, None)))
     agent, sinks = node(), publishers()
     agent._tick(sinks)
     assert commands(sinks) == [(-MAX_SURGE, MAX_YAW_RATE)] and agent.failures.total == 0
+
+
+def ticked_inputs(k: int) -> TickInputs:
+    """Tick k's inputs past the gate: own odometry moving along x, a neighbour ranged and sharing from tick 1."""
+    odometry = OdometryReading(k * DT, np.array([0.1 * k, 0.0]), 0.0)
+    share = Share("9", OdometryReading(k * DT, np.array([4.0, 1.0]), 0.0), np.zeros(2), 0.0)
+    return TickInputs(k * DT, odometry, ranges={"9": math.hypot(4.0 - 0.1 * k, 1.0)},
+                      shares={"9": share} if k >= 1 else {}, bearing=np.array([-1.0, 0.0]))
+
+
+def test_the_command_is_on_the_wire_before_the_core_builds_the_share_and_the_record(monkeypatch):
+    """The thrusters' latency leaves out what only the neighbours and the log need: the real core's `report`
+    runs after the command's put, and what goes out is what `step` gives on the same inputs."""
+    import agent.shell.node as node_module
+    from agent.core.step import step
+
+    real_decide, on_the_wire = node_module.decide, []
+
+    def decide(params, state, inputs):
+        state, command, report = real_decide(params, state, inputs)
+
+        def watched():
+            on_the_wire.append(len(sinks["cmd"].payloads))
+            return report()
+        return state, command, watched
+
+    monkeypatch.setattr(node_module, "decide", decide)
+    agent, sinks = node(), publishers()
+    alone = initial_state("1", PARAMS, InitialEstimates(target=(5.0, 0.0, 0.0, 0.0)))
+    expected = []
+    for k in range(6):
+        agent.gate.snapshot = lambda now, k=k: ticked_inputs(k)
+        agent._tick(sinks)
+        alone, output = step(PARAMS, alone, ticked_inputs(k))
+        expected.append((output.command.surge, output.command.yaw_rate))
+    assert on_the_wire == [1, 2, 3, 4, 5, 6]
+    assert commands(sinks) == expected and agent.failures.total == 0
+    assert len(sinks["share"].payloads) == 6 and agent.state.phase == alone.phase
+
+
+def test_a_report_that_fails_leaves_the_command_that_went_out_and_is_counted(monkeypatch, capsys):
+    """The command was sound and is on the wire: a failure building the share or the record after it costs
+    that tick's share and record only, is counted as a failed tick, and the status still goes out."""
+    import agent.shell.node as node_module
+
+    real_decide = node_module.decide
+
+    def decide(params, state, inputs):
+        state, command, _ = real_decide(params, state, inputs)
+
+        def failing():
+            raise RuntimeError("the record failed")
+        return state, command, failing
+
+    monkeypatch.setattr(node_module, "decide", decide)
+    agent, sinks = node(), publishers()
+    for k in range(2):
+        agent.gate.snapshot = lambda now, k=k: ticked_inputs(k)
+        agent._tick(sinks)
+    sent = commands(sinks)
+    assert len(sent) == 2 and sent[-1] != (0.0, 0.0)
+    assert sinks["share"].payloads == [] and len(sinks["status"].payloads) == 2
+    assert agent.failures.total == 2 and "RuntimeError@" in capsys.readouterr().err
 
 
 def test_the_real_core_failure_of_the_issue_is_survived(tmp_path):

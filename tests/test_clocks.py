@@ -92,6 +92,45 @@ def test_the_alarm_is_raised_exactly_when_most_stamps_are_outside_the_window(see
             assert offsets.applied == 0.0
 
 
+class SettledEveryTime(StampOffsets):
+    """The own sensors' correction settled on every message, as before the count of offsets outside the window
+    let `observe` skip what cannot change it."""
+
+    def observe(self, source, offset):
+        super().observe(source, offset)
+        if source == CLOCK_SOURCE_SENSORS:
+            self._settle()
+
+
+@pytest.mark.parametrize("seed", [6, 7])
+def test_the_sensor_correction_is_the_same_whether_or_not_each_message_settles_it(seed):
+    """Over random stretches of a sensor clock in and out of the window (jumps, drifts, stray stamps) and steps
+    of this computer's clock: the correction in force after every message, and the alarms, are those of a
+    tracker that settles on every message."""
+    rng = np.random.default_rng(seed)
+    corrected = 0
+    for _ in range(40):
+        skipping, every = StampOffsets(max_age=1.0, max_future=0.5), SettledEveryTime(max_age=1.0, max_future=0.5)
+        offset = 0.0
+        for _ in range(int(rng.integers(20, 4 * OFFSET_WINDOW))):
+            kind = rng.uniform()
+            if kind < 0.04:
+                offset = float(rng.uniform(-4.0, 4.0))            # the sensor clock jumps
+            elif kind < 0.06:
+                delta = float(rng.uniform(-3.0, 3.0))             # this computer's clock steps
+                skipping.shift(CLOCK_SOURCE_SENSORS, delta)
+                every.shift(CLOCK_SOURCE_SENSORS, delta)
+            value = offset + float(rng.normal(0.0, rng.choice([0.005, 0.05, 0.5])))
+            if rng.uniform() < 0.05:
+                value = float(rng.uniform(-10.0, 10.0))           # a stray stamp
+            skipping.observe(CLOCK_SOURCE_SENSORS, value)
+            every.observe(CLOCK_SOURCE_SENSORS, value)
+            assert skipping.applied == every.applied
+            assert skipping.alarms() == every.alarms()
+            corrected += skipping.applied != 0.0
+    assert corrected > 100     # the correction was in force often, not only absent
+
+
 def test_a_sensor_clock_hours_off_is_alarmed_but_not_corrected():
     offsets = StampOffsets(max_age=1.0, max_future=0.5)
     for _ in range(OFFSET_MIN):

@@ -130,16 +130,16 @@ def test_an_exception_in_the_core_is_survived_and_logged_with_its_inputs(tmp_pat
     its inputs go to the log's `errors` topic, and the run goes on to its end with a finished file."""
     import agent.shell.node as node_module
 
-    real_step = node_module.step
+    real_decide = node_module.decide
     calls = []
 
-    def failing_step(params, state, inputs):
+    def failing_decide(params, state, inputs):
         calls.append(inputs.time)
         if len(calls) == 3:
             raise RuntimeError("the core failed")
-        return real_step(params, state, inputs)
+        return real_decide(params, state, inputs)
 
-    monkeypatch.setattr(node_module, "step", failing_step)
+    monkeypatch.setattr(node_module, "decide", failing_decide)
     node = AgentNode("1", NodeSettings(clock="wall", id_check=0, log=str(tmp_path / "agent-{vessel}.mcap")))
     node.run(max_ticks=10)
     assert len(calls) == 10 and node.ticks == 10 and node.failures.total == 1 and node.failures.rebuilds == 0

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import math
 from collections import Counter
+from collections.abc import Callable
 
 import numpy as np
 
@@ -63,6 +64,16 @@ RANGE_GUARD_RATE = 0.4    # 1/s: 0.04 per tick, slow enough for the lag of the o
 
 def step(params: AgentParams, state: VesselState, inputs: TickInputs) -> tuple[VesselState, TickOutput]:
     """One tick of vessel `state.vessel` on `inputs`; returns the updated state and the tick's output."""
+    state, _, report = decide(params, state, inputs)
+    return state, report()
+
+
+def decide(params: AgentParams, state: VesselState,
+           inputs: TickInputs) -> tuple[VesselState, Command, Callable[[], TickOutput]]:
+    """`step` in two parts: the tick's command, and `report()` for the rest of its output (the share and the
+    record), which the command does not wait for. The agent puts the command on the wire between the two, so
+    that the thrusters' latency leaves out what only the neighbours and the log need. `report` reads the state
+    as this tick left it: call it before the next tick."""
     health = state.health
     now = inputs.time
     odometry = inputs.odometry
@@ -71,7 +82,7 @@ def step(params: AgentParams, state: VesselState, inputs: TickInputs) -> tuple[V
         if odometry is not None:
             health.bad_odometry += 1
         health.stops += 1
-        return state, TickOutput(STOP, None, None)
+        return state, STOP, _nothing_to_report
     position = np.asarray(odometry.position, dtype=float).reshape(2)
     elapsed = _elapsed(params, state.motion.stamp, now)
     leeway_model = params.target.leeway_variance > 0.0
@@ -104,8 +115,7 @@ def step(params: AgentParams, state: VesselState, inputs: TickInputs) -> tuple[V
     distances: dict[str, float] = {}
     estimated: list[tuple[float, float]] = []     # the p^_ij at now the separation guard keeps apart from
     guard_trace = params.control.separation_margin ** 2
-    records: dict[str, NeighbourRecord] = {}
-    shared: dict[str, tuple[np.ndarray, np.ndarray, float]] = {}
+    reported: list[tuple[str, NeighbourTrack, np.ndarray, bool]] = []   # what `report` builds the records of
     now_key = stamp_key(now)     # the tracks take the tick's time as a history key: converted once, not per track
     for j, track in state.tracks.items():
         if track.estimator is None:
@@ -129,10 +139,7 @@ def step(params: AgentParams, state: VesselState, inputs: TickInputs) -> tuple[V
             lent.append((track, *p_ij))
         if is_localised or trace <= guard_trace:
             estimated.append(p_ij)
-        records[j] = _neighbour_record(track, estimate, is_localised)
-        carried = _shared_estimate(track)
-        if carried is not None:
-            shared[j] = carried
+        reported.append((j, track, estimate, is_localised))
     health.ranges_unpaired += unusable["unpaired"]
     health.ranges_gap += unusable["gap"]
 
@@ -192,29 +199,44 @@ def step(params: AgentParams, state: VesselState, inputs: TickInputs) -> tuple[V
         blend = 1.0 - math.exp(-elapsed / control.surge_lag) if control.surge_lag > 0.0 else 1.0
         state.motion.surge = model + blend * (command.surge - model)
         state.motion.surge_command = command.surge
-    surge = command.surge
-    if drifting:
-        odometry = OdometryReading(odometry.stamp, over_ground, odometry.heading)
-    share = Share(
-        sender=state.vessel, odometry=odometry,
-        velocity=np.array([surge * math.cos(odometry.heading), surge * math.sin(odometry.heading)]),
-        phase=state.phase,
-        target=None if target_state is None else _to_shared(target_state, state.motion.velocity),
-        target_covariance=None if target_cov is None else swap_velocity(target_cov),
-        neighbours=shared,
-        antenna=None if antenna == ZERO else (float(antenna[0]), float(antenna[1])),
-    )
-    record = TickRecord(
-        time=now, phase=state.phase,
-        neighbours=records,
-        target_state=target_state, target_covariance=target_cov,
-        bearing_used=bearing_outcome is not None and bearing_outcome.accepted, bearing_outcome=bearing_outcome,
-        formation_velocity=terms.formation, tracking_velocity=terms.tracking, avoidance_velocity=terms.avoidance,
-        safety_correction=terms.safety_correction, velocity_command=terms.command, command=command,
-        saturated=saturated, health=health.as_dict(),
-    )
+    phase = state.phase
     state.phase = next_phase
-    return state, TickOutput(command, share, record)
+
+    def report() -> TickOutput:
+        records: dict[str, NeighbourRecord] = {}
+        shared: dict[str, tuple[np.ndarray, np.ndarray, float]] = {}
+        for j, track, estimate, is_localised in reported:
+            records[j] = _neighbour_record(track, estimate, is_localised)
+            carried = _shared_estimate(track)
+            if carried is not None:
+                shared[j] = carried
+        surge, heading = command.surge, odometry.heading
+        share = Share(
+            sender=state.vessel, odometry=OdometryReading(odometry.stamp, over_ground, heading) if drifting
+            else odometry,
+            velocity=np.array([surge * math.cos(heading), surge * math.sin(heading)]),
+            phase=phase,
+            target=None if target_state is None else _to_shared(target_state, state.motion.velocity),
+            target_covariance=None if target_cov is None else swap_velocity(target_cov),
+            neighbours=shared,
+            antenna=None if antenna == ZERO else (float(antenna[0]), float(antenna[1])),
+        )
+        record = TickRecord(
+            time=now, phase=phase,
+            neighbours=records,
+            target_state=target_state, target_covariance=target_cov,
+            bearing_used=bearing_outcome is not None and bearing_outcome.accepted, bearing_outcome=bearing_outcome,
+            formation_velocity=terms.formation, tracking_velocity=terms.tracking, avoidance_velocity=terms.avoidance,
+            safety_correction=terms.safety_correction, velocity_command=terms.command, command=command,
+            saturated=saturated, health=health.as_dict(),
+        )
+        return TickOutput(command, share, record)
+
+    return state, command, report
+
+
+def _nothing_to_report() -> TickOutput:
+    return TickOutput(STOP, None, None)
 
 
 def _elapsed(params: AgentParams, previous: float | None, now: float) -> float:

@@ -26,6 +26,7 @@ More: docs/reliability.md §4, `agent/shell/gate.py`.
 
 from __future__ import annotations
 
+import math
 import statistics
 import threading
 import time
@@ -105,13 +106,23 @@ class StampOffsets:
         self._offsets: dict[str, deque[float]] = {}
         self.applied = 0.0     # s: the correction in force on the own sensors' stamps
         self.corrected = 0     # own sensor messages whose stamp was corrected
+        self._sensors_outside = 0   # offsets of the own sensors' window outside [-max_age, max_future]
 
     def observe(self, source: str, offset: float) -> None:
         window = self._offsets.get(source)
         if window is None:
             window = self._offsets[source] = deque(maxlen=OFFSET_WINDOW)
+        if source != CLOCK_SOURCE_SENSORS:
+            window.append(offset)
+            return
+        if len(window) == OFFSET_WINDOW and self.outside(window[0]):
+            self._sensors_outside -= 1      # the oldest, which the append drops
         window.append(offset)
-        if source == CLOCK_SOURCE_SENSORS:
+        self._sensors_outside += self.outside(offset)
+        # A median outside the window needs at least half the offsets outside it: short of that, with no
+        # correction in force, `_settle` would leave none, and its median (on every sensor message, on the
+        # path from a tick's sensors to its command) is not worth taking.
+        if self.applied or 2 * self._sensors_outside >= len(window):
             self._settle()
 
     def median(self, source: str) -> float | None:
@@ -143,16 +154,20 @@ class StampOffsets:
         """The clock of `source` stepped by `delta` against the agent's: what was measured of it moves too."""
         window = self._offsets.get(source)
         if window is not None:
-            self._offsets[source] = deque((offset + delta for offset in window), maxlen=OFFSET_WINDOW)
+            self._offsets[source] = window = deque((offset + delta for offset in window), maxlen=OFFSET_WINDOW)
             if source == CLOCK_SOURCE_SENSORS:
+                self._sensors_outside = sum(map(self.outside, window))
                 self._settle()
 
     def forget(self, source: str) -> None:
         self._offsets.pop(source, None)
+        if source == CLOCK_SOURCE_SENSORS:
+            self._sensors_outside = 0
 
     def clear(self) -> None:
         self._offsets.clear()
         self.applied = 0.0
+        self._sensors_outside = 0
 
     def alarms(self) -> list[tuple[str, float]]:
         """(source, median offset) of every source whose clock disagrees with the agent's, sensors first."""
@@ -361,8 +376,8 @@ class InputGate:
             return False
         if interval == 0 or interval > self.max_age:
             return True
-        jump = np.hypot(*(np.asarray(reading.position) - np.asarray(last.position)))
-        return bool(jump <= MAX_SPEED * interval)
+        (x, y), (last_x, last_y) = reading.position, last.position
+        return math.hypot(x - last_x, y - last_y) <= MAX_SPEED * interval
 
     def _share(self, message: ReceivedShare, mine) -> Share:
         """The share as the tick reads it: of the sender's estimates of its neighbours, only its estimate of
@@ -375,13 +390,14 @@ class InputGate:
         vessel whose agent is gone, and such a range has no odometry to pair with."""
         if self.known_peers is None:
             return dict(ranges)
-        known = set(self.known_peers()) | set(shares)
-        unknown = [peer for peer in ranges if peer not in known]
-        if unknown:
-            with self._lock:
-                self.rejected["unknown_peer"] += len(unknown)
-                self.recent_reasons.append(f"ranges to unknown peers {sorted(unknown)[:5]}")
-        return {p: r for p, r in ranges.items() if p in known}
+        alive = self.known_peers()
+        unknown = [peer for peer in ranges if peer not in alive and peer not in shares]
+        if not unknown:
+            return dict(ranges)
+        with self._lock:
+            self.rejected["unknown_peer"] += len(unknown)
+            self.recent_reasons.append(f"ranges to unknown peers {sorted(unknown)[:5]}")
+        return {p: r for p, r in ranges.items() if p in alive or p in shares}
 
     def _refuse(self, reason: str, detail: str, locked: bool = False) -> bool:
         if locked:

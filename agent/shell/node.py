@@ -34,7 +34,7 @@ from agent.contract import (
 from agent.core.build import InitialEstimates, initial_state
 from agent.core.records import STOP, TickInputs, TickOutput
 from agent.core.state import VesselState
-from agent.core.step import step
+from agent.core.step import decide
 from agent.runtime.process import startup_error, stop_on_signals, vessel_process
 from agent.runtime.zenoh_session import SessionError, open_session
 from agent.shell.failures import TickFailures, check_command
@@ -168,20 +168,29 @@ class AgentNode:
                     self.ticker.sensors_in()
             inputs = self.peers.vet(self.gate.snapshot(now))   # a vessel id come back proves itself first
             core_started = time.thread_time()
-            self.state, output = step(self.params, self.state, inputs)
+            self.state, decided, report = decide(self.params, self.state, inputs)
             self.core_seconds += time.thread_time() - core_started
-            check_command(output.command, self.params.control)
-            self.failures.succeeded()
+            check_command(decided, self.params.control)
             if self.orders.held:   # the operator's hold: STOP, as the watchdog would; the core keeps estimating
-                output = TickOutput(STOP, output.share, output.record)
+                decided = STOP
         except Exception as error:  # noqa: BLE001  (one bad tick must not take the vessel's control down)
-            output = TickOutput(STOP, None, None)
+            decided, report = STOP, None
             self._failed(error, inputs, stamp)
         # The driver judges a command by its own clock: on the wall clock it is stamped in it (the agent's time
         # plus the correction its sensors' stamps need; the same unless the driver's clock is off or ours stepped).
         driver_stamp = stamp if clock is not None else nanoseconds(now + self.gate.offsets.applied)
-        command, wire = self.outbox.command(publishers, driver_stamp, output.command)
+        command, wire = self.outbox.command(publishers, driver_stamp, decided)
         self.ticker.answered(tick_cpu)
+        output = TickOutput(decided, None, None)
+        if report is not None:   # the share and the record, which the command did not wait for
+            try:
+                core_started = time.thread_time()
+                reported = report()
+                self.core_seconds += time.thread_time() - core_started
+                output = TickOutput(decided, reported.share, reported.record)
+                self.failures.succeeded()
+            except Exception as error:  # noqa: BLE001
+                self._failed(error, inputs, stamp)
         if output.record is not None:
             try:   # what the next ticks vet a returning id by: after the command, which does not wait for it
                 self.peers.learn(inputs, output.record)

@@ -31,7 +31,7 @@ from sim_bridge.scenario import Scenario
 AGENT_SECTIONS = ("inputs", "core", "logging", "publishing")
 SECTION_TEXT = {
     "inputs": "decoding and the gate: what its Zenoh callbacks do",
-    "core": "the core's `step`",
+    "core": "the core's `step` (`decide` and its `report`)",
     "logging": "its MCAP log",
     "publishing": "the rest of its tick: shares delivered, snapshot, messages built, checked and encoded",
     "bridge": "the sim bridge: world, sensors, messages, commands and statuses decoded, ground truth logged",
@@ -113,6 +113,14 @@ class _Timed:
             self.run.seconds[self.section] += time.thread_time() - started
 
 
+class _TimedDecide(_Timed):
+    """The core's `decide`, and the `report` it returns, both timed as the core."""
+
+    def __call__(self, *args, **kwargs):
+        state, command, report = super().__call__(*args, **kwargs)
+        return state, command, _Timed(report, self.run, self.section)
+
+
 def run_shells(scenario: Scenario, folder: Path | None = None, between_ticks=None,
                share_format: int = SHARE_FORMAT) -> ShellRun:
     """One lockstep run of `scenario` (every vessel there from start to end) through the sim bridge's and the
@@ -136,8 +144,8 @@ def _run(scenario: Scenario, folder: Path, between_ticks, share_format: int) -> 
     nodes = {v: AgentNode(v, NodeSettings.model_validate(configs[v])) for v in ids}
     wire = {v: _Wire() for v in ["bridge", *ids]}
     publishers = {v: declare_publishers(wire[v], v, True, share_format) for v in ids}
-    core_step = node_module.step
-    node_module.step = _Timed(core_step, run, "core")
+    core_decide = node_module.decide
+    node_module.decide = _TimedDecide(core_decide, run, "core")
     try:
         for vessel, node in nodes.items():
             node.recorder.open()
@@ -198,7 +206,7 @@ def _run(scenario: Scenario, folder: Path, between_ticks, share_format: int) -> 
                 run.commands[k, n] = command.surge, command.yaw_rate
             previous = stamp
     finally:
-        node_module.step = core_step
+        node_module.decide = core_decide
         for node in nodes.values():
             node.recorder.close()
         if bridge.log is not None:
