@@ -143,7 +143,8 @@ def ticked_inputs(k: int) -> TickInputs:
 
 def test_the_command_is_on_the_wire_before_the_core_builds_the_share_and_the_record(monkeypatch):
     """The thrusters' latency leaves out what only the neighbours and the log need: the real core's `report`
-    runs after the command's put, and what goes out is what `step` gives on the same inputs."""
+    runs after the command's put, and after the tick thread has let Zenoh's sending thread have the CPU; what
+    goes out is what `step` gives on the same inputs."""
     import agent.shell.node as node_module
     from agent.core.step import step
 
@@ -153,11 +154,12 @@ def test_the_command_is_on_the_wire_before_the_core_builds_the_share_and_the_rec
         state, command, report = real_decide(params, state, inputs)
 
         def watched():
-            on_the_wire.append(len(sinks["cmd"].payloads))
+            on_the_wire.append(("report", len(sinks["cmd"].payloads)))
             return report()
         return state, command, watched
 
     monkeypatch.setattr(node_module, "decide", decide)
+    monkeypatch.setattr(node_module, "yield_cpu", lambda: on_the_wire.append(("yield", len(sinks["cmd"].payloads))))
     agent, sinks = node(), publishers()
     alone = initial_state("1", PARAMS, InitialEstimates(target=(5.0, 0.0, 0.0, 0.0)))
     expected = []
@@ -166,7 +168,7 @@ def test_the_command_is_on_the_wire_before_the_core_builds_the_share_and_the_rec
         agent._tick(sinks)
         alone, output = step(PARAMS, alone, ticked_inputs(k))
         expected.append((output.command.surge, output.command.yaw_rate))
-    assert on_the_wire == [1, 2, 3, 4, 5, 6]
+    assert on_the_wire == [(event, k) for k in range(1, 7) for event in ("yield", "report")]
     assert commands(sinks) == expected and agent.failures.total == 0
     assert len(sinks["share"].payloads) == 6 and agent.state.phase == alone.phase
 

@@ -12,6 +12,7 @@ the core is rebuilt from the initial estimates, the log goes on in a new file. S
 
 from __future__ import annotations
 
+import os
 import sys
 import threading
 import time
@@ -46,6 +47,12 @@ from agent.shell.recorder import Recorder
 from agent.shell.settings import NodeSettings
 from agent.shell.startup import SensorWatch, StartupError, check_id_free
 from agent.shell.ticker import HEARTBEAT, Ticker
+
+
+def yield_cpu() -> None:
+    """Let another thread that is ready to run on this CPU run first (no-op where the OS has no sched_yield)."""
+    if hasattr(os, "sched_yield"):
+        os.sched_yield()
 
 
 class AgentNode:
@@ -181,6 +188,10 @@ class AgentNode:
         driver_stamp = stamp if clock is not None else nanoseconds(now + self.gate.offsets.applied)
         command, wire = self.outbox.command(publishers, driver_stamp, decided)
         self.ticker.answered(tick_cpu)
+        # Zenoh's own thread sends the command: on a core of its own the agent lets it run now, not once this
+        # thread has built the share, the status and the log (a millisecond or more, on 1 tick in 10 in the
+        # benchmark: docs/results/runtime_benchmark.md).
+        yield_cpu()
         output = TickOutput(decided, None, None)
         if report is not None:   # the share and the record, which the command did not wait for
             try:
