@@ -4,11 +4,11 @@ starts once there is a prior for it (a deployment estimate, both vessels' target
 from __future__ import annotations
 
 from collections.abc import Mapping
-from statistics import median
 
 import numpy as np
 
 from agent.core.checks import checked_share, valid_range
+from agent.core.median import median
 from agent.core.neighbours import NeighbourPrior, NeighbourTrack, PairTiming, stamp_key
 from agent.core.params import AgentParams
 from agent.core.records import Share
@@ -121,7 +121,6 @@ def _agrees_with_range(params: AgentParams, track: NeighbourTrack, prior: Neighb
     near = [track.ranges.get(k) for k in track.ranges.keys() if abs(k - key) <= window]
     if not near:
         return True
-    # statistics', not numpy's: np.median imports numpy.ma (1.5 MB) on its first call, for a handful of floats
     measured = float(median(near))
     position = np.asarray(prior.position, dtype=float)
     distance = float(np.hypot(*position))

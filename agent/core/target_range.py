@@ -24,6 +24,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from agent.core.median import median
+
 # A neighbour's range may miss the fit by at most this many of its standard deviations; another minimum
 # must cost at least AMBIGUITY more (in squared standard deviations) than the best, else the fit waits.
 RESIDUAL_GATE = 4.0
@@ -57,7 +59,7 @@ class RangeWitness:
         middle = int(np.argsort(misses)[len(misses) // 2])
         length = float(lengths[middle])
         along = offsets[middle] / length if length > 0.0 else np.zeros(2)
-        return float(np.median(misses)), along
+        return median(misses), along
 
     def variance(self, along: np.ndarray) -> float:
         """sigma_j^2 of (R2): the median's variance plus p_jo's along the pair's line of sight."""

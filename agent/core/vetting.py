@@ -13,6 +13,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from agent.core.median import median
+
 
 def best_offset(anchors: np.ndarray, ranges: np.ndarray, iterations: int = 8) -> np.ndarray:
     """c minimising sum_k (|c - q_k| - r_k)^2 for anchors q_k (K, 2) and ranges r_k (K,): the linear solution
@@ -51,7 +53,7 @@ def range_residuals(own: np.ndarray, claimed: np.ndarray, ranges: np.ndarray,
 def range_misfit(own: np.ndarray, claimed: np.ndarray, ranges: np.ndarray) -> float:
     """The median |r_k - |c - q_k|| at the best offset c: how far (m) the claims are from the ranges (a
     median, so that a few stray UWB ranges do not refuse a genuine vessel)."""
-    return float(np.median(np.abs(range_residuals(own, claimed, ranges))))
+    return median(np.abs(range_residuals(own, claimed, ranges)))
 
 
 def residual_trend(residuals: np.ndarray) -> float:
@@ -59,4 +61,4 @@ def residual_trend(residuals: np.ndarray) -> float:
     A claim whose motion differs from the ranged one leaves a trend (a range rate the claims do not have)
     before it leaves a large residual; a median of each third, so that stray ranges do not make one."""
     third = max(1, len(residuals) // 3)
-    return float(np.median(residuals[-third:]) - np.median(residuals[:third]))
+    return median(residuals[-third:]) - median(residuals[:third])

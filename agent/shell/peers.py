@@ -24,6 +24,7 @@ from dataclasses import replace
 import numpy as np
 
 from agent.contract import MAX_PEERS
+from agent.core.median import median
 from agent.core.records import TickInputs, TickRecord
 from agent.core.vetting import range_residuals, residual_trend
 
@@ -266,11 +267,10 @@ class PeerTable:
             return None
         residuals = range_residuals(samples[:, 0:2], samples[:, 2:4], samples[:, 4],
                                     None if learnt is None else learnt[0])
-        misfit = float(np.median(np.abs(residuals)))
+        misfit = median(np.abs(residuals))
         # The simpler story: a hull lying still where the ranges put it. Claims of motion that fit the ranges
         # worse than that are not believed (a dead vessel's slot on the circle, claimed while its hull drifts).
-        still = float(np.median(np.abs(range_residuals(samples[:, 0:2], np.zeros((len(samples), 2)),
-                                                       samples[:, 4]))))
+        still = median(np.abs(range_residuals(samples[:, 0:2], np.zeros((len(samples), 2)), samples[:, 4])))
         return misfit, residual_trend(residuals), misfit - still
 
 
