@@ -189,8 +189,8 @@ class AgentNode:
         command, wire = self.outbox.command(publishers, driver_stamp, decided)
         self.ticker.answered(tick_cpu)
         # Zenoh's own thread sends the command: on a core of its own the agent lets it run now, not once this
-        # thread has built the share, the status and the log (a millisecond or more, on 1 tick in 10 in the
-        # benchmark: docs/results/runtime_benchmark.md).
+        # thread has built the share, the status and the log (about 2 ms later on 1 tick in 10 before this:
+        # docs/results/runtime_changes.md).
         yield_cpu()
         output = TickOutput(decided, None, None)
         if report is not None:   # the share and the record, which the command did not wait for
