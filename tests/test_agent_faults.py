@@ -592,10 +592,14 @@ def test_the_sim_bridge_killed_and_restarted_is_followed(tmp_path, short_scenari
             first.kill()
             first.wait()
             gone = len(statuses)
+            newest = max(s.stamp_ns for s in statuses[:gone] if s.ticked)
             time.sleep(2.0)
             heartbeats = statuses[gone:]
             assert {s.sender for s in heartbeats if not s.ticked and s.stamp_ns == 0} == set(agents)
-            assert all(not s.ticked for s in heartbeats)
+            # No tick without a bridge: the only ticked statuses after the kill answer clocks it had sent, in
+            # lockstep a tick or two beyond the newest status seen before it (a loaded machine delivers them late).
+            tick_ns = round(scenario.world.dt * 1e9)
+            assert all(s.stamp_ns <= newest + 2 * tick_ns for s in heartbeats if s.ticked)
         second = subprocess.run(bridge_cmd, capture_output=True, text=True, timeout=120, check=False)
         assert second.returncode == 0, second.stderr
         counts = bridge_counts(second.stderr)
