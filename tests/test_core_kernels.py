@@ -422,7 +422,7 @@ def test_target_fusion_matches_the_matrices_of_one_neighbour_at_a_time(seed, far
         share = _share_with_target(now - rng.uniform(0.0, 0.3), own_state + offset, _spd(rng, 4), rng.normal(size=2))
         track = SimpleNamespace(share=share, estimator=object(), moments=lambda m=moments: m)
         x, y = rng.normal(size=2)
-        neighbours.append((track, x, y))
+        neighbours.append((share, x, y, track))
         age = now - share.odometry.stamp
         C = np.block([[np.eye(2), -age * np.eye(2)], [np.zeros((2, 2)), np.eye(2)]])
         carried = C @ share.target + np.concatenate([age * share.velocity, np.zeros(2)])

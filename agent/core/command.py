@@ -41,7 +41,7 @@ class VelocityTerms:
 
 def control_command(c: ControlParams, dt: float, phase: float, next_phase: float, heading: float,
                     target_state: np.ndarray | None, own_velocity: np.ndarray,
-                    estimates: dict[str, np.ndarray | None], neighbour_phases: dict[str, float],
+                    estimates: dict[str, tuple[float, float] | None], neighbour_phases: dict[str, float],
                     obstacles: np.ndarray | None, yaw_rate_estimate: float = 0.0,
                     sway: float = 0.0, along: float = 0.0) -> tuple[Command, VelocityTerms, dict[str, bool]]:
     """The command for this tick: the desired offsets (27), (29) and their errors (30), (31), (32) pull
@@ -61,7 +61,7 @@ def control_command(c: ControlParams, dt: float, phase: float, next_phase: float
         theirs = ([desired_offset(c.radius, neighbour_phases[j]) for j in usable] if len(usable) <= FLOAT_OFFSETS
                   else desired_offsets(c.radius, np.array([neighbour_phases[j] for j in usable])).tolist())
         for (dx, dy), j in zip(theirs, usable):
-            px, py = np.asarray(estimates[j], dtype=float).tolist()
+            px, py = estimates[j]      # p^_ij at now (x, y)
             terms.append((gain, (ox - dx) - px, (oy - dy) - py))
     tracking = np.zeros(2)
     if target_state is not None:

@@ -15,6 +15,7 @@ from agent.core.checks import share_floats
 from agent.core.fusion import covariance_intersection_2d, covariance_intersection_information
 from agent.core.neighbours import NeighbourTrack, stamp_key
 from agent.core.params import AgentParams
+from agent.core.records import Share
 from agent.core.state import VesselState
 
 # x = [p_io; v_io] <-> shared [p_io; v_o] with v_o = v_i - v_io: flips the velocity block's sign.
@@ -76,18 +77,16 @@ def fuse_reciprocal(params: AgentParams, state: VesselState, track: NeighbourTra
         state.health.bad_shares += 1
 
 
-def fuse_targets(params: AgentParams, state: VesselState, neighbours: list[tuple[NeighbourTrack, float, float]],
+def fuse_targets(params: AgentParams, state: VesselState, shared: list[tuple[Share, float, float, NeighbourTrack]],
                  now: float) -> tuple[np.ndarray, np.ndarray]:
     """Covariance intersection of our target estimate with each neighbour's, moved to us:
     p_io = p^_ij + p^_jo (carried to now with j's commanded velocity), v_io = v_i - v^_o as in (33), with
-    p^_ij of (10). `neighbours` gives each neighbour's track and p^_ij at now (x, y). Not in the paper
-    (docs/equations.md, D2).
+    p^_ij of (10). `shared` gives, for each neighbour whose share carries a target estimate, that share, p^_ij
+    at now (x, y) and its track. Not in the paper (docs/equations.md, D2).
     A neighbour whose estimate disagrees with ours beyond `fleet.target_gate` (chi-square, 4 degrees of
     freedom) is left out and counted. Returns the fused state and covariance (ours alone if none fits)."""
     tracker = state.tracker
     own_x, own_P = tracker.state, tracker.covariance
-    shared = [(track.share, x, y, track) for track, x, y in neighbours
-              if track.share is not None and track.share.target is not None and track.estimator is not None]
     if not shared:
         return own_x, own_P
     x, P = moved_target_estimates(shared, now, state.motion.velocity)
@@ -99,9 +98,11 @@ def fuse_targets(params: AgentParams, state: VesselState, neighbours: list[tuple
     distances = np.add.reduce(differences * np.matmul(inverses[:m], differences[:, :, None])[:, :, 0], axis=1)
     gate = params.fleet.target_gate
     # NaN fails the gate test `distance > gate` and so is kept; a singular P_io + P_k is infinitely far.
-    keep = [k for k, distance in enumerate(distances.tolist()) if not (distance > gate or k in singular)]
+    keep = [k for k, distance in enumerate(distances.tolist()) if not distance > gate]
+    if singular:
+        keep = [k for k in keep if k not in singular]
     state.health.target_estimates_gated += m - len(keep)
-    if not keep or m in singular or any(m + 1 + k in singular for k in keep):
+    if not keep or singular and (m in singular or any(m + 1 + k in singular for k in keep)):
         return own_x, own_P
     if len(keep) < m:
         x, rows = x[keep], [m] + [m + 1 + k for k in keep]
@@ -159,31 +160,49 @@ def moved_target_estimates(shared: list, now: float, velocity: np.ndarray) -> tu
 
 def _moved_target_stacks(shared: list, now: float, velocity: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """`moved_target_estimates` for every neighbour at once, as stacks: per neighbour, numpy's call overhead
-    would be most of the cost. The floats of each neighbour (the share's age, p^_ij, the symmetric P_ij, j's
-    velocity and its target estimate and covariance as its share's check kept them) go in one array, one row
-    each; x and P are views of it."""
-    rows = []
+    would be most of the cost. Two arrays, one row per neighbour: what this tick gives (the share's age, p^_ij
+    and the symmetric P_ij) and what the share alone gives (j's velocity, its target estimate and covariance,
+    `_shared_target_row`); x and P are views of the second."""
+    ours: list[float] = []
+    theirs = []
     for share, x, y, track in shared:
-        _, velocity_j, (target, covariance) = share_floats(share)
-        rows.append((now - share.odometry.stamp, x, y, *track.moments()[2:], *velocity_j, *target, *covariance))
-    floats = np.array(rows)
-    age = floats[:, :1]
-    x, P = floats[:, 8:12], floats[:, 12:28].reshape(-1, 4, 4)
+        _, _, p11, p12, p22 = track.moments()
+        ours += (now - share.odometry.stamp, x, y, p11, p12, p22)
+        theirs.append(_shared_target_row(share))
+    tick = np.array(ours).reshape(-1, 6)
+    floats = np.array(theirs)
+    age = tick[:, :1]
+    x, P = floats[:, 2:6], floats[:, 6:22].reshape(-1, 4, 4)
     # C's zeros and ones add nothing but rounding-free terms: written out by blocks.
     x[:, :2] -= age * x[:, 2:]
-    x[:, :2] += age * floats[:, 6:8]
+    x[:, :2] += age * floats[:, :2]
     P[:, :2, :] -= age[:, :, None] * P[:, 2:, :]
     P[:, :, :2] -= age[:, :, None] * P[:, :, 2:]
-    x[:, :2] += floats[:, 1:3]
+    x[:, :2] += tick[:, 1:3]
     x[:, 2:] = velocity - x[:, 2:]
     P[:, :2, 2:] *= -1.0
     P[:, 2:, :2] *= -1.0
-    p11, p12, p22 = floats[:, 3], floats[:, 4], floats[:, 5]
+    p11, p12, p22 = tick[:, 3], tick[:, 4], tick[:, 5]
     P[:, 0, 0] += p11
     P[:, 0, 1] += p12
     P[:, 1, 0] += p12
     P[:, 1, 1] += p22
     return x, P
+
+
+# Where `_shared_target_row` keeps a share's row, in the share's own __dict__ as `checks.share_floats` keeps
+# its verdict (equality, repr and the codecs ignore it): in process every receiver gets the same Share.
+_TARGET_ROW = "_target_row"
+
+
+def _shared_target_row(share) -> np.ndarray:
+    """j's velocity (2), target estimate (4) and its covariance row by row (16) as one float array, the floats
+    the share's check kept; built once per share and read only (the stacks copy it)."""
+    row = share.__dict__.get(_TARGET_ROW)
+    if row is None:
+        _, velocity_j, (target, covariance) = share_floats(share)
+        row = share.__dict__[_TARGET_ROW] = np.array((*velocity_j, *target, *covariance))
+    return row
 
 
 def carried_target_covariance(P: list[float], age: float, p11: float, p12: float, p22: float) -> list[float]:

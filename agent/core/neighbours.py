@@ -220,8 +220,10 @@ class NeighbourTrack:
             self.arms.put(stamp, arm_vector(share.odometry.heading, share.antenna or ZERO))
         if self.share is None or stamp >= self.share.odometry.stamp:
             self.share, self.reciprocal, self.velocity = share, reciprocal, velocity
-        self.last_heard = max(self.last_heard, stamp)
-        self.first_heard = min(self.first_heard, stamp)
+        if stamp > self.last_heard:        # max and min, without their calls (per neighbour and tick)
+            self.last_heard = stamp
+        if stamp < self.first_heard:
+            self.first_heard = stamp
 
     def positions_at(self, own: History, key: int) -> tuple[tuple[float, float] | None,
                                                             tuple[float, float] | None, str]:

@@ -82,15 +82,15 @@ class PathSpread:
     def add(self, dx: float, dy: float, elapsed: float, tau: float) -> None:
         """A range epoch `elapsed` seconds after the previous one, the pair having moved by (dx, dy) since:
         the window forgets by exp(-elapsed / tau), and D moved by (dx, dy) enters it with weight 1."""
-        self.x += dx
-        self.y += dy
+        # In locals, each field read and written once: the same operations, per neighbour and range.
+        x, y = self.x + dx, self.y + dy
         forget = math.exp(-elapsed / tau) if elapsed > 0.0 else 1.0
         kept = forget * self.weight
-        self.weight = kept + 1.0
-        ex, ey = self.x - self.mean_x, self.y - self.mean_y
-        share = kept / self.weight            # (D - D_bar_old)(D - D_bar_new)^T = share * e e^T
-        self.mean_x += ex / self.weight
-        self.mean_y += ey / self.weight
+        self.weight = weight = kept + 1.0
+        mean_x, mean_y = self.mean_x, self.mean_y
+        ex, ey = x - mean_x, y - mean_y
+        share = kept / weight                 # (D - D_bar_old)(D - D_bar_new)^T = share * e e^T
+        self.x, self.y, self.mean_x, self.mean_y = x, y, mean_x + ex / weight, mean_y + ey / weight
         self.c11 = forget * self.c11 + share * ex * ex
         self.c12 = forget * self.c12 + share * ex * ey
         self.c22 = forget * self.c22 + share * ey * ey

@@ -109,13 +109,14 @@ def decide(params: AgentParams, state: VesselState,
     # track's results depend on that track alone; one pass builds no per-neighbour dict but those kept.)
     unusable: Counter[str] = Counter()
     fuse_shared = params.fleet.fuse_shared_estimates
-    localised: dict[str, np.ndarray] = {}
-    lent: list[tuple[NeighbourTrack, float, float]] = []   # localised tracks' p^_ij at now, for fuse_targets
+    localised: dict[str, tuple[float, float]] = {}     # p^_ij at now of the localised neighbours
+    # The localised neighbours' shares that carry a target estimate, with p^_ij at now: for fuse_targets
+    lent: list[tuple[Share, float, float, NeighbourTrack]] = []
     medians: dict[str, float | None] = {}
     distances: dict[str, float] = {}
     estimated: list[tuple[float, float]] = []     # the p^_ij at now the separation guard keeps apart from
     guard_trace = params.control.separation_margin ** 2
-    reported: list[tuple[str, NeighbourTrack, np.ndarray, bool]] = []   # what `report` builds the records of
+    reported: list[tuple[str, NeighbourTrack, tuple[float, float], bool]] = []   # what `report` builds the records of
     now_key = stamp_key(now)     # the tracks take the tick's time as a history key: converted once, not per track
     for j, track in state.tracks.items():
         if track.estimator is None:
@@ -129,17 +130,18 @@ def decide(params: AgentParams, state: VesselState,
             continue
         # Only a localised neighbour drives the formation and lends its target estimate: an unconverged pair
         # estimate would pull the vessel, and move the neighbour's target estimate, to the wrong place.
-        estimate = np.array(p_ij)
         medians[j] = median = _recent_range(track)
         distances[j] = distance = math.hypot(*p_ij)
         trace = track.best_trace()      # read once: the localisation and the guard take it
         is_localised = _localised(params, trace, distance, median)
         if is_localised:
-            localised[j] = estimate
-            lent.append((track, *p_ij))
+            localised[j] = p_ij
+            share = track.share
+            if share is not None and share.target is not None:
+                lent.append((share, *p_ij, track))
         if is_localised or trace <= guard_trace:
             estimated.append(p_ij)
-        reported.append((j, track, estimate, is_localised))
+        reported.append((j, track, p_ij, is_localised))
     health.ranges_unpaired += unusable["unpaired"]
     health.ranges_gap += unusable["gap"]
 
@@ -277,7 +279,7 @@ def _recent_range(track: NeighbourTrack) -> float | None:
     return float(ordered[half] if SEPARATION_RANGES % 2 else (ordered[half - 1] + ordered[half]) / 2.0)
 
 
-def _keep_apart(params: AgentParams, state: VesselState, ranges, localised: dict[str, np.ndarray],
+def _keep_apart(params: AgentParams, state: VesselState, ranges, localised: dict[str, tuple[float, float]],
                 medians: dict[str, float | None], distances: dict[str, float],
                 estimated: list[tuple[float, float]], heading: float, command: Command, now: float) -> Command:
     """The last guard, after (31): no command moves the vessel into a neighbour.
@@ -330,11 +332,19 @@ def _keep_apart(params: AgentParams, state: VesselState, ranges, localised: dict
 def _remember_ranges(params: AgentParams, state: VesselState, ranges, now: float) -> None:
     """Keep the last `RANGE_GUARD_COUNT` valid raw ranges to each id ranged, tracked or not; forget an id
     not ranged for `RANGE_GUARD_AGE`."""
-    kept = state.recent_ranges
+    kept, max_range = state.recent_ranges, params.relative.max_range
     for j, value in ranges.items():
-        if valid_range(value, params.relative.max_range):
-            kept[j] = (kept.get(j, []) + [(now, float(value))])[-RANGE_GUARD_COUNT:]
-    for j in [j for j, pairs in kept.items() if pairs[-1][0] < now - RANGE_GUARD_AGE]:
+        if valid_range(value, max_range):
+            pairs = kept.get(j)
+            if pairs is None:
+                kept[j] = [(now, float(value))]
+            else:
+                # In place, per neighbour and tick: a new list each time was two more objects to collect.
+                pairs.append((now, float(value)))
+                if len(pairs) > RANGE_GUARD_COUNT:
+                    del pairs[:-RANGE_GUARD_COUNT]
+    oldest = now - RANGE_GUARD_AGE
+    for j in [j for j, pairs in kept.items() if pairs[-1][0] < oldest]:
         del kept[j]
 
 
@@ -386,11 +396,11 @@ def _shared_estimate(track: NeighbourTrack) -> tuple[np.ndarray, np.ndarray, flo
     return np.array([px, py]), np.array([[p11, p12], [p12, p22]]), track.epoch * 1e-6
 
 
-def _neighbour_record(track: NeighbourTrack, estimate: np.ndarray, localised: bool) -> NeighbourRecord:
+def _neighbour_record(track: NeighbourTrack, estimate: tuple[float, float], localised: bool) -> NeighbourRecord:
     low, high, observability = track.excitation()
     _, _, p11, p12, p22 = track.moments()
     return neighbour_record(
-        position=estimate, covariance=np.array([[p11, p12], [p12, p22]]), epoch=track.epoch * 1e-6,
+        position=np.array(estimate), covariance=np.array([[p11, p12], [p12, p22]]), epoch=track.epoch * 1e-6,
         updates=track.updates, rejected=track.rejected, iterations=track.last_iterations,
         outcomes=track.outcomes, localised=localised, excitation=(low, high), observability=observability,
     )
