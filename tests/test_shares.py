@@ -151,7 +151,7 @@ def test_the_outbox_sends_one_share_to_each_live_peer_and_each_estimated_one_and
     session = FakeSession()
     publishers = {"share": PairPublishers(session, "1", {})}
     outbox = Outbox("1")
-    estimate = (np.array([3.0, 4.0]), np.eye(2) * 0.5, 0.9)
+    estimate = ((3.0, 4.0), (0.5, 0.0, 0.5), 0.9)
     share = Share(sender="1", odometry=OdometryReading(1.0, np.array([1.0, 2.0]), 0.3),
                   velocity=np.array([0.5, 0.0]), phase=0.1, neighbours={"2": estimate, "4": estimate})
     assert outbox.share(publishers, share, frozenset({"2", "3"}))

@@ -148,21 +148,26 @@ def _valid_antenna(antenna, heading) -> bool:
             and isinstance(heading, (int, float)) and math.isfinite(heading))
 
 
-def pair_entry_floats(entry) -> tuple[float, ...] | None:
-    """A share's (position, covariance, stamp) of one pair as the floats (px, py, c11, c12, c21, c22, stamp),
-    the covariance row by row; None unless the position and covariance are finite and the stamp is a finite
-    float."""
+def pair_entry_floats(entry) -> tuple[float, float, float, float, float, float] | None:
+    """A share's estimate of one pair, ((px, py), (p11, p12, p22), stamp) (`records.PairShare`), as the floats
+    (px, py, p11, p12, p22, stamp); None unless it has that shape, the five numbers are real (not bool) and
+    finite, and the stamp is a finite float."""
     try:
-        position, covariance, stamp = entry
+        (px, py), (p11, p12, p22), stamp = entry
     except (TypeError, ValueError):
         return None
-    position = finite_floats(position, (2,))
-    if position is None:
+    # Per neighbour and tick: one chained type test for the floats the core and the gate build.
+    if not type(px) is type(py) is type(p11) is type(p12) is type(p22) is float:
+        if not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in (px, py, p11, p12, p22)):
+            return None
+        px, py, p11, p12, p22 = float(px), float(py), float(p11), float(p12), float(p22)
+    total = px + py + p11 + p12 + p22
+    # A finite sum settles it; only an overflowed one (or a non-finite number) needs the look at each.
+    if total - total != 0.0 and not all(map(math.isfinite, (px, py, p11, p12, p22))):
         return None
-    covariance = finite_floats(covariance, (2, 2))
-    if covariance is None or not (isinstance(stamp, float) and math.isfinite(stamp)):
+    if not (isinstance(stamp, float) and math.isfinite(stamp)):
         return None
-    return (*position, *covariance, stamp)
+    return px, py, p11, p12, p22, stamp
 
 
 def obstacle_array(points) -> tuple[np.ndarray | None, bool]:

@@ -50,7 +50,7 @@ def fuse_reciprocal(params: AgentParams, state: VesselState, track: NeighbourTra
         return
     # In plain floats: a handful of 2-D operations per neighbour, where numpy's per-call overhead would be
     # most of the cost.
-    px, py, b11, b12, b21, b22, stamp = track.reciprocal
+    px, py, b11, b12, b22, stamp = track.reciprocal
     bx, by = -px, -py
     key = stamp_key(stamp)
     if key != track.epoch:
@@ -66,7 +66,7 @@ def fuse_reciprocal(params: AgentParams, state: VesselState, track: NeighbourTra
         b11, b22 = b11 + grown, b22 + grown
     ax, ay, a11, a12, a22 = track.estimator.moments()
     try:
-        x, y, p11, p12, p22 = covariance_intersection_2d(ax, ay, a11, a12, a12, a22, bx, by, b11, b12, b21, b22)
+        x, y, p11, p12, p22 = covariance_intersection_2d(ax, ay, a11, a12, a12, a22, bx, by, b11, b12, b12, b22)
     except np.linalg.LinAlgError:
         state.health.bad_shares += 1
         return

@@ -25,6 +25,12 @@ class OdometryReading:
     heading: float            # yaw, common reference, rad
 
 
+# A share's estimate of one pair: p^_jk (x, y), P_jk as its three numbers (p11, p12, p22), and the time (s) it
+# refers to: the shape of the wire's (agent/contract.py PairEstimate), plain floats, no arrays (a vessel builds
+# one per neighbour and tick, and each receiver checks its own as floats).
+PairShare = tuple[tuple[float, float], tuple[float, float, float], float]
+
+
 @dataclass(frozen=True)
 class Share:
     """What a vessel tells its neighbours each tick (usv/<id>/share).
@@ -47,7 +53,7 @@ class Share:
     phase: float
     target: np.ndarray | None = None                 # (4,) [p_jo; v_o]
     target_covariance: np.ndarray | None = None      # (4, 4)
-    neighbours: Mapping[str, tuple[np.ndarray, np.ndarray, float]] = field(default_factory=dict)  # (p, P, stamp)
+    neighbours: Mapping[str, PairShare] = field(default_factory=dict)
     antenna: tuple[float, float] | None = None       # its UWB antenna (forward, left) (m); None: centre
 
 
@@ -152,6 +158,17 @@ def floats(values) -> list[float]:
     return np.asarray(values, dtype=float).ravel().tolist()
 
 
+def _pair(values) -> tuple[float, float]:
+    x, y = floats(values)
+    return x, y
+
+
+def _symmetric(values) -> tuple[float, float, float]:
+    """A logged 2x2 covariance (row by row) as a `PairShare`'s three numbers."""
+    p11, p12, _, p22 = floats(values)
+    return p11, p12, p22
+
+
 def odometry_to_json(odometry: OdometryReading) -> dict:
     return {"stamp": float(odometry.stamp), "position": floats(odometry.position),
             "heading": float(odometry.heading)}
@@ -167,7 +184,8 @@ def share_to_json(share: Share) -> dict:
         "phase": float(share.phase),
         "target": None if share.target is None else floats(share.target),
         "target_covariance": None if share.target_covariance is None else floats(share.target_covariance),
-        "neighbours": {j: {"position": floats(p), "covariance": floats(c), "stamp": float(t)}
+        # The covariance as its 2x2 row by row, as logs have always held it.
+        "neighbours": {j: {"position": floats(p), "covariance": floats((c[0], c[1], c[1], c[2])), "stamp": float(t)}
                        for j, (p, c, t) in share.neighbours.items()},
         # Only when there is one: a share with its antenna at the centre is written as before.
         **({} if share.antenna is None else {"antenna": floats(share.antenna)}),
@@ -182,7 +200,7 @@ def share_from_json(data: dict) -> Share:
         target_covariance=None if data["target_covariance"] is None
         else np.array(data["target_covariance"], dtype=float).reshape(4, 4),
         # Before log format 4 an estimate referred to the share's own stamp.
-        neighbours={j: (np.array(e["position"], dtype=float), np.array(e["covariance"], dtype=float).reshape(2, 2),
+        neighbours={j: (_pair(e["position"]), _symmetric(e["covariance"]),
                         float(e.get("stamp", data["odometry"]["stamp"])))
                     for j, e in data["neighbours"].items()},
         antenna=None if data.get("antenna") is None else tuple(float(v) for v in data["antenna"]),

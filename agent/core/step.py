@@ -36,6 +36,7 @@ from agent.core.records import (
     Command,
     NeighbourRecord,
     OdometryReading,
+    PairShare,
     Share,
     TickInputs,
     TickOutput,
@@ -206,7 +207,7 @@ def decide(params: AgentParams, state: VesselState,
 
     def report() -> TickOutput:
         records: dict[str, NeighbourRecord] = {}
-        shared: dict[str, tuple[np.ndarray, np.ndarray, float]] = {}
+        shared: dict[str, PairShare] = {}
         for j, track, estimate, is_localised in reported:
             records[j] = _neighbour_record(track, estimate, is_localised)
             carried = _shared_estimate(track)
@@ -384,16 +385,16 @@ def _to_shared(state: np.ndarray, own_velocity: np.ndarray) -> np.ndarray:
     return np.concatenate([state[:2], own_velocity - state[2:]])
 
 
-def _shared_estimate(track: NeighbourTrack) -> tuple[np.ndarray, np.ndarray, float] | None:
-    """What a share carries of the pair filter: p^_ij, P_ij and the epoch (s); None when an element of P_ij
-    exceeds `MAX_SHARED_VARIANCE` (or is NaN). P_ij as the three numbers of its symmetric part (what a share
-    can carry), so a share means the same in process and on the wire."""
+def _shared_estimate(track: NeighbourTrack) -> PairShare | None:
+    """What a share carries of the pair filter (`PairShare`): p^_ij, P_ij and the epoch (s); None when an
+    element of P_ij exceeds `MAX_SHARED_VARIANCE` (or is NaN). P_ij as the three numbers of its symmetric part
+    (what the wire carries), so a share means the same in process and on the wire."""
     px, py, p11, p12, p22 = track.estimator.moments()
     # The bound on the floats, before any array: numpy's all-abs-compare on a 2x2 cost 2.4 us per neighbour.
     if not (abs(p11) <= MAX_SHARED_VARIANCE and abs(p12) <= MAX_SHARED_VARIANCE
             and abs(p22) <= MAX_SHARED_VARIANCE):
         return None
-    return np.array([px, py]), np.array([[p11, p12], [p12, p22]]), track.epoch * 1e-6
+    return (px, py), (p11, p12, p22), track.epoch * 1e-6
 
 
 def _neighbour_record(track: NeighbourTrack, estimate: tuple[float, float], localised: bool) -> NeighbourRecord:

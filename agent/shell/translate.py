@@ -31,7 +31,7 @@ def share_from_message(message: ShareMessage | ReceivedShare,
         target=None if message.target is None else np.array(message.target, dtype=float),
         target_covariance=None if message.target_covariance is None
         else np.array(message.target_covariance, dtype=float).reshape(4, 4),
-        neighbours={j: (np.array(e.position, dtype=float), _unpack2(e.covariance),
+        neighbours={j: (_floats(e.position), _floats(e.covariance),
                         seconds(message.stamp_ns if e.stamp_ns is None else e.stamp_ns))
                     for j, e in neighbours.items()},
         antenna=None if message.antenna is None else (float(message.antenna[0]), float(message.antenna[1])),
@@ -47,19 +47,12 @@ def message_from_share(share: Share, seq: int) -> ShareMessage:
         "velocity": np.asarray(share.velocity, dtype=float).tolist(), "phase": float(share.phase),
         "target": None if share.target is None else np.asarray(share.target, dtype=float).tolist(),
         "target_covariance": None if covariance is None else np.asarray(covariance, dtype=float).ravel().tolist(),
-        "neighbours": {j: {"position": np.asarray(p, dtype=float).tolist(), "covariance": _pack2(c),
-                           "stamp_ns": nanoseconds(t)}
+        "neighbours": {j: {"position": p, "covariance": c, "stamp_ns": nanoseconds(t)}
                        for j, (p, c, t) in share.neighbours.items()},
         # Absent when at the centre: a receiver that predates the field reads the share as before.
         **({} if share.antenna is None else {"antenna": [float(v) for v in share.antenna]}),
     })
 
 
-def _pack2(matrix) -> tuple[float, float, float]:
-    m = np.asarray(matrix, dtype=float)
-    return float(m[0, 0]), float(m[0, 1]), float(m[1, 1])
-
-
-def _unpack2(values) -> np.ndarray:
-    p11, p12, p22 = values
-    return np.array([[p11, p12], [p12, p22]])
+def _floats(values) -> tuple[float, ...]:
+    return tuple(float(v) for v in values)
