@@ -322,8 +322,8 @@ def test_a_share_keeps_only_the_senders_estimate_of_this_vessel():
     many = {f"k{n}": {"position": [1.0, 1.0], "covariance": [0.04, 0.0, 0.04]} for n in range(MAX_PEERS - 1)}
     assert g.offer("usv/2/share", share(neighbours=many | {"1": {"position": [-3.0, 1.0],
                                                                   "covariance": [0.04, 0.01, 0.05]}}), NOW)
-    (position, covariance, stamp), = g.snapshot(NOW).shares["2"].neighbours.values()
-    assert position == (-3.0, 1.0) and covariance == (0.04, 0.01, 0.05)
+    (px, py, p11, p12, p22, stamp), = g.snapshot(NOW).shares["2"].neighbours.values()
+    assert (px, py, p11, p12, p22) == (-3.0, 1.0, 0.04, 0.01, 0.05)
     assert stamp == NS * 1e-9           # no stamp of its own: the share's
     assert list(g.snapshot(NOW).shares["2"].neighbours) == ["1"]
 
@@ -381,7 +381,7 @@ def test_a_shared_estimate_keeps_its_own_stamp_which_may_not_be_after_the_shares
     g = gate()
     entry = {"position": [-3.0, 1.0], "covariance": [0.04, 0.0, 0.04], "stamp_ns": NS - 70_000_000}
     assert g.offer("usv/2/share", share(neighbours={"1": entry}), NOW)
-    assert g.snapshot(NOW).shares["2"].neighbours["1"][2] == pytest.approx(NOW - 0.07, abs=1e-9)
+    assert g.snapshot(NOW).shares["2"].neighbours["1"][-1] == pytest.approx(NOW - 0.07, abs=1e-9)
     later = entry | {"stamp_ns": NS + 1}
     assert not g.offer("usv/3/share", share(sender="3", neighbours={"1": later}), NOW)
     assert g.rejected["malformed"] == 1 and "after the share's stamp" in g.recent_reasons[-1]

@@ -161,22 +161,25 @@ def test_finite_checks_keep_numpys_verdicts(value, shape):
 
 def test_pair_entry_check():
     # (a share without an entry for the receiver is valid: test_a_checked_share_gives_the_floats_the_track_keeps)
-    assert pair_entry_floats(((0.0, 0.0), (1.0, 0.0, 1.0), 1.0)) is not None
-    assert pair_entry_floats(((0.0, 0.0), (1.0, 0.0, 1.0), 1)) is None           # a stamp is a float
-    assert pair_entry_floats(((0.0, math.nan), (1.0, 0.0, 1.0), 1.0)) is None
-    assert pair_entry_floats(((0.0, 0.0), (math.inf, 0.0, 1.0), 1.0)) is None
-    assert pair_entry_floats(((0.0, 0.0), (1.0, 0.0, 1.0), math.inf)) is None
-    assert pair_entry_floats(((0.0, 0.0), (1.0, 0.0, 1.0))) is None
-    assert pair_entry_floats(((0.0, 0.0), np.eye(2), 1.0)) is None                # the 2x2: three numbers
-    assert pair_entry_floats(((0.0, 0.0, 0.0), (1.0, 0.0, 1.0), 1.0)) is None
-    assert pair_entry_floats(((True, 0.0), (1.0, 0.0, 1.0), 1.0)) is None         # a bool is not a number
-    assert pair_entry_floats((("0.5", 0.0), (1.0, 0.0, 1.0), 1.0)) is None
-    assert pair_entry_floats(((0.0, 0.0), (1.0, 0.0, None), 1.0)) is None
+    entry = (0.0, 0.0, 1.0, 0.0, 1.0, 1.0)
+    assert pair_entry_floats(entry) is entry                      # a tuple of floats is taken as it is
+    assert pair_entry_floats((0.0, 0.0, 1.0, 0.0, 1.0, 1)) is None           # a stamp is a float
+    assert pair_entry_floats((0.0, math.nan, 1.0, 0.0, 1.0, 1.0)) is None
+    assert pair_entry_floats((0.0, 0.0, math.inf, 0.0, 1.0, 1.0)) is None
+    assert pair_entry_floats((0.0, 0.0, 1.0, 0.0, 1.0, math.inf)) is None
+    assert pair_entry_floats((0.0, 0.0, 1.0, 0.0, 1.0)) is None
+    assert pair_entry_floats((np.zeros(2), np.eye(2), 1.0)) is None            # no arrays: six numbers
+    assert pair_entry_floats((0.0, 0.0, 1.0, 0.0, 1.0, 1.0, 0.0)) is None
+    assert pair_entry_floats((True, 0.0, 1.0, 0.0, 1.0, 1.0)) is None          # a bool is not a number
+    assert pair_entry_floats(("0.5", 0.0, 1.0, 0.0, 1.0, 1.0)) is None
+    assert pair_entry_floats((0.0, 0.0, 1.0, 0.0, None, 1.0)) is None
+    assert pair_entry_floats(7) is None
     # finite numbers whose sum overflows are finite all the same
-    assert pair_entry_floats(((1e308, 1e308), (1e308, 0.0, 1.0), 2.0)) == (1e308, 1e308, 1e308, 0.0, 1.0, 2.0)
-    # what the receiver fuses: position, covariance's three numbers, stamp, as floats
-    floats = pair_entry_floats((np.array([1.0, 2.0]), (3, np.float64(4.0), 6.0), 7.0))
-    assert floats == (1.0, 2.0, 3.0, 4.0, 6.0, 7.0) and all(type(v) is float for v in floats)
+    assert pair_entry_floats((1e308, 1e308, 1e308, 0.0, 1.0, 2.0)) == (1e308, 1e308, 1e308, 0.0, 1.0, 2.0)
+    # what the receiver fuses: position, covariance's three numbers, stamp, as a tuple of floats
+    floats = pair_entry_floats([1, np.float64(2.0), 3, 4.0, 6.0, 7.0])
+    assert floats == (1.0, 2.0, 3.0, 4.0, 6.0, 7.0) and type(floats) is tuple
+    assert all(type(v) is float for v in floats)
 
 
 def test_a_checked_share_gives_the_floats_the_track_keeps():
@@ -185,14 +188,14 @@ def test_a_checked_share_gives_the_floats_the_track_keeps():
     from agent.core.checks import checked_share
     from agent.core.records import OdometryReading, Share
 
-    entry = ((1.0, 2.0), (3.0, 4.0, 6.0), 7.0)
+    entry = (1.0, 2.0, 3.0, 4.0, 6.0, 7.0)
     share = Share("2", OdometryReading(0.5, np.array([8.0, 9.0]), 0.0), np.array([0.25, -0.5]), 0.0,
                   neighbours={"1": entry})
     checked = checked_share(share, "1")
     assert checked == ((8.0, 9.0), (0.25, -0.5), pair_entry_floats(entry))
     assert all(type(x) is float for x in (*checked[0], *checked[1]))
     assert checked_share(share, "3") == ((8.0, 9.0), (0.25, -0.5), ())
-    bad = Share("2", share.odometry, share.velocity, 0.0, neighbours={"1": ((0.0, 0.0), (1.0, 0.0, 1.0), 1)})
+    bad = Share("2", share.odometry, share.velocity, 0.0, neighbours={"1": (0.0, 0.0, 1.0, 0.0, 1.0, 1)})
     assert checked_share(bad, "1") is None
     assert checked_share(Share("2", share.odometry, np.array([np.nan, 0.0]), 0.0), "1") is None
 
@@ -231,10 +234,9 @@ def _reference_checked_share(share, receiver):
     entry = share.neighbours.get(receiver)
     if entry is None:
         return tuple(position), tuple(velocity), ()
-    if not isinstance(entry, tuple) or len(entry) != 3:
+    if not isinstance(entry, tuple) or len(entry) != 6:
         return None
-    p, P, stamp = entry
-    numbers = [*p, *P] if isinstance(p, tuple) and isinstance(P, tuple) and (len(p), len(P)) == (2, 3) else [None]
+    *numbers, stamp = entry
     if not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in numbers):
         return None
     p, P = floats(numbers[:2], (2,)), floats(numbers[2:], (3,))
@@ -250,7 +252,7 @@ def _hostile_shares(rng: np.random.Generator, receivers: list[str]) -> list:
 
     def entry():
         x, y = rng.normal(size=2).tolist()
-        return (x, y), (float(rng.uniform(0.1, 2.0)), 0.0, float(rng.uniform(0.1, 2.0))), float(rng.uniform(0.0, 5.0))
+        return x, y, float(rng.uniform(0.1, 2.0)), 0.0, float(rng.uniform(0.1, 2.0)), float(rng.uniform(0.0, 5.0))
 
     def share(**changes):
         parts = {"sender": "9", "odometry": OdometryReading(float(rng.uniform(0, 5)), rng.normal(size=2), 0.3),
@@ -271,9 +273,8 @@ def _hostile_shares(rng: np.random.Generator, receivers: list[str]) -> list:
                share(target_covariance=np.eye(3)), share(neighbours=[("1", entry())]),
                share(antenna=(nan, 0.0)), share(antenna=(30.0, 0.0)), share(antenna=(0.1,)),
                share(antenna=(0.1, 0.0), odometry=OdometryReading(0.1, np.zeros(2), nan)), "not a share", None]
-    for broken in (((nan, 0.0), (1.0, 0.0, 1.0), 1.0), ((0.0, 0.0), (inf, 0.0, 1.0), 1.0),
-                   ((0.0, 0.0), (1.0, 0.0, 1.0), 1), ((0.0, 0.0), (1.0, 0.0, 1.0), nan), ((0.0, 0.0), (1.0, 0.0, 1.0)),
-                   7):
+    for broken in ((nan, 0.0, 1.0, 0.0, 1.0, 1.0), (0.0, 0.0, inf, 0.0, 1.0, 1.0), (0.0, 0.0, 1.0, 0.0, 1.0, 1),
+                   (0.0, 0.0, 1.0, 0.0, 1.0, nan), (0.0, 0.0, 1.0, 0.0, 1.0), 7):
         victim = receivers[int(rng.integers(len(receivers)))]
         shares.append(share(neighbours={r: broken if r == victim else entry() for r in receivers}))
     return shares
@@ -325,11 +326,11 @@ def test_the_fleet_counts_a_refused_share_at_each_receiver_as_a_check_per_receiv
 
     params = AgentParams()
     states = {r: initial_state(r, params, InitialEstimates()) for r in ("1", "2", "3")}
-    entry = ((1.0, 2.0), (1.0, 0.0, 1.0), 0.1)
+    entry = (1.0, 2.0, 1.0, 0.0, 1.0, 0.1)
     good = Share("9", OdometryReading(0.1, np.array([4.0, 5.0]), 0.0), np.array([0.5, 0.0]), 0.2,
                  neighbours={r: entry for r in states})
     hostile = dataclasses.replace(good, velocity=np.array([math.nan, 0.0]))
-    theirs = dataclasses.replace(good, neighbours={**good.neighbours, "2": ((0.0, 0.0), (1.0, 0.0, 1.0), 1)})
+    theirs = dataclasses.replace(good, neighbours={**good.neighbours, "2": (0.0, 0.0, 1.0, 0.0, 1.0, 1)})
     for tick in range(3):
         for r in ("3", "2", "1"):
             receive_shares(params, states[r], {"9": hostile}, 0.1 + tick)
@@ -638,8 +639,7 @@ def test_a_shared_pair_estimate_is_bounded_as_numpy_bounds_it(values):
     if not np.all(np.abs(matrix) <= MAX_SHARED_VARIANCE):
         assert carried is None
     else:
-        position, covariance, epoch = carried
-        assert position == (1.5, -2.5) and covariance == (p11, p12, p22) and epoch == 2.3
+        assert carried == (1.5, -2.5, p11, p12, p22, 2.3)
 
 
 def test_a_neighbour_record_built_directly_is_the_constructors():

@@ -14,7 +14,7 @@ import numpy as np
 
 from agent.cholesky import cholesky_succeeds  # noqa: F401  (the core's name for it: plkf.py)
 from agent.core.estimators.registry import MAX_LEVER_ARM
-from agent.core.records import Share
+from agent.core.records import PairShare, Share
 
 FLOAT64 = np.dtype(np.float64)
 
@@ -148,26 +148,27 @@ def _valid_antenna(antenna, heading) -> bool:
             and isinstance(heading, (int, float)) and math.isfinite(heading))
 
 
-def pair_entry_floats(entry) -> tuple[float, float, float, float, float, float] | None:
-    """A share's estimate of one pair, ((px, py), (p11, p12, p22), stamp) (`records.PairShare`), as the floats
-    (px, py, p11, p12, p22, stamp); None unless it has that shape, the five numbers are real (not bool) and
-    finite, and the stamp is a finite float."""
+def pair_entry_floats(entry) -> PairShare | None:
+    """A share's estimate of one pair (`records.PairShare`: px, py, p11, p12, p22, stamp) as six floats: the
+    entry itself when it is a tuple of floats; None unless it has six elements, the first five real (not
+    bool) and finite, and the stamp a finite float."""
     try:
-        (px, py), (p11, p12, p22), stamp = entry
+        px, py, p11, p12, p22, stamp = entry
     except (TypeError, ValueError):
         return None
     # Per neighbour and tick: one chained type test for the floats the core and the gate build.
-    if not type(px) is type(py) is type(p11) is type(p12) is type(p22) is float:
+    if not type(px) is type(py) is type(p11) is type(p12) is type(p22) is float or type(entry) is not tuple:
         if not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in (px, py, p11, p12, p22)):
             return None
         px, py, p11, p12, p22 = float(px), float(py), float(p11), float(p12), float(p22)
+        entry = (px, py, p11, p12, p22, stamp)
     total = px + py + p11 + p12 + p22
     # A finite sum settles it; only an overflowed one (or a non-finite number) needs the look at each.
     if total - total != 0.0 and not all(map(math.isfinite, (px, py, p11, p12, p22))):
         return None
     if not (isinstance(stamp, float) and math.isfinite(stamp)):
         return None
-    return px, py, p11, p12, p22, stamp
+    return entry
 
 
 def obstacle_array(points) -> tuple[np.ndarray | None, bool]:

@@ -25,10 +25,12 @@ class OdometryReading:
     heading: float            # yaw, common reference, rad
 
 
-# A share's estimate of one pair: p^_jk (x, y), P_jk as its three numbers (p11, p12, p22), and the time (s) it
-# refers to: the shape of the wire's (agent/contract.py PairEstimate), plain floats, no arrays (a vessel builds
-# one per neighbour and tick, and each receiver checks its own as floats).
-PairShare = tuple[tuple[float, float], tuple[float, float, float], float]
+# A share's estimate of one pair: p^_jk (px, py), P_jk as the three numbers of its symmetric part (p11, p12,
+# p22) as the wire carries them (agent/contract.py PairEstimate), and the time (s) it refers to. One flat tuple
+# of floats: a vessel builds one per neighbour and tick, each receiver checks its own as it is, and a fleet in
+# one process holds n (n - 1) of them at once (nested tuples or arrays were more objects to allocate, and for
+# the collector to count).
+PairShare = tuple[float, float, float, float, float, float]
 
 
 @dataclass(frozen=True)
@@ -158,15 +160,12 @@ def floats(values) -> list[float]:
     return np.asarray(values, dtype=float).ravel().tolist()
 
 
-def _pair(values) -> tuple[float, float]:
-    x, y = floats(values)
-    return x, y
-
-
-def _symmetric(values) -> tuple[float, float, float]:
-    """A logged 2x2 covariance (row by row) as a `PairShare`'s three numbers."""
-    p11, p12, _, p22 = floats(values)
-    return p11, p12, p22
+def _pair_share(entry: dict, share_stamp: float) -> PairShare:
+    """A logged estimate of a pair (its covariance a 2x2 row by row) as a `PairShare`."""
+    px, py = floats(entry["position"])
+    p11, p12, _, p22 = floats(entry["covariance"])
+    # Before log format 4 an estimate referred to the share's own stamp.
+    return px, py, p11, p12, p22, float(entry.get("stamp", share_stamp))
 
 
 def odometry_to_json(odometry: OdometryReading) -> dict:
@@ -185,8 +184,8 @@ def share_to_json(share: Share) -> dict:
         "target": None if share.target is None else floats(share.target),
         "target_covariance": None if share.target_covariance is None else floats(share.target_covariance),
         # The covariance as its 2x2 row by row, as logs have always held it.
-        "neighbours": {j: {"position": floats(p), "covariance": floats((c[0], c[1], c[1], c[2])), "stamp": float(t)}
-                       for j, (p, c, t) in share.neighbours.items()},
+        "neighbours": {j: {"position": [px, py], "covariance": [p11, p12, p12, p22], "stamp": stamp}
+                       for j, (px, py, p11, p12, p22, stamp) in share.neighbours.items()},
         # Only when there is one: a share with its antenna at the centre is written as before.
         **({} if share.antenna is None else {"antenna": floats(share.antenna)}),
     }
@@ -200,9 +199,7 @@ def share_from_json(data: dict) -> Share:
         target_covariance=None if data["target_covariance"] is None
         else np.array(data["target_covariance"], dtype=float).reshape(4, 4),
         # Before log format 4 an estimate referred to the share's own stamp.
-        neighbours={j: (_pair(e["position"]), _symmetric(e["covariance"]),
-                        float(e.get("stamp", data["odometry"]["stamp"])))
-                    for j, e in data["neighbours"].items()},
+        neighbours={j: _pair_share(e, data["odometry"]["stamp"]) for j, e in data["neighbours"].items()},
         antenna=None if data.get("antenna") is None else tuple(float(v) for v in data["antenna"]),
     )
 

@@ -394,7 +394,7 @@ def _shared_estimate(track: NeighbourTrack) -> PairShare | None:
     if not (abs(p11) <= MAX_SHARED_VARIANCE and abs(p12) <= MAX_SHARED_VARIANCE
             and abs(p22) <= MAX_SHARED_VARIANCE):
         return None
-    return (px, py), (p11, p12, p22), track.epoch * 1e-6
+    return px, py, p11, p12, p22, track.epoch * 1e-6
 
 
 def _neighbour_record(track: NeighbourTrack, estimate: tuple[float, float], localised: bool) -> NeighbourRecord:

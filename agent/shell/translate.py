@@ -31,7 +31,7 @@ def share_from_message(message: ShareMessage | ReceivedShare,
         target=None if message.target is None else np.array(message.target, dtype=float),
         target_covariance=None if message.target_covariance is None
         else np.array(message.target_covariance, dtype=float).reshape(4, 4),
-        neighbours={j: (_floats(e.position), _floats(e.covariance),
+        neighbours={j: (*map(float, e.position), *map(float, e.covariance),
                         seconds(message.stamp_ns if e.stamp_ns is None else e.stamp_ns))
                     for j, e in neighbours.items()},
         antenna=None if message.antenna is None else (float(message.antenna[0]), float(message.antenna[1])),
@@ -47,12 +47,9 @@ def message_from_share(share: Share, seq: int) -> ShareMessage:
         "velocity": np.asarray(share.velocity, dtype=float).tolist(), "phase": float(share.phase),
         "target": None if share.target is None else np.asarray(share.target, dtype=float).tolist(),
         "target_covariance": None if covariance is None else np.asarray(covariance, dtype=float).ravel().tolist(),
-        "neighbours": {j: {"position": p, "covariance": c, "stamp_ns": nanoseconds(t)}
-                       for j, (p, c, t) in share.neighbours.items()},
+        "neighbours": {j: {"position": (px, py), "covariance": (p11, p12, p22), "stamp_ns": nanoseconds(stamp)}
+                       for j, (px, py, p11, p12, p22, stamp) in share.neighbours.items()},
         # Absent when at the centre: a receiver that predates the field reads the share as before.
         **({} if share.antenna is None else {"antenna": [float(v) for v in share.antenna]}),
     })
 
-
-def _floats(values) -> tuple[float, ...]:
-    return tuple(float(v) for v in values)
