@@ -16,6 +16,7 @@ than the tick's arithmetic. A caller that wants to keep the state before a tick 
 from __future__ import annotations
 
 import math
+import statistics
 from collections import Counter
 from collections.abc import Callable
 
@@ -275,9 +276,9 @@ def _recent_range(track: NeighbourTrack) -> float | None:
     recent = track.ranges.last_values(SEPARATION_RANGES)
     if len(recent) < SEPARATION_RANGES:
         return None
-    ordered, half = sorted(recent), SEPARATION_RANGES // 2
-    # numpy.median's value: the middle one, or the mean of the two middle ones.
-    return float(ordered[half] if SEPARATION_RANGES % 2 else (ordered[half - 1] + ordered[half]) / 2.0)
+    # The standard library's median is numpy's value on these checked floats; agent/core/median.py's NaN scan
+    # and copy would cost as much again, per neighbour and tick.
+    return float(statistics.median(recent))
 
 
 def _keep_apart(params: AgentParams, state: VesselState, ranges, localised: dict[str, tuple[float, float]],
