@@ -151,6 +151,28 @@ def test_the_density_gives_its_log_likelihood_score_and_curvature(components):
     np.testing.assert_allclose(w, expected_w, rtol=1e-12)
 
 
+@pytest.mark.parametrize("components", [TABLE_II, ((0.5, -0.1, 0.01), (0.3, 0.2, 0.04), (0.2, 0.9, 0.5))])
+@pytest.mark.parametrize("h", [0.0, 0.04, 3.0])
+def test_the_predictive_density_is_the_mixture_widened_by_the_prior(components, h):
+    # Tracking's f_h = f * N(0, h) is the mixture with each variance sigma_c^2 + h: against scipy's normal
+    # density, -ln f_h and central differences of it for psi and psi', far out in the tails too.
+    from scipy.stats import norm
+
+    from agent.core.estimators.range_density import RangeDensity
+
+    density = RangeDensity(components)
+
+    def nll(x):
+        return -math.log(sum(w * norm.pdf(x, m, math.sqrt(v + h)) for w, m, v in components))
+
+    step = 1e-4
+    for e in (-3.0, -0.4, 0.0, 0.15, 0.7, 2.5, 12.0):
+        value, psi, dpsi = density.predictive(e, h)
+        assert value == pytest.approx(nll(e), rel=1e-12)
+        assert psi == pytest.approx((nll(e + step) - nll(e - step)) / (2 * step), rel=1e-6, abs=1e-8)
+        assert dpsi == pytest.approx((nll(e + step) - 2 * nll(e) + nll(e - step)) / step**2, rel=1e-4, abs=1e-5)
+
+
 @pytest.mark.parametrize("start_offset, near", [((0.05, -0.03), True), ((0.05, -0.03), False), ((3.0, 2.0), False)])
 def test_a_batch_solve_reaches_the_minimum_an_independent_minimiser_finds(start_offset, near):
     # Newton from near the minimum (`near`), EM first from farther: the same point and cost as scipy's
