@@ -290,4 +290,12 @@ def test_a_storm_of_bad_mavlink_at_the_driver_is_counted_and_the_boat_stays_comm
     assert all(refused.get(reason, 0) > 0 for reason in ("bad_data", "wrong_system", "heartbeat_flood",
                                                           "mode_refused")), refused
     assert "mavlink_failed" not in counts["refused"], counts
-    assert sum("refused mode (command 176): DENIED" in line for line in driver_output.splitlines()) == 1
+    # The forged refusals are said once per episode, not once per datagram: again only after the autopilot was
+    # seen entering the mode asked for. The storm's own heartbeats (HOLD, from the autopilot's ids in its own
+    # stream) can end an episode: the driver then asks for GUIDED again, the stand-in's next heartbeat says
+    # it is in it, and a forged refusal after that is a new episode's (a CI run said it twice so).
+    said = [line for line in driver_output.splitlines()
+            if "refused mode (command 176): DENIED" in line or "autopilot: GUIDED" in line]
+    denied = [k for k, line in enumerate(said) if "DENIED" in line]
+    assert denied, driver_output
+    assert all(any("autopilot: GUIDED" in line for line in said[a + 1:b]) for a, b in zip(denied, denied[1:])), said
